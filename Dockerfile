@@ -1,0 +1,27 @@
+# One image for every COSMOS 3D Search service; SERVICE picks which one a container runs.
+FROM python:3.11-slim-bookworm
+
+# libLLVM 19 lets Mitsuba use its fast llvm_ad_rgb variant (Debian's default LLVM 15 crashes it).
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libllvm19 \
+    && rm -rf /var/lib/apt/lists/*
+ENV DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1
+
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY services ./services
+RUN pip install --no-cache-dir .
+COPY scenes ./scenes
+
+# The package finds the built-in scenes next to itself; point it at the copied folder instead.
+ENV COSMOS_SCENES_DIR=/app/scenes \
+    SERVICE=renderer \
+    PORT=8001
+RUN useradd --create-home cosmos
+USER cosmos
+EXPOSE 8000 8001 8002 8003
+HEALTHCHECK --interval=10s --timeout=3s --start-period=20s \
+    CMD python -c "import os, urllib.request; urllib.request.urlopen(f'http://127.0.0.1:{os.environ[\"PORT\"]}/health', timeout=2)"
+CMD ["sh", "-c", "exec uvicorn services.${SERVICE}.app:app --host 0.0.0.0 --port ${PORT}"]

@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Set up a machine for COSMOS 3D Search, idempotently: Debian's libLLVM 19 for Mitsuba's fast JIT
+# variant (when this user may install packages), a virtual environment in .venv, and the project
+# with its dev extras. Re-running only reinstalls when pyproject.toml changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+have_libllvm() {
+  compgen -G "/usr/lib/*/libLLVM.so.1[6-9]*" >/dev/null || compgen -G "/usr/lib/*/libLLVM-1[6-9].so" >/dev/null \
+    || compgen -G "/usr/lib/*/libLLVM.so.2[0-9]*" >/dev/null || compgen -G "/usr/lib/*/libLLVM-2[0-9].so" >/dev/null
+}
+
+if ! have_libllvm; then
+  if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
+    echo "bootstrap: installing libllvm19 for Mitsuba's llvm_ad_rgb variant"
+    if ! (apt-get install -y -qq libllvm19 >/dev/null 2>&1 \
+          || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1; }); then
+      echo "bootstrap: could not install libllvm19; the renderer will use scalar_rgb" >&2
+    fi
+  else
+    echo "bootstrap: no libLLVM >= 16 and no way to install it; the renderer will use scalar_rgb" >&2
+  fi
+fi
+
+PYTHON=${PYTHON:-python3}
+if [[ ! -x .venv/bin/python ]]; then
+  "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
+    || { echo "bootstrap: Python >= 3.11 is required ($PYTHON is $("$PYTHON" --version))" >&2; exit 1; }
+  echo "bootstrap: creating .venv"
+  "$PYTHON" -m venv .venv
+fi
+
+stamp=.venv/.cosmos-installed
+want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [[ ! -f $stamp || $(cat "$stamp") != "$want" ]]; then
+  echo "bootstrap: installing the project into .venv (a few minutes the first time)"
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e ".[dev]"
+  echo "$want" > "$stamp"
+fi

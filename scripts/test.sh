@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# The test suite: set up if needed, lint (ruff), type-check (mypy --strict), then pytest.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/bootstrap.sh
+.venv/bin/ruff check services tests tools benchmarks
+.venv/bin/ruff format --check services tests tools benchmarks
+.venv/bin/mypy
+.venv/bin/python -m tools.export_schema --check
+exec .venv/bin/pytest "$@"

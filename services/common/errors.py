@@ -1,0 +1,118 @@
+"""Domain errors that map to RFC 9457 problem details, shared by every service.
+
+Domain code raises these; each app's handler (:mod:`services.common.http`) turns them into
+``application/problem+json`` responses. ``type`` is a URN naming the kind of problem.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import ConfigDict
+
+from services.common.models import FrozenModel
+
+__all__ = [
+    "BadRequestError",
+    "NotFoundError",
+    "PayloadTooLargeError",
+    "ProblemDetails",
+    "ServiceError",
+    "ServiceUnavailableError",
+    "UnprocessableError",
+    "UnsupportedMediaTypeError",
+    "problem_type",
+]
+
+
+def problem_type(slug: str) -> str:
+    """The ``type`` URI of a problem kind."""
+    return f"urn:cosmos:problem:{slug}"
+
+
+class ProblemDetails(FrozenModel):
+    """An RFC 9457 problem details object, with COSMOS extensions (``field``, ``errors``)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    type: str = "about:blank"
+    title: str
+    status: int
+    detail: str | None = None
+    instance: str | None = None
+    field: str | None = None
+    errors: list[dict[str, Any]] | None = None
+
+
+class ServiceError(Exception):
+    """Base of every error a service answers with a problem+json body."""
+
+    status: int = 500
+    slug: str = "internal-error"
+    title: str = "Internal error"
+
+    def __init__(
+        self,
+        detail: str,
+        *,
+        field: str | None = None,
+        slug: str | None = None,
+        title: str | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        self.field = field
+        if slug is not None:
+            self.slug = slug
+        if title is not None:
+            self.title = title
+        self.extra = extra or {}
+
+    def problem(self, instance: str | None = None) -> ProblemDetails:
+        """This error as a problem details object."""
+        return ProblemDetails(
+            type=problem_type(self.slug),
+            title=self.title,
+            status=self.status,
+            detail=self.detail,
+            instance=instance,
+            field=self.field,
+            **self.extra,
+        )
+
+
+class BadRequestError(ServiceError):
+    status = 400
+    slug = "bad-request"
+    title = "Bad request"
+
+
+class NotFoundError(ServiceError):
+    status = 404
+    slug = "not-found"
+    title = "Not found"
+
+
+class PayloadTooLargeError(ServiceError):
+    status = 413
+    slug = "payload-too-large"
+    title = "Payload too large"
+
+
+class UnsupportedMediaTypeError(ServiceError):
+    status = 415
+    slug = "unsupported-media-type"
+    title = "Unsupported media type"
+
+
+class UnprocessableError(ServiceError):
+    status = 422
+    slug = "invalid-request"
+    title = "Invalid request"
+
+
+class ServiceUnavailableError(ServiceError):
+    status = 503
+    slug = "unavailable"
+    title = "Service unavailable"

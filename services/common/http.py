@@ -1,0 +1,210 @@
+"""HTTP plumbing shared by the services: problem+json handlers and a request body size limit.
+
+Every error leaves a service as ``application/problem+json`` (RFC 9457): domain errors
+(:class:`~services.common.errors.ServiceError`), request validation errors, Starlette's own HTTP
+errors, and, as a last resort, unexpected exceptions (500, without internals).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from services.common.errors import PayloadTooLargeError, ProblemDetails, ServiceError, problem_type
+
+__all__ = [
+    "PROBLEM_JSON",
+    "BodySizeLimitMiddleware",
+    "ProblemResponse",
+    "install_problem_handlers",
+    "problem_responses",
+]
+
+PROBLEM_JSON = "application/problem+json"
+_log = logging.getLogger("cosmos.http")
+
+
+class ProblemResponse(JSONResponse):
+    media_type = PROBLEM_JSON
+
+
+def _respond(problem: ProblemDetails, headers: dict[str, str] | None = None) -> ProblemResponse:
+    return ProblemResponse(
+        problem.model_dump(mode="json", exclude_none=True),
+        status_code=problem.status,
+        headers=headers,
+    )
+
+
+def _field_of(loc: tuple[int | str, ...]) -> str:
+    """``("body", "pose", "theta_deg")`` -> ``pose.theta_deg``; list indices as ``[i]``."""
+    parts = list(loc[1:] if loc and loc[0] in {"body", "query", "path", "header"} else loc)
+    out = ""
+    for part in parts:
+        out += f"[{part}]" if isinstance(part, int) else ("." if out else "") + str(part)
+    return out or str(loc[0] if loc else "body")
+
+
+async def _service_error(request: Request, exc: Exception) -> ProblemResponse:
+    if not isinstance(exc, ServiceError):  # registered for this type only
+        raise exc
+    headers = {"Retry-After": "1"} if exc.status == 503 else None
+    return _respond(exc.problem(instance=request.url.path), headers)
+
+
+async def _validation_error(request: Request, exc: Exception) -> ProblemResponse:
+    if not isinstance(exc, RequestValidationError):  # registered for this type only
+        raise exc
+    errors = [
+        {"field": _field_of(tuple(err.get("loc", ()))), "message": err.get("msg", "invalid")}
+        for err in exc.errors()
+    ]
+    first = errors[0] if errors else {"field": "body", "message": "invalid request"}
+    detail = f"{first['field']}: {first['message']}"
+    if len(errors) > 1:
+        detail += f" (and {len(errors) - 1} more)"
+    return _respond(
+        ProblemDetails(
+            type=problem_type("invalid-request"),
+            title="Invalid request",
+            status=422,
+            detail=detail,
+            instance=request.url.path,
+            field=first["field"],
+            errors=errors,
+        )
+    )
+
+
+async def _http_error(request: Request, exc: Exception) -> ProblemResponse:
+    if not isinstance(exc, StarletteHTTPException):  # registered for this type only
+        raise exc
+    title = {404: "Not found", 405: "Method not allowed"}.get(exc.status_code, "HTTP error")
+    return _respond(
+        ProblemDetails(
+            type="about:blank",
+            title=title,
+            status=exc.status_code,
+            detail=str(exc.detail),
+            instance=request.url.path,
+        ),
+        dict(exc.headers) if exc.headers else None,
+    )
+
+
+async def _unexpected_error(request: Request, exc: Exception) -> ProblemResponse:
+    _log.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+    return _respond(
+        ProblemDetails(
+            type=problem_type("internal-error"),
+            title="Internal error",
+            status=500,
+            detail="The service failed unexpectedly; the error was logged.",
+            instance=request.url.path,
+        )
+    )
+
+
+def install_problem_handlers(app: FastAPI) -> None:
+    """Make every error ``app`` raises answer with problem+json."""
+    app.add_exception_handler(ServiceError, _service_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(Exception, _unexpected_error)
+
+
+def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses=`` entries declaring problem+json bodies for ``statuses``."""
+    schema = ProblemDetails.model_json_schema()
+    return {
+        status: {
+            "description": "Problem details (RFC 9457)",
+            "content": {PROBLEM_JSON: {"schema": schema}},
+        }
+        for status in statuses
+    }
+
+
+class BodySizeLimitMiddleware:
+    """Reject request bodies over ``max_bytes`` with 413, by Content-Length or by counting.
+
+    A declared length is checked before the app runs (the server holds the client to it). A
+    streamed (chunked) body is read and counted here, up to the limit, and then replayed to the
+    app; reading inside the app would be too late, since FastAPI turns any error while reading the
+    body into a 400. FastAPI has no body limit of its own.
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = _content_length(scope)
+        if declared is not None:
+            if declared > self.max_bytes:
+                await self._reject(scope, send, f"the request body of {declared} bytes")
+                return
+            await self.app(scope, receive, send)
+            return
+        chunks: list[bytes] = []
+        received = 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":  # client went away
+                return
+            chunk = message.get("body", b"")
+            received += len(chunk)
+            if received > self.max_bytes:
+                await self._reject(scope, send, "the streamed request body")
+                return
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    async def _reject(self, scope: Scope, send: Send, what: str) -> None:
+        problem = PayloadTooLargeError(
+            f"{what} exceeds the limit of {self.max_bytes} bytes"
+        ).problem(instance=scope.get("path"))
+        body = json.dumps(problem.model_dump(mode="json", exclude_none=True)).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", PROBLEM_JSON.encode()),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+
+def _content_length(scope: Scope) -> int | None:
+    for name, value in scope.get("headers", []):
+        if name == b"content-length":
+            try:
+                return int(value)
+            except ValueError:
+                return None
+    return None

@@ -1,0 +1,106 @@
+"""Start services as local uvicorn processes on loopback, wait until healthy, stop them."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+__all__ = ["ServiceProcess", "free_port", "running_service", "start_service", "stop_service"]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free on ``host`` a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclass(frozen=True)
+class ServiceProcess:
+    """A running service: its base URL, process and log file."""
+
+    url: str
+    process: subprocess.Popen[bytes]
+    log: Path
+
+
+def start_service(
+    app: str,
+    log_dir: Path,
+    *,
+    port: int | None = None,
+    host: str = "127.0.0.1",
+    env: Mapping[str, str] | None = None,
+    timeout_s: float = 60.0,
+) -> ServiceProcess:
+    """Run ``uvicorn <app>`` and return once ``GET /health`` answers 200.
+
+    Raises ``RuntimeError`` with the tail of the log if the process exits or stays unhealthy.
+    """
+    port = port or free_port(host)
+    log_dir.mkdir(parents=True, exist_ok=True)
+    log = log_dir / f"{app.split('.')[1] if app.count('.') >= 1 else app}-{port}.log"
+    with log.open("wb") as sink:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", app, "--host", host, "--port", str(port)],
+            cwd=ROOT,
+            env={**os.environ, **(env or {})},
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+        )
+    service = ServiceProcess(url=f"http://{host}:{port}", process=process, log=log)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if process.poll() is not None:
+            raise RuntimeError(f"{app} exited with {process.returncode}:\n{_tail(log)}")
+        try:
+            if httpx.get(f"{service.url}/health", timeout=2.0).status_code == 200:
+                return service
+        except httpx.TransportError:
+            pass
+        if time.monotonic() > deadline:
+            stop_service(service)
+            raise RuntimeError(f"{app} was not healthy after {timeout_s:.0f} s:\n{_tail(log)}")
+        time.sleep(0.1)
+
+
+def stop_service(service: ServiceProcess, timeout_s: float = 15.0) -> None:
+    """SIGTERM, then SIGKILL if the process has not exited after ``timeout_s``."""
+    if service.process.poll() is not None:
+        return
+    service.process.terminate()
+    try:
+        service.process.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        service.process.kill()
+        service.process.wait(timeout=5)
+
+
+@contextmanager
+def running_service(
+    app: str, log_dir: Path, env: Mapping[str, str] | None = None, timeout_s: float = 60.0
+) -> Iterator[ServiceProcess]:
+    """A service on a free loopback port for the duration of the block."""
+    service = start_service(app, log_dir, env=env, timeout_s=timeout_s)
+    try:
+        yield service
+    finally:
+        stop_service(service)
+
+
+def _tail(log: Path, chars: int = 4000) -> str:
+    try:
+        return log.read_text(errors="replace")[-chars:]
+    except OSError:
+        return "(no log)"

@@ -1,0 +1,1 @@
+"""COSMOS 3D Search: optimizer."""

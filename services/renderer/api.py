@@ -1,0 +1,122 @@
+"""Renderer routes: thin HTTP wrappers over the catalog, view resolution and the render engine."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import Response
+
+from services.common.http import problem_responses
+from services.common.models import RenderAnnotations, RenderHealth, RenderRequest, SceneSummary
+from services.common.scene import SceneDetail, scene_json_schema
+from services.renderer.catalog import SceneCatalog, scene_grid
+from services.renderer.engine import RenderEngine
+from services.renderer.imaging import encode_png
+from services.renderer.settings import RendererSettings
+from services.renderer.view import resolve_view
+
+__all__ = ["RendererState", "router"]
+
+router = APIRouter()
+
+
+@dataclass(frozen=True)
+class RendererState:
+    """What the routes need, built in the app's lifespan."""
+
+    settings: RendererSettings
+    catalog: SceneCatalog
+    engine: RenderEngine
+
+
+def get_state(request: Request) -> RendererState:
+    state: RendererState = request.app.state.renderer
+    return state
+
+
+State = Annotated[RendererState, Depends(get_state)]
+
+
+@router.get("/health", response_model=RenderHealth)
+async def health(state: State) -> RenderHealth:
+    """Liveness, the Mitsuba variant in use, loaded scenes and renders in flight."""
+    return RenderHealth(
+        status="ok",
+        service="renderer",
+        variant=state.engine.variant,
+        scenes_loaded=state.engine.loaded_scenes(),
+        scenes_available=len(state.catalog.ids()),
+        in_flight=state.engine.in_flight,
+    )
+
+
+@router.get("/scenes", response_model=list[SceneSummary])
+async def list_scenes(state: State) -> list[SceneSummary]:
+    """The valid scenes (invalid scene files are left out and logged)."""
+    summaries = []
+    for scene_id in state.catalog.ids():
+        scene = state.catalog.get(scene_id)
+        summaries.append(
+            SceneSummary(
+                id=scene.id,
+                objects=len(scene.spec.objects),
+                grid_size=scene_grid(scene).size,
+                width=scene.spec.camera.width,
+                height=scene.spec.camera.height,
+            )
+        )
+    return summaries
+
+
+@router.get("/schemas/scene.json")
+async def scene_schema() -> dict[str, Any]:
+    """The JSON Schema of the scene file format."""
+    return scene_json_schema()
+
+
+@router.get("/scenes/{scene_id}", response_model=SceneDetail, responses=problem_responses(404, 422))
+async def get_scene(scene_id: str, state: State) -> SceneDetail:
+    """The validated scene spec and its hemisphere grid."""
+    scene = state.catalog.get(scene_id)
+    return SceneDetail(id=scene.id, spec=scene.spec, grid=scene_grid(scene).info())
+
+
+@router.post(
+    "/render",
+    response_class=Response,
+    responses={
+        200: {"content": {"image/png": {}}, "description": "The rendered view as PNG."},
+        **problem_responses(404, 413, 422, 503),
+    },
+)
+async def render(body: RenderRequest, state: State) -> Response:
+    """Render a view of a scene from a pose (angles or grid indices) as PNG."""
+    view = resolve_view(state.catalog, state.settings, body)
+    image = await state.engine.render_async(
+        view.scene, view.pose, view.width, view.height, view.spp, view.seed
+    )
+    headers = {
+        "X-Render-Ms": f"{image.render_ms:.1f}",
+        "X-Mitsuba-Variant": state.engine.variant,
+        "X-Pose-Theta-Deg": repr(view.pose.theta_deg),
+        "X-Pose-Phi-Deg": repr(view.pose.phi_deg),
+    }
+    if view.grid_index is not None:
+        headers["X-Grid-Index"] = f"{view.grid_index.lat},{view.grid_index.lon}"
+    return Response(encode_png(image.rgb), media_type="image/png", headers=headers)
+
+
+@router.post(
+    "/render/annotations",
+    response_model=RenderAnnotations,
+    responses=problem_responses(404, 413, 422, 503),
+)
+async def render_annotations(body: RenderRequest, state: State) -> RenderAnnotations:
+    """Ground truth of a view: per object its visible and full silhouette boxes and pixel counts,
+    world position and projection, and the camera's intrinsics and extrinsics."""
+    view = resolve_view(state.catalog, state.settings, body)
+    return await state.engine.annotate_async(
+        view.scene, view.pose, view.width, view.height, view.grid_index
+    )

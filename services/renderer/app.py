@@ -1,0 +1,52 @@
+"""The renderer service: ``create_app(settings)`` builds it; ``app`` is the default instance.
+
+Run it with ``uvicorn services.renderer.app:app --port 8001``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.renderer.api import RendererState, router
+from services.renderer.catalog import SceneCatalog
+from services.renderer.engine import RenderEngine
+from services.renderer.settings import RendererSettings
+
+__all__ = ["app", "create_app"]
+
+
+def create_app(settings: RendererSettings | None = None) -> FastAPI:
+    """A renderer app; reads ``COSMOS_*`` settings from the environment unless given."""
+    settings = settings or RendererSettings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
+        engine = RenderEngine(
+            settings.mitsuba_variant, settings.render_scene_cache, settings.render_max_queue
+        )
+        await asyncio.to_thread(engine.start)
+        app.state.renderer = RendererState(settings=settings, catalog=catalog, engine=engine)
+        try:
+            yield
+        finally:
+            await asyncio.to_thread(engine.close)
+
+    app = FastAPI(
+        title="COSMOS renderer",
+        version="0.1.0",
+        summary="Renders views of known scenes with Mitsuba 3, with exact ground truth.",
+        lifespan=lifespan,
+    )
+    install_problem_handlers(app)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.include_router(router)
+    return app
+
+
+app = create_app()

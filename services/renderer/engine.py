@@ -1,0 +1,318 @@
+"""The render engine: one dedicated Mitsuba worker thread, a cache of loaded scenes, and the two
+products of a view, the RGB image and the per-object ground truth.
+
+Mitsuba is not safe across arbitrary threads, so the variant is set and every Mitsuba call runs on
+a single worker thread; a process scales by running more processes. Each (scene, film size) is
+loaded once; moving the camera only rewrites the sensor transform through ``mi.traverse``, so the
+JIT variant reuses its compiled kernels (spp and seed are opaque too).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, ParamSpec, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.camera import camera_model, mitsuba_to_world, project
+from services.common.errors import ServiceUnavailableError
+from services.common.models import GridIndex, ObjectAnnotation, Pose, RenderAnnotations
+from services.common.scene import LoadedScene
+from services.renderer.annotate import silhouettes
+from services.renderer.imaging import linear_to_srgb8
+from services.renderer.scene_builder import build_object_scene, build_scene, object_index_of
+from services.renderer.variant import SCALAR_VARIANT, VariantChoice, VariantRequest, choose_variant
+
+__all__ = ["RenderEngine", "RenderedImage"]
+
+_log = logging.getLogger("cosmos.renderer")
+P = ParamSpec("P")
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class RenderedImage:
+    """An 8-bit sRGB ``(H, W, 3)`` render and how long the Mitsuba call took."""
+
+    rgb: NDArray[np.uint8]
+    render_ms: float
+
+
+@dataclass
+class _Loaded:
+    """A scene loaded at one film size, with what is needed to map shapes back to objects."""
+
+    scene: Any
+    params: Any
+    camera_sensor: Any
+    mask_sensor: Any
+    shape_to_object: NDArray[np.int64]
+    centroids: NDArray[np.float64]
+    object_scenes: dict[int, tuple[Any, Any]] = field(default_factory=dict)
+
+
+class RenderEngine:
+    """Renders views of scenes on one Mitsuba worker thread.
+
+    Sync methods (:meth:`render`, :meth:`annotate`) block the caller; the ``*_async`` variants
+    await the worker without blocking an event loop. At most ``max_queue`` calls may wait or run
+    at once; more raise :class:`ServiceUnavailableError`.
+    """
+
+    def __init__(
+        self, variant: VariantRequest = "auto", cache_size: int = 8, max_queue: int = 32
+    ) -> None:
+        if cache_size < 1 or max_queue < 1:
+            raise ValueError("cache_size and max_queue must be at least 1")
+        self._choice: VariantChoice = choose_variant(variant)
+        self._cache_size = cache_size
+        self._max_queue = max_queue
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mitsuba")
+        self._lock = threading.Lock()
+        self._in_flight = 0
+        self._cache: OrderedDict[tuple[str, int, int, int], _Loaded] = OrderedDict()
+        self._mi: Any = None
+        self._dr: Any = None
+        self._aov: Any = None
+        self.variant = ""
+        self.variant_reason = ""
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Set the Mitsuba variant on the worker thread (falls back to scalar if LLVM fails)."""
+        self._executor.submit(self._init_worker).result()
+        _log.info("mitsuba variant %s (%s)", self.variant, self.variant_reason)
+
+    def close(self) -> None:
+        """Finish queued work and stop the worker thread."""
+        self._executor.shutdown(wait=True, cancel_futures=True)
+        self._cache.clear()
+
+    def _init_worker(self) -> None:
+        choice = self._choice
+        if choice.libllvm is not None:
+            os.environ["DRJIT_LIBLLVM_PATH"] = choice.libllvm
+        import drjit as dr
+        import mitsuba as mi
+
+        try:
+            mi.set_variant(choice.variant)
+        except (ImportError, AttributeError, RuntimeError) as exc:
+            _log.warning("variant %s failed (%s); using %s", choice.variant, exc, SCALAR_VARIANT)
+            choice = VariantChoice(SCALAR_VARIANT, None, f"{choice.variant} failed: {exc}")
+            mi.set_variant(SCALAR_VARIANT)
+        self._mi, self._dr = mi, dr
+        self._aov = mi.load_dict({"type": "aov", "aovs": "si:shape_index"})
+        self.variant, self.variant_reason = choice.variant, choice.reason
+
+    # -- scheduling -------------------------------------------------------------------------
+
+    @property
+    def in_flight(self) -> int:
+        """Calls waiting for or running on the worker."""
+        return self._in_flight
+
+    def loaded_scenes(self) -> tuple[str, ...]:
+        """Ids of the scenes currently loaded (any film size)."""
+        return tuple(sorted({key[0] for key in list(self._cache)}))
+
+    def _admit(self) -> None:
+        with self._lock:
+            if self._in_flight >= self._max_queue:
+                raise ServiceUnavailableError(
+                    f"the renderer has {self._in_flight} renders queued; try again shortly",
+                    slug="renderer-busy",
+                    title="Renderer busy",
+                )
+            self._in_flight += 1
+
+    def _release(self) -> None:
+        with self._lock:
+            self._in_flight -= 1
+
+    def call(self, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
+        """Run ``fn`` on the Mitsuba worker thread and wait for its result."""
+        self._admit()
+        try:
+            return self._executor.submit(fn, *args, **kwargs).result()
+        finally:
+            self._release()
+
+    async def call_async(self, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
+        """Like :meth:`call`, awaited without blocking the event loop."""
+        self._admit()
+        try:
+            return await asyncio.wrap_future(self._executor.submit(fn, *args, **kwargs))
+        finally:
+            self._release()
+
+    # -- products ---------------------------------------------------------------------------
+
+    def render(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int = 0
+    ) -> RenderedImage:
+        """Render ``scene`` from ``pose`` (blocking)."""
+        return self.call(self._render, scene, pose, width, height, spp, seed)
+
+    async def render_async(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int = 0
+    ) -> RenderedImage:
+        """Render ``scene`` from ``pose`` on the worker."""
+        return await self.call_async(self._render, scene, pose, width, height, spp, seed)
+
+    def annotate(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
+    ) -> RenderAnnotations:
+        """Ground truth of the view (blocking)."""
+        return self.call(self._annotate, scene, pose, width, height, grid_index)
+
+    async def annotate_async(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
+    ) -> RenderAnnotations:
+        """Ground truth of the view on the worker."""
+        return await self.call_async(self._annotate, scene, pose, width, height, grid_index)
+
+    # -- worker-side ------------------------------------------------------------------------
+
+    def loaded(self, scene: LoadedScene, width: int, height: int) -> _Loaded:
+        """The scene loaded at this film size, from the cache or loaded now (worker thread only)."""
+        key = (scene.id, scene.version, width, height)
+        cached = self._cache.get(key)
+        if cached is not None:
+            self._cache.move_to_end(key)
+            return cached
+        mi = self._mi
+        started = time.perf_counter()
+        mi_scene = mi.load_dict(build_scene(mi, scene, width, height))
+        shapes = list(mi_scene.shapes())
+        keys = self._shape_keys(shapes)
+        count = len(scene.spec.objects)
+        shape_to_object = np.full(max(keys) + 1, -1, dtype=np.int64)
+        lo = np.full((count, 3), np.inf)
+        hi = np.full((count, 3), -np.inf)
+        for shape_key, shape in zip(keys, shapes, strict=True):
+            index = object_index_of(shape.id())
+            shape_to_object[shape_key] = index
+            if index >= 0:
+                box = shape.bbox()
+                lo[index] = np.minimum(lo[index], np.array(box.min, dtype=np.float64).ravel())
+                hi[index] = np.maximum(hi[index], np.array(box.max, dtype=np.float64).ravel())
+        sensors = {sensor.id(): sensor for sensor in mi_scene.sensors()}
+        loaded = _Loaded(
+            scene=mi_scene,
+            params=mi.traverse(mi_scene),
+            camera_sensor=sensors["camera"],
+            mask_sensor=sensors["mask_camera"],
+            shape_to_object=shape_to_object,
+            centroids=(lo + hi) / 2.0,
+        )
+        self._cache[key] = loaded
+        while len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        _log.info(
+            "loaded scene %s at %dx%d in %.0f ms",
+            scene.id,
+            width,
+            height,
+            (time.perf_counter() - started) * 1000,
+        )
+        return loaded
+
+    def _shape_keys(self, shapes: list[Any]) -> list[int]:
+        """The value the ``shape_index`` AOV reports for each shape.
+
+        Scalar variants report the 1-based position in ``scene.shapes()``; JIT variants report the
+        shape's id in Dr.Jit's instance registry (what ``ShapePtr`` holds), which counts every shape
+        the process ever created.
+        """
+        if self.variant == SCALAR_VARIANT:
+            return list(range(1, len(shapes) + 1))
+        mi, dr = self._mi, self._dr
+        return [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]) for shape in shapes]
+
+    def _place(self, params: Any, key: str, pose: Pose, radius: float) -> None:
+        params[key] = self._mi.ScalarTransform4f(mitsuba_to_world(pose, radius).tolist())
+        params.update()
+
+    def _render(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int
+    ) -> RenderedImage:
+        loaded = self.loaded(scene, width, height)
+        self._place(loaded.params, "camera.to_world", pose, scene.spec.camera.radius)
+        started = time.perf_counter()
+        image = self._mi.render(loaded.scene, sensor=loaded.camera_sensor, spp=spp, seed=seed)
+        linear = np.asarray(image, dtype=np.float32).reshape(height, width, -1)[..., :3]
+        render_ms = (time.perf_counter() - started) * 1000.0
+        return RenderedImage(rgb=linear_to_srgb8(linear), render_ms=render_ms)
+
+    def _shape_ids(self, scene: Any, sensor: Any, width: int, height: int) -> NDArray[np.int64]:
+        """Per-pixel 1-based shape positions (0 = no hit), one ray through each pixel centre."""
+        image = self._mi.render(scene, sensor=sensor, integrator=self._aov, spp=1)
+        values = np.asarray(image, dtype=np.float32).reshape(height, width, -1)[..., -1]
+        ids: NDArray[np.int64] = np.rint(values).astype(np.int64)
+        return ids
+
+    def _annotate(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
+    ) -> RenderAnnotations:
+        spec = scene.spec
+        loaded = self.loaded(scene, width, height)
+        radius = spec.camera.radius
+        self._place(loaded.params, "mask_camera.to_world", pose, radius)
+        ids = self._shape_ids(loaded.scene, loaded.mask_sensor, width, height)
+        count = len(spec.objects)
+        known = (ids >= 0) & (ids < len(loaded.shape_to_object))
+        visible = silhouettes(
+            np.where(known, loaded.shape_to_object[np.where(known, ids, 0)], -1), count
+        )
+        full_pixels = np.zeros(count, dtype=np.int64)
+        full_boxes: list[tuple[float, float, float, float] | None] = []
+        for index in range(count):
+            alone, params = self._object_scene(loaded, scene, index, width, height)
+            self._place(params, "mask_camera.to_world", pose, radius)
+            mask = self._shape_ids(alone, alone.sensors()[0], width, height) > 0
+            stats = silhouettes(np.where(mask, 0, -1), 1)
+            full_pixels[index] = stats.pixels[0]
+            full_boxes.append(stats.box(0))
+        camera = camera_model(pose, radius, spec.camera.fov_deg, width, height)
+        projected, _ = project(loaded.centroids, camera)
+        objects = []
+        for index, obj in enumerate(spec.objects):
+            full = int(full_pixels[index])
+            seen = int(min(visible.pixels[index], full)) if full else int(visible.pixels[index])
+            objects.append(
+                ObjectAnnotation(
+                    name=obj.name,
+                    shape=obj.shape,
+                    position=(obj.position[0], obj.position[1], 0.0),
+                    centroid=tuple(float(v) for v in loaded.centroids[index]),
+                    box=visible.box(index),
+                    visible_pixels=int(visible.pixels[index]),
+                    full_box=full_boxes[index],
+                    full_pixels=full,
+                    visible_fraction=seen / full if full else 0.0,
+                    projected_center=(float(projected[index, 0]), float(projected[index, 1])),
+                )
+            )
+        return RenderAnnotations(
+            scene=scene.id, pose=pose, grid_index=grid_index, camera=camera, objects=tuple(objects)
+        )
+
+    def _object_scene(
+        self, loaded: _Loaded, scene: LoadedScene, index: int, width: int, height: int
+    ) -> tuple[Any, Any]:
+        """Object ``index`` alone, loaded once per cached scene, for its unoccluded silhouette."""
+        if index not in loaded.object_scenes:
+            alone = self._mi.load_dict(build_object_scene(self._mi, scene, index, width, height))
+            loaded.object_scenes[index] = (alone, self._mi.traverse(alone))
+        return loaded.object_scenes[index]

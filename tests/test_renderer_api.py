@@ -1,0 +1,187 @@
+"""The renderer's HTTP API in process (ASGI transport, lifespan run): answers and problem+json."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+from asgi_lifespan import LifespanManager
+
+from services.renderer.app import create_app
+from services.renderer.settings import RendererSettings
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture(scope="module")
+def anyio_backend() -> str:
+    return "asyncio"
+
+
+@pytest.fixture(scope="module")
+async def client() -> AsyncIterator[httpx.AsyncClient]:
+    settings = RendererSettings(render_max_side=1024, max_body_bytes=4096)
+    app = create_app(settings)
+    async with LifespanManager(app) as manager:
+        transport = httpx.ASGITransport(app=manager.app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://renderer") as c:
+            yield c
+
+
+def decode(png: bytes) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None
+    return image
+
+
+async def test_health_reports_the_variant(client):
+    body = (await client.get("/health")).json()
+    assert body["status"] == "ok"
+    assert body["variant"] in {"llvm_ad_rgb", "scalar_rgb"}
+    assert body["scenes_available"] >= 2
+    assert body["in_flight"] == 0
+
+
+async def test_scenes_lists_the_built_in_scenes(client):
+    scenes = {s["id"]: s for s in (await client.get("/scenes")).json()}
+    assert {"demo", "garden"} <= set(scenes)
+    assert scenes["demo"]["objects"] == 5
+
+
+async def test_scene_detail_has_spec_and_grid(client):
+    body = (await client.get("/scenes/demo")).json()
+    assert body["spec"]["camera"]["fov_deg"] == 45
+    rings = body["grid"]["rings"]
+    assert rings[0]["theta_deg"] == 7.5
+    assert rings[-1]["theta_deg"] == 82.5
+    assert body["grid"]["size"] == sum(r["count"] for r in rings)
+
+
+async def test_scene_schema_is_published(client):
+    schema = (await client.get("/schemas/scene.json")).json()
+    assert set(schema["required"]) >= {"camera", "lighting", "ground", "objects"}
+
+
+@pytest.mark.parametrize(
+    "pose", [{"theta_deg": 45, "phi_deg": 30}, {"lat": 3, "lon": 5}, {"theta_deg": 0, "phi_deg": 0}]
+)
+async def test_render_returns_a_png_of_the_scene_size(client, pose):
+    response = await client.post("/render", json={"scene": "demo", "pose": pose, "spp": 2})
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "image/png"
+    assert decode(response.content).shape == (240, 320, 3)
+
+
+async def test_grid_poses_are_resolved_and_reported(client):
+    response = await client.post(
+        "/render", json={"scene": "demo", "pose": {"lat": 3, "lon": 5}, "spp": 1}
+    )
+    assert response.headers["x-grid-index"] == "3,5"
+    assert float(response.headers["x-pose-theta-deg"]) == pytest.approx(30.0)
+    off_grid = await client.post(
+        "/render", json={"scene": "demo", "pose": {"theta_deg": 31, "phi_deg": 2}, "spp": 1}
+    )
+    assert "x-grid-index" not in off_grid.headers
+
+
+async def test_width_alone_keeps_the_aspect_ratio(client):
+    response = await client.post(
+        "/render", json={"scene": "demo", "pose": {"lat": 0, "lon": 0}, "width": 160, "spp": 1}
+    )
+    assert decode(response.content).shape == (120, 160, 3)
+
+
+async def test_seed_makes_renders_repeatable(client):
+    body = {"scene": "demo", "pose": {"lat": 2, "lon": 1}, "spp": 2, "seed": 5}
+    first = await client.post("/render", json=body)
+    again = await client.post("/render", json=body)
+    other = await client.post("/render", json={**body, "seed": 6})
+    assert np.array_equal(decode(first.content), decode(again.content))
+    assert not np.array_equal(decode(first.content), decode(other.content))
+
+
+async def test_annotations_match_the_requested_view(client):
+    body = {"scene": "garden", "pose": {"lat": 4, "lon": 7}}
+    ann = (await client.post("/render/annotations", json=body)).json()
+    assert ann["grid_index"] == {"lat": 4, "lon": 7}
+    assert ann["camera"]["width"] == 320
+    assert ann["camera"]["fx"] == pytest.approx(386.27, abs=0.01)
+    assert {o["name"] for o in ann["objects"]} == {"red", "crate", "post", "duck", "hat", "arch"}
+
+
+BAD_REQUESTS = [
+    ({"scene": "nope", "pose": {"lat": 0, "lon": 0}}, 404, "scene"),
+    ({"scene": "demo", "pose": {"theta_deg": 95, "phi_deg": 0}}, 422, "pose.theta_deg"),
+    ({"scene": "demo", "pose": {"theta_deg": -1, "phi_deg": 0}}, 422, "pose.theta_deg"),
+    ({"scene": "demo", "pose": {"theta_deg": 10}}, 422, "pose"),
+    ({"scene": "demo", "pose": {"theta_deg": 10, "phi_deg": 0, "lat": 1, "lon": 1}}, 422, "pose"),
+    ({"scene": "demo", "pose": {"lat": 11, "lon": 0}}, 422, "pose.lat"),
+    ({"scene": "demo", "pose": {"lat": 0, "lon": 9}}, 422, "pose.lon"),
+    ({"scene": "demo", "pose": {"lat": -1, "lon": 0}}, 422, "pose.lat"),
+    ({"scene": "demo", "pose": {"lat": 0, "lon": 0}, "width": 5000}, 422, "width"),
+    ({"scene": "demo", "pose": {"lat": 0, "lon": 0}, "height": 1}, 422, "height"),
+    ({"scene": "demo", "pose": {"lat": 0, "lon": 0}, "spp": 100000}, 422, "spp"),
+    ({"scene": "demo", "pose": {"lat": 0, "lon": 0}, "spp": 0}, 422, "spp"),
+    ({"scene": "demo", "pose": {"lat": 0, "lon": 0}, "colour": 1}, 422, "colour"),
+    ({"scene": "demo", "pose": {"lat": 0, "lon": 0}, "seed": -3}, 422, "seed"),
+    ({"pose": {"lat": 0, "lon": 0}}, 422, "scene"),
+]
+
+
+@pytest.mark.parametrize(("body", "status", "field"), BAD_REQUESTS)
+@pytest.mark.parametrize("path", ["/render", "/render/annotations"])
+async def test_bad_requests_get_problem_details_naming_the_field(client, path, body, status, field):
+    response = await client.post(path, json=body)
+    assert response.status_code == status
+    assert response.headers["content-type"] == "application/problem+json"
+    problem = response.json()
+    assert problem["status"] == status
+    assert problem["type"].startswith("urn:cosmos:problem:")
+    assert problem["field"] == field, problem
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b"", b"{", b"[]", b"null", b'{"scene": "demo", "pose": {"theta_deg": NaN, "phi_deg": 0}}'],
+)
+async def test_malformed_json_is_a_422_problem(client, content):
+    response = await client.post(
+        "/render", content=content, headers={"content-type": "application/json"}
+    )
+    assert response.status_code == 422
+    assert response.headers["content-type"] == "application/problem+json"
+
+
+async def test_unknown_scene_detail_is_404(client):
+    response = await client.get("/scenes/nope")
+    assert response.status_code == 404
+    assert response.json()["type"] == "urn:cosmos:problem:unknown-scene"
+
+
+async def test_unknown_route_is_a_problem(client):
+    response = await client.get("/nowhere")
+    assert response.status_code == 404
+    assert response.headers["content-type"] == "application/problem+json"
+
+
+async def test_oversized_body_is_413_by_content_length(client):
+    response = await client.post(
+        "/render", content=b"x" * 5000, headers={"content-type": "application/json"}
+    )
+    assert response.status_code == 413
+    assert response.json()["type"] == "urn:cosmos:problem:payload-too-large"
+
+
+async def test_oversized_streamed_body_is_413(client):
+    async def chunks() -> AsyncIterator[bytes]:
+        for _ in range(10):
+            yield b" " * 1000
+
+    response = await client.post(
+        "/render", content=chunks(), headers={"content-type": "application/json"}
+    )
+    assert response.status_code == 413
+    assert response.headers["content-type"] == "application/problem+json"

@@ -1,0 +1,1 @@
+"""Developer tools for COSMOS 3D Search (asset generation)."""
