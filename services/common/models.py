@@ -140,11 +140,11 @@ class GridRing(FrozenModel):
 class GridInfo(FrozenModel):
     """The discretised hemisphere of a scene: its rings and total number of poses."""
 
-    angle_step_deg: float
-    min_theta_deg: float
-    max_theta_deg: float
-    rings: tuple[GridRing, ...]
-    size: int
+    angle_step_deg: Annotated[float, Field(gt=0.0, le=90.0)]
+    min_theta_deg: ThetaDeg
+    max_theta_deg: ThetaDeg
+    rings: Annotated[tuple[GridRing, ...], Field(min_length=1)]
+    size: Annotated[int, Field(ge=1)]
 
 
 BoxXYXY = tuple[float, float, float, float]

@@ -16,6 +16,7 @@ from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic_core import PydanticCustomError
 
 from services.common.grid import grid_for
 from services.common.models import FrozenModel, GridInfo
@@ -190,15 +191,17 @@ class SceneSpec(FrozenModel):
         for i, obj in enumerate(self.objects):
             x, y = obj.position
             if abs(x) > half or abs(y) > half:
-                raise ValueError(
-                    f"objects[{i}] ({obj.name}) stands at {obj.position}, off the ground "
-                    f"square of size {self.ground.size}"
+                raise _layout_error(
+                    f"objects[{i}].position",
+                    f"{obj.name} stands at {obj.position}, off the ground square of size "
+                    f"{self.ground.size}",
                 )
         extent = _scene_extent(self)
         if self.camera.radius <= extent:
-            raise ValueError(
-                f"camera.radius {self.camera.radius} does not clear the objects "
-                f"(they reach {extent:.3g} from the centre)"
+            raise _layout_error(
+                "camera.radius",
+                f"{self.camera.radius} does not clear the objects (they reach {extent:.3g} "
+                "from the centre)",
             )
         return self
 
@@ -221,6 +224,13 @@ class SceneDetail(FrozenModel):
     id: str
     spec: SceneSpec
     grid: GridInfo
+
+
+def _layout_error(field: str, message: str) -> PydanticCustomError:
+    """A whole-scene check's error that still names its field (``ctx["field"]``)."""
+    return PydanticCustomError(
+        "scene_layout", "{field}: {message}", {"field": field, "message": message}
+    )
 
 
 def _scene_extent(spec: SceneSpec) -> float:
@@ -266,17 +276,20 @@ class LoadedScene:
         return self.path.parent
 
 
+_SHAPE_TAGS = frozenset({"sphere", "cube", "cylinder", "cone", "mesh"})
+
+
 def _field_name(loc: tuple[int | str, ...]) -> str:
     """Turn a pydantic error location into a dotted path such as ``objects[3].radius``.
 
     Discriminated unions insert the tag (``sphere``) into the location; it is dropped here.
     """
     out = ""
-    for part in loc:
+    for position, part in enumerate(loc):
         if isinstance(part, int):
             out += f"[{part}]"
-        elif part in {"sphere", "cube", "cylinder", "cone", "mesh"} and out.endswith("]"):
-            continue
+        elif part in _SHAPE_TAGS and position > 0 and isinstance(loc[position - 1], int):
+            continue  # the union's tag, right after the list index
         else:
             out += ("." if out else "") + part
     return out or "(root)"
@@ -317,12 +330,31 @@ def resolve_asset(scene_dir: Path, relative: str, field: str, scene_path: Path) 
     return resolved
 
 
+class _SceneLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, but a key given twice in one mapping is an error, not "last wins"."""
+
+
+def _unique_mapping(loader: _SceneLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
+    seen: set[Any] = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        if isinstance(key, str) and key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r}", key_node.start_mark
+            )
+        seen.add(key if isinstance(key, str) else id(key))
+    return loader.construct_mapping(node, deep=deep)
+
+
+_SceneLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
 def parse_scene(text: str, path: Path) -> SceneSpec:
     """Parse and validate scene YAML ``text``; errors name ``path`` and the field."""
     if len(text) > MAX_SCENE_FILE_CHARS:
         raise SceneFileError(path, None, f"larger than {MAX_SCENE_FILE_CHARS} characters")
     try:
-        data: Any = yaml.safe_load(text)
+        data: Any = yaml.load(text, Loader=_SceneLoader)  # a SafeLoader subclass
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else None
@@ -341,9 +373,12 @@ def parse_scene(text: str, path: Path) -> SceneSpec:
         more = len(exc.errors()) - 1
         suffix = f" (and {more} more error{'s' if more > 1 else ''})" if more else ""
         message = first["msg"]
+        field = _field_name(tuple(first["loc"]))
         if first["type"] == "extra_forbidden":
             message = "unknown key"
-        raise SceneFileError(path, _field_name(tuple(first["loc"])), message + suffix) from exc
+        elif first["type"] == "scene_layout":
+            field, message = first["ctx"]["field"], first["ctx"]["message"]
+        raise SceneFileError(path, field, message + suffix) from exc
 
 
 def load_scene(path: Path) -> LoadedScene:

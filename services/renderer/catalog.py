@@ -91,8 +91,9 @@ class SceneCatalog:
     def get(self, scene_id: str) -> LoadedScene:
         """The scene ``scene_id``; :class:`NotFoundError` if there is no such file,
         :class:`UnprocessableError` if its file is invalid."""
-        if re.match(SCENE_ID_PATTERN, scene_id) is not None and scene_id not in self._files:
-            self.rescan()
+        valid_id = re.match(SCENE_ID_PATTERN, scene_id) is not None
+        if valid_id and (scene_id not in self._files or not self._files[scene_id].is_file()):
+            self.rescan()  # a new file, or a deleted one that another directory may still hold
         if scene_id not in self._files:
             known = ", ".join(self.ids()) or "none"
             raise NotFoundError(
