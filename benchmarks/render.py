@@ -51,7 +51,7 @@ def cold_probe(scene_id: str, spp: int) -> float:
 
 def _rebuild_and_render(engine: RenderEngine, scene: Any, pose: Pose, spp: int, seed: int) -> None:
     mi = engine._mi  # benchmark-only: the worker's Mitsuba module
-    loaded = mi.load_dict(build_scene(mi, scene, WIDTH, HEIGHT))
+    loaded = mi.load_dict(build_scene(mi, scene, WIDTH, HEIGHT), optimize=False)
     params = mi.traverse(loaded)
     params["camera.to_world"] = mi.ScalarTransform4f(
         mitsuba_to_world(pose, scene.spec.camera.radius).tolist()

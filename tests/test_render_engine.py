@@ -12,7 +12,7 @@ import pytest
 
 from services.common.camera import camera_model
 from services.common.models import Pose
-from services.renderer.catalog import scene_grid
+from services.renderer.catalog import SceneCatalog, scene_grid
 from services.renderer.variant import SCALAR_VARIANT
 from tests.support import ROOT
 
@@ -139,3 +139,26 @@ def test_the_scalar_variant_gives_the_same_ground_truth(engine, catalog):
         assert theirs["name"] == ours.name
         assert theirs["visible_pixels"] == pytest.approx(ours.visible_pixels, rel=0.02, abs=3)
         assert theirs["box"] == pytest.approx(list(ours.box), abs=1.0)
+
+
+def test_objects_sharing_a_material_stay_separate(engine, tmp_path):
+    """Mitsuba merges meshes with identical materials unless told not to; each object must keep
+    its own silhouette."""
+    (tmp_path / "twins.yaml").write_text(
+        "camera: {fov_deg: 45, width: 160, height: 120, radius: 8.0}\n"
+        "lighting: {point: {position: [3, 3, 8], intensity: 200}}\n"
+        "ground: {size: 12, color: [0.5, 0.5, 0.5]}\n"
+        "objects:\n"
+        "  - {name: a, shape: cube, position: [-1.5, 0], size: 0.8, color: [0.8, 0.1, 0.1]}\n"
+        "  - {name: b, shape: cube, position: [1.5, 0], size: 0.8, color: [0.8, 0.1, 0.1]}\n"
+        "  - {name: c, shape: cone, position: [0, 1.5], radius: 0.4, height: 0.8,\n"
+        "     color: [0.8, 0.1, 0.1]}\n"
+    )
+    scene = SceneCatalog([tmp_path]).get("twins")
+    ann = engine.annotate(scene, Pose(theta_deg=30, phi_deg=90), 160, 120, None)
+    boxes = [o.box for o in ann.objects]
+    assert all(box is not None for box in boxes)
+    assert len(set(boxes)) == 3
+    a, b = ann.objects[0], ann.objects[1]
+    assert a.centroid[0] == pytest.approx(-1.5, abs=1e-4)
+    assert b.centroid[0] == pytest.approx(1.5, abs=1e-4)

@@ -193,7 +193,9 @@ class RenderEngine:
             return cached
         mi = self._mi
         started = time.perf_counter()
-        mi_scene = mi.load_dict(build_scene(mi, scene, width, height))
+        # optimize=False: Mitsuba would otherwise merge meshes that share a material into one
+        # shape, and their objects could no longer be told apart in the shape-id image.
+        mi_scene = mi.load_dict(build_scene(mi, scene, width, height), optimize=False)
         shapes = list(mi_scene.shapes())
         keys = self._shape_keys(shapes)
         count = len(scene.spec.objects)
@@ -207,6 +209,11 @@ class RenderEngine:
                 box = shape.bbox()
                 lo[index] = np.minimum(lo[index], np.array(box.min, dtype=np.float64).ravel())
                 hi[index] = np.maximum(hi[index], np.array(box.max, dtype=np.float64).ravel())
+        unmapped = [
+            scene.spec.objects[i].name for i in range(count) if not np.isfinite(lo[i]).all()
+        ]
+        if unmapped:
+            raise RuntimeError(f"scene {scene.id}: no Mitsuba shape for objects {unmapped}")
         sensors = {sensor.id(): sensor for sensor in mi_scene.sensors()}
         loaded = _Loaded(
             scene=mi_scene,
@@ -313,6 +320,7 @@ class RenderEngine:
     ) -> tuple[Any, Any]:
         """Object ``index`` alone, loaded once per cached scene, for its unoccluded silhouette."""
         if index not in loaded.object_scenes:
-            alone = self._mi.load_dict(build_object_scene(self._mi, scene, index, width, height))
+            data = build_object_scene(self._mi, scene, index, width, height)
+            alone = self._mi.load_dict(data, optimize=False)
             loaded.object_scenes[index] = (alone, self._mi.traverse(alone))
         return loaded.object_scenes[index]
