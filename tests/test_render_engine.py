@@ -162,3 +162,16 @@ def test_objects_sharing_a_material_stay_separate(engine, tmp_path):
     a, b = ann.objects[0], ann.objects[1]
     assert a.centroid[0] == pytest.approx(-1.5, abs=1e-4)
     assert b.centroid[0] == pytest.approx(1.5, abs=1e-4)
+
+
+def test_object_map_agrees_with_the_annotations(engine, catalog):
+    scene = catalog.get("garden")
+    pose = Pose(theta_deg=60, phi_deg=250)
+    ids = engine.object_map(scene, pose, 200, 150)
+    ann = engine.annotate(scene, pose, 200, 150, None)
+    assert ids.shape == (150, 200)
+    for index, obj in enumerate(ann.objects):
+        assert int((ids == index).sum()) == obj.visible_pixels
+        if obj.box is not None:
+            ys, xs = np.nonzero(ids == index)
+            assert obj.box == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)

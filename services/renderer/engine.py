@@ -182,6 +182,12 @@ class RenderEngine:
         """Ground truth of the view on the worker."""
         return await self.call_async(self._annotate, scene, pose, width, height, grid_index)
 
+    def object_map(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int
+    ) -> NDArray[np.int64]:
+        """Per-pixel index of the object seen through each pixel centre, -1 where none."""
+        return self.call(self._object_map, scene, pose, width, height)
+
     # -- worker-side ------------------------------------------------------------------------
 
     def loaded(self, scene: LoadedScene, width: int, height: int) -> _Loaded:
@@ -275,13 +281,8 @@ class RenderEngine:
         spec = scene.spec
         loaded = self.loaded(scene, width, height)
         radius = spec.camera.radius
-        self._place(loaded.params, "mask_camera.to_world", pose, radius)
-        ids = self._shape_ids(loaded.scene, loaded.mask_sensor, width, height)
         count = len(spec.objects)
-        known = (ids >= 0) & (ids < len(loaded.shape_to_object))
-        visible = silhouettes(
-            np.where(known, loaded.shape_to_object[np.where(known, ids, 0)], -1), count
-        )
+        visible = silhouettes(self._object_map(scene, pose, width, height), count)
         full_pixels = np.zeros(count, dtype=np.int64)
         full_boxes: list[tuple[float, float, float, float] | None] = []
         for index in range(count):
@@ -314,6 +315,18 @@ class RenderEngine:
         return RenderAnnotations(
             scene=scene.id, pose=pose, grid_index=grid_index, camera=camera, objects=tuple(objects)
         )
+
+    def _object_map(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int
+    ) -> NDArray[np.int64]:
+        loaded = self.loaded(scene, width, height)
+        self._place(loaded.params, "mask_camera.to_world", pose, scene.spec.camera.radius)
+        ids = self._shape_ids(loaded.scene, loaded.mask_sensor, width, height)
+        known = (ids >= 0) & (ids < len(loaded.shape_to_object))
+        mapped: NDArray[np.int64] = np.where(
+            known, loaded.shape_to_object[np.where(known, ids, 0)], -1
+        )
+        return mapped
 
     def _object_scene(
         self, loaded: _Loaded, scene: LoadedScene, index: int, width: int, height: int
