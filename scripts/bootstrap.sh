@@ -30,11 +30,19 @@ if [[ ! -x .venv/bin/python ]]; then
   "$PYTHON" -m venv .venv
 fi
 
+# The training extra (PyTorch) only when asked for, or when the CPU wheel lies on this disk: from
+# PyPI a plain torch requirement pulls a multi-GB CUDA build.
+extras=dev
+case ${COSMOS_TRAINING:-auto} in
+  1|yes|true) extras=dev,train ;;
+  auto) compgen -G "${PIP_FIND_LINKS:-/opt/wheels}/torch-2.13.0+cpu-*.whl" >/dev/null && extras=dev,train ;;
+esac
+
 stamp=.venv/.cosmos-installed
-want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+want="$(sha256sum pyproject.toml | cut -d' ' -f1) $extras"
 if [[ ! -f $stamp || $(cat "$stamp") != "$want" ]]; then
-  echo "bootstrap: installing the project into .venv (a few minutes the first time)"
+  echo "bootstrap: installing the project [$extras] into .venv (a few minutes the first time)"
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[dev]"
+  .venv/bin/python -m pip install -q -e ".[$extras]"
   echo "$want" > "$stamp"
 fi

@@ -15,10 +15,13 @@ __all__ = [
     "Angle",
     "BoxXYXY",
     "CameraModel",
+    "DetectResponse",
+    "Detection",
     "FrozenModel",
     "GridIndex",
     "GridInfo",
     "GridRing",
+    "ModelInfo",
     "ObjectAnnotation",
     "Pose",
     "PoseQuery",
@@ -240,3 +243,45 @@ class RenderHealth(FrozenModel):
     scenes_loaded: tuple[str, ...]
     scenes_available: int
     in_flight: NonNegInt
+
+
+Rgb255 = tuple[
+    Annotated[float, Field(ge=0.0, le=255.0)],
+    Annotated[float, Field(ge=0.0, le=255.0)],
+    Annotated[float, Field(ge=0.0, le=255.0)],
+]
+
+
+class Detection(FrozenModel):
+    """One object found in an image.
+
+    ``box`` is ``[x1, y1, x2, y2]`` in pixels of the image that was sent (pixel edges: the box of
+    a single pixel at column 3, row 5 is ``[3, 5, 4, 6]``). ``color`` is the mean sRGB colour
+    (0–255) of the object's own pixels inside the box, ground excluded, or null when it could not
+    be measured.
+    """
+
+    label: Annotated[str, Field(min_length=1, max_length=64)]
+    class_id: NonNegInt
+    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
+    box: BoxXYXY
+    color: Rgb255 | None = None
+
+
+class ModelInfo(FrozenModel):
+    """The detector model a service runs."""
+
+    name: str
+    classes: tuple[str, ...]
+    input_size: tuple[int, int] = Field(description="Network input (width, height) in pixels.")
+    sha256: str
+    provenance: dict[str, str | int | float] = Field(default_factory=dict)
+
+
+class DetectResponse(FrozenModel):
+    """``POST /detect``: the detections and the size (width, height) of the image they refer to."""
+
+    detections: tuple[Detection, ...]
+    image_size: tuple[int, int]
+    model: ModelInfo
+    inference_ms: Annotated[float, Field(ge=0.0)] = 0.0

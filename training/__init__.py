@@ -1,0 +1,1 @@
+"""Training the shipped detector: dataset rendering, the PyTorch model, training and export."""
