@@ -1,0 +1,285 @@
+"""The COSMOS Broker: spreads render, detect and optimize tasks over service replicas.
+
+Each stage (renderer, detector, optimizer) has a pool of replica URLs. For every task the broker
+picks a replica with a configurable heuristic:
+
+* ``least-loaded``: fewest tasks in flight (this controller's, or what the replica reports in
+  ``/health``, whichever is larger);
+* ``shortest-expected-completion``: smallest ``(load + 1) · expected duration``, where the expected
+  duration is an exponential moving average of that replica's recent durations for that kind of
+  task (a replica with no history is assumed as fast as the pool's mean);
+* ``round-robin``: the next replica in turn.
+
+A connect error, a timeout or a 5xx answer sends the task to another replica after a short
+backoff; a replica that fails ``failure_threshold`` times in a row is taken out for
+``cooldown_s`` and then probed back through ``/health``. A task fails, with the reasons, only when
+no replica could serve it. 4xx answers are the caller's problem and are returned as they are.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import time
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+import httpx
+
+__all__ = ["Broker", "BrokerError", "Heuristic", "Replica", "ReplicaStats"]
+
+_log = logging.getLogger("cosmos.broker")
+EWMA_WEIGHT = 0.3
+DEFAULT_EXPECTED_MS = 100.0
+
+Request = Callable[[httpx.AsyncClient], Awaitable[httpx.Response]]
+
+
+class Heuristic(StrEnum):
+    LEAST_LOADED = "least-loaded"
+    SHORTEST_EXPECTED = "shortest-expected-completion"
+    ROUND_ROBIN = "round-robin"
+
+
+class BrokerError(RuntimeError):
+    """No replica of a stage could serve a task; ``reasons`` says what each attempt met."""
+
+    def __init__(self, stage: str, kind: str, reasons: Sequence[str]) -> None:
+        self.stage, self.kind, self.reasons = stage, kind, list(reasons)
+        summary = "; ".join(self.reasons) or "no replica configured"
+        super().__init__(f"no {stage} replica could {kind}: {summary}")
+
+
+@dataclass
+class Replica:
+    """One service replica and what the broker knows of it."""
+
+    stage: str
+    url: str
+    client: httpx.AsyncClient
+    in_flight: int = 0
+    reported_load: float = 0.0
+    expected_ms: dict[str, float] = field(default_factory=dict)
+    consecutive_failures: int = 0
+    down_until: float = 0.0
+    served: int = 0
+    failed: int = 0
+
+    @property
+    def load(self) -> float:
+        return max(float(self.in_flight), self.reported_load)
+
+    def available(self, now: float) -> bool:
+        return now >= self.down_until
+
+
+@dataclass(frozen=True)
+class ReplicaStats:
+    """A replica as reported by the controller's ``/health``."""
+
+    stage: str
+    url: str
+    up: bool
+    in_flight: int
+    reported_load: float
+    expected_ms: dict[str, float]
+    served: int
+    failed: int
+
+
+class Broker:
+    """Replica pools per stage, task placement, retries and health probing."""
+
+    def __init__(
+        self,
+        pools: Mapping[str, Sequence[str]],
+        *,
+        heuristic: Heuristic = Heuristic.SHORTEST_EXPECTED,
+        timeouts_s: Mapping[str, float] | None = None,
+        connect_timeout_s: float = 2.0,
+        max_attempts: int = 4,
+        backoff_s: float = 0.05,
+        failure_threshold: int = 3,
+        cooldown_s: float = 5.0,
+        health_interval_s: float = 2.0,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ) -> None:
+        if max_attempts < 1 or failure_threshold < 1:
+            raise ValueError("max_attempts and failure_threshold must be at least 1")
+        self.heuristic = heuristic
+        self.max_attempts = max_attempts
+        self.backoff_s = backoff_s
+        self.failure_threshold = failure_threshold
+        self.cooldown_s = cooldown_s
+        self.health_interval_s = health_interval_s
+        timeouts = dict(timeouts_s or {})
+        self._replicas: dict[str, list[Replica]] = {}
+        for stage, urls in pools.items():
+            read = timeouts.get(stage, 60.0)
+            self._replicas[stage] = [
+                Replica(
+                    stage=stage,
+                    url=url.rstrip("/"),
+                    client=httpx.AsyncClient(
+                        base_url=url.rstrip("/"),
+                        timeout=httpx.Timeout(read, connect=connect_timeout_s),
+                        transport=transport,
+                    ),
+                )
+                for url in urls
+            ]
+        self._turns = {stage: itertools.count() for stage in self._replicas}
+        self._health_task: asyncio.Task[None] | None = None
+
+    # -- life cycle ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Begin probing replica health in the background."""
+        if self._health_task is None and self.health_interval_s > 0:
+            self._health_task = asyncio.create_task(self._probe_forever(), name="broker-health")
+
+    async def close(self) -> None:
+        if self._health_task is not None:
+            self._health_task.cancel()
+            try:
+                await self._health_task
+            except asyncio.CancelledError:
+                pass
+            self._health_task = None
+        for replica in self.replicas():
+            await replica.client.aclose()
+
+    # -- introspection ------------------------------------------------------------------------
+
+    def replicas(self, stage: str | None = None) -> list[Replica]:
+        if stage is not None:
+            return list(self._replicas.get(stage, []))
+        return [r for pool in self._replicas.values() for r in pool]
+
+    def stats(self) -> list[ReplicaStats]:
+        now = time.monotonic()
+        return [
+            ReplicaStats(
+                stage=r.stage,
+                url=r.url,
+                up=r.available(now),
+                in_flight=r.in_flight,
+                reported_load=r.reported_load,
+                expected_ms=dict(r.expected_ms),
+                served=r.served,
+                failed=r.failed,
+            )
+            for r in self.replicas()
+        ]
+
+    # -- placement ----------------------------------------------------------------------------
+
+    def _expected_ms(self, replica: Replica, kind: str, pool: Sequence[Replica]) -> float:
+        if kind in replica.expected_ms:
+            return replica.expected_ms[kind]
+        known = [r.expected_ms[kind] for r in pool if kind in r.expected_ms]
+        return sum(known) / len(known) if known else DEFAULT_EXPECTED_MS
+
+    def choose(self, stage: str, kind: str, exclude: set[str] | None = None) -> Replica:
+        """The replica for the next ``kind`` task of ``stage`` (never one in ``exclude`` or out
+        for cooldown, unless every replica is)."""
+        pool = self._replicas.get(stage, [])
+        if not pool:
+            raise BrokerError(stage, kind, [])
+        now = time.monotonic()
+        exclude = exclude or set()
+        candidates = [r for r in pool if r.available(now) and r.url not in exclude]
+        if not candidates:
+            candidates = [r for r in pool if r.url not in exclude] or list(pool)
+        turn = next(self._turns[stage])
+        if self.heuristic is Heuristic.ROUND_ROBIN:
+            return candidates[turn % len(candidates)]
+        rotated = candidates[turn % len(candidates) :] + candidates[: turn % len(candidates)]
+        if self.heuristic is Heuristic.LEAST_LOADED:
+            return min(rotated, key=lambda r: r.load)
+        return min(rotated, key=lambda r: (r.load + 1.0) * self._expected_ms(r, kind, pool))
+
+    # -- calls --------------------------------------------------------------------------------
+
+    async def call(self, stage: str, kind: str, request: Request) -> httpx.Response:
+        """Run ``request`` against a replica of ``stage``, retrying elsewhere on failure.
+
+        Returns the first answer below 500; raises :class:`BrokerError` when every attempt met
+        a connect error, a timeout or a 5xx.
+        """
+        reasons: list[str] = []
+        tried: set[str] = set()
+        for attempt in range(self.max_attempts):
+            if attempt:
+                await asyncio.sleep(self.backoff_s * 2 ** (attempt - 1))
+            if len(tried) == len(self._replicas.get(stage, [])):
+                tried.clear()  # every replica failed once: try them again after the backoff
+            replica = self.choose(stage, kind, tried)
+            replica.in_flight += 1
+            started = time.perf_counter()
+            try:
+                response = await request(replica.client)
+            except httpx.TransportError as exc:
+                reason = f"{replica.url}: {type(exc).__name__}"
+            else:
+                elapsed_ms = (time.perf_counter() - started) * 1000.0
+                if response.status_code < 500:
+                    self._succeeded(replica, kind, elapsed_ms)
+                    return response
+                reason = f"{replica.url}: HTTP {response.status_code}"
+            finally:
+                replica.in_flight -= 1
+            self._failed(replica, reason)
+            reasons.append(reason)
+            tried.add(replica.url)
+        raise BrokerError(stage, kind, reasons)
+
+    def _succeeded(self, replica: Replica, kind: str, elapsed_ms: float) -> None:
+        previous = replica.expected_ms.get(kind)
+        replica.expected_ms[kind] = (
+            elapsed_ms if previous is None else previous + EWMA_WEIGHT * (elapsed_ms - previous)
+        )
+        replica.consecutive_failures = 0
+        replica.down_until = 0.0
+        replica.served += 1
+
+    def _failed(self, replica: Replica, reason: str) -> None:
+        replica.failed += 1
+        replica.consecutive_failures += 1
+        if replica.consecutive_failures >= self.failure_threshold:
+            replica.down_until = time.monotonic() + self.cooldown_s
+            _log.warning("taking %s out for %.1f s (%s)", replica.url, self.cooldown_s, reason)
+
+    # -- health -------------------------------------------------------------------------------
+
+    async def probe(self) -> None:
+        """Ask every replica's ``/health`` once: refresh reported loads, bring replicas back."""
+        await asyncio.gather(*(self._probe(r) for r in self.replicas()))
+
+    async def _probe(self, replica: Replica) -> None:
+        try:
+            response = await replica.client.get("/health", timeout=2.0)
+            body: Any = response.json() if response.status_code == 200 else None
+        except (httpx.TransportError, ValueError):
+            body = None
+        if not isinstance(body, dict):
+            if replica.available(time.monotonic()):
+                self._failed(replica, "health probe failed")
+            return
+        load = body.get("in_flight")
+        replica.reported_load = float(load) if isinstance(load, int | float) else 0.0
+        if not replica.available(time.monotonic()):
+            _log.info("%s answers /health again", replica.url)
+        replica.down_until = 0.0
+        replica.consecutive_failures = 0
+
+    async def _probe_forever(self) -> None:
+        while True:
+            await asyncio.sleep(self.health_interval_s)
+            try:
+                await self.probe()
+            except Exception:  # a probe must never kill the loop
+                _log.exception("health probe failed")

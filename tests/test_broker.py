@@ -1,0 +1,194 @@
+"""The broker: placement heuristics, retries, taking failing replicas out and back, with
+injected faults (httpx.MockTransport) and with real slow, failing and hanging replica processes."""
+
+from __future__ import annotations
+
+import asyncio
+from collections import Counter
+
+import httpx
+import pytest
+
+from services.common.launch import running_service
+from services.controller.broker import Broker, BrokerError, Heuristic
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def anyio_backend() -> str:
+    return "asyncio"
+
+
+def work(client: httpx.AsyncClient):
+    return client.post("/work")
+
+
+def mock_broker(behaviour, heuristic=Heuristic.SHORTEST_EXPECTED, **kwargs) -> Broker:
+    """Replicas a, b, c served by ``behaviour(host, request) -> httpx.Response``."""
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return behaviour(request.url.host, request)
+
+    return Broker(
+        {"renderer": ["http://a", "http://b", "http://c"]},
+        heuristic=heuristic,
+        transport=httpx.MockTransport(handler),
+        backoff_s=0.0,
+        health_interval_s=0,
+        **kwargs,
+    )
+
+
+async def test_round_robin_takes_turns():
+    broker = mock_broker(
+        lambda host, _: httpx.Response(200, json={"host": host}), Heuristic.ROUND_ROBIN
+    )
+    hosts = [(await broker.call("renderer", "render", work)).json()["host"] for _ in range(6)]
+    assert Counter(hosts) == {"a": 2, "b": 2, "c": 2}
+    await broker.close()
+
+
+async def test_least_loaded_avoids_busy_replicas():
+    broker = mock_broker(lambda host, _: httpx.Response(200), Heuristic.LEAST_LOADED)
+    a, b, c = broker.replicas("renderer")
+    a.in_flight, b.reported_load, c.in_flight = 3, 5, 1
+    assert broker.choose("renderer", "render") is c
+    await broker.close()
+
+
+async def test_shortest_expected_completion_prefers_the_fast_replica():
+    broker = mock_broker(lambda host, _: httpx.Response(200))
+    a, b, c = broker.replicas("renderer")
+    a.expected_ms["render"], b.expected_ms["render"], c.expected_ms["render"] = 300.0, 40.0, 90.0
+    assert broker.choose("renderer", "render") is b
+    b.in_flight = 3  # 4 x 40 ms of work ahead of a new task there: c is quicker now
+    assert broker.choose("renderer", "render") is c
+    assert broker.choose("renderer", "detect") in (a, b, c)  # no history for that kind yet
+    await broker.close()
+
+
+async def test_connect_errors_and_5xx_go_to_another_replica():
+    def behaviour(host, request):
+        if host == "a":
+            raise httpx.ConnectError("refused", request=request)
+        if host == "b":
+            return httpx.Response(503)
+        return httpx.Response(200, json={"host": host})
+
+    broker = mock_broker(behaviour, Heuristic.ROUND_ROBIN)
+    for _ in range(5):
+        assert (await broker.call("renderer", "render", work)).json() == {"host": "c"}
+    a, b, c = broker.replicas("renderer")
+    assert a.failed > 0
+    assert b.failed > 0
+    assert c.failed == 0
+    await broker.close()
+
+
+async def test_client_errors_are_returned_not_retried():
+    calls = Counter()
+
+    def behaviour(host, request):
+        calls[host] += 1
+        return httpx.Response(422, json={"detail": "bad"})
+
+    broker = mock_broker(behaviour)
+    response = await broker.call("renderer", "render", work)
+    assert response.status_code == 422
+    assert sum(calls.values()) == 1
+    await broker.close()
+
+
+async def test_a_task_fails_with_reasons_only_when_no_replica_can_serve():
+    def behaviour(host, request):
+        raise httpx.ReadTimeout("slow", request=request)
+
+    broker = mock_broker(behaviour, max_attempts=4)
+    with pytest.raises(BrokerError) as caught:
+        await broker.call("renderer", "render", work)
+    assert len(caught.value.reasons) == 4
+    assert all("ReadTimeout" in reason for reason in caught.value.reasons)
+    assert "no renderer replica could render" in str(caught.value)
+    await broker.close()
+
+
+async def test_a_failing_replica_is_taken_out_and_probed_back():
+    healthy = {"a": False}
+
+    def behaviour(host, request):
+        if request.url.path == "/health":
+            return (
+                httpx.Response(200, json={"in_flight": 2}) if healthy[host] else httpx.Response(500)
+            )
+        return httpx.Response(500)
+
+    broker = Broker(
+        {"renderer": ["http://a"]},
+        transport=httpx.MockTransport(lambda r: behaviour(r.url.host, r)),
+        backoff_s=0.0,
+        failure_threshold=2,
+        cooldown_s=60.0,
+        health_interval_s=0,
+    )
+    with pytest.raises(BrokerError):
+        await broker.call("renderer", "render", work)
+    (a,) = broker.replicas("renderer")
+    assert not broker.stats()[0].up
+    await broker.probe()
+    assert not broker.stats()[0].up  # still failing its health check
+    healthy["a"] = True
+    await broker.probe()
+    assert broker.stats()[0].up
+    assert a.reported_load == 2.0
+    await broker.close()
+
+
+async def test_unknown_stage_is_an_error():
+    broker = mock_broker(lambda host, _: httpx.Response(200))
+    with pytest.raises(BrokerError):
+        await broker.call("detector", "detect", work)
+    await broker.close()
+
+
+@pytest.mark.slow
+async def test_real_replicas_slow_failing_hanging_and_killed(tmp_path):
+    """Four real processes: a fast one, a slow one, one answering 500, one that hangs."""
+    with (
+        running_service(
+            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "fast", "FAKE_DELAY_MS": "10"}
+        ) as fast,
+        running_service(
+            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "slow", "FAKE_DELAY_MS": "150"}
+        ) as slow,
+        running_service(
+            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "broken", "FAKE_FAIL": "500"}
+        ) as broken,
+        running_service(
+            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "stuck", "FAKE_FAIL": "hang"}
+        ) as stuck,
+    ):
+        broker = Broker(
+            {"renderer": [fast.url, slow.url, broken.url, stuck.url]},
+            timeouts_s={"renderer": 0.5},
+            backoff_s=0.01,
+            failure_threshold=1,
+            cooldown_s=30.0,
+            health_interval_s=0,
+        )
+        served = Counter()
+        for _ in range(3):  # sequential: each replica gets tried, the bad ones drop out
+            served[(await broker.call("renderer", "work", work)).json()["replica"]] += 1
+        results = await asyncio.gather(*(broker.call("renderer", "work", work) for _ in range(24)))
+        served.update(r.json()["replica"] for r in results)
+        assert set(served) <= {"fast", "slow"}
+        assert served["fast"] > served["slow"]
+        up = {s.url: s.up for s in broker.stats()}
+        assert not up[broken.url]
+        assert not up[stuck.url]
+
+        slow.process.terminate()  # a replica dies mid-run: the rest carries on
+        slow.process.wait(timeout=10)
+        results = await asyncio.gather(*(broker.call("renderer", "work", work) for _ in range(10)))
+        assert {r.json()["replica"] for r in results} == {"fast"}
+        await broker.close()
