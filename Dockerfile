@@ -14,9 +14,11 @@ COPY pyproject.toml README.md ./
 COPY services ./services
 RUN pip install --no-cache-dir .
 COPY scenes ./scenes
+COPY models ./models
 
 # The package finds the built-in scenes next to itself; point it at the copied folder instead.
 ENV COSMOS_SCENES_DIR=/app/scenes \
+    COSMOS_DETECTOR_MODEL=/app/models/detector.onnx \
     SERVICE=renderer \
     PORT=8001
 RUN useradd --create-home cosmos

@@ -1,0 +1,116 @@
+"""Detector routes: thin HTTP wrappers over :class:`~services.detector.detect.Detector`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
+from pydantic import Field
+
+from services.common.errors import UnsupportedMediaTypeError
+from services.common.http import problem_responses
+from services.common.models import DetectResponse, FrozenModel, ModelInfo
+from services.detector.detect import Detector
+from services.detector.settings import DetectorSettings
+
+__all__ = ["DetectorHealth", "DetectorState", "router"]
+
+router = APIRouter()
+
+
+class DetectorHealth(FrozenModel):
+    """``GET /health`` of the detector."""
+
+    status: Literal["ok"]
+    service: Literal["detector"]
+    model: str
+    model_sha256: str
+    in_flight: Annotated[int, Field(ge=0)]
+    providers: tuple[str, ...] = Field(description="onnxruntime execution providers in use.")
+    intra_op_threads: Annotated[int, Field(ge=0)] = Field(
+        description="onnxruntime intra-op threads (0: one per core)."
+    )
+    max_batch: Annotated[int, Field(ge=1)] = Field(description="Images per inference run.")
+    batches_run: Annotated[int, Field(ge=0)]
+    images_run: Annotated[int, Field(ge=0)]
+
+
+@dataclass(frozen=True)
+class DetectorState:
+    """What the routes need, built in the app's lifespan."""
+
+    settings: DetectorSettings
+    detector: Detector
+
+
+def get_state(request: Request) -> DetectorState:
+    state: DetectorState = request.app.state.detector
+    return state
+
+
+State = Annotated[DetectorState, Depends(get_state)]
+
+
+def require_multipart(request: Request) -> None:
+    """415 unless the body is ``multipart/form-data`` (checked before the form's fields)."""
+    media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if media_type != "multipart/form-data":
+        raise UnsupportedMediaTypeError(
+            f"POST /detect takes multipart/form-data with the image in the field 'image', "
+            f"not {media_type or 'a body without a content type'}",
+            field="content-type",
+        )
+
+
+@router.get("/health", response_model=DetectorHealth)
+async def health(state: State) -> DetectorHealth:
+    """Liveness, the model being served, requests in flight and the inference set-up."""
+    detector = state.detector
+    return DetectorHealth(
+        status="ok",
+        service="detector",
+        model=detector.info.name,
+        model_sha256=detector.info.sha256,
+        in_flight=detector.in_flight,
+        providers=detector.model.providers,
+        intra_op_threads=detector.model.threads,
+        max_batch=detector.batcher.max_batch,
+        batches_run=detector.batcher.stats.batches,
+        images_run=detector.batcher.stats.images,
+    )
+
+
+@router.get("/model", response_model=ModelInfo)
+async def model(state: State) -> ModelInfo:
+    """The model: name, classes, input size (width, height), file SHA-256 and provenance."""
+    return state.detector.info
+
+
+@router.post(
+    "/detect",
+    response_model=DetectResponse,
+    responses=problem_responses(400, 413, 415, 422, 503),
+    dependencies=[Depends(require_multipart)],
+)
+async def detect(
+    state: State,
+    image: Annotated[UploadFile, File(description="The image: PNG or JPEG bytes.")],
+    conf: Annotated[
+        float | None,
+        Query(
+            ge=0.0,
+            le=1.0,
+            allow_inf_nan=False,
+            description="Confidence threshold for this request (default: the service's).",
+        ),
+    ] = None,
+    max_detections: Annotated[
+        int | None,
+        Query(ge=1, le=1000, description="At most this many detections, best first."),
+    ] = None,
+) -> DetectResponse:
+    """Detect the objects in an image (multipart field ``image``): per object its class,
+    confidence, box in pixels of the uploaded image and mean colour."""
+    data = await image.read()
+    return await state.detector.detect(data, conf=conf, max_detections=max_detections)

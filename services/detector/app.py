@@ -1,0 +1,66 @@
+"""The detector service: ``create_app(settings)`` builds it; ``app`` is the default instance.
+
+Run it with ``uvicorn services.detector.app:app --port 8002``. The model
+(``COSMOS_DETECTOR_MODEL``, default ``models/detector.onnx``) is loaded at start-up, not at
+import: a missing or malformed model stops the start-up with a
+:class:`~services.detector.model.ModelError` naming the file.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.detector.api import DetectorState, router
+from services.detector.detect import Detector
+from services.detector.model import DetectorModel
+from services.detector.settings import DetectorSettings
+
+__all__ = ["app", "create_app"]
+
+_log = logging.getLogger("cosmos.detector")
+
+
+def create_app(settings: DetectorSettings | None = None) -> FastAPI:
+    """A detector app; reads ``COSMOS_*`` settings from the environment unless given."""
+    settings = settings or DetectorSettings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        model = await asyncio.to_thread(
+            DetectorModel, settings.detector_model, threads=settings.detector_threads
+        )
+        detector = Detector(model, settings)
+        await detector.start()
+        _log.info(
+            "serving %s (%s, input %s, classes %s) on %s",
+            model.path,
+            model.info.sha256[:12],
+            model.info.input_size,
+            ", ".join(model.classes),
+            ", ".join(model.providers),
+        )
+        app.state.detector = DetectorState(settings=settings, detector=detector)
+        try:
+            yield
+        finally:
+            await detector.close()
+
+    app = FastAPI(
+        title="COSMOS detector",
+        version="0.1.0",
+        summary="Finds the scene's objects in an image: class, box, confidence and colour.",
+        lifespan=lifespan,
+    )
+    install_problem_handlers(app)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.detector_max_upload_bytes)
+    app.include_router(router)
+    return app
+
+
+app = create_app()

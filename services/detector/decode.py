@@ -1,0 +1,160 @@
+"""Safe decoding of uploaded images: PNG or JPEG only, sized from the header before decoding.
+
+The header is read here, in Python, so an image whose width x height exceeds the cap is refused
+before OpenCV allocates anything (a small PNG can declare 60000 x 60000 pixels of zeros: a
+decompression bomb). Only the PNG and JPEG decoders are reachable; other formats OpenCV knows
+(TIFF, WebP, JPEG 2000, ...) are refused by their signature.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.errors import (
+    PayloadTooLargeError,
+    UnprocessableError,
+    UnsupportedMediaTypeError,
+)
+
+__all__ = ["ImageHeader", "decode_image", "read_header"]
+
+ImageFormat = Literal["png", "jpeg"]
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JPEG_SOI = b"\xff\xd8"
+# Start-of-frame markers carry the size: SOF0-3, 5-7, 9-11, 13-15 (C4, C8 and CC are not frames).
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+_JPEG_SOS, _JPEG_EOI = 0xDA, 0xD9
+_JPEG_MAX_SEGMENTS = 4096  # a real header has a few dozen; this bounds the scan of a hostile one
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image's header says: its format and size in pixels."""
+
+    format: ImageFormat
+    width: int
+    height: int
+
+
+def _invalid(detail: str) -> UnprocessableError:
+    return UnprocessableError(detail, field="image", slug="invalid-image", title="Invalid image")
+
+
+def read_header(data: bytes) -> ImageHeader:
+    """The format and size of a PNG or JPEG image, read from its first bytes.
+
+    Raises
+    ------
+    UnprocessableError
+        Empty data, or a PNG/JPEG whose header is malformed, truncated or declares no pixels.
+    UnsupportedMediaTypeError
+        Anything that is neither PNG nor JPEG.
+    """
+    if not data:
+        raise UnprocessableError(
+            "the uploaded image is empty", field="image", slug="empty-image", title="Empty image"
+        )
+    if data.startswith(_PNG_SIGNATURE):
+        return _png_header(data)
+    if data.startswith(_JPEG_SOI):
+        return _jpeg_header(data)
+    raise UnsupportedMediaTypeError(
+        "the upload is not a PNG or JPEG image (by its signature)",
+        field="image",
+        slug="unsupported-image-format",
+        title="Unsupported image format",
+    )
+
+
+def _png_header(data: bytes) -> ImageHeader:
+    # The IHDR chunk must come first: length 13, then width and height as big-endian uint32.
+    if len(data) < 33 or data[12:16] != b"IHDR" or int.from_bytes(data[8:12], "big") != 13:
+        raise _invalid("the PNG has no valid IHDR header (truncated or corrupt)")
+    width = int.from_bytes(data[16:20], "big")
+    height = int.from_bytes(data[20:24], "big")
+    if width == 0 or height == 0:
+        raise _invalid(f"the PNG declares a size of {width}x{height} pixels")
+    return ImageHeader("png", width, height)
+
+
+def _jpeg_header(data: bytes) -> ImageHeader:
+    """Walk the marker segments up to the start of scan; the frame header has the size."""
+    size: tuple[int, int] | None = None
+    pos, end = 2, len(data)
+    for _ in range(_JPEG_MAX_SEGMENTS):
+        if pos >= end or data[pos] != 0xFF:
+            raise _invalid("the JPEG header is truncated or corrupt")
+        while pos < end and data[pos] == 0xFF:  # fill bytes may pad any marker
+            pos += 1
+        if pos >= end:
+            raise _invalid("the JPEG header is truncated")
+        marker = data[pos]
+        pos += 1
+        if 0xD0 <= marker <= 0xD7 or marker == 0x01:  # markers without a length
+            continue
+        if marker in (0xD8, _JPEG_EOI):
+            raise _invalid("the JPEG ends or restarts before its image data")
+        if pos + 2 > end:
+            raise _invalid("the JPEG header is truncated")
+        length = int.from_bytes(data[pos : pos + 2], "big")
+        if length < 2 or pos + length > end:
+            raise _invalid("the JPEG header is truncated or corrupt")
+        if marker in _JPEG_SOF:
+            if length < 8:
+                raise _invalid("the JPEG frame header is corrupt")
+            height = int.from_bytes(data[pos + 3 : pos + 5], "big")
+            width = int.from_bytes(data[pos + 5 : pos + 7], "big")
+            size = (width, height)
+        if marker == _JPEG_SOS:
+            if size is None:
+                raise _invalid("the JPEG has no frame header before its image data")
+            # A complete file ends with EOI (possibly followed by padding).
+            if data.rfind(b"\xff\xd9", pos + length) < 0:
+                raise _invalid("the JPEG is truncated (no end-of-image marker)")
+            width, height = size
+            if width == 0 or height == 0:
+                raise _invalid(f"the JPEG declares a size of {width}x{height} pixels")
+            return ImageHeader("jpeg", width, height)
+        pos += length
+    raise _invalid("the JPEG header has too many segments")
+
+
+def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.uint8]:
+    """Decode PNG or JPEG bytes to an 8-bit RGB ``(H, W, 3)`` array.
+
+    Grey, palette, 16-bit and alpha images are converted to 8-bit RGB (alpha dropped). EXIF
+    orientation is ignored: the array is the stored pixel grid, whose size the header states.
+
+    Raises
+    ------
+    PayloadTooLargeError
+        The header declares more than ``max_pixels`` pixels or a side over ``max_side``.
+    UnprocessableError, UnsupportedMediaTypeError
+        As :func:`read_header`; also when the image data cannot be decoded.
+    """
+    header = read_header(data)
+    pixels = header.width * header.height
+    if pixels > max_pixels or max(header.width, header.height) > max_side:
+        raise PayloadTooLargeError(
+            f"the image is {header.width}x{header.height} pixels; the limit is {max_pixels} "
+            f"pixels and {max_side} per side",
+            field="image",
+            slug="image-too-large",
+            title="Image too large",
+        )
+    flags = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+    try:
+        bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    except cv2.error as exc:  # OpenCV's own size cap, or a decoder that throws
+        raise _invalid(f"the {header.format.upper()} image could not be decoded") from exc
+    if bgr is None:
+        raise _invalid(f"the {header.format.upper()} image is truncated or corrupt")
+    if bgr.shape[:2] != (header.height, header.width) or bgr.ndim != 3:
+        raise _invalid("the decoded image does not match the size its header declares")
+    return np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)

@@ -1,0 +1,170 @@
+"""Detection end to end: image bytes -> letterboxed tensor -> model -> boxes in image pixels.
+
+:func:`detections_from_output` is the pure post-processing of one image;
+:class:`Detector` runs requests concurrently (decoding and post-processing on worker threads,
+inference through the :class:`~services.detector.batching.MicroBatcher`) and bounds how many
+are in flight.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.errors import ServiceUnavailableError
+from services.common.models import Detection, DetectResponse, ModelInfo
+from services.detector.batching import MicroBatcher
+from services.detector.colour import measure_colour
+from services.detector.decode import decode_image
+from services.detector.letterbox import Letterbox, letterbox
+from services.detector.model import DetectorModel
+from services.detector.postprocess import Candidates, decode_output, nms
+from services.detector.settings import DetectorSettings
+
+__all__ = ["DetectOptions", "Detector", "detections_from_output"]
+
+
+@dataclass(frozen=True)
+class DetectOptions:
+    """Post-processing knobs (see :class:`~services.detector.settings.DetectorSettings`)."""
+
+    conf: float = 0.25
+    iou: float = 0.5
+    max_detections: int = 100
+    max_candidates: int = 5000
+    colour: bool = True
+
+    @classmethod
+    def from_settings(cls, settings: DetectorSettings) -> DetectOptions:
+        return cls(
+            conf=settings.detector_conf,
+            iou=settings.detector_iou,
+            max_detections=settings.detector_max_detections,
+            max_candidates=settings.detector_max_candidates,
+            colour=settings.detector_colour,
+        )
+
+
+def detections_from_output(
+    output: NDArray[np.floating],
+    box: Letterbox,
+    classes: Sequence[str],
+    rgb: NDArray[np.uint8] | None,
+    options: DetectOptions,
+) -> tuple[Detection, ...]:
+    """The detections in one image from the model's output ``(4 + C, N)`` for it.
+
+    Candidates at or over ``options.conf`` are mapped back to image pixels and clipped to the
+    image (boxes left empty, i.e. lying in the padding, are dropped), then per-class NMS keeps
+    at most ``options.max_detections``, best first. ``rgb`` (the image) is needed for colours.
+    """
+    candidates = decode_output(output, options.conf, options.max_candidates)
+    boxes = box.to_image(candidates.boxes)
+    valid = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+    kept = nms(
+        Candidates(boxes[valid], candidates.scores[valid], candidates.class_ids[valid]),
+        options.iou,
+        options.max_detections,
+    )
+    detections = []
+    for xyxy, score, class_id in zip(kept.boxes, kept.scores, kept.class_ids, strict=True):
+        corners = (float(xyxy[0]), float(xyxy[1]), float(xyxy[2]), float(xyxy[3]))
+        colour = measure_colour(rgb, corners) if options.colour and rgb is not None else None
+        detections.append(
+            Detection(
+                label=classes[int(class_id)],
+                class_id=int(class_id),
+                confidence=min(1.0, max(0.0, float(score))),
+                box=corners,
+                color=colour,
+            )
+        )
+    return tuple(detections)
+
+
+class Detector:
+    """Serves detections with one model: admission, decoding, batching, post-processing."""
+
+    def __init__(self, model: DetectorModel, settings: DetectorSettings) -> None:
+        self.model = model
+        self.settings = settings
+        self.options = DetectOptions.from_settings(settings)
+        fixed = model.max_batch
+        self.batcher = MicroBatcher(
+            model.run,
+            max_batch=settings.detector_max_batch if fixed is None else fixed,
+            window_s=settings.detector_batch_window_ms / 1000.0,
+        )
+        self._lock = threading.Lock()
+        self._in_flight = 0
+
+    @property
+    def info(self) -> ModelInfo:
+        return self.model.info
+
+    @property
+    def in_flight(self) -> int:
+        """Requests being decoded, waiting for or in inference, or post-processed."""
+        return self._in_flight
+
+    async def start(self) -> None:
+        await self.batcher.start()
+
+    async def close(self) -> None:
+        await self.batcher.close()
+
+    def _admit(self) -> None:
+        with self._lock:
+            if self._in_flight >= self.settings.detector_max_in_flight:
+                raise ServiceUnavailableError(
+                    f"the detector has {self._in_flight} requests in flight; try again shortly",
+                    slug="detector-busy",
+                    title="Detector busy",
+                )
+            self._in_flight += 1
+
+    def _release(self) -> None:
+        with self._lock:
+            self._in_flight -= 1
+
+    def _prepare(self, data: bytes) -> tuple[NDArray[np.uint8], NDArray[np.float32], Letterbox]:
+        rgb = decode_image(
+            data,
+            max_pixels=self.settings.detector_max_image_pixels,
+            max_side=self.settings.detector_max_image_side,
+        )
+        tensor, box = letterbox(rgb, self.model.layout.input_size)
+        return rgb, tensor, box
+
+    async def detect(
+        self, data: bytes, *, conf: float | None = None, max_detections: int | None = None
+    ) -> DetectResponse:
+        """Detect objects in PNG or JPEG bytes; ``conf`` and ``max_detections`` override the
+        settings for this call."""
+        self._admit()
+        try:
+            rgb, tensor, box = await asyncio.to_thread(self._prepare, data)
+            output, run_ms = await self.batcher.submit(tensor)
+            options = DetectOptions(
+                conf=self.options.conf if conf is None else conf,
+                iou=self.options.iou,
+                max_detections=max_detections or self.options.max_detections,
+                max_candidates=self.options.max_candidates,
+                colour=self.options.colour,
+            )
+            detections = await asyncio.to_thread(
+                detections_from_output, output, box, self.model.classes, rgb, options
+            )
+        finally:
+            self._release()
+        return DetectResponse(
+            detections=detections,
+            image_size=box.image_size,
+            model=self.model.info,
+            inference_ms=run_ms,
+        )

@@ -1,0 +1,51 @@
+"""Detector settings, read from ``COSMOS_*`` environment variables once per app."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field
+from pydantic_settings import BaseSettings
+
+from services.common.settings import settings_config
+from services.detector import HARD_MAX_IMAGE_PIXELS
+
+__all__ = ["DEFAULT_MODEL", "DetectorSettings"]
+
+DEFAULT_MODEL = Path(__file__).resolve().parents[2] / "models" / "detector.onnx"
+"""The shipped model; its sidecar (classes, provenance) is ``models/detector.json``."""
+
+Fraction = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+
+
+class DetectorSettings(BaseSettings):
+    """``COSMOS_DETECTOR_MODEL`` names the ONNX model (a sidecar ``<model>.json`` next to it, if
+    present, supplies the class names and provenance); the rest tune inference and bound what
+    one request may send."""
+
+    model_config = settings_config()
+
+    detector_model: Path = DEFAULT_MODEL
+    detector_conf: Fraction = 0.25
+    """Default confidence threshold (a request may override it with ``?conf=``)."""
+    detector_iou: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.5
+    """Per-class NMS: a box overlapping a better one of its class by IoU above this is dropped."""
+    detector_max_detections: Annotated[int, Field(ge=1, le=1000)] = 100
+    detector_max_candidates: Annotated[int, Field(ge=1, le=100_000)] = 5000
+    """Boxes over the threshold kept (best first) before NMS, which bounds its cost."""
+    detector_threads: Annotated[int, Field(ge=0, le=256)] = 2
+    """onnxruntime ``intra_op_num_threads``; 0 lets onnxruntime choose (one per core)."""
+    detector_max_batch: Annotated[int, Field(ge=1, le=64)] = 8
+    """Images per inference run when the model's batch dimension is dynamic."""
+    detector_batch_window_ms: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
+    """How long the first image of a batch waits for company; 0 batches only what queued."""
+    detector_max_in_flight: Annotated[int, Field(ge=1, le=10_000)] = 64
+    """Requests being decoded, queued or run at once; more get 503."""
+    detector_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
+    """Request body limit (the multipart body, so a little over the image itself)."""
+    detector_max_image_pixels: Annotated[int, Field(ge=64, le=HARD_MAX_IMAGE_PIXELS)] = 4096 * 4096
+    """Decoded width x height, checked from the file header before anything is decoded."""
+    detector_max_image_side: Annotated[int, Field(ge=8, le=65_535)] = 16_384
+    detector_colour: bool = True
+    """Measure each detection's colour (``Detection.color``); off leaves it null."""

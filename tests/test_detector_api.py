@@ -1,0 +1,425 @@
+"""The detector's HTTP API in process (ASGI transport, lifespan run) with synthetic ONNX models:
+pixel-exact boxes through the whole pipeline, batching, and a problem+json 4xx for every kind of
+bad upload."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import struct
+import zlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+from asgi_lifespan import LifespanManager
+
+from services.detector.app import create_app
+from services.detector.letterbox import PAD_VALUE
+from services.detector.model import ModelError
+from services.detector.settings import DetectorSettings
+from services.detector.synthetic import channel_mean_model, constant_model
+
+pytestmark = pytest.mark.anyio
+
+CLASSES = ["sphere", "cube"]
+# Anchors in input pixels of a 320x320 network: (cx, cy, w, h, [sphere, cube]).
+ANCHORS = [
+    (100, 120, 40, 80, [0.9, 0.0]),  # A: input box (80, 80)-(120, 160)
+    (101, 121, 40, 80, [0.8, 0.0]),  # A again, a little shifted: suppressed by NMS
+    (100, 120, 40, 80, [0.0, 0.7]),  # A's place, the other class: kept
+    (200, 200, 40, 40, [0.1, 0.0]),  # under the default threshold
+    (250, 20, 20, 20, [0.95, 0.0]),  # in the padding of both test images: dropped
+]
+UPLOAD_LIMIT = 200_000
+
+
+def predictions() -> np.ndarray:
+    return np.array([[*row[:4], *row[4]] for row in ANCHORS], dtype=np.float32).T
+
+
+def png(rgb: np.ndarray) -> bytes:
+    ok, buffer = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    assert ok
+    return buffer.tobytes()
+
+
+def jpeg(rgb: np.ndarray) -> bytes:
+    ok, buffer = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]))
+    assert ok
+    return buffer.tobytes()
+
+
+def grey(width: int, height: int) -> np.ndarray:
+    return np.full((height, width, 3), 128, np.uint8)
+
+
+def bomb_png(width: int, height: int) -> bytes:
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = struct.pack(">I", zlib.crc32(kind + data))
+        return struct.pack(">I", len(data)) + kind + data + crc
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    idat = zlib.compress(b"\x00" * (width + 1) * 16, 9)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+@pytest.fixture(scope="module")
+def anyio_backend() -> str:
+    return "asyncio"
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    directory = tmp_path_factory.mktemp("detector-models")
+    constant_model(directory / "constant.onnx", predictions(), classes=CLASSES)
+    channel_mean_model(directory / "means.onnx", [160, 160, 64, 64])
+    channel_mean_model(directory / "means-b1.onnx", [160, 160, 64, 64], batch=1)
+    return directory
+
+
+def settings_for(model: Path, **overrides) -> DetectorSettings:
+    values = {
+        "detector_model": model,
+        "detector_threads": 1,
+        "detector_max_upload_bytes": UPLOAD_LIMIT,
+        "detector_max_image_pixels": 1_000_000,
+        **overrides,
+    }
+    return DetectorSettings(**values)
+
+
+async def serve(settings: DetectorSettings) -> AsyncIterator[httpx.AsyncClient]:
+    app = create_app(settings)
+    async with LifespanManager(app) as manager:
+        transport = httpx.ASGITransport(app=manager.app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://detector") as client:
+            yield client
+
+
+@pytest.fixture(scope="module")
+async def client(model_dir) -> AsyncIterator[httpx.AsyncClient]:
+    async for c in serve(settings_for(model_dir / "constant.onnx")):
+        yield c
+
+
+async def detect(client: httpx.AsyncClient, data: bytes, **params) -> httpx.Response:
+    return await client.post("/detect", files={"image": ("x", data, "image/png")}, params=params)
+
+
+# -- answers -----------------------------------------------------------------------------------
+
+
+async def test_health(client):
+    body = (await client.get("/health")).json()
+    assert body["status"] == "ok"
+    assert body["service"] == "detector"
+    assert body["model"] == "constant"
+    assert body["in_flight"] == 0
+    assert body["providers"] == ["CPUExecutionProvider"]
+    assert body["intra_op_threads"] == 1
+    assert body["max_batch"] == 8
+
+
+async def test_model_info(client, model_dir):
+    body = (await client.get("/model")).json()
+    assert body["classes"] == CLASSES
+    assert body["input_size"] == [320, 320]
+    assert len(body["sha256"]) == 64
+
+
+@pytest.mark.parametrize(
+    ("size", "encode", "expected"),
+    [
+        # scale 0.5, 70 rows of padding on top
+        (
+            (640, 360),
+            png,
+            [("sphere", [160, 20, 240, 180], 0.9), ("cube", [160, 20, 240, 180], 0.7)],
+        ),
+        # scale 0.8, 80 columns of padding on the left
+        ((200, 400), jpeg, [("sphere", [0, 100, 50, 200], 0.9), ("cube", [0, 100, 50, 200], 0.7)]),
+        # no padding: the last anchor lies in the image
+        (
+            (320, 320),
+            png,
+            [
+                ("sphere", [240, 10, 260, 30], 0.95),
+                ("sphere", [80, 80, 120, 160], 0.9),
+                ("cube", [80, 80, 120, 160], 0.7),
+            ],
+        ),
+    ],
+)
+async def test_boxes_come_back_in_pixels_of_the_upload(client, size, encode, expected):
+    response = await detect(client, encode(grey(*size)))
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["image_size"] == list(size)
+    assert body["model"]["name"] == "constant"
+    assert body["inference_ms"] >= 0
+    found = [(d["label"], d["class_id"], d["box"]) for d in body["detections"]]
+    assert found == [(label, CLASSES.index(label), box) for label, box, _ in expected]
+    confidences = [d["confidence"] for d in body["detections"]]
+    assert confidences == pytest.approx([conf for *_, conf in expected])
+
+
+async def test_query_overrides(client):
+    image = png(grey(640, 360))
+    low = (await detect(client, image, conf=0.05)).json()["detections"]
+    assert [d["box"] for d in low][-1] == [360.0, 220.0, 440.0, 300.0]
+    assert len(low) == 3
+    assert (await detect(client, image, conf=1.0)).json()["detections"] == []
+    one = (await detect(client, image, max_detections=1)).json()["detections"]
+    assert [d["label"] for d in one] == ["sphere"]
+
+
+async def test_detections_carry_the_objects_colour(client):
+    image = grey(640, 360)
+    cv2.ellipse(image, (200, 100), (38, 78), 0, 0, 360, (30, 90, 220), thickness=-1)
+    body = (await detect(client, png(image))).json()
+    colours = [d["color"] for d in body["detections"]]
+    assert len(colours) == 2
+    for colour in colours:
+        assert colour == pytest.approx([30, 90, 220], abs=1)
+
+
+async def test_colour_is_null_on_bare_ground(client):
+    body = (await detect(client, png(grey(640, 360)))).json()
+    assert [d["color"] for d in body["detections"]] == [None, None]
+
+
+async def test_the_network_sees_rgb_scaled_to_one_with_grey_padding(model_dir):
+    """The channel-mean model reports the mean of each input channel: a pure red 640x360 image
+    fills 320x180 of the 320x320 input, the rest is grey 114."""
+    async for client in serve(settings_for(model_dir / "means.onnx")):
+        image = np.zeros((360, 640, 3), np.uint8)
+        image[..., 0] = 255
+        body = (await detect(client, png(image), conf=0.0)).json()
+        scores = {d["label"]: d["confidence"] for d in body["detections"]}
+        image_share = 180 / 320
+        grey_share = (1 - image_share) * PAD_VALUE / 255
+        assert scores["red"] == pytest.approx(image_share + grey_share, abs=1e-4)
+        assert scores["green"] == pytest.approx(grey_share, abs=1e-4)
+        assert scores["blue"] == pytest.approx(grey_share, abs=1e-4)
+
+
+async def test_concurrent_requests_are_batched_and_answered_in_order(model_dir):
+    """Six images of different colours sent at once share runs; each answer has its own
+    image's channel means."""
+    settings = settings_for(model_dir / "means.onnx", detector_batch_window_ms=50.0)
+    async for client in serve(settings):
+        colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255), (9, 9, 9)]
+        images = []
+        for colour in colours:
+            image = np.zeros((320, 320, 3), np.uint8)
+            image[:] = colour
+            images.append(png(image))
+        responses = await asyncio.gather(*(detect(client, i, conf=0.0) for i in images))
+        for colour, response in zip(colours, responses, strict=True):
+            scores = {d["label"]: d["confidence"] for d in response.json()["detections"]}
+            got = [scores.get(name, 0.0) for name in ("red", "green", "blue")]
+            assert got == pytest.approx([c / 255 for c in colour], abs=1e-4)
+        health = (await client.get("/health")).json()
+        assert health["images_run"] == 6
+        assert health["batches_run"] < 6
+
+
+async def test_fixed_batch_models_run_one_at_a_time(model_dir):
+    async for client in serve(settings_for(model_dir / "means-b1.onnx")):
+        responses = await asyncio.gather(*(detect(client, png(grey(64, 64))) for _ in range(3)))
+        assert all(r.status_code == 200 for r in responses)
+        health = (await client.get("/health")).json()
+        assert (health["max_batch"], health["batches_run"]) == (1, 3)
+
+
+async def test_too_many_requests_in_flight_is_503(model_dir):
+    settings = settings_for(
+        model_dir / "constant.onnx", detector_max_in_flight=1, detector_batch_window_ms=100.0
+    )
+    async for client in serve(settings):
+        first = asyncio.create_task(detect(client, png(grey(64, 64))))
+        await asyncio.sleep(0.02)  # the first now waits out its 100 ms batching window
+        second = await detect(client, png(grey(64, 64)))
+        assert second.status_code == 503
+        assert second.headers["retry-after"] == "1"
+        assert second.json()["type"] == "urn:cosmos:problem:detector-busy"
+        assert (await first).status_code == 200
+        assert (await client.get("/health")).json()["in_flight"] == 0
+
+
+# -- start-up ----------------------------------------------------------------------------------
+
+
+async def test_a_missing_model_stops_the_start_up_naming_the_file(tmp_path):
+    missing = tmp_path / "nowhere" / "detector.onnx"
+    app = create_app(settings_for(missing))
+    with pytest.raises(ModelError, match=str(missing)):
+        async with LifespanManager(app):
+            pass
+
+
+async def test_a_model_of_the_wrong_layout_stops_the_start_up(tmp_path):
+    path = constant_model(tmp_path / "three.onnx", predictions(), classes=["a", "b", "c"])
+    app = create_app(settings_for(path))
+    with pytest.raises(ModelError, match=r"three\.onnx.*channels"):
+        async with LifespanManager(app):
+            pass
+
+
+# -- bad requests ------------------------------------------------------------------------------
+
+
+def truncated_png() -> bytes:
+    data = png(np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    return data[: len(data) // 2]
+
+
+BAD_UPLOADS = [
+    ("not an image", b"hello, detector", 415, "urn:cosmos:problem:unsupported-image-format"),
+    ("a GIF", b"GIF89a" + b"\x00" * 64, 415, "urn:cosmos:problem:unsupported-image-format"),
+    ("truncated PNG", truncated_png(), 422, "urn:cosmos:problem:invalid-image"),
+    ("zero-size upload", b"", 422, "urn:cosmos:problem:empty-image"),
+    ("decompression bomb", bomb_png(50_000, 50_000), 413, "urn:cosmos:problem:image-too-large"),
+    ("too many pixels", png(grey(1200, 900)), 413, "urn:cosmos:problem:image-too-large"),
+]
+
+
+@pytest.mark.parametrize(
+    ("data", "status", "kind"), [case[1:] for case in BAD_UPLOADS], ids=[c[0] for c in BAD_UPLOADS]
+)
+async def test_bad_uploads_are_4xx_problems(client, data, status, kind):
+    response = await detect(client, data)
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/problem+json"
+    problem = response.json()
+    assert (problem["status"], problem["type"], problem["field"]) == (status, kind, "image")
+
+
+async def problem(response: httpx.Response, status: int) -> dict:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/problem+json"
+    body: dict = response.json()
+    assert body["status"] == status
+    return body
+
+
+async def test_missing_image_field(client):
+    response = await client.post("/detect", files={"picture": ("x.png", png(grey(8, 8)))})
+    assert (await problem(response, 422))["field"] == "image"
+
+
+async def test_image_sent_as_a_text_field(client):
+    response = await client.post(
+        "/detect", data={"image": "not a file"}, files={"other": ("x", b"1")}
+    )
+    assert (await problem(response, 422))["field"] == "image"
+
+
+@pytest.mark.parametrize(
+    ("content", "content_type"),
+    [
+        (b'{"image": "aGVsbG8="}', "application/json"),
+        (png(grey(8, 8)), "image/png"),
+        (b"image=abc", "application/x-www-form-urlencoded"),
+        (png(grey(8, 8)), None),
+    ],
+)
+async def test_wrong_content_types_are_415(client, content, content_type):
+    headers = {"content-type": content_type} if content_type else {}
+    response = await client.post("/detect", content=content, headers=headers)
+    body = await problem(response, 415)
+    assert body["field"] == "content-type"
+
+
+@pytest.mark.parametrize(
+    ("content", "content_type"),
+    [
+        (b"garbage without any parts", "multipart/form-data; boundary=xyz"),
+        (b"--xyz\r\nContent-Disposition: form-data\r\n\r\n", "multipart/form-data; boundary=xyz"),
+        (b"--xyz--\r\n", "multipart/form-data"),  # no boundary parameter
+    ],
+)
+async def test_malformed_multipart_is_4xx(client, content, content_type):
+    response = await client.post("/detect", content=content, headers={"content-type": content_type})
+    assert 400 <= response.status_code < 500
+    assert response.headers["content-type"] == "application/problem+json"
+
+
+@pytest.mark.parametrize(
+    ("params", "field"),
+    [
+        ({"conf": 2}, "conf"),
+        ({"conf": -0.1}, "conf"),
+        ({"conf": "nan"}, "conf"),
+        ({"conf": "high"}, "conf"),
+        ({"max_detections": 0}, "max_detections"),
+        ({"max_detections": 5000}, "max_detections"),
+    ],
+)
+async def test_bad_query_parameters_are_422(client, params, field):
+    response = await detect(client, png(grey(8, 8)), **params)
+    assert (await problem(response, 422))["field"] == field
+
+
+def multipart(data: bytes, boundary: str = "cosmos-boundary") -> tuple[bytes, str]:
+    head = (
+        f'--{boundary}\r\nContent-Disposition: form-data; name="image"; filename="x.png"\r\n'
+        "Content-Type: image/png\r\n\r\n"
+    ).encode()
+    return head + data + f"\r\n--{boundary}--\r\n".encode(), boundary
+
+
+async def test_oversized_upload_is_413_by_content_length(client):
+    big = png(np.random.default_rng(1).integers(0, 255, (300, 300, 3), dtype=np.uint8))
+    assert len(big) > UPLOAD_LIMIT
+    response = await detect(client, big)
+    assert (await problem(response, 413))["type"] == "urn:cosmos:problem:payload-too-large"
+
+
+async def test_oversized_chunked_multipart_upload_is_413(client):
+    body, boundary = multipart(b"\x89PNG\r\n\x1a\n" + b"\x00" * (UPLOAD_LIMIT + 10))
+    chunk = 16_384
+
+    async def stream() -> AsyncIterator[bytes]:
+        for start in range(0, len(body), chunk):
+            yield body[start : start + chunk]
+
+    response = await client.post(
+        "/detect",
+        content=stream(),
+        headers={"content-type": f"multipart/form-data; boundary={boundary}"},
+    )
+    assert (await problem(response, 413))["type"] == "urn:cosmos:problem:payload-too-large"
+
+
+async def test_chunked_multipart_under_the_limit_is_served(client):
+    body, boundary = multipart(png(grey(640, 360)))
+
+    async def stream() -> AsyncIterator[bytes]:
+        for start in range(0, len(body), 1000):
+            yield body[start : start + 1000]
+
+    response = await client.post(
+        "/detect",
+        content=stream(),
+        headers={"content-type": f"multipart/form-data; boundary={boundary}"},
+    )
+    assert response.status_code == 200, response.text
+    assert len(response.json()["detections"]) == 2
+
+
+async def test_unknown_route_is_a_problem(client):
+    response = await client.get("/detector")
+    await problem(response, 404)
+
+
+def test_golden_numbers_follow_from_the_letterbox():
+    """The expected boxes above, derived: x = (x_in - pad_x) / s, y = (y_in - pad_y) / s."""
+    x1, y1, x2, y2 = 80, 80, 120, 160
+    assert [x1 / 0.5, (y1 - 70) / 0.5, x2 / 0.5, (y2 - 70) / 0.5] == [160, 20, 240, 180]
+    assert [(x1 - 80) / 0.8, y1 / 0.8, (x2 - 80) / 0.8, y2 / 0.8] == [0, 100, 50, 200]
+    assert math.isclose(min(320 / 640, 320 / 360), 0.5)
