@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from services.common.errors import ServiceError
-from services.detector.decode import decode_image, read_header
+from services.common.images import decode_image, read_header
 from tests.support import ROOT
 
 LIMITS = {"max_pixels": 4_000_000, "max_side": 8192}
@@ -194,7 +194,7 @@ def test_importing_the_detector_caps_opencv_before_it_loads(tmp_path):
     bomb.write_bytes(bomb_png(9000, 9000))  # 81 M pixels > 2**26
     script = (
         "import os, sys\n"
-        "import services.detector.decode\n"
+        "import services.common.images\n"
         "import cv2, numpy as np\n"
         "assert os.environ['OPENCV_IO_MAX_IMAGE_PIXELS'] == str(1 << 26)\n"
         "data = np.fromfile(sys.argv[1], np.uint8)\n"

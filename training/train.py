@@ -99,6 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    torch.set_flush_denormal(True)  # tiny weights and moments otherwise slow CPU math several-fold
     args.run.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
 
@@ -161,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         e.mul_(decay).add_(p.detach(), alpha=1 - decay)
                     else:
                         e.copy_(p)
-            totals["loss"] += float(loss)
+            totals["loss"] += float(loss.detach())
             totals["box"] += parts["box"]
             totals["cls"] += parts["cls"]
         metrics = evaluate(ema, val)

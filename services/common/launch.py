@@ -14,7 +14,15 @@ from pathlib import Path
 
 import httpx
 
-__all__ = ["ServiceProcess", "free_port", "running_service", "start_service", "stop_service"]
+__all__ = [
+    "ServiceProcess",
+    "free_port",
+    "running_service",
+    "spawn_service",
+    "start_service",
+    "stop_service",
+    "wait_healthy",
+]
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -35,19 +43,15 @@ class ServiceProcess:
     log: Path
 
 
-def start_service(
+def spawn_service(
     app: str,
     log_dir: Path,
     *,
     port: int | None = None,
     host: str = "127.0.0.1",
     env: Mapping[str, str] | None = None,
-    timeout_s: float = 60.0,
 ) -> ServiceProcess:
-    """Run ``uvicorn <app>`` and return once ``GET /health`` answers 200.
-
-    Raises ``RuntimeError`` with the tail of the log if the process exits or stays unhealthy.
-    """
+    """Start ``uvicorn <app>`` without waiting for it (see :func:`wait_healthy`)."""
     port = port or free_port(host)
     log_dir.mkdir(parents=True, exist_ok=True)
     log = log_dir / f"{app.split('.')[1] if app.count('.') >= 1 else app}-{port}.log"
@@ -59,20 +63,44 @@ def start_service(
             stdout=sink,
             stderr=subprocess.STDOUT,
         )
-    service = ServiceProcess(url=f"http://{host}:{port}", process=process, log=log)
+    return ServiceProcess(url=f"http://{host}:{port}", process=process, log=log)
+
+
+def wait_healthy(service: ServiceProcess, timeout_s: float = 60.0) -> None:
+    """Return once ``GET /health`` answers 200; raise ``RuntimeError`` with the log's tail if the
+    process exits or stays unhealthy (and stop it)."""
     deadline = time.monotonic() + timeout_s
     while True:
-        if process.poll() is not None:
-            raise RuntimeError(f"{app} exited with {process.returncode}:\n{_tail(log)}")
+        if service.process.poll() is not None:
+            raise RuntimeError(
+                f"{service.url} exited with {service.process.returncode}:\n{_tail(service.log)}"
+            )
         try:
             if httpx.get(f"{service.url}/health", timeout=2.0).status_code == 200:
-                return service
+                return
         except httpx.TransportError:
             pass
         if time.monotonic() > deadline:
             stop_service(service)
-            raise RuntimeError(f"{app} was not healthy after {timeout_s:.0f} s:\n{_tail(log)}")
+            raise RuntimeError(
+                f"{service.url} was not healthy after {timeout_s:.0f} s:\n{_tail(service.log)}"
+            )
         time.sleep(0.1)
+
+
+def start_service(
+    app: str,
+    log_dir: Path,
+    *,
+    port: int | None = None,
+    host: str = "127.0.0.1",
+    env: Mapping[str, str] | None = None,
+    timeout_s: float = 60.0,
+) -> ServiceProcess:
+    """Run ``uvicorn <app>`` and return once ``GET /health`` answers 200."""
+    service = spawn_service(app, log_dir, port=port, host=host, env=env)
+    wait_healthy(service, timeout_s)
+    return service
 
 
 def stop_service(service: ServiceProcess, timeout_s: float = 15.0) -> None:

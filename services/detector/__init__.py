@@ -1,18 +1,10 @@
 """COSMOS 3D Search: detector. Finds the scene's objects in an image with a YOLO-format ONNX model.
 
-Importing the package caps what OpenCV may decode in this process (before any ``import cv2`` in
-the detector): OpenCV reads ``OPENCV_IO_MAX_IMAGE_PIXELS`` once, when it is loaded. A process that
-loaded OpenCV earlier keeps its own cap, so :mod:`services.detector.decode` also checks the size in
-the file header itself before decoding.
+The cap on decoded image pixels is set by :mod:`services.common` (imported first).
 """
 
 from __future__ import annotations
 
-import os
+from services.common import HARD_MAX_IMAGE_PIXELS
 
 __all__ = ["HARD_MAX_IMAGE_PIXELS"]
-
-HARD_MAX_IMAGE_PIXELS = 1 << 26
-"""No image decoded by the detector may have more pixels (8192 x 8192); settings go lower."""
-
-os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(HARD_MAX_IMAGE_PIXELS))

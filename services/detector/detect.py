@@ -17,10 +17,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.errors import ServiceUnavailableError
+from services.common.images import decode_image
 from services.common.models import Detection, DetectResponse, ModelInfo
 from services.detector.batching import MicroBatcher
 from services.detector.colour import measure_colour
-from services.detector.decode import decode_image
 from services.detector.letterbox import Letterbox, letterbox
 from services.detector.model import DetectorModel
 from services.detector.postprocess import Candidates, decode_output, nms

@@ -1,4 +1,4 @@
-"""Safe decoding of uploaded images: PNG or JPEG only, sized from the header before decoding.
+"""Safe decoding of uploaded images (every service): PNG or JPEG only, sized from the header first.
 
 The header is read here, in Python, so an image whose width x height exceeds the cap is refused
 before OpenCV allocates anything (a small PNG can declare 60000 x 60000 pixels of zeros: a
