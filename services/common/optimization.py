@@ -1,0 +1,256 @@
+"""Messages of the optimizer service: next-pose requests and answers, object mapping.
+
+The optimizer knows no scenes: a request carries the grid and the camera (or names a scene whose
+camera and grid the service looks up), the target image's detections and the visited poses with
+theirs. Every model is frozen and rejects unknown keys (:class:`~.models.FrozenModel`).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import ConfigDict, Field, field_validator, model_validator
+
+from services.common.grid import HemisphereGrid, grid_for
+from services.common.models import Detection, FrozenModel, GridIndex, Pose, PoseQuery
+from services.common.scene import SCENE_ID_PATTERN, Camera
+
+__all__ = [
+    "MAX_DETECTIONS",
+    "MAX_HISTORY",
+    "CandidatePose",
+    "GridPose",
+    "GridSpec",
+    "ImageDetections",
+    "MapRequest",
+    "MapResponse",
+    "MappedObject",
+    "MappingMethod",
+    "Move",
+    "NextPoseRequest",
+    "NextPoseResponse",
+    "OptimizerHealth",
+    "PoseEstimate",
+    "SearchTolerances",
+    "StrategyInfo",
+    "StrategyName",
+    "TargetImage",
+    "VisitedView",
+]
+
+MAX_DETECTIONS = 64
+"""Detections per image a request may carry."""
+
+MAX_HISTORY = 200
+"""Visited views a request may carry."""
+
+StrategyName = Literal["simple", "paper", "reprojection"]
+MappingMethod = Literal["exact", "paper"]
+Move = Literal["start", "stay", "N", "S", "E", "W", "jump"]
+
+ThetaDeg = Annotated[float, Field(ge=0.0, le=90.0, allow_inf_nan=False)]
+ImageSide = Annotated[int, Field(ge=1, le=16384)]
+
+
+class GridSpec(FrozenModel):
+    """The hemisphere grid (paper eq. 1): rings every ``angle_step_deg`` within the θ range.
+
+    The step is at least 1° here (about 21 000 poses for a full hemisphere), which bounds the
+    work of scoring every pose; the scene format allows finer grids.
+    """
+
+    angle_step_deg: Annotated[float, Field(ge=1.0, le=90.0, allow_inf_nan=False)] = 7.5
+    min_theta_deg: ThetaDeg = 0.0
+    max_theta_deg: ThetaDeg = 90.0
+
+    @model_validator(mode="after")
+    def _has_a_ring(self) -> GridSpec:
+        if self.min_theta_deg > self.max_theta_deg:
+            raise ValueError("min_theta_deg must not exceed max_theta_deg")
+        self.grid()  # raises GridError (a ValueError) when no ring lies in range
+        return self
+
+    def grid(self) -> HemisphereGrid:
+        """The shared :class:`~services.common.grid.HemisphereGrid` of these settings."""
+        return grid_for(self.angle_step_deg, self.min_theta_deg, self.max_theta_deg)
+
+
+class ImageDetections(FrozenModel):
+    """The detections of one image and the image's size (width, height) in pixels.
+
+    Boxes are in that image's pixels; the optimizer scales them to the camera's film. Boxes must
+    lie inside the image (checked against ``image_size``; errors name the box).
+    """
+
+    image_size: tuple[ImageSide, ImageSide]
+    detections: Annotated[tuple[Detection, ...], Field(max_length=MAX_DETECTIONS)] = ()
+
+
+class TargetImage(ImageDetections):
+    """The target image's detections: at least one, or there is nothing to search for."""
+
+    detections: Annotated[tuple[Detection, ...], Field(min_length=1, max_length=MAX_DETECTIONS)]
+
+
+class VisitedView(ImageDetections):
+    """A visited grid pose (``lat``/``lon`` or its exact angles) and what was detected there."""
+
+    pose: PoseQuery
+
+
+class SearchTolerances(FrozenModel):
+    """When two views count as the same (see the strategies' done test).
+
+    ``match_rms_px`` is in the camera's pixels: RMS of box-edge differences between the current
+    view and the target under which they match strictly (3× that when the estimate agrees).
+    """
+
+    match_rms_px: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 1.0
+    max_unmatched: Annotated[int, Field(ge=0, le=MAX_DETECTIONS)] = 1
+    ambiguity_ratio: Annotated[float, Field(ge=1.0, le=100.0, allow_inf_nan=False)] = 1.25
+
+
+def _optional_not_null(schema: dict[str, Any]) -> None:
+    """Publish optional fields as what they accept: the value or nothing, never null."""
+    for prop in schema.get("properties", {}).values():
+        variants = prop.get("anyOf")
+        if variants and any(v.get("type") == "null" for v in variants):
+            kept = [v for v in variants if v.get("type") != "null"]
+            del prop["anyOf"]
+            if len(kept) == 1:
+                prop.update(kept[0])
+            else:
+                prop["anyOf"] = kept
+            if prop.get("default", 0) is None:
+                del prop["default"]
+
+
+class NextPoseRequest(FrozenModel):
+    """``POST /next-pose``: one stateless planning step.
+
+    Give ``camera`` and ``grid``, or a ``scene`` id whose camera and grid the service looks up
+    (explicit ``camera``/``grid`` must then agree with the scene's). ``history`` lists the
+    visited poses in order; the last one is where the camera is now. ``strategy`` defaults to
+    the service's setting (``reprojection`` unless configured).
+    """
+
+    model_config = ConfigDict(json_schema_extra=_optional_not_null)
+
+    strategy: StrategyName | None = None
+    scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)] | None = None
+    camera: Camera | None = None
+    grid: GridSpec | None = None
+    target: TargetImage
+    history: Annotated[tuple[VisitedView, ...], Field(max_length=MAX_HISTORY)] = ()
+    tolerances: SearchTolerances = SearchTolerances()
+
+    @field_validator("strategy", "scene", "camera", "grid", mode="before")
+    @classmethod
+    def _not_null(cls, value: object) -> object:
+        if value is None:
+            raise ValueError("leave the field out instead of sending null")
+        return value
+
+
+class GridPose(FrozenModel):
+    """A grid pose: its indices and angles (degrees)."""
+
+    index: GridIndex
+    theta_deg: float
+    phi_deg: float
+
+
+class PoseEstimate(FrozenModel):
+    """The current estimate of the target pose.
+
+    ``grid`` is the grid pose nearest the continuous ``theta_deg``/``phi_deg``;
+    ``residual_px`` the reprojection (or layout) residual in camera pixels, null when unknown;
+    ``confidence`` in [0, 1] falls with the residual, unmatched detections and ambiguity.
+    """
+
+    grid: GridPose
+    theta_deg: float
+    phi_deg: float
+    residual_px: Annotated[float, Field(ge=0.0)] | None
+    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class CandidatePose(FrozenModel):
+    """An alternative pose that explains the target almost as well (lower score is better)."""
+
+    pose: GridPose
+    score: float
+
+
+class NextPoseResponse(FrozenModel):
+    """``POST /next-pose``: where to go next and whether the search is done.
+
+    ``done`` is decided from the detections alone; when it is true ``next`` is the current pose.
+    ``stuck`` is true when the proposed pose has been visited three times already: the strategy
+    is going round in circles and the caller should stop or switch strategy.
+    """
+
+    strategy: StrategyName
+    done: bool
+    stuck: bool
+    next: GridPose
+    move: Move
+    estimate: PoseEstimate | None
+    ambiguous: bool
+    alternatives: tuple[CandidatePose, ...]
+    reason: str
+
+
+class MapRequest(FrozenModel):
+    """``POST /map``: ground positions of detections seen from a known pose."""
+
+    camera: Camera
+    pose: Pose
+    method: MappingMethod = "exact"
+    view: ImageDetections
+
+
+class MappedObject(FrozenModel):
+    """One detection mapped to the ground (scene units).
+
+    ``offset`` is the camera-relative ground offset ``(towards the camera, to the image's
+    right)``; ``position`` its rotation by φ (paper eq. 7). ``radius`` (footprint half-width)
+    and ``height`` come from the exact method only. Null values could not be determined.
+    """
+
+    label: str
+    position: tuple[float, float] | None
+    offset: tuple[float, float] | None
+    radius: float | None
+    height: float | None
+    sigma: Annotated[float, Field(ge=0.0)] | None = Field(
+        description="Positional standard deviation for 1-pixel box errors (exact method)."
+    )
+    reliable: bool
+
+
+class MapResponse(FrozenModel):
+    """``POST /map``: one mapped object per detection, in order."""
+
+    method: MappingMethod
+    pose: Pose
+    objects: tuple[MappedObject, ...]
+
+
+class StrategyInfo(FrozenModel):
+    """One entry of ``GET /strategies``."""
+
+    name: StrategyName
+    description: str
+    default: bool
+    needs_calibration: bool
+
+
+class OptimizerHealth(FrozenModel):
+    """``GET /health`` of the optimizer."""
+
+    status: Literal["ok"]
+    service: Literal["optimizer"]
+    strategies: tuple[StrategyName, ...]
+    default_strategy: StrategyName
+    paper_calibrations: Annotated[int, Field(ge=0)]

@@ -1,0 +1,82 @@
+"""Optimizer routes: thin HTTP wrappers over planning (:mod:`services.optimizer.planning`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, get_args
+
+from fastapi import APIRouter, Depends, Request
+
+from services.common.http import problem_responses
+from services.common.optimization import (
+    MapRequest,
+    MapResponse,
+    NextPoseRequest,
+    NextPoseResponse,
+    OptimizerHealth,
+    StrategyInfo,
+    StrategyName,
+)
+from services.optimizer.planning import OptimizerContext, map_detections, next_pose
+from services.optimizer.strategies import STRATEGIES
+
+__all__ = ["OptimizerState", "router"]
+
+router = APIRouter()
+
+
+@dataclass(frozen=True)
+class OptimizerState:
+    """What the routes need, built in the app's lifespan."""
+
+    context: OptimizerContext
+
+
+def get_state(request: Request) -> OptimizerState:
+    state: OptimizerState = request.app.state.optimizer
+    return state
+
+
+State = Annotated[OptimizerState, Depends(get_state)]
+
+
+@router.get("/health", response_model=OptimizerHealth)
+async def health(state: State) -> OptimizerHealth:
+    """Liveness, the strategies on offer and the stored paper calibrations."""
+    return OptimizerHealth(
+        status="ok",
+        service="optimizer",
+        strategies=get_args(StrategyName),
+        default_strategy=state.context.default_strategy,
+        paper_calibrations=len(state.context.calibrations),
+    )
+
+
+@router.get("/strategies", response_model=list[StrategyInfo])
+async def strategies(state: State) -> list[StrategyInfo]:
+    """The next-pose strategies and which one requests get by default."""
+    return [
+        StrategyInfo(
+            name=spec.name,
+            description=spec.description,
+            default=spec.name == state.context.default_strategy,
+            needs_calibration=spec.needs_calibration,
+        )
+        for spec in STRATEGIES.values()
+    ]
+
+
+@router.post(
+    "/next-pose", response_model=NextPoseResponse, responses=problem_responses(404, 413, 422)
+)
+def plan(body: NextPoseRequest, state: State) -> NextPoseResponse:
+    """One stateless search step: the next grid pose, whether the search is done, the current
+    estimate of the target pose and why. (A plain ``def``: FastAPI runs it in its thread pool,
+    so the numeric work does not block the event loop.)"""
+    return next_pose(body, state.context)
+
+
+@router.post("/map", response_model=MapResponse, responses=problem_responses(413, 422))
+def map_objects(body: MapRequest, state: State) -> MapResponse:
+    """Ground positions of the detections of one view seen from a known pose (paper §3.2)."""
+    return map_detections(body, state.context.calibrations)

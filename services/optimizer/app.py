@@ -1,0 +1,55 @@
+"""The optimizer service: ``create_app(settings)`` builds it; ``app`` is the default instance.
+
+Run it with ``uvicorn services.optimizer.app:app --port 8003``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.optimizer.api import OptimizerState, router
+from services.optimizer.calibration import CalibrationStore
+from services.optimizer.planning import OptimizerContext
+from services.optimizer.settings import OptimizerSettings
+from services.renderer.catalog import SceneCatalog
+
+__all__ = ["app", "create_app"]
+
+
+def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
+    """An optimizer app; reads ``COSMOS_*`` settings from the environment unless given."""
+    settings = settings or OptimizerSettings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        calibrations = await asyncio.to_thread(CalibrationStore.load, settings.paper_calibration)
+        catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
+        app.state.optimizer = OptimizerState(
+            context=OptimizerContext(
+                calibrations=calibrations,
+                catalog=catalog,
+                default_strategy=settings.default_strategy,
+                max_grid_poses=settings.max_grid_poses,
+                max_history_detections=settings.max_history_detections,
+            )
+        )
+        yield
+
+    app = FastAPI(
+        title="COSMOS optimizer",
+        version="0.1.0",
+        summary="Maps detections to the ground and proposes the next camera pose of a search.",
+        lifespan=lifespan,
+    )
+    install_problem_handlers(app)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.include_router(router)
+    return app
+
+
+app = create_app()

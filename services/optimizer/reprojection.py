@@ -1,0 +1,314 @@
+"""Scoring poses by reprojecting the world map, and the continuous least-squares refinement.
+
+Predicted boxes
+---------------
+Every map entry's proxy is projected into every grid pose (:meth:`.world_map.WorldMap.boxes`).
+A proxy is only an approximation of its object (a mesh is not a cylinder), so the prediction is
+*anchored* to what was actually seen: at a visited pose ``v`` the detection box ``B_vk`` of entry
+``k`` differs from its prediction ``P̂_vk`` by an offset ``o_vk = B_vk − P̂_vk``, and near ``v``
+the prediction becomes ``P̂_gk + w(d) o_vk`` with ``v`` the visited pose nearest to ``g`` (angle
+``d`` between view directions) and ``w`` = 1 within two grid steps, fading linearly to 0 at
+four. At a visited pose the prediction is then the observation itself, and next to it only the
+map's predicted *change* matters, which is far more accurate than its absolute boxes.
+
+Score of a pose
+---------------
+Entries whose box is at least 30 % inside the image and 2 px a side are *expected*. A target
+detection ``j`` and an entry ``k`` with a box in the image may pair when they share a class and
+look alike (colour cost below the gate); their cost is
+
+.. math:: c_{jk} = t_k \\Bigl(\\frac{\\operatorname{rms}(B_j − \\hat B_k)}{s}\\Bigr)^2
+                   + \\text{colour cost}_{jk},
+
+``rms`` the root mean square of the four box-edge differences in pixels, ``s`` =
+:data:`SCALE_PX` and ``t_k`` the entry's trust (:attr:`.world_map.WorldMap.trust`: low for
+objects only ever seen partly hidden or from the horizon, whose mapped positions are biased).
+With the gate ``τ²`` (:data:`GATE`) the pose's score is the gated Hungarian optimum
+
+.. math:: S = \\sum_{\\text{pairs}} \\min(c_{jk}, τ^2) + τ^2 \\, (\\#\\text{unpaired targets})
+              + λ τ^2 \\, (\\#\\text{unpaired expected entries}),
+
+λ = :data:`MISSING_WEIGHT` < 1 because an expected object may be hidden or missed in the target.
+Every grid pose gets a cheap score first (each detection's best partner, not one-to-one); the
+:data:`EXACT_CANDIDATES` best and up to :data:`FAR_CANDIDATES` distant local optima are then
+scored exactly.
+
+Refinement
+----------
+At the best pose the pairs are fixed and ``(θ, φ)`` minimise the soft-L1 robust sum of squared
+box-edge residuals (pixels, anchored predictions) with :func:`scipy.optimize.least_squares`; the
+RMS of the final residuals is the estimate's reprojection residual.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
+
+from services.common.grid import HemisphereGrid, pose_to_cartesian
+from services.common.scene import Camera
+from services.optimizer.geometry import Cameras, FloatArray
+from services.optimizer.matching import COLOUR_GATE, Assignment, assign
+from services.optimizer.observations import Observation, appearance_cost
+from services.optimizer.proxies import clip_boxes
+from services.optimizer.world_map import WorldMap
+
+__all__ = [
+    "EXACT_CANDIDATES",
+    "FAR_CANDIDATES",
+    "GATE",
+    "MISSING_WEIGHT",
+    "SCALE_PX",
+    "Anchor",
+    "Anchoring",
+    "PoseScores",
+    "Prediction",
+    "Refinement",
+    "predict",
+    "refine_pose",
+    "score_poses",
+]
+
+SCALE_PX: Final = 4.0
+GATE: Final = 16.0
+MISSING_WEIGHT: Final = 0.5
+EXACT_CANDIDATES: Final = 8
+FAR_CANDIDATES: Final = 4
+_FAR_SCAN: Final = 400
+_MIN_INSIDE: Final = 0.3
+_MIN_SIDE_PX: Final = 2.0
+_ANCHOR_FULL_STEPS: Final = 2.0
+_ANCHOR_FADE_STEPS: Final = 4.0
+
+
+@dataclass(frozen=True, eq=False)
+class Anchor:
+    """A visited pose (angles, degrees) with its detections and the entry each joined."""
+
+    theta_deg: float
+    phi_deg: float
+    observation: Observation
+    link: NDArray[np.intp]
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """Predicted boxes ``(N, K, 4)`` (clipped) and the expected mask ``(N, K)``."""
+
+    boxes: FloatArray
+    expected: NDArray[np.bool_]
+
+
+@dataclass(frozen=True, eq=False)
+class Anchoring:
+    """Offsets ``(V, K, 4)`` observed-minus-predicted at each anchor (0 where the entry was not
+    seen there) and the anchors' unit view directions ``(V, 3)``."""
+
+    offsets: FloatArray
+    directions: FloatArray
+
+    @classmethod
+    def of(cls, world: WorldMap, anchors: Sequence[Anchor], camera: Camera) -> Anchoring:
+        """The anchoring of ``world`` to the views ``anchors``."""
+        k = len(world)
+        offsets = np.zeros((len(anchors), k, 4))
+        directions = pose_to_cartesian(
+            [a.theta_deg for a in anchors], [a.phi_deg for a in anchors]
+        ).reshape(-1, 3)
+        if anchors and k:
+            cams = Cameras.at([a.theta_deg for a in anchors], [a.phi_deg for a in anchors], camera)
+            predicted, _ = world.boxes(cams)
+            for v, anchor in enumerate(anchors):
+                seen = anchor.link >= 0
+                entries = anchor.link[seen]
+                delta = anchor.observation.boxes[seen] - predicted[v, entries]
+                offsets[v, entries] = np.nan_to_num(delta, nan=0.0)
+        return cls(offsets=offsets, directions=directions)
+
+
+def _weights(step_deg: float, angle_deg: FloatArray) -> FloatArray:
+    full, fade = _ANCHOR_FULL_STEPS * step_deg, _ANCHOR_FADE_STEPS * step_deg
+    return np.clip((fade - angle_deg) / (fade - full), 0.0, 1.0)
+
+
+def predict(
+    world: WorldMap,
+    cameras: Cameras,
+    theta_deg: ArrayLike,
+    phi_deg: ArrayLike,
+    anchoring: Anchoring,
+    step_deg: float,
+) -> Prediction:
+    """Anchored predicted boxes of the map at poses (θ, φ) seen by ``cameras`` (module
+    docstring)."""
+    boxes, inside = world.boxes(cameras)
+    if len(anchoring.directions) and len(world):
+        poses = pose_to_cartesian(theta_deg, phi_deg).reshape(-1, 3)
+        cosines = np.clip(poses @ anchoring.directions.T, -1.0, 1.0)
+        # Ties go to the latest visit: it was fused last and reflects the newest map.
+        last = len(anchoring.directions) - 1
+        nearest = last - np.argmax(cosines[:, ::-1], axis=1)
+        angle = np.degrees(np.arccos(cosines[np.arange(len(poses)), nearest]))
+        weight = _weights(step_deg, angle)[:, np.newaxis, np.newaxis]
+        shift = anchoring.offsets[nearest] * weight
+        boxes, _ = clip_boxes(boxes + shift, cameras.width, cameras.height)
+    sides = np.nan_to_num(
+        np.stack([boxes[..., 2] - boxes[..., 0], boxes[..., 3] - boxes[..., 1]], axis=-1),
+        nan=0.0,
+    )
+    expected = (inside >= _MIN_INSIDE) & (sides >= _MIN_SIDE_PX).all(axis=-1)
+    return Prediction(boxes=boxes, expected=expected)
+
+
+@dataclass(frozen=True)
+class PoseScores:
+    """Scores of candidate poses (lower is better).
+
+    Attributes
+    ----------
+    coarse : ndarray, shape (G,)
+        Cheap score of every pose.
+    candidates : ndarray of intp, shape (C,)
+        Poses scored exactly, best first.
+    exact : ndarray, shape (C,)
+        Their exact scores.
+    pairs : list of Assignment
+        Target-to-map pairs at each candidate (rows: target detections, cols: map entries).
+    """
+
+    coarse: FloatArray
+    candidates: NDArray[np.intp]
+    exact: FloatArray
+    pairs: list[Assignment]
+
+
+def _pair_costs(world: WorldMap, target: Observation, prediction: Prediction) -> FloatArray:
+    """Pair costs ``(N, n, K)``; inf where a pair is not allowed."""
+    diff = target.boxes[np.newaxis, :, np.newaxis, :] - prediction.boxes[:, np.newaxis, :, :]
+    squared = np.einsum("...i,...i->...", diff, diff) / (4.0 * SCALE_PX**2)
+    looks = appearance_cost(target.labels, target.colors, world.labels, world.colors)
+    cost = squared * world.trust[np.newaxis, np.newaxis, :] + looks[np.newaxis]
+    # Any entry with a box in the image may pair, even one mostly outside it (a target can see
+    # a sliver of an object); only the penalty for missing entries is limited to expected ones.
+    ok = (looks < COLOUR_GATE)[np.newaxis] & np.isfinite(cost)
+    return np.where(ok, cost, np.inf)
+
+
+def _candidates(
+    coarse: FloatArray, directions: FloatArray | None, near: int, far: int, separation_deg: float
+) -> NDArray[np.intp]:
+    """The ``near`` best poses by coarse score, plus up to ``far`` more that are each the best
+    of their own neighbourhood (farther than ``separation_deg`` from every pose taken so far):
+    distant look-alikes must be scored exactly to be found."""
+    order = np.argsort(coarse, kind="stable")
+    chosen = list(order[:near])
+    if directions is None or far <= 0:
+        return np.asarray(chosen, dtype=np.intp)
+    limit = np.cos(np.radians(separation_deg))
+    seeds = [directions[chosen[0]]] if chosen else []
+    for pose in order[near : near + _FAR_SCAN]:
+        if len(chosen) >= near + far:
+            break
+        if all(float(directions[pose] @ seed) < limit for seed in seeds):
+            chosen.append(pose)
+            seeds.append(directions[pose])
+    return np.asarray(chosen, dtype=np.intp)
+
+
+def score_poses(
+    world: WorldMap,
+    target: Observation,
+    prediction: Prediction,
+    candidates: int = EXACT_CANDIDATES,
+    directions: FloatArray | None = None,
+    separation_deg: float = 0.0,
+) -> PoseScores:
+    """Score every pose of ``prediction`` against the target's detections (module docstring).
+
+    With the poses' unit view ``directions`` ``(N, 3)``, the exact scoring also covers up to
+    :data:`FAR_CANDIDATES` distant local optima more than ``separation_deg`` apart."""
+    cost = _pair_costs(world, target, prediction)
+    expected = prediction.expected
+    capped = np.minimum(cost, GATE)
+    n = len(target)
+    coarse = capped.min(axis=2, initial=GATE).sum(axis=1)
+    map_side = capped.min(axis=1, initial=GATE)
+    coarse = coarse + MISSING_WEIGHT * GATE * np.sum(expected & (map_side >= GATE), axis=1)
+    order = _candidates(coarse, directions, max(1, candidates), FAR_CANDIDATES, separation_deg)
+    exact = np.empty(len(order))
+    pairs: list[Assignment] = []
+    for i, pose in enumerate(order):
+        assignment = assign(cost[pose], GATE)
+        unpaired_map = int(np.sum(np.delete(expected[pose], assignment.cols)))
+        exact[i] = (
+            float(np.sum(assignment.costs))
+            + GATE * (n - len(assignment))
+            + MISSING_WEIGHT * GATE * max(unpaired_map, 0)
+        )
+        pairs.append(assignment)
+    ranked = np.argsort(exact, kind="stable")
+    return PoseScores(
+        coarse=coarse,
+        candidates=order[ranked].astype(np.intp),
+        exact=exact[ranked],
+        pairs=[pairs[i] for i in ranked],
+    )
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """A continuous pose fitted by least-squares reprojection (angles in degrees, residual in
+    pixels over ``matched`` pairs)."""
+
+    theta_deg: float
+    phi_deg: float
+    residual_px: float
+    matched: int
+
+
+def refine_pose(
+    world: WorldMap,
+    target: Observation,
+    pairs: Assignment,
+    theta_deg: float,
+    phi_deg: float,
+    camera: Camera,
+    anchoring: Anchoring,
+    grid: HemisphereGrid,
+    theta_bounds: tuple[float, float] = (0.0, 90.0),
+) -> Refinement:
+    """Least-squares ``(θ, φ)`` from a starting pose with fixed pairs (module docstring)."""
+    if len(pairs) == 0:
+        return Refinement(theta_deg, phi_deg % 360.0, math.inf, 0)
+    observed = target.boxes[pairs.rows]
+    lo, hi = theta_bounds
+    step = grid.angle_step_deg
+
+    def residuals(x: FloatArray) -> FloatArray:
+        cams = Cameras.at(x[0], x[1], camera)
+        predicted = predict(world, cams, x[:1], x[1:], anchoring, step).boxes[0]
+        r = (predicted[pairs.cols] - observed).ravel()
+        return np.where(np.isfinite(r), r, 50.0)
+
+    start = np.array([min(max(theta_deg, lo + 1e-9), hi - 1e-9), phi_deg])
+    result = least_squares(
+        residuals,
+        start,
+        bounds=([lo, -np.inf], [hi, np.inf]),
+        loss="soft_l1",
+        f_scale=3.0,
+        diff_step=1e-4,
+        max_nfev=60,
+    )
+    final = residuals(result.x)
+    rms = float(np.sqrt(np.mean(final**2)))
+    start_rms = float(np.sqrt(np.mean(residuals(start) ** 2)))
+    if rms > start_rms:
+        return Refinement(float(start[0]), phi_deg % 360.0, start_rms, len(pairs))
+    return Refinement(float(result.x[0]), float(result.x[1]) % 360.0, rms, len(pairs))

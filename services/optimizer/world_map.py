@@ -1,0 +1,192 @@
+"""A world map of the objects, fused from every visited view, and its projection into any pose.
+
+Each visited view's detections are mapped to proxies with the exact method (:mod:`.mapping`).
+Views are folded in one at a time: a mapped object joins the map entry it matches (same class,
+alike colour, footprints closer than the gate) by a gated Hungarian assignment, else it starts a
+new entry. An entry's parameters ``(x, y, ρ, H)`` are the inverse-variance weighted mean of its
+observations (weights ``1/σ²`` from the mapping's positional σ, floored at 1 % of the hemisphere
+radius so one lucky view cannot dominate). Unreliable mappings (near-horizon views, boxes cut at
+the bottom) only start entries when nothing reliable saw the object, with a large σ, and
+mappings whose σ exceeds the hemisphere radius (views from the horizon) are left out.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.scene import Camera
+from services.optimizer.geometry import Cameras, FloatArray
+from services.optimizer.mapping import MappedObjects, map_exact
+from services.optimizer.matching import COLOUR_GATE, assign
+from services.optimizer.observations import Observation, appearance_cost
+from services.optimizer.proxies import clip_boxes, kind_of, proxy_boxes
+
+__all__ = ["MappedView", "WorldMap", "build_map"]
+
+Links = list[NDArray[np.intp]]
+"""Per view, the map entry each detection joined (-1: none)."""
+
+_SIGMA_FLOOR: Final = 0.01  # per unit hemisphere radius
+_UNRELIABLE_SIGMA: Final = 0.1  # per unit radius, for entries only unreliable views saw
+_GATE_SIZES: Final = 1.5  # footprints closer than this many (ρ_a + ρ_b) may be one object
+_TRUST_SIGMAS: Final = 3.0
+_MIN_TRUST: Final = 0.1
+
+
+@dataclass(frozen=True)
+class MappedView:
+    """A visited view: its pose and detections (camera pixels)."""
+
+    theta_deg: float
+    phi_deg: float
+    observation: Observation
+
+
+@dataclass(frozen=True, eq=False)
+class WorldMap:
+    """Fused objects.
+
+    Attributes
+    ----------
+    labels : tuple of str
+        Class per entry.
+    colors : ndarray, shape (K, 3)
+        Mean sRGB colour, NaN when never measured.
+    params : ndarray, shape (K, 4)
+        Proxy ``(x, y, ρ, H)`` in scene units.
+    sigma : ndarray, shape (K,)
+        Positional standard deviation of the fused footprint centre.
+    support : ndarray of int, shape (K,)
+        Views that saw the entry (compared and hashed by identity: it holds arrays).
+    sigma_floor : float
+        The smallest σ an observation is given (1 % of the hemisphere radius).
+    """
+
+    labels: tuple[str, ...]
+    colors: FloatArray
+    params: FloatArray
+    sigma: FloatArray
+    support: NDArray[np.int_]
+    sigma_floor: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    @property
+    def kinds(self) -> NDArray[np.int_]:
+        return np.array([kind_of(label) for label in self.labels], dtype=np.int_)
+
+    @property
+    def trust(self) -> FloatArray:
+        """``(K,)`` weight of each entry's geometry when scoring poses, in [0.1, 1]: 1 for an
+        entry any reliable view saw (σ within a few times the floor), down to 0.1 for one only
+        unreliable views saw."""
+        scale = _TRUST_SIGMAS * self.sigma_floor
+        with np.errstate(divide="ignore"):
+            weight = np.clip((scale / self.sigma) ** 2, _MIN_TRUST, 1.0)
+        return np.nan_to_num(weight, nan=_MIN_TRUST)
+
+    def boxes(self, cameras: Cameras) -> tuple[FloatArray, FloatArray]:
+        """Predicted boxes ``(N, K, 4)`` clipped to the image, and the fraction of each
+        unclipped box inside it ``(N, K)``, in every camera."""
+        full = proxy_boxes(cameras, self.kinds, self.params)
+        return clip_boxes(full, cameras.width, cameras.height)
+
+
+@functools.lru_cache(maxsize=4096)
+def _map_view(
+    observation: Observation, theta_deg: float, phi_deg: float, camera: Camera
+) -> MappedObjects:
+    """The exact mapping of one view, cached per observation (a search maps each view again
+    at every step)."""
+    return map_exact(observation.boxes, observation.kinds, camera, theta_deg, phi_deg)
+
+
+@dataclass
+class _Entry:
+    label: str
+    colours: list[FloatArray]
+    params: list[FloatArray]
+    weights: list[float]
+
+    def fused(self) -> tuple[FloatArray, FloatArray, float]:
+        w = np.array(self.weights)
+        params = np.sum(np.array(self.params) * w[:, np.newaxis], axis=0) / w.sum()
+        colours = np.array(self.colours)
+        known = ~np.isnan(colours).any(axis=1)
+        colour = colours[known].mean(axis=0) if known.any() else np.full(3, np.nan)
+        return params, colour, float(1.0 / np.sqrt(w.sum()))
+
+
+def build_map(views: Sequence[MappedView], camera: Camera) -> tuple[WorldMap, Links]:
+    """Fuse the exact mappings of ``views`` into one map (module docstring).
+
+    Returns the map and, per view, the entry each detection joined (-1 when it joined none).
+    """
+    entries: list[_Entry] = []
+    links: Links = []
+    floor = _SIGMA_FLOOR * camera.radius
+    for view in views:
+        obs = view.observation
+        link = np.full(len(obs), -1, dtype=np.intp)
+        links.append(link)
+        if len(obs) == 0:
+            continue
+        mapped = _map_view(obs, view.theta_deg, view.phi_deg, camera)
+        params = np.column_stack([mapped.position, mapped.radius, mapped.height])
+        # A σ beyond the hemisphere radius carries no information (horizon views).
+        usable = np.isfinite(params).all(axis=1) & (mapped.sigma <= camera.radius)
+        sigma = np.where(
+            mapped.reliable, np.maximum(mapped.sigma, floor), _UNRELIABLE_SIGMA * camera.radius
+        )
+        current = [e.fused() for e in entries]
+        if current:
+            labels = [e.label for e in entries]
+            colours = np.array([c for _, c, _ in current])
+            fused = np.array([p for p, _, _ in current])
+            looks = appearance_cost(obs.labels, obs.colors, labels, colours)
+            apart = np.linalg.norm(params[:, np.newaxis, :2] - fused[np.newaxis, :, :2], axis=-1)
+            sizes = params[:, np.newaxis, 2] + fused[np.newaxis, :, 2]
+            gate_distance = _GATE_SIZES * sizes
+            cost = apart / gate_distance + looks / COLOUR_GATE
+            allowed = (looks < COLOUR_GATE) & (apart < gate_distance) & usable[:, np.newaxis]
+            pairs = assign(np.where(allowed, cost, np.inf), 2.0)
+            joined = dict(zip(pairs.rows.tolist(), pairs.cols.tolist(), strict=True))
+        else:
+            joined = {}
+        for i in range(len(obs)):
+            if not usable[i]:
+                continue
+            weight = 1.0 / sigma[i] ** 2
+            if i in joined:
+                entry = entries[joined[i]]
+                link[i] = joined[i]
+                if not mapped.reliable[i] and max(entry.weights) > weight:
+                    continue  # an unreliable look adds nothing to a reliable entry
+                entry.params.append(params[i])
+                entry.colours.append(obs.colors[i])
+                entry.weights.append(weight)
+            else:
+                link[i] = len(entries)
+                entries.append(_Entry(obs.labels[i], [obs.colors[i]], [params[i]], [weight]))
+    if not entries:
+        empty = WorldMap(
+            (), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), np.zeros(0, int), floor
+        )
+        return empty, links
+    fused_all = [e.fused() for e in entries]
+    world = WorldMap(
+        labels=tuple(e.label for e in entries),
+        colors=np.array([c for _, c, _ in fused_all]),
+        params=np.array([p for p, _, _ in fused_all]),
+        sigma=np.array([s for _, _, s in fused_all]),
+        support=np.array([len(e.weights) for e in entries], dtype=np.int_),
+        sigma_floor=floor,
+    )
+    return world, links
