@@ -103,7 +103,7 @@ def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> 
             "epochs": len(history),
             "train_images": state.get("train_images"),
             "datasets": state.get("data"),
-            "training_minutes": history[-1]["minutes"] if history else None,
+            "training_minutes": round(sum(h["epoch_s"] for h in history) / 60, 1),
             "validation": history[-1] if history else None,
             "export_max_abs_error": error,
             **(extra or {}),

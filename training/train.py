@@ -25,7 +25,7 @@ from training.loss import detection_loss
 from training.metrics import Evaluation, nms
 from training.model import Detector, anchor_points
 
-__all__ = ["INPUT_HEIGHT", "INPUT_WIDTH", "main", "predict"]
+__all__ = ["INPUT_HEIGHT", "INPUT_WIDTH", "main", "predict", "predict_batch"]
 
 INPUT_WIDTH, INPUT_HEIGHT = 320, 256
 
@@ -49,33 +49,60 @@ def _batch(
     return batch, gt_boxes, gt_classes, gt_classes >= 0
 
 
-@torch.no_grad()
-def predict(
-    model: Detector, rgb: np.ndarray, conf: float = 0.25, iou: float = 0.6
+def _postprocess(
+    out: np.ndarray,
+    scale: float,
+    pad_x: float,
+    pad_y: float,
+    size: tuple[int, int],
+    conf: float,
+    iou: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Boxes (image pixels), scores and classes for one RGB image (centred letterbox, NMS)."""
-    canvas, scale, pad_x, pad_y = letterbox(rgb, INPUT_WIDTH, INPUT_HEIGHT)
-    x = torch.from_numpy(canvas).permute(2, 0, 1)[None].float() / 255.0
-    out = model.decode(model(x), INPUT_HEIGHT, INPUT_WIDTH)[0].T.numpy()
+    """One image's decoded predictions ``[N, 4 + C]`` to boxes in its pixels, scores, classes."""
     scores = out[:, 4:].max(1)
     classes = out[:, 4:].argmax(1)
     keep = scores >= conf
     cxcy, wh, scores, classes = out[keep, :2], out[keep, 2:4], scores[keep], classes[keep]
     boxes = np.concatenate([cxcy - wh / 2, cxcy + wh / 2], axis=1)
     boxes = (boxes - [pad_x, pad_y, pad_x, pad_y]) / scale
-    h, w = rgb.shape[:2]
+    w, h = size
     boxes = np.clip(boxes, 0, [w, h, w, h])
     kept = nms(boxes, scores, classes, iou)
     return boxes[kept], scores[kept], classes[kept]
 
 
-def evaluate(model: Detector, samples: Sequence[LabelledImage]) -> dict[str, Any]:
+@torch.no_grad()
+def predict_batch(
+    model: Detector, images: Sequence[np.ndarray], conf: float = 0.25, iou: float = 0.6
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Boxes (image pixels), scores and classes for RGB images (centred letterbox, NMS), run
+    through the network as one batch."""
+    boxes = [letterbox(rgb, INPUT_WIDTH, INPUT_HEIGHT) for rgb in images]
+    x = torch.from_numpy(np.stack([b[0] for b in boxes])).permute(0, 3, 1, 2).float() / 255.0
+    out = model.decode(model(x), INPUT_HEIGHT, INPUT_WIDTH).transpose(1, 2).numpy()
+    return [
+        _postprocess(o, scale, pad_x, pad_y, (rgb.shape[1], rgb.shape[0]), conf, iou)
+        for o, (_, scale, pad_x, pad_y), rgb in zip(out, boxes, images, strict=True)
+    ]
+
+
+def predict(
+    model: Detector, rgb: np.ndarray, conf: float = 0.25, iou: float = 0.6
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`predict_batch` of one image."""
+    return predict_batch(model, [rgb], conf, iou)[0]
+
+
+def evaluate(model: Detector, samples: Sequence[LabelledImage], batch: int = 32) -> dict[str, Any]:
     """P/R/mAP50 at IoU 0.5 over objects at least 60 % visible."""
     model.eval()
     evaluation = Evaluation(CLASSES)
-    for sample in samples:
-        boxes, scores, classes = predict(model, sample.rgb)
-        evaluation.add(boxes, scores, classes, sample.boxes, sample.classes, sample.visible)
+    for first in range(0, len(samples), batch):
+        chunk = samples[first : first + batch]
+        for sample, (boxes, scores, classes) in zip(
+            chunk, predict_batch(model, [s.rgb for s in chunk]), strict=True
+        ):
+            evaluation.add(boxes, scores, classes, sample.boxes, sample.classes, sample.visible)
     return evaluation.report()
 
 
@@ -128,6 +155,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         optimizer.load_state_dict(state["optimizer"])
         start_epoch, step, best = state["epoch"] + 1, state["step"], state["best"]
         history = state["history"]
+        started -= 60 * history[-1]["minutes"] if history else 0  # minutes count across resumes
         print(f"resumed at epoch {start_epoch}", flush=True)
     points, strides = anchor_points(INPUT_HEIGHT, INPUT_WIDTH)
 
