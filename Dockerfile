@@ -21,7 +21,7 @@ ENV COSMOS_SCENES_DIR=/app/scenes \
     COSMOS_DETECTOR_MODEL=/app/models/detector.onnx \
     SERVICE=renderer \
     PORT=8001
-RUN useradd --create-home cosmos
+RUN useradd --create-home cosmos && mkdir -p /data && chown cosmos /data
 USER cosmos
 EXPOSE 8000 8001 8002 8003
 HEALTHCHECK --interval=10s --timeout=3s --start-period=20s \

@@ -3,26 +3,33 @@
 * ``cosmos scenes [--url URL]``: the scenes (local files, or a running renderer);
 * ``cosmos render --scene demo --theta 40 --phi 120 -o target.png``: one view, rendered in this
   process or by a renderer at ``--url``; ``--annotations FILE`` also writes its ground truth;
-* ``cosmos demo``: starts a real renderer process on loopback, renders the demo scene from a random
-  grid pose over HTTP with its ground truth, prints what it found and stops the renderer.
+* ``cosmos up``: the four services as local processes (Ctrl-C or SIGTERM stops them all);
+* ``cosmos search target.png --scene demo``: submit a search, follow it, save its plots;
+* ``cosmos demo``: the whole thing end to end on the demo scene: starts the stack on free ports,
+  renders a target from a random grid pose, searches for it, prints the true and found poses.
 """
 
 from __future__ import annotations
 
 import argparse
 import random
+import signal
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from services.common.errors import ServiceError
-from services.common.launch import running_service
+from services.common.launch import free_port
 from services.common.models import PoseQuery, RenderAnnotations, RenderRequest
+from services.common.search import Iteration, Search
+from services.controller.client import ControllerClient, ControllerError
 from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
+from services.stack import plan_stack, running_stack
 
 __all__ = ["main"]
 
@@ -94,7 +101,104 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_iteration(it: Iteration) -> None:
+    pose = it.pose
+    est = (
+        f"estimate θ {it.estimate.theta_deg:5.1f}° φ {it.estimate.phi_deg:5.1f}°"
+        if it.estimate
+        else ""
+    )
+    print(
+        f"  [{it.index + 1:>2}] lat {pose.index.lat:>2} lon {pose.index.lon:>2} "
+        f"(θ {pose.theta_deg:5.1f}° φ {pose.phi_deg:5.1f}°) {len(it.detections)} objects  "
+        f"{it.timings.total_ms:6.0f} ms  {est}",
+        flush=True,
+    )
+
+
+def _follow(client: ControllerClient, search: Search, out: Path | None) -> Search:
+    """Print each iteration as it happens, then the result; save the plots into ``out``."""
+    final = search
+    for item in client.follow(search.id):
+        if isinstance(item, Iteration):
+            _print_iteration(item)
+        else:
+            final = item
+    if final.result is not None:
+        r = final.result
+        print(
+            f"{final.status}: lat {r.pose.index.lat} lon {r.pose.index.lon} "
+            f"(θ {r.pose.theta_deg:.1f}° φ {r.pose.phi_deg:.1f}°), refined θ "
+            f"{r.refined_pose.theta_deg:.2f}° φ {r.refined_pose.phi_deg:.2f}°, confidence "
+            f"{r.confidence:.2f}, {r.renders} renders"
+        )
+    if final.error is not None:
+        print(f"{final.status}: {final.error.detail}")
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        for name in ("trajectory.png", "distance.png"):
+            path = out / f"search-{final.id[:8]}-{name}"
+            path.write_bytes(client.plot(final.id, name))
+            print(f"wrote {path}")
+    return final
+
+
+def _cmd_search(args: argparse.Namespace) -> int:
+    image = Path(args.image).read_bytes()
+    with ControllerClient(args.url) as client:
+        search = client.submit(
+            image,
+            args.scene,
+            strategy=args.strategy,
+            start_theta_deg=args.start_theta,
+            start_phi_deg=args.start_phi,
+            seed=args.seed,
+            max_iterations=args.max_iterations,
+        )
+        print(
+            f"search {search.id} queued: {search.strategy} on {search.scene} from lat "
+            f"{search.start.index.lat} lon {search.start.index.lon}"
+        )
+        final = _follow(client, search, Path(args.out))
+    return 0 if final.status == "succeeded" else 3
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    plan = plan_stack(
+        host=args.host,
+        controller_port=args.port,
+        renderer_port=args.port + 1,
+        detector_port=args.port + 2,
+        optimizer_port=args.port + 3,
+        renderers=args.renderers,
+        detectors=args.detectors,
+        database_url=args.database_url,
+    )
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    with running_stack(plan, Path(args.logs), host=args.host) as stack:
+        print(f"controller  {stack.controller}")
+        for name, urls in (
+            ("renderer", stack.renderers),
+            ("detector", stack.detectors),
+            ("optimizer", stack.optimizers),
+        ):
+            print(f"{name:<11} {', '.join(urls)}")
+        print(f"logs in {args.logs}; Ctrl-C stops everything", flush=True)
+        while not stop.wait(1.0):
+            dead = [p for p in stack.processes if p.process.poll() is not None]
+            if dead:
+                print(
+                    f"cosmos: {dead[0].url} exited; stopping (see {dead[0].log})", file=sys.stderr
+                )
+                return 1
+    print("stopped")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
+    """Start the stack on free ports, render a target from a random grid pose, search for it."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = SceneCatalog([BUILTIN_SCENES_DIR]).get("demo")
@@ -103,28 +207,51 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     index = grid.unflat(rng.randrange(grid.size))
     pose = grid.pose(index)
     print(f"demo scene: {len(scene.spec.objects)} objects, {grid.size} grid poses")
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        ports = [free_port() for _ in range(4)]
+        plan = plan_stack(
+            controller_port=ports[0],
+            renderer_port=ports[1],
+            detector_port=ports[2],
+            optimizer_port=ports[3],
+            database_url=f"sqlite:///{tmp}/controller.sqlite3",
+        )
+        with running_stack(plan, Path(tmp) / "logs") as stack:
+            print(
+                f"stack up in {time.perf_counter() - started:.1f} s (controller {stack.controller})"
+            )
+            with RendererClient(stack.renderers[0]) as renderer:
+                target = renderer.render_png(
+                    RenderRequest(scene="demo", pose=PoseQuery(lat=index.lat, lon=index.lon))
+                )
+            (out / "demo-target.png").write_bytes(target)
+            print(
+                f"target rendered at lat {index.lat}, lon {index.lon} "
+                f"(θ {pose.theta_deg:.1f}°, φ {pose.phi_deg:.1f}°): {out / 'demo-target.png'}"
+            )
+            with ControllerClient(stack.controller) as client:
+                search = client.submit(target, "demo", seed=rng.randrange(2**31))
+                print(
+                    f"searching with {search.strategy} from lat {search.start.index.lat}, "
+                    f"lon {search.start.index.lon}"
+                )
+                final = _follow(client, search, out)
+    found = final.result
     print(
-        f"target pose: lat {index.lat}, lon {index.lon} "
+        f"true pose:  lat {index.lat:>2}, lon {index.lon:>2} "
         f"(θ {pose.theta_deg:.1f}°, φ {pose.phi_deg:.1f}°)"
     )
-    started = time.perf_counter()
-    with (
-        tempfile.TemporaryDirectory() as logs,
-        running_service("services.renderer.app:app", Path(logs)) as renderer,
-        RendererClient(renderer.url) as client,
-    ):
-        print(f"renderer up at {renderer.url} in {time.perf_counter() - started:.1f} s")
-        request = RenderRequest(scene="demo", pose=PoseQuery(lat=index.lat, lon=index.lon))
-        png = client.render_png(request)
-        ann = client.annotations(request)
-    (out / "demo-target.png").write_bytes(png)
-    (out / "demo-target.json").write_text(ann.model_dump_json(indent=2))
-    print(f"rendered {out / 'demo-target.png'} and its ground truth {out / 'demo-target.json'}")
-    for obj in ann.objects:
-        box = "not visible" if obj.box is None else "box " + ", ".join(f"{v:.0f}" for v in obj.box)
-        print(f"  {obj.name:<8} {box:<24} {obj.visible_fraction:>5.0%} visible")
+    if found is not None:
+        print(
+            f"found pose: lat {found.pose.index.lat:>2}, lon {found.pose.index.lon:>2} "
+            f"(θ {found.pose.theta_deg:.1f}°, φ {found.pose.phi_deg:.1f}°) "
+            f"after {found.renders} renders"
+        )
     print(f"total {time.perf_counter() - started:.1f} s")
-    return 0
+    ok = found is not None and found.pose.index == index
+    print("the search found the target's grid pose" if ok else "the search did NOT find the target")
+    return 0 if ok else 3
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -150,10 +277,34 @@ def _parser() -> argparse.ArgumentParser:
     render.add_argument("--url", help="use a running renderer instead of rendering in-process")
     render.set_defaults(run=_cmd_render)
 
-    demo = commands.add_parser("demo", help="render the demo scene through a real renderer")
+    demo = commands.add_parser("demo", help="a whole search on the demo scene, end to end")
     demo.add_argument("--out", default="out")
-    demo.add_argument("--seed", type=int, help="seed of the random target pose")
+    demo.add_argument("--seed", type=int, help="seed of the random target and start poses")
     demo.set_defaults(run=_cmd_demo)
+
+    up = commands.add_parser("up", help="run the four services as local processes")
+    up.add_argument("--host", default="127.0.0.1")
+    up.add_argument(
+        "--port", type=int, default=8000, help="controller port; stages use the next three"
+    )
+    up.add_argument("--renderers", type=int, default=1)
+    up.add_argument("--detectors", type=int, default=1)
+    up.add_argument("--database-url", help="the controller's COSMOS_DATABASE_URL")
+    up.add_argument("--logs", default="logs", help="folder for the services' logs")
+    up.set_defaults(run=_cmd_up)
+
+    search = commands.add_parser("search", help="search for where an image was taken")
+    search.add_argument("image", help="the target image (PNG or JPEG)")
+    search.add_argument("--scene", required=True)
+    search.add_argument("--url", default="http://127.0.0.1:8000", help="the controller")
+    search.add_argument("--strategy", choices=["reprojection", "paper", "simple"])
+    search.add_argument("--start-theta", type=float)
+    search.add_argument("--start-phi", type=float)
+    search.add_argument("--seed", type=int)
+    search.add_argument("--max-iterations", type=int)
+    search.add_argument("--out", default="out", help="folder for the trajectory plots")
+    search.set_defaults(run=_cmd_search)
+
     return parser
 
 
@@ -165,7 +316,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ServiceError as exc:
         print(f"cosmos: {exc.detail}", file=sys.stderr)
         return 2
-    except (RendererError, RuntimeError, ValueError) as exc:
+    except (RendererError, ControllerError, RuntimeError, ValueError, OSError) as exc:
         print(f"cosmos: {exc}", file=sys.stderr)
         return 1
     return status

@@ -1,7 +1,79 @@
-"""Test support: paths and real service processes (see :mod:`services.common.launch`)."""
+"""Test support: paths, real service processes (see :mod:`services.common.launch`), and
+schema-driven fuzzing of a running service."""
 
 from __future__ import annotations
 
+from typing import Any
+
+import httpx
+import schemathesis
+from hypothesis import HealthCheck, given, settings
+from schemathesis.checks import positive_data_acceptance
+
 from services.common.launch import ROOT, ServiceProcess, free_port, running_service
 
-__all__ = ["ROOT", "ServiceProcess", "free_port", "running_service"]
+__all__ = [
+    "ROOT",
+    "ServiceProcess",
+    "free_port",
+    "fuzz_service",
+    "homogeneous_tuples",
+    "running_service",
+]
+
+
+def homogeneous_tuples(node: Any) -> Any:
+    """The schema with every tuple whose items share one schema (``prefixItems: [S, S]`` with
+    ``minItems = maxItems``) written as the equivalent ``items: S``.
+
+    schemathesis 4 rewrites ``prefixItems`` into draft-4 ``items: [...]`` when it prepares a
+    response schema and then checks it with a draft 2020-12 validator, which refuses the result
+    ("Invalid Schema Object in response definition"), so tuple-typed answers (image sizes,
+    boxes) could not be validated at all. The rewrite keeps the meaning.
+    """
+    if isinstance(node, list):
+        return [homogeneous_tuples(item) for item in node]
+    if not isinstance(node, dict):
+        return node
+    out = {key: homogeneous_tuples(value) for key, value in node.items()}
+    prefix = out.get("prefixItems")
+    if (
+        isinstance(prefix, list)
+        and prefix
+        and all(item == prefix[0] for item in prefix)
+        and out.get("minItems") == out.get("maxItems") == len(prefix)
+        and "items" not in out
+    ):
+        out["items"] = out.pop("prefixItems")[0]
+    return out
+
+
+def fuzz_service(url: str, *, max_examples: int = 25, timeout_s: float = 60.0) -> int:
+    """Fuzz every operation of the service at ``url`` from its OpenAPI schema (schemathesis):
+    valid and invalid inputs alike must never get a 5xx, and every answer must match the route's
+    declared status codes, media types and schemas. Returns the number of operations.
+
+    Schema-valid requests may still be refused with a 4xx problem (whether a pose is on a scene's
+    grid, bytes are an image, a scene exists, depends on what a static schema cannot say), so the
+    ``positive_data_acceptance`` heuristic is the one check left out.
+    """
+    document = httpx.get(f"{url}/openapi.json", timeout=10.0).json()
+    schema = schemathesis.openapi.from_dict(homogeneous_tuples(document))
+    operations = [result.ok() for result in schema.get_all_operations()]
+    for operation in operations:
+
+        @given(case=operation.as_strategy())
+        @settings(
+            max_examples=max_examples,
+            deadline=None,
+            suppress_health_check=list(HealthCheck),
+            derandomize=True,
+            database=None,
+        )
+        def fuzz(case: schemathesis.Case) -> None:
+            case.call_and_validate(
+                base_url=url, timeout=timeout_s, excluded_checks=[positive_data_acceptance]
+            )
+
+        fuzz()
+    return len(operations)

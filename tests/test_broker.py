@@ -192,3 +192,24 @@ async def test_real_replicas_slow_failing_hanging_and_killed(tmp_path):
         results = await asyncio.gather(*(broker.call("renderer", "work", work) for _ in range(10)))
         assert {r.json()["replica"] for r in results} == {"fast"}
         await broker.close()
+
+
+async def test_dns_discovery_gives_one_replica_per_address():
+    from services.controller.discovery import expand_urls
+
+    urls = await expand_urls(
+        ["http://localhost:8001", "http://no-such-host.invalid:1", "http://127.0.0.1:9"]
+    )
+    assert "http://127.0.0.1:8001" in urls
+    assert "http://no-such-host.invalid:1" in urls  # kept as given when it does not resolve
+    assert urls.count("http://127.0.0.1:9") == 1
+
+
+async def test_a_new_pool_keeps_what_is_known_of_remaining_replicas():
+    broker = mock_broker(lambda host, _: httpx.Response(200))
+    a = broker.replicas("renderer")[0]
+    a.expected_ms["render"] = 42.0
+    await broker.set_pool("renderer", ["http://a", "http://d"])
+    assert [r.url for r in broker.replicas("renderer")] == ["http://a", "http://d"]
+    assert broker.replicas("renderer")[0].expected_ms == {"render": 42.0}
+    await broker.close()

@@ -6,21 +6,18 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import cv2
 import httpx
 import numpy as np
 import pytest
 import schemathesis
-from hypothesis import HealthCheck, given, settings
-from schemathesis.checks import positive_data_acceptance
 
 from services.common.grid import grid_for
 from services.detector.client import DetectorClient, DetectorError
 from services.detector.postprocess import box_iou
 from services.detector.synthetic import constant_model
-from tests.support import ROOT, ServiceProcess, running_service
+from tests.support import ROOT, ServiceProcess, fuzz_service, homogeneous_tuples, running_service
 
 pytestmark = pytest.mark.slow
 
@@ -98,32 +95,6 @@ def test_a_missing_model_stops_the_process_naming_the_file(tmp_path):
         pass
 
 
-def homogeneous_tuples(node: Any) -> Any:
-    """The schema with every tuple whose items share one schema (``prefixItems: [S, S]`` with
-    ``minItems = maxItems``) written as the equivalent ``items: S``.
-
-    schemathesis 4 rewrites ``prefixItems`` into draft-4 ``items: [...]`` when it prepares a
-    response schema and then checks it with a draft 2020-12 validator, which refuses the result
-    ("Invalid Schema Object in response definition"), so tuple-typed answers (image sizes,
-    boxes) could not be validated at all. The rewrite keeps the meaning.
-    """
-    if isinstance(node, list):
-        return [homogeneous_tuples(item) for item in node]
-    if not isinstance(node, dict):
-        return node
-    out = {key: homogeneous_tuples(value) for key, value in node.items()}
-    prefix = out.get("prefixItems")
-    if (
-        isinstance(prefix, list)
-        and prefix
-        and all(item == prefix[0] for item in prefix)
-        and out.get("minItems") == out.get("maxItems") == len(prefix)
-        and "items" not in out
-    ):
-        out["items"] = out.pop("prefixItems")[0]
-    return out
-
-
 def test_every_route_answers_within_its_schema(detector_process):
     """Schema-driven fuzzing (schemathesis): valid and invalid inputs alike never get a 5xx and
     every answer matches the route's declared status codes, media types and schemas."""
@@ -139,27 +110,7 @@ def test_every_route_answers_within_its_schema(detector_process):
     response = real.call_and_validate(base_url=detector_process.url, timeout=30)
     assert response.status_code == 200
     assert len(response.json()["detections"]) == 1
-    for operation in operations:
-
-        @given(case=operation.as_strategy())
-        @settings(
-            max_examples=30,
-            deadline=None,
-            suppress_health_check=list(HealthCheck),
-            derandomize=True,
-            database=None,
-        )
-        def fuzz(case: schemathesis.Case) -> None:
-            # The schema says `image` is binary; it cannot say the bytes must be a PNG or JPEG,
-            # so schema-valid uploads are refused with 415/422 problems. Every other check
-            # stays on.
-            case.call_and_validate(
-                base_url=detector_process.url,
-                timeout=30,
-                excluded_checks=[positive_data_acceptance],
-            )
-
-        fuzz()
+    assert fuzz_service(detector_process.url, max_examples=30, timeout_s=30) == 3
 
 
 # -- the shipped model -------------------------------------------------------------------------

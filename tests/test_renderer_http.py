@@ -7,11 +7,9 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-import schemathesis
-from hypothesis import HealthCheck, given, settings
-from schemathesis.checks import positive_data_acceptance
 
 from services.common.grid import grid_for
+from tests.support import fuzz_service
 
 pytestmark = pytest.mark.slow
 
@@ -85,29 +83,5 @@ def test_annotated_boxes_match_the_rendered_objects(renderer_process):
 
 
 def test_every_route_answers_within_its_schema(renderer_process):
-    """Schema-driven fuzzing (schemathesis): valid and invalid inputs alike never get a 5xx and
-    every answer matches the route's declared status codes, media types and schemas."""
-    schema = schemathesis.openapi.from_url(f"{renderer_process.url}/openapi.json")
-    operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) >= 6
-    for operation in operations:
-
-        @given(case=operation.as_strategy())
-        @settings(
-            max_examples=25,
-            deadline=None,
-            suppress_health_check=list(HealthCheck),
-            derandomize=True,
-            database=None,
-        )
-        def fuzz(case: schemathesis.Case) -> None:
-            # Schema-valid requests may still be refused with a 4xx problem: whether a grid
-            # index exists, or a film fits the caps, depends on the scene and the settings,
-            # which a static schema cannot say. Every other check stays on.
-            case.call_and_validate(
-                base_url=renderer_process.url,
-                timeout=60,
-                excluded_checks=[positive_data_acceptance],
-            )
-
-        fuzz()
+    """Schema-driven fuzzing of every route (see :func:`tests.support.fuzz_service`)."""
+    assert fuzz_service(renderer_process.url, max_examples=25) >= 6

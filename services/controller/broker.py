@@ -116,23 +116,31 @@ class Broker:
         self.cooldown_s = cooldown_s
         self.health_interval_s = health_interval_s
         timeouts = dict(timeouts_s or {})
+        self._timeouts = timeouts
+        self._connect_timeout_s = connect_timeout_s
+        self._transport = transport
         self._replicas: dict[str, list[Replica]] = {}
+        self._turns: dict[str, itertools.count[int]] = {}
         for stage, urls in pools.items():
-            read = timeouts.get(stage, 60.0)
-            self._replicas[stage] = [
-                Replica(
-                    stage=stage,
-                    url=url.rstrip("/"),
-                    client=httpx.AsyncClient(
-                        base_url=url.rstrip("/"),
-                        timeout=httpx.Timeout(read, connect=connect_timeout_s),
-                        transport=transport,
-                    ),
-                )
-                for url in urls
-            ]
-        self._turns = {stage: itertools.count() for stage in self._replicas}
+            self._replicas[stage] = [self._replica(stage, url) for url in urls]
+            self._turns[stage] = itertools.count()
         self._health_task: asyncio.Task[None] | None = None
+
+    def _replica(self, stage: str, url: str) -> Replica:
+        url = url.rstrip("/")
+        timeout = httpx.Timeout(self._timeouts.get(stage, 60.0), connect=self._connect_timeout_s)
+        client = httpx.AsyncClient(base_url=url, timeout=timeout, transport=self._transport)
+        return Replica(stage=stage, url=url, client=client)
+
+    async def set_pool(self, stage: str, urls: Sequence[str]) -> None:
+        """Replace a stage's replicas (keeping what is known of those that stay)."""
+        wanted = [url.rstrip("/") for url in urls]
+        current = {r.url: r for r in self._replicas.get(stage, [])}
+        self._replicas[stage] = [current.get(url) or self._replica(stage, url) for url in wanted]
+        self._turns.setdefault(stage, itertools.count())
+        for url, replica in current.items():
+            if url not in wanted:
+                await replica.client.aclose()
 
     # -- life cycle ---------------------------------------------------------------------------
 

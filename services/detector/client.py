@@ -2,63 +2,27 @@
 
 from __future__ import annotations
 
-from types import TracebackType
 from typing import Any
 
 import cv2
-import httpx
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.client import ServiceCallError, ServiceClient, media_type_of
 from services.common.models import DetectResponse, ModelInfo
 
 __all__ = ["DetectorClient", "DetectorError"]
 
 
-class DetectorError(RuntimeError):
-    """The detector answered with an error (its problem detail is the message)."""
-
-    def __init__(self, status: int, detail: str) -> None:
-        super().__init__(f"detector answered {status}: {detail}")
-        self.status = status
+class DetectorError(ServiceCallError):
+    """The detector answered with an error."""
 
 
-def _media_type(data: bytes) -> str:
-    if data.startswith(b"\x89PNG\r\n\x1a\n"):
-        return "image/png"
-    if data.startswith(b"\xff\xd8"):
-        return "image/jpeg"
-    return "application/octet-stream"
-
-
-class DetectorClient:
+class DetectorClient(ServiceClient):
     """Calls one detector at ``base_url`` with explicit timeouts."""
 
-    def __init__(self, base_url: str, timeout_s: float = 60.0) -> None:
-        self._http = httpx.Client(base_url=base_url, timeout=httpx.Timeout(timeout_s, connect=5.0))
-
-    def __enter__(self) -> DetectorClient:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._http.close()
-
-    def _check(self, response: httpx.Response) -> httpx.Response:
-        if response.status_code >= 400:
-            try:
-                detail = str(response.json().get("detail", response.text))
-            except ValueError:
-                detail = response.text
-            raise DetectorError(response.status_code, detail)
-        return response
+    service = "detector"
+    error = DetectorError
 
     def health(self) -> dict[str, Any]:
         """``GET /health``."""
@@ -83,7 +47,7 @@ class DetectorClient:
             params["conf"] = conf
         if max_detections is not None:
             params["max_detections"] = max_detections
-        files = {"image": (filename, image, _media_type(image))}
+        files = {"image": (filename, image, media_type_of(image))}
         response = self._check(self._http.post("/detect", files=files, params=params))
         return DetectResponse.model_validate(response.json())
 

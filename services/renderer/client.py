@@ -2,52 +2,22 @@
 
 from __future__ import annotations
 
-from types import TracebackType
-
-import httpx
-
+from services.common.client import ServiceCallError, ServiceClient
 from services.common.models import RenderAnnotations, RenderRequest, SceneSummary
 from services.common.scene import SceneDetail
 
 __all__ = ["RendererClient", "RendererError"]
 
 
-class RendererError(RuntimeError):
-    """The renderer answered with an error (its problem detail is the message)."""
-
-    def __init__(self, status: int, detail: str) -> None:
-        super().__init__(f"renderer answered {status}: {detail}")
-        self.status = status
+class RendererError(ServiceCallError):
+    """The renderer answered with an error."""
 
 
-class RendererClient:
+class RendererClient(ServiceClient):
     """Calls one renderer at ``base_url`` with explicit timeouts."""
 
-    def __init__(self, base_url: str, timeout_s: float = 120.0) -> None:
-        self._http = httpx.Client(base_url=base_url, timeout=httpx.Timeout(timeout_s, connect=5.0))
-
-    def __enter__(self) -> RendererClient:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._http.close()
-
-    def _check(self, response: httpx.Response) -> httpx.Response:
-        if response.status_code >= 400:
-            try:
-                detail = str(response.json().get("detail", response.text))
-            except ValueError:
-                detail = response.text
-            raise RendererError(response.status_code, detail)
-        return response
+    service = "renderer"
+    error = RendererError
 
     def scenes(self) -> list[SceneSummary]:
         """``GET /scenes``."""

@@ -1,0 +1,64 @@
+"""The base of the services' small synchronous clients: one httpx client, explicit timeouts,
+errors that carry the service's problem detail."""
+
+from __future__ import annotations
+
+from types import TracebackType
+from typing import ClassVar, Self
+
+import httpx
+
+__all__ = ["ServiceCallError", "ServiceClient", "media_type_of"]
+
+
+class ServiceCallError(RuntimeError):
+    """A service answered with an error; the message is its problem detail."""
+
+    def __init__(self, service: str, status: int, detail: str) -> None:
+        super().__init__(f"{service} answered {status}: {detail}")
+        self.status = status
+        self.detail = detail
+
+
+def media_type_of(data: bytes) -> str:
+    """The media type of PNG or JPEG bytes, by signature."""
+    if data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "image/png"
+    if data.startswith(b"\xff\xd8"):
+        return "image/jpeg"
+    return "application/octet-stream"
+
+
+class ServiceClient:
+    """Calls one service at ``base_url``; subclasses add the routes."""
+
+    service: ClassVar[str] = "service"
+    error: ClassVar[type[ServiceCallError]] = ServiceCallError
+
+    def __init__(self, base_url: str, timeout_s: float = 60.0) -> None:
+        self._http = httpx.Client(base_url=base_url, timeout=httpx.Timeout(timeout_s, connect=5.0))
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def _check(self, response: httpx.Response) -> httpx.Response:
+        """``response``, or the service's error when it answered 4xx/5xx."""
+        if response.status_code >= 400:
+            response.read()
+            try:
+                detail = str(response.json().get("detail", response.text))
+            except (ValueError, AttributeError):
+                detail = response.text
+            raise self.error(self.service, response.status_code, detail)
+        return response

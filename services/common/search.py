@@ -1,0 +1,95 @@
+"""Message models of a search (the controller's public API): status, iterations, result."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from services.common.errors import ProblemDetails
+from services.common.models import Detection, FrozenModel, Pose
+from services.common.optimization import GridPose, StrategyName
+
+__all__ = [
+    "Iteration",
+    "Search",
+    "SearchPage",
+    "SearchResult",
+    "SearchStatus",
+    "StageTimings",
+    "TERMINAL_STATUSES",
+]
+
+SearchStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+
+
+NonNegMs = Annotated[float, Field(ge=0.0)]
+
+
+class StageTimings(FrozenModel):
+    """Where one iteration's time went, in milliseconds (wall time seen by the controller)."""
+
+    render_ms: NonNegMs = 0.0
+    detect_ms: NonNegMs = 0.0
+    optimize_ms: NonNegMs = 0.0
+    total_ms: NonNegMs = 0.0
+
+
+class Iteration(FrozenModel):
+    """One rendered view of a search and what the optimizer made of it."""
+
+    index: int
+    pose: GridPose
+    image_size: tuple[int, int]
+    detections: tuple[Detection, ...]
+    timings: StageTimings
+    estimate: Pose | None = Field(default=None, description="The continuous estimate so far.")
+    estimate_grid: GridPose | None = Field(
+        default=None, description="The grid pose nearest the estimate."
+    )
+    confidence: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
+    ambiguous: bool = False
+    next_pose: GridPose | None = None
+    done: bool = False
+    reason: str = ""
+
+
+class SearchResult(FrozenModel):
+    """Where the camera stood: the grid pose, the continuous estimate and how sure it is."""
+
+    pose: GridPose
+    refined_pose: Pose
+    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
+    renders: int
+    ambiguous: bool = False
+    reason: str = ""
+
+
+class Search(FrozenModel):
+    """``GET /searches/{id}``."""
+
+    id: str
+    status: SearchStatus
+    scene: str
+    strategy: StrategyName
+    start: GridPose
+    seed: int
+    max_iterations: int
+    created_at: datetime
+    updated_at: datetime
+    target_size: tuple[int, int] = Field(description="Target image (width, height) in pixels.")
+    target_detections: tuple[Detection, ...] | None = None
+    iterations: tuple[Iteration, ...] = ()
+    result: SearchResult | None = None
+    error: ProblemDetails | None = None
+
+
+class SearchPage(FrozenModel):
+    """``GET /searches``: newest first."""
+
+    items: tuple[Search, ...]
+    total: int
+    limit: int
+    offset: int

@@ -1,0 +1,245 @@
+"""Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
+from fastapi.responses import JSONResponse, Response, StreamingResponse
+
+from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
+from services.common.http import problem_responses
+from services.common.models import FrozenModel, SceneSummary
+from services.common.optimization import GridSpec, StrategyName
+from services.common.search import TERMINAL_STATUSES, Search, SearchPage
+from services.controller.broker import Broker, BrokerError
+from services.controller.events import Notifier
+from services.controller.plots import distance_png, trajectory_png
+from services.controller.runner import SearchRunner
+from services.controller.settings import ControllerSettings
+from services.controller.stages import StageError, Stages
+from services.controller.store import SearchStore
+from services.controller.submit import MAX_ITERATIONS, create_search
+
+__all__ = ["ControllerHealth", "ControllerState", "router"]
+
+router = APIRouter()
+
+
+@dataclass(frozen=True)
+class ControllerState:
+    settings: ControllerSettings
+    store: SearchStore
+    broker: Broker
+    stages: Stages
+    runner: SearchRunner
+    notifier: Notifier
+
+
+class ReplicaHealth(FrozenModel):
+    stage: str
+    url: str
+    up: bool
+    in_flight: int
+    reported_load: float
+    expected_ms: dict[str, float]
+    served: int
+    failed: int
+
+
+class ControllerHealth(FrozenModel):
+    status: Literal["ok"]
+    service: Literal["controller"]
+    searches_queued: int
+    searches_running: int
+    broker_heuristic: str
+    replicas: tuple[ReplicaHealth, ...]
+
+
+def get_state(request: Request) -> ControllerState:
+    state: ControllerState = request.app.state.controller
+    return state
+
+
+State = Annotated[ControllerState, Depends(get_state)]
+
+
+def _search_or_404(state: ControllerState, search_id: str) -> Search:
+    search = state.store.get(search_id)
+    if search is None:
+        raise NotFoundError(
+            f"no search {search_id!r}", field="id", slug="unknown-search", title="Unknown search"
+        )
+    return search
+
+
+@router.get("/health", response_model=ControllerHealth)
+async def health(state: State) -> ControllerHealth:
+    """Liveness, the queue, and what the broker knows of every replica."""
+    return ControllerHealth(
+        status="ok",
+        service="controller",
+        searches_queued=state.runner.queued,
+        searches_running=state.runner.running,
+        broker_heuristic=state.broker.heuristic.value,
+        replicas=tuple(ReplicaHealth(**vars(s)) for s in state.broker.stats()),
+    )
+
+
+@router.get("/scenes", response_model=list[SceneSummary], responses=problem_responses(503))
+async def scenes(state: State) -> Any:
+    """The scenes the renderers know (proxied)."""
+    try:
+        response = await state.broker.call("renderer", "scene", lambda c: c.get("/scenes"))
+    except BrokerError as exc:
+        raise _unavailable(exc) from exc
+    return JSONResponse(response.json(), status_code=response.status_code)
+
+
+def _unavailable(exc: BrokerError) -> ServiceUnavailableError:
+    return ServiceUnavailableError(str(exc), slug="stage-unavailable", title="Stage unavailable")
+
+
+@router.post(
+    "/searches",
+    status_code=202,
+    response_model=Search,
+    responses=problem_responses(404, 413, 415, 422, 503),
+)
+async def submit(
+    state: State,
+    image: Annotated[UploadFile, File(description="The target view, PNG or JPEG.")],
+    scene: Annotated[str, Form(min_length=1, max_length=128)],
+    strategy: Annotated[StrategyName, Form()] = "reprojection",
+    start_theta_deg: Annotated[float | None, Form(ge=0.0, le=90.0, allow_inf_nan=False)] = None,
+    start_phi_deg: Annotated[float | None, Form(allow_inf_nan=False)] = None,
+    seed: Annotated[int | None, Form(ge=0, le=2**31 - 1)] = None,
+    max_iterations: Annotated[int | None, Form(ge=1, le=MAX_ITERATIONS)] = None,
+) -> JSONResponse:
+    """Start a search for where ``image`` was taken in ``scene``; answers 202 and a Location."""
+    data = await image.read()
+    try:
+        search = await create_search(
+            state.store,
+            state.stages,
+            image=data,
+            scene_id=scene,
+            strategy=strategy,
+            start_theta_deg=start_theta_deg,
+            start_phi_deg=start_phi_deg,
+            seed=seed,
+            max_iterations=max_iterations or state.settings.default_max_iterations,
+            max_image_pixels=state.settings.max_image_pixels,
+            max_image_side=state.settings.max_image_side,
+        )
+    except BrokerError as exc:
+        raise _unavailable(exc) from exc
+    except StageError as exc:
+        raise UnprocessableError(str(exc), field="scene") from exc
+    state.runner.submit(search.id)
+    return JSONResponse(
+        search.model_dump(mode="json"),
+        status_code=202,
+        headers={"Location": f"/searches/{search.id}"},
+    )
+
+
+@router.get("/searches", response_model=SearchPage)
+async def list_searches(
+    state: State,
+    limit: Annotated[int, Query(ge=1, le=200)] = 20,
+    offset: Annotated[int, Query(ge=0, le=2**62)] = 0,
+) -> SearchPage:
+    """Searches, newest first (without their iterations)."""
+    items, total = state.store.page(limit, offset)
+    return SearchPage(items=tuple(items), total=total, limit=limit, offset=offset)
+
+
+@router.get("/searches/{search_id}", response_model=Search, responses=problem_responses(404))
+async def get_search(search_id: str, state: State) -> Search:
+    """A search: status, iterations so far, result or error."""
+    return _search_or_404(state, search_id)
+
+
+@router.delete("/searches/{search_id}", response_model=Search, responses=problem_responses(404))
+async def cancel_search(search_id: str, state: State) -> Search:
+    """Cancel a queued or running search (a finished one is returned unchanged)."""
+    _search_or_404(state, search_id)
+    return state.runner.cancel(search_id)
+
+
+def _sse(event: str, data: Any) -> bytes:
+    return f"event: {event}\ndata: {json.dumps(data)}\n\n".encode()
+
+
+@router.get(
+    "/searches/{search_id}/events",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(404)},
+)
+async def search_events(search_id: str, state: State) -> StreamingResponse:
+    """Server-sent events: ``iteration`` for each recorded iteration, then one ``end``."""
+    _search_or_404(state, search_id)
+
+    async def stream() -> AsyncIterator[bytes]:
+        sent = 0
+        while True:
+            changed = state.notifier.current(search_id)
+            search = _search_or_404(state, search_id)
+            for iteration in search.iterations[sent:]:
+                yield _sse("iteration", iteration.model_dump(mode="json"))
+            sent = len(search.iterations)
+            if search.status in TERMINAL_STATUSES:
+                summary = search.model_dump(mode="json", exclude={"iterations"})
+                yield _sse("end", summary)
+                return
+            try:
+                await asyncio.wait_for(changed.wait(), timeout=15.0)
+            except TimeoutError:
+                yield b": keep-alive\n\n"
+
+    return StreamingResponse(
+        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
+    )
+
+
+async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
+    try:
+        scene = await state.stages.scene(search.scene)
+    except (StageError, BrokerError) as exc:
+        raise _unavailable(BrokerError("renderer", "scene", [str(exc)])) from exc
+    settings = scene.spec.search
+    return GridSpec(
+        angle_step_deg=settings.angle_step_deg,
+        min_theta_deg=settings.min_theta_deg,
+        max_theta_deg=settings.max_theta_deg,
+    )
+
+
+@router.get(
+    "/searches/{search_id}/trajectory.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(404, 503)},
+)
+async def trajectory(search_id: str, state: State) -> Response:
+    """The camera's path on the hemisphere (like the paper's Fig. 6)."""
+    search = _search_or_404(state, search_id)
+    grid = (await _grid_of(state, search)).grid()
+    png = await asyncio.to_thread(trajectory_png, search, grid)
+    return Response(png, media_type="image/png")
+
+
+@router.get(
+    "/searches/{search_id}/distance.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(404)},
+)
+async def distance(search_id: str, state: State) -> Response:
+    """Angle to the estimate per iteration (like the paper's Fig. 8)."""
+    search = _search_or_404(state, search_id)
+    png = await asyncio.to_thread(distance_png, search)
+    return Response(png, media_type="image/png")

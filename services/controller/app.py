@@ -1,0 +1,78 @@
+"""The controller service: ``create_app(settings)`` builds it; ``app`` is the default instance.
+
+Run it with ``uvicorn services.controller.app:app --port 8000``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.controller.api import ControllerState, router
+from services.controller.broker import Broker
+from services.controller.discovery import expand_urls
+from services.controller.events import Notifier
+from services.controller.runner import SearchRunner
+from services.controller.settings import ControllerSettings
+from services.controller.stages import Stages
+from services.controller.store import SearchStore
+
+__all__ = ["app", "create_app"]
+
+
+async def _discover(broker: Broker, settings: ControllerSettings) -> None:
+    """Keep each stage's replicas in step with what its host names resolve to."""
+    while True:
+        for stage, urls in settings.pools().items():
+            await broker.set_pool(stage, await expand_urls(urls))
+        await asyncio.sleep(settings.discovery_interval_s)
+
+
+def create_app(settings: ControllerSettings | None = None) -> FastAPI:
+    """A controller app; reads ``COSMOS_*`` settings from the environment unless given."""
+    settings = settings or ControllerSettings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        store = await asyncio.to_thread(SearchStore, settings.database_url)
+        broker = Broker(
+            settings.pools(),
+            heuristic=settings.broker_heuristic,
+            timeouts_s=settings.timeouts(),
+            connect_timeout_s=settings.connect_timeout_s,
+        )
+        stages = Stages(broker, render_spp=settings.render_spp)
+        notifier = Notifier()
+        runner = SearchRunner(store, stages, notifier, settings.max_concurrent_searches)
+        await broker.start()
+        discovery = (
+            asyncio.create_task(_discover(broker, settings)) if settings.discover_replicas else None
+        )
+        await runner.start()
+        app.state.controller = ControllerState(settings, store, broker, stages, runner, notifier)
+        try:
+            yield
+        finally:
+            if discovery is not None:
+                discovery.cancel()
+            await runner.close()
+            await broker.close()
+            store.close()
+
+    app = FastAPI(
+        title="COSMOS controller",
+        version="0.1.0",
+        summary="Runs searches for where a camera stood, over the renderer, detector, optimizer.",
+        lifespan=lifespan,
+    )
+    install_problem_handlers(app)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_upload_bytes)
+    app.include_router(router)
+    return app
+
+
+app = create_app()

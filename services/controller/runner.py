@@ -1,0 +1,365 @@
+"""The COSMOS Controller's search loop and its queue.
+
+A search detects its target once, then per iteration renders the current grid pose, detects the
+objects in it and asks the optimizer for the next pose, until the optimizer says done or
+``max_iterations`` views were rendered. The target's detection overlaps the start view's render.
+A pose already rendered in this search is never rendered again: its detections are reused.
+
+Every iteration is recorded as it happens, so a search interrupted by a restart resumes from its
+last recorded iteration (the optimizer is stateless: it is given the whole history every time).
+Searches run concurrently on ``max_concurrent`` workers; the rest wait in a FIFO queue.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from dataclasses import dataclass
+
+from pydantic import ValidationError
+
+from services.common.client import media_type_of
+from services.common.errors import ProblemDetails, problem_type
+from services.common.models import Detection, DetectResponse, Pose, PoseQuery
+from services.common.optimization import (
+    GridPose,
+    GridSpec,
+    NextPoseRequest,
+    NextPoseResponse,
+    TargetImage,
+    VisitedView,
+)
+from services.common.search import TERMINAL_STATUSES, Iteration, Search, SearchResult, StageTimings
+from services.controller.broker import BrokerError
+from services.controller.events import Notifier
+from services.controller.stages import StageError, Stages
+from services.controller.store import SearchStore
+
+__all__ = ["SearchRunner"]
+
+_log = logging.getLogger("cosmos.controller")
+
+
+class SearchFailed(Exception):
+    """A search cannot go on; ``problem`` says why."""
+
+    def __init__(self, problem: ProblemDetails) -> None:
+        super().__init__(problem.detail)
+        self.problem = problem
+
+
+def _failure(slug: str, title: str, detail: str, status: int = 502) -> SearchFailed:
+    return SearchFailed(
+        ProblemDetails(type=problem_type(slug), title=title, status=status, detail=detail)
+    )
+
+
+@dataclass(frozen=True)
+class _View:
+    """A rendered pose's detections, reused if the search comes back to it."""
+
+    image_size: tuple[int, int]
+    detections: tuple[Detection, ...]
+
+
+def _stage_failure(exc: StageError | BrokerError) -> SearchFailed:
+    if isinstance(exc, StageError):
+        problem = exc.problem
+        detail = f"the {exc.stage} refused a task: {problem.detail or problem.title}"
+        return _failure("stage-refused", f"{exc.stage.capitalize()} refused", detail, 422)
+    return _failure("stage-unavailable", f"No {exc.stage} available", str(exc), 503)
+
+
+def _result_of(last: Iteration, renders: int) -> SearchResult:
+    """The search's result from its final iteration."""
+    found = last.estimate_grid or last.pose
+    refined = last.estimate or Pose(theta_deg=found.theta_deg, phi_deg=found.phi_deg)
+    return SearchResult(
+        pose=found,
+        refined_pose=refined,
+        confidence=last.confidence,
+        renders=renders,
+        ambiguous=last.ambiguous,
+        reason=last.reason,
+    )
+
+
+class SearchRunner:
+    """Runs queued searches on a bounded number of workers."""
+
+    def __init__(
+        self, store: SearchStore, stages: Stages, notifier: Notifier, max_concurrent: int
+    ) -> None:
+        self.store = store
+        self.stages = stages
+        self.notifier = notifier
+        self.max_concurrent = max_concurrent
+        self._queue: asyncio.Queue[str] = asyncio.Queue()
+        self._workers: list[asyncio.Task[None]] = []
+        self._running: dict[str, asyncio.Task[None]] = {}
+        self._cancelled: set[str] = set()
+
+    async def start(self) -> None:
+        """Start the workers and queue every search a previous run left unfinished."""
+        for _ in range(self.max_concurrent):
+            self._workers.append(asyncio.create_task(self._work()))
+        for search_id in self.store.unfinished():
+            _log.info("resuming search %s", search_id)
+            self.submit(search_id)
+
+    async def close(self) -> None:
+        """Stop the workers; running searches stay 'running' and resume on the next start."""
+        for worker in self._workers:
+            worker.cancel()
+        for worker in self._workers:
+            with contextlib.suppress(asyncio.CancelledError):
+                await worker
+        self._workers.clear()
+
+    def submit(self, search_id: str) -> None:
+        self._queue.put_nowait(search_id)
+
+    @property
+    def queued(self) -> int:
+        return self._queue.qsize()
+
+    @property
+    def running(self) -> int:
+        return len(self._running)
+
+    def cancel(self, search_id: str) -> Search:
+        """Cancel a queued or running search (a finished one is left as it is)."""
+        search = self.store.get(search_id)
+        if search is None:
+            raise KeyError(search_id)
+        if search.status in TERMINAL_STATUSES:
+            return search
+        self._cancelled.add(search_id)
+        task = self._running.get(search_id)
+        if task is not None:
+            task.cancel()
+        search = self.store.update(search_id, status="cancelled")
+        self.notifier.publish(search_id)
+        return search
+
+    async def _work(self) -> None:
+        while True:
+            search_id = await self._queue.get()
+            task = asyncio.create_task(self._run(search_id))
+            self._running[search_id] = task
+            try:
+                await asyncio.shield(task)
+            except asyncio.CancelledError:
+                if task.done() or search_id in self._cancelled:
+                    continue  # the search was cancelled, not this worker
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+                raise
+            finally:
+                self._running.pop(search_id, None)
+
+    async def _run(self, search_id: str) -> None:
+        search = self.store.get(search_id)
+        if search is None or search.status in TERMINAL_STATUSES:
+            return
+        self.store.update(search_id, status="running")
+        self.notifier.publish(search_id)
+        try:
+            result = await self._search(search)
+        except asyncio.CancelledError:
+            if search_id in self._cancelled:
+                return
+            raise
+        except SearchFailed as failed:
+            _log.warning("search %s failed: %s", search_id, failed.problem.detail)
+            self.store.update(search_id, status="failed", error=failed.problem)
+        except Exception:  # a bug must fail the search, not the worker
+            _log.exception("search %s crashed", search_id)
+            self.store.update(
+                search_id,
+                status="failed",
+                error=ProblemDetails(
+                    type=problem_type("internal-error"),
+                    title="Internal error",
+                    status=500,
+                    detail="the search failed unexpectedly; the error was logged",
+                ),
+            )
+        else:
+            self.store.update(search_id, status="succeeded", result=result)
+        finally:
+            self.notifier.publish(search_id)
+
+    async def _detect(self, image: bytes, media_type: str, sid: str) -> DetectResponse:
+        try:
+            return await self.stages.detect(image, media_type, sid)
+        except (StageError, BrokerError) as exc:
+            raise _stage_failure(exc) from exc
+
+    async def _observe(
+        self, search: Search, pose: GridPose, target_image: bytes | None
+    ) -> tuple[_View, DetectResponse | None, float, float]:
+        """Render and detect ``pose``; detect ``target_image`` too (while rendering), if given.
+
+        Returns the view, the target's detections (or None), render and detect milliseconds.
+        """
+        sid = search.id
+        target_task = (
+            asyncio.create_task(self._detect(target_image, media_type_of(target_image), sid))
+            if target_image is not None
+            else None
+        )
+        try:
+            t0 = time.perf_counter()
+            try:
+                png = await self.stages.render(search.scene, pose.index, sid)
+            except (StageError, BrokerError) as exc:
+                raise _stage_failure(exc) from exc
+            t1 = time.perf_counter()
+            found = await self._detect(png, "image/png", sid)
+            t2 = time.perf_counter()
+            seen = await target_task if target_task is not None else None
+        finally:
+            if target_task is not None and not target_task.done():
+                target_task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, SearchFailed):
+                    await target_task
+        view = _View(found.image_size, found.detections)
+        return view, seen, (t1 - t0) * 1000, (t2 - t1) * 1000
+
+    async def _search(self, search: Search) -> SearchResult:
+        sid = search.id
+        try:
+            scene = await self.stages.scene(search.scene, sid)
+        except (StageError, BrokerError) as exc:
+            raise _stage_failure(exc) from exc
+        camera = scene.spec.camera
+        try:
+            grid = GridSpec(
+                angle_step_deg=scene.spec.search.angle_step_deg,
+                min_theta_deg=scene.spec.search.min_theta_deg,
+                max_theta_deg=scene.spec.search.max_theta_deg,
+            )
+        except ValidationError as exc:
+            raise _failure(
+                "unsupported-grid",
+                "Grid not supported",
+                f"scene {search.scene}'s grid cannot be searched: {exc.errors()[0]['msg']}",
+                status=422,
+            ) from exc
+        image = self.store.image(sid)
+        history = list(search.iterations)
+        views = {
+            (it.pose.index.lat, it.pose.index.lon): _View(it.image_size, it.detections)
+            for it in history
+        }
+        if history and history[-1].done:  # finished just before a restart
+            return _result_of(history[-1], len(views))
+        current = history[-1].next_pose if history else search.start
+        target = search.target_detections
+        target_size = search.target_size
+        if target is None and history:  # resumed between the first iteration and this one
+            target_seen = await self._detect(image, media_type_of(image), sid)
+            target, target_size = target_seen.detections, target_seen.image_size
+        renders = len(views)
+        while current is not None and len(history) < search.max_iterations:
+            key = (current.index.lat, current.index.lon)
+            started = time.perf_counter()
+            render_ms = detect_ms = 0.0
+            if key in views:
+                view = views[key]
+            else:
+                view, seen, render_ms, detect_ms = await self._observe(
+                    search, current, image if target is None else None
+                )
+                if seen is not None:
+                    target, target_size = seen.detections, seen.image_size
+                    self.store.update(sid, target_detections=target)
+                views[key] = view
+                renders += 1
+            if not target:
+                raise _failure(
+                    "no-target-objects",
+                    "Nothing to search for",
+                    "the detector found no objects in the target image",
+                    status=422,
+                )
+            visited = [
+                VisitedView(
+                    pose=PoseQuery(lat=it.pose.index.lat, lon=it.pose.index.lon),
+                    image_size=it.image_size,
+                    detections=it.detections,
+                )
+                for it in history
+            ]
+            visited.append(
+                VisitedView(
+                    pose=PoseQuery(lat=current.index.lat, lon=current.index.lon),
+                    image_size=view.image_size,
+                    detections=view.detections,
+                )
+            )
+            request = NextPoseRequest(
+                strategy=search.strategy,
+                camera=camera,
+                grid=grid,
+                target=TargetImage(image_size=target_size, detections=target),
+                history=tuple(visited),
+            )
+            t0 = time.perf_counter()
+            try:
+                raw = await self.stages.optimize(
+                    request.model_dump(mode="json", exclude_none=True), sid
+                )
+                answer = NextPoseResponse.model_validate(raw)
+            except (StageError, BrokerError) as exc:
+                raise _stage_failure(exc) from exc
+            except ValidationError as exc:
+                raise _failure("bad-optimizer-answer", "Bad optimizer answer", str(exc)) from exc
+            optimize_ms = (time.perf_counter() - t0) * 1000
+            iteration = Iteration(
+                index=len(history),
+                pose=current,
+                image_size=view.image_size,
+                detections=view.detections,
+                timings=StageTimings(
+                    render_ms=render_ms,
+                    detect_ms=detect_ms,
+                    optimize_ms=optimize_ms,
+                    total_ms=(time.perf_counter() - started) * 1000,
+                ),
+                estimate=(
+                    Pose(theta_deg=answer.estimate.theta_deg, phi_deg=answer.estimate.phi_deg)
+                    if answer.estimate is not None
+                    else None
+                ),
+                estimate_grid=answer.estimate.grid if answer.estimate is not None else None,
+                confidence=answer.estimate.confidence if answer.estimate is not None else 0.0,
+                ambiguous=answer.ambiguous,
+                next_pose=answer.next,
+                done=answer.done,
+                reason=answer.reason,
+            )
+            history.append(iteration)
+            self.store.add_iteration(sid, iteration)
+            self.notifier.publish(sid)
+            if answer.done:
+                return _result_of(iteration, renders)
+            if answer.stuck:
+                raise _failure(
+                    "search-stuck",
+                    "Search stuck",
+                    f"the {search.strategy} strategy keeps coming back to the same poses: "
+                    f"{answer.reason}",
+                    status=422,
+                )
+            current = answer.next
+        raise _failure(
+            "not-converged",
+            "No match",
+            f"no view matched the target within {search.max_iterations} iterations",
+            status=422,
+        )

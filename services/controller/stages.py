@@ -1,0 +1,99 @@
+"""The three stage calls a search makes, each through the broker: render, detect, optimize.
+
+Every call forwards the search's request id (``X-Request-ID``). A 4xx answer from a stage is a
+:class:`StageError` carrying that stage's problem details (the search fails with it); transport
+failures and 5xx answers are the broker's to retry elsewhere.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import httpx
+
+from services.common.errors import ProblemDetails
+from services.common.models import DetectResponse, GridIndex
+from services.common.scene import SceneDetail
+from services.controller.broker import Broker
+
+__all__ = ["StageError", "Stages"]
+
+
+class StageError(RuntimeError):
+    """A stage refused a task (4xx); ``problem`` is its answer."""
+
+    def __init__(self, stage: str, problem: ProblemDetails) -> None:
+        super().__init__(f"{stage}: {problem.detail or problem.title}")
+        self.stage = stage
+        self.problem = problem
+
+
+def _problem(stage: str, response: httpx.Response) -> StageError:
+    try:
+        body: Any = response.json()
+        problem = ProblemDetails.model_validate(body)
+    except ValueError:
+        problem = ProblemDetails(
+            title="Stage error", status=response.status_code, detail=response.text[:500]
+        )
+    return StageError(stage, problem)
+
+
+class Stages:
+    """Typed calls of the renderer, detector and optimizer through one broker."""
+
+    def __init__(self, broker: Broker, *, render_spp: int | None = None) -> None:
+        self.broker = broker
+        self.render_spp = render_spp
+        self._scenes: dict[str, SceneDetail] = {}
+
+    async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
+        """The scene's spec and grid from a renderer (cached: scenes are static)."""
+        if scene_id not in self._scenes:
+            response = await self.broker.call(
+                "renderer",
+                "scene",
+                lambda c: c.get(f"/scenes/{scene_id}", headers={"X-Request-ID": request_id}),
+            )
+            if response.status_code != 200:
+                raise _problem("renderer", response)
+            self._scenes[scene_id] = SceneDetail.model_validate(response.json())
+        return self._scenes[scene_id]
+
+    async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+        """PNG bytes of the scene seen from grid pose ``index``."""
+        body: dict[str, Any] = {"scene": scene_id, "pose": index.model_dump()}
+        if self.render_spp is not None:
+            body["spp"] = self.render_spp
+        response = await self.broker.call(
+            "renderer",
+            "render",
+            lambda c: c.post("/render", json=body, headers={"X-Request-ID": request_id}),
+        )
+        if response.status_code != 200:
+            raise _problem("renderer", response)
+        return response.content
+
+    async def detect(self, image: bytes, media_type: str, request_id: str = "") -> DetectResponse:
+        """The objects found in an image."""
+        files = {"image": ("image", image, media_type)}
+        response = await self.broker.call(
+            "detector",
+            "detect",
+            lambda c: c.post("/detect", files=files, headers={"X-Request-ID": request_id}),
+        )
+        if response.status_code != 200:
+            raise _problem("detector", response)
+        return DetectResponse.model_validate(response.json())
+
+    async def optimize(self, body: dict[str, Any], request_id: str = "") -> dict[str, Any]:
+        """The optimizer's answer to ``POST /next-pose`` (validated by the caller)."""
+        response = await self.broker.call(
+            "optimizer",
+            "optimize",
+            lambda c: c.post("/next-pose", json=body, headers={"X-Request-ID": request_id}),
+        )
+        if response.status_code != 200:
+            raise _problem("optimizer", response)
+        answer: dict[str, Any] = response.json()
+        return answer

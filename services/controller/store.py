@@ -1,0 +1,168 @@
+"""Persistence of searches in SQLite: the search, its target image, its iterations, its result.
+
+One row per search (its JSON document, the fields queries need, and the target image) and one
+row per iteration. Writes are committed as they happen, so a controller that dies loses nothing
+recorded: queued and running searches are found again by :meth:`SearchStore.unfinished`.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from services.common.errors import ProblemDetails
+from services.common.models import Detection
+from services.common.search import Iteration, Search, SearchResult, SearchStatus
+
+__all__ = ["SearchStore", "database_path", "utcnow"]
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS searches (
+    id TEXT PRIMARY KEY,
+    status TEXT NOT NULL,
+    created_at TEXT NOT NULL,
+    doc TEXT NOT NULL,
+    image BLOB NOT NULL
+);
+CREATE INDEX IF NOT EXISTS searches_created ON searches (created_at DESC);
+CREATE TABLE IF NOT EXISTS iterations (
+    search_id TEXT NOT NULL REFERENCES searches (id) ON DELETE CASCADE,
+    idx INTEGER NOT NULL,
+    doc TEXT NOT NULL,
+    PRIMARY KEY (search_id, idx)
+);
+"""
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+def database_path(url: str) -> str:
+    """The SQLite file of a ``sqlite:///path`` URL (``sqlite:///:memory:`` for none)."""
+    prefix = "sqlite:///"
+    if not url.startswith(prefix):
+        raise ValueError(
+            f"COSMOS_DATABASE_URL must look like sqlite:///path/to/file.db, got {url!r}"
+        )
+    path = url[len(prefix) :]
+    if not path:
+        raise ValueError("COSMOS_DATABASE_URL names no file")
+    if path != ":memory:":
+        Path(path).expanduser().parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+class SearchStore:
+    """Searches in one SQLite database; safe to share between threads."""
+
+    def __init__(self, url: str) -> None:
+        self._db = sqlite3.connect(
+            database_path(url), check_same_thread=False, isolation_level=None
+        )
+        self._lock = threading.Lock()
+        with self._lock:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            self._db.executescript(_SCHEMA)
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def _one(self, sql: str, *args: Any) -> Any:
+        with self._lock:
+            return self._db.execute(sql, args).fetchone()
+
+    def create(self, search: Search, image: bytes) -> None:
+        """Record a new search and its target image."""
+        doc = search.model_copy(update={"iterations": ()}).model_dump_json()
+        with self._lock:
+            self._db.execute(
+                "INSERT INTO searches (id, status, created_at, doc, image) VALUES (?, ?, ?, ?, ?)",
+                (search.id, search.status, search.created_at.isoformat(), doc, image),
+            )
+
+    def get(self, search_id: str) -> Search | None:
+        """The search with its iterations, or None."""
+        row = self._one("SELECT doc FROM searches WHERE id = ?", search_id)
+        if row is None:
+            return None
+        search = Search.model_validate_json(row[0])
+        return search.model_copy(update={"iterations": tuple(self.iterations(search_id))})
+
+    def image(self, search_id: str) -> bytes:
+        row = self._one("SELECT image FROM searches WHERE id = ?", search_id)
+        if row is None:
+            raise KeyError(search_id)
+        return bytes(row[0])
+
+    def page(self, limit: int, offset: int) -> tuple[list[Search], int]:
+        """Newest first, without iterations (they can be long), and the total count."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT doc FROM searches ORDER BY created_at DESC, id LIMIT ? OFFSET ?",
+                (limit, offset),
+            ).fetchall()
+            total = self._db.execute("SELECT COUNT(*) FROM searches").fetchone()[0]
+        return [Search.model_validate_json(row[0]) for row in rows], int(total)
+
+    def iterations(self, search_id: str) -> list[Iteration]:
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT doc FROM iterations WHERE search_id = ? ORDER BY idx", (search_id,)
+            ).fetchall()
+        return [Iteration.model_validate_json(row[0]) for row in rows]
+
+    def add_iteration(self, search_id: str, iteration: Iteration) -> None:
+        """Record an iteration (replacing one of the same index, as a resumed search may)."""
+        with self._lock:
+            self._db.execute(
+                "INSERT OR REPLACE INTO iterations (search_id, idx, doc) VALUES (?, ?, ?)",
+                (search_id, iteration.index, iteration.model_dump_json()),
+            )
+        self.update(search_id)
+
+    def update(
+        self,
+        search_id: str,
+        *,
+        status: SearchStatus | None = None,
+        result: SearchResult | None = None,
+        error: ProblemDetails | None = None,
+        target_detections: tuple[Detection, ...] | None = None,
+    ) -> Search:
+        """Change a search's status, result, error or target detections; stamps ``updated_at``."""
+        with self._lock:
+            row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
+            if row is None:
+                raise KeyError(search_id)
+            search = Search.model_validate_json(row[0])
+            changes: dict[str, Any] = {"updated_at": utcnow()}
+            if status is not None:
+                changes["status"] = status
+            if result is not None:
+                changes["result"] = result
+            if error is not None:
+                changes["error"] = error
+            if target_detections is not None:
+                changes["target_detections"] = target_detections
+            search = search.model_copy(update=changes)
+            self._db.execute(
+                "UPDATE searches SET status = ?, doc = ? WHERE id = ?",
+                (search.status, search.model_dump_json(), search_id),
+            )
+        return search
+
+    def unfinished(self) -> list[str]:
+        """Ids of queued and running searches, oldest first (to resume after a restart)."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT id FROM searches WHERE status IN ('queued', 'running') "
+                "ORDER BY created_at, id"
+            ).fetchall()
+        return [row[0] for row in rows]

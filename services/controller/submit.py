@@ -1,0 +1,105 @@
+"""Accepting a search: validate the target image and the options, pick the start pose, record it."""
+
+from __future__ import annotations
+
+import random
+import re
+import uuid
+
+from services.common.errors import NotFoundError, UnprocessableError
+from services.common.images import decode_image
+from services.common.models import Pose
+from services.common.optimization import GridPose, GridSpec, StrategyName
+from services.common.scene import SCENE_ID_PATTERN
+from services.common.search import Search
+from services.controller.stages import StageError, Stages
+from services.controller.store import SearchStore, utcnow
+
+__all__ = ["MAX_ITERATIONS", "create_search"]
+
+MAX_ITERATIONS = 500
+
+
+async def create_search(
+    store: SearchStore,
+    stages: Stages,
+    *,
+    image: bytes,
+    scene_id: str,
+    strategy: StrategyName,
+    start_theta_deg: float | None,
+    start_phi_deg: float | None,
+    seed: int | None,
+    max_iterations: int,
+    max_image_pixels: int,
+    max_image_side: int,
+) -> Search:
+    """Validate a new search and record it as queued (the caller queues it).
+
+    The image must decode (PNG or JPEG within the size caps); the scene must be known to the
+    renderers. A start pose given by angles is snapped to the nearest grid pose; without one, a
+    grid pose is drawn from ``seed`` (itself drawn when absent, and recorded).
+    """
+    rgb = decode_image(image, max_pixels=max_image_pixels, max_side=max_image_side)
+    if not 1 <= max_iterations <= MAX_ITERATIONS:
+        raise UnprocessableError(
+            f"max_iterations must be within 1..{MAX_ITERATIONS}", field="max_iterations"
+        )
+    if (start_theta_deg is None) != (start_phi_deg is None):
+        raise UnprocessableError(
+            "give start_theta_deg and start_phi_deg together", field="start_theta_deg"
+        )
+    if re.match(SCENE_ID_PATTERN, scene_id) is None:
+        raise NotFoundError(
+            f"unknown scene {scene_id!r}",
+            field="scene",
+            slug="unknown-scene",
+            title="Unknown scene",
+        )
+    try:
+        scene = await stages.scene(scene_id)
+    except StageError as exc:
+        if exc.problem.status == 404:
+            raise NotFoundError(
+                f"unknown scene {scene_id!r}",
+                field="scene",
+                slug="unknown-scene",
+                title="Unknown scene",
+            ) from exc
+        raise UnprocessableError(
+            f"scene {scene_id!r}: {exc.problem.detail}", field="scene"
+        ) from exc
+    search = scene.spec.search
+    grid = GridSpec(
+        angle_step_deg=search.angle_step_deg,
+        min_theta_deg=search.min_theta_deg,
+        max_theta_deg=search.max_theta_deg,
+    ).grid()
+    seed = seed if seed is not None else random.SystemRandom().randrange(2**31)
+    if start_theta_deg is not None and start_phi_deg is not None:
+        try:
+            asked = Pose(theta_deg=start_theta_deg, phi_deg=start_phi_deg)
+        except ValueError as exc:
+            raise UnprocessableError(
+                "start_theta_deg must be within [0, 90] and both angles finite",
+                field="start_theta_deg",
+            ) from exc
+        index = grid.nearest(asked)
+    else:
+        index = grid.unflat(random.Random(seed).randrange(grid.size))
+    pose = grid.pose(index)
+    now = utcnow()
+    record = Search(
+        id=uuid.uuid4().hex,
+        status="queued",
+        scene=scene_id,
+        strategy=strategy,
+        start=GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg),
+        seed=seed,
+        max_iterations=max_iterations,
+        created_at=now,
+        updated_at=now,
+        target_size=(int(rgb.shape[1]), int(rgb.shape[0])),
+    )
+    store.create(record, image)
+    return record

@@ -1,0 +1,126 @@
+"""The local stack: the four services as processes on this machine, wired together by URL.
+
+Replicas of the renderer and detector get consecutive ports after the base ports; the controller
+is told every replica's URL. Environment variables (``COSMOS_SCENES_DIR`` and the rest) pass
+through to every process.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from services.common.launch import ServiceProcess, spawn_service, stop_service, wait_healthy
+
+__all__ = ["ServicePlan", "Stack", "plan_stack", "running_stack"]
+
+
+@dataclass(frozen=True)
+class ServicePlan:
+    """One process to start."""
+
+    name: str
+    app: str
+    port: int
+    env: Mapping[str, str]
+
+
+@dataclass(frozen=True)
+class Stack:
+    """A running stack: the controller's URL and every process."""
+
+    controller: str
+    renderers: tuple[str, ...]
+    detectors: tuple[str, ...]
+    optimizers: tuple[str, ...]
+    processes: tuple[ServiceProcess, ...]
+
+
+def plan_stack(
+    *,
+    host: str = "127.0.0.1",
+    controller_port: int = 8000,
+    renderer_port: int = 8001,
+    detector_port: int = 8002,
+    optimizer_port: int = 8003,
+    renderers: int = 1,
+    detectors: int = 1,
+    optimizers: int = 1,
+    port_stride: int = 10,
+    database_url: str | None = None,
+    env: Mapping[str, str] | None = None,
+) -> list[ServicePlan]:
+    """The processes of a stack; replica ``i`` of a stage listens on ``port + i * port_stride``."""
+    if min(renderers, detectors, optimizers) < 1:
+        raise ValueError("every stage needs at least one replica")
+    base = dict(env or {})
+
+    def replicas(name: str, port: int, count: int) -> list[ServicePlan]:
+        return [
+            ServicePlan(name, f"services.{name}.app:app", port + i * port_stride, base)
+            for i in range(count)
+        ]
+
+    stages = (
+        replicas("renderer", renderer_port, renderers)
+        + replicas("detector", detector_port, detectors)
+        + replicas("optimizer", optimizer_port, optimizers)
+    )
+
+    def urls(name: str) -> str:
+        return ",".join(f"http://{host}:{p.port}" for p in stages if p.name == name)
+
+    controller_env = {
+        **base,
+        "COSMOS_RENDERER_URLS": urls("renderer"),
+        "COSMOS_DETECTOR_URLS": urls("detector"),
+        "COSMOS_OPTIMIZER_URLS": urls("optimizer"),
+    }
+    if database_url is not None:
+        controller_env["COSMOS_DATABASE_URL"] = database_url
+    controller = ServicePlan(
+        "controller", "services.controller.app:app", controller_port, controller_env
+    )
+    return [*stages, controller]
+
+
+@contextmanager
+def running_stack(
+    plan: list[ServicePlan], log_dir: Path, host: str = "127.0.0.1", timeout_s: float = 120.0
+) -> Iterator[Stack]:
+    """Start the planned processes (stages first, all at once; then the controller) and stop
+    them all when the block ends."""
+    started: list[ServiceProcess] = []
+    try:
+        stages = [p for p in plan if p.name != "controller"]
+        for service in stages:
+            started.append(
+                spawn_service(service.app, log_dir, port=service.port, host=host, env=service.env)
+            )
+        for process in started:
+            wait_healthy(process, timeout_s)
+        (controller,) = [p for p in plan if p.name == "controller"]
+        started.append(
+            spawn_service(
+                controller.app, log_dir, port=controller.port, host=host, env=controller.env
+            )
+        )
+        wait_healthy(started[-1], timeout_s)
+
+        def urls(name: str) -> tuple[str, ...]:
+            return tuple(
+                proc.url for spec, proc in zip(plan, started, strict=True) if spec.name == name
+            )
+
+        yield Stack(
+            controller=started[-1].url,
+            renderers=urls("renderer"),
+            detectors=urls("detector"),
+            optimizers=urls("optimizer"),
+            processes=tuple(started),
+        )
+    finally:
+        for process in reversed(started):
+            stop_service(process)

@@ -1,0 +1,94 @@
+"""The controller's SQLite store: what is written survives reopening, in order."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import pytest
+
+from services.common.errors import ProblemDetails
+from services.common.models import GridIndex, Pose
+from services.common.optimization import GridPose
+from services.common.search import Iteration, Search, SearchResult, StageTimings
+from services.controller.store import SearchStore, database_path, utcnow
+
+START = GridPose(index=GridIndex(lat=2, lon=3), theta_deg=22.5, phi_deg=60.0)
+
+
+def search(search_id: str, minutes: int = 0) -> Search:
+    when = utcnow() + timedelta(minutes=minutes)
+    return Search(
+        id=search_id,
+        status="queued",
+        scene="demo",
+        strategy="reprojection",
+        start=START,
+        seed=1,
+        max_iterations=10,
+        created_at=when,
+        updated_at=when,
+        target_size=(320, 240),
+    )
+
+
+def iteration(index: int) -> Iteration:
+    return Iteration(
+        index=index,
+        pose=START,
+        image_size=(320, 240),
+        detections=(),
+        timings=StageTimings(render_ms=1.0, total_ms=2.0),
+    )
+
+
+def test_searches_iterations_and_results_survive_reopening(tmp_path):
+    url = f"sqlite:///{tmp_path}/db/c.sqlite3"
+    store = SearchStore(url)
+    store.create(search("a"), b"\x89PNG-a")
+    store.add_iteration("a", iteration(0))
+    store.add_iteration("a", iteration(1))
+    result = SearchResult(
+        pose=START, refined_pose=Pose(theta_deg=22.4, phi_deg=60.2), confidence=0.9, renders=2
+    )
+    store.update("a", status="succeeded", result=result)
+    store.close()
+
+    again = SearchStore(url)
+    found = again.get("a")
+    assert found is not None
+    assert found.status == "succeeded"
+    assert found.result == result
+    assert [it.index for it in found.iterations] == [0, 1]
+    assert again.image("a") == b"\x89PNG-a"
+    assert found.updated_at >= found.created_at
+    again.close()
+
+
+def test_unfinished_searches_come_back_oldest_first(tmp_path):
+    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    for name, minutes in [("late", 5), ("early", 1), ("done", 0), ("middle", 3)]:
+        store.create(search(name, minutes), b"x")
+    store.update("done", status="failed", error=ProblemDetails(title="x", status=422))
+    store.update("middle", status="running")
+    assert store.unfinished() == ["early", "middle", "late"]
+    page, total = store.page(limit=2, offset=0)
+    assert total == 4
+    assert [s.id for s in page] == ["late", "middle"]
+
+
+def test_a_resumed_iteration_replaces_its_earlier_record(tmp_path):
+    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store.create(search("a"), b"x")
+    store.add_iteration("a", iteration(0))
+    store.add_iteration("a", iteration(0).model_copy(update={"reason": "again"}))
+    assert [it.reason for it in store.iterations("a")] == ["again"]
+
+
+def test_unknown_searches_and_bad_urls(tmp_path):
+    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    assert store.get("nope") is None
+    with pytest.raises(KeyError):
+        store.update("nope", status="running")
+    with pytest.raises(ValueError, match="sqlite:///"):
+        database_path("postgres://x")
+    assert database_path("sqlite:///:memory:") == ":memory:"

@@ -1,0 +1,270 @@
+"""End to end: the four real services as separate processes on loopback, searches over HTTP.
+
+Targets are rendered by the renderer at random grid poses; the controller must find each
+target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, and a
+controller killed mid-search that finishes the search after it comes back.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from services.common.launch import free_port, spawn_service, stop_service, wait_healthy
+from services.common.models import PoseQuery, RenderRequest
+from services.controller.client import ControllerClient
+from services.renderer.client import RendererClient
+from services.stack import Stack, plan_stack, running_stack
+from tests.support import fuzz_service
+
+pytestmark = pytest.mark.slow
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "detector.onnx"
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+    if not MODEL.exists() and "COSMOS_DETECTOR_MODEL" not in os.environ:
+        pytest.fail(f"the shipped detector model {MODEL} is missing")
+    tmp = tmp_path_factory.mktemp("stack")
+    ports = [free_port() for _ in range(4)]
+    plan = plan_stack(
+        controller_port=ports[0],
+        renderer_port=ports[1],
+        detector_port=ports[2],
+        optimizer_port=ports[3],
+        database_url=f"sqlite:///{tmp}/controller.sqlite3",
+    )
+    with running_stack(plan, tmp / "logs") as running:
+        yield running
+
+
+def render(stack: Stack, scene: str, lat: int, lon: int) -> bytes:
+    with RendererClient(stack.renderers[0]) as client:
+        return client.render_png(RenderRequest(scene=scene, pose=PoseQuery(lat=lat, lon=lon)))
+
+
+def run_search(stack: Stack, image: bytes, scene: str, **options):
+    with ControllerClient(stack.controller) as client:
+        search = client.submit(image, scene, **options)
+        for _ in client.follow(search.id, timeout_s=300):
+            pass
+        return client.get(search.id)
+
+
+def grid_of(stack: Stack, scene: str):
+    from services.common.grid import grid_for
+
+    detail = httpx.get(f"{stack.renderers[0]}/scenes/{scene}").json()["spec"]["search"]
+    return grid_for(detail["angle_step_deg"], detail["min_theta_deg"], detail["max_theta_deg"])
+
+
+@pytest.mark.parametrize(("scene", "count"), [("demo", 5), ("garden", 2)])
+def test_searches_find_the_targets_grid_pose(stack, scene, count):
+    grid = grid_of(stack, scene)
+    rng = np.random.default_rng(99 if scene == "demo" else 7)
+    for flat in rng.choice(grid.size, size=count, replace=False):
+        target = grid.unflat(int(flat))
+        image = render(stack, scene, target.lat, target.lon)
+        final = run_search(stack, image, scene, seed=int(flat))
+        assert final.status == "succeeded", (target, final.error)
+        assert final.result is not None
+        assert final.result.pose.index == target, (target, final.result)
+        assert final.result.renders == len(
+            {(i.pose.index.lat, i.pose.index.lon) for i in final.iterations}
+        )
+        assert [i.index for i in final.iterations] == list(range(len(final.iterations)))
+
+
+@pytest.mark.parametrize("strategy", ["paper", "simple"])
+def test_the_papers_strategies_run_end_to_end(stack, strategy):
+    image = render(stack, "demo", 3, 7)
+    final = run_search(
+        stack,
+        image,
+        "demo",
+        strategy=strategy,
+        start_theta_deg=45,
+        start_phi_deg=200,
+        max_iterations=60,
+    )
+    assert final.status == "succeeded", final.error
+    assert final.result is not None
+    assert final.result.pose.index.lat == 3
+    assert final.result.pose.index.lon == 7
+
+
+def test_a_jpeg_target_is_accepted(stack):
+    png = render(stack, "demo", 5, 20)
+    rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    ok, jpeg = cv2.imencode(".jpg", rgb, [cv2.IMWRITE_JPEG_QUALITY, 85])
+    assert ok
+    final = run_search(stack, bytes(jpeg), "demo", seed=3)
+    assert final.status == "succeeded", final.error
+    assert final.result.pose.index.lat == 5
+    assert final.result.pose.index.lon == 20
+
+
+def test_plots_events_listing_and_scenes(stack):
+    image = render(stack, "demo", 6, 12)
+    final = run_search(stack, image, "demo", seed=5)
+    with httpx.Client(base_url=stack.controller, timeout=30) as http:
+        for name in ("trajectory.png", "distance.png"):
+            response = http.get(f"/searches/{final.id}/{name}")
+            assert response.status_code == 200
+            assert response.headers["content-type"] == "image/png"
+            assert (
+                cv2.imdecode(np.frombuffer(response.content, np.uint8), cv2.IMREAD_COLOR)
+                is not None
+            )
+        events = http.get(f"/searches/{final.id}/events").text
+        assert events.count("event: iteration") == len(final.iterations)
+        assert events.count("event: end") == 1
+        page = http.get("/searches", params={"limit": 2}).json()
+        assert page["total"] >= 1
+        assert page["items"][0]["id"] == final.id  # newest first
+        assert {s["id"] for s in http.get("/scenes").json()} >= {"demo", "garden"}
+        health = http.get("/health").json()
+        assert all(r["up"] for r in health["replicas"])
+        assert {r["stage"] for r in health["replicas"]} == {"renderer", "detector", "optimizer"}
+
+
+def test_a_search_can_be_cancelled(stack):
+    image = render(stack, "demo", 10, 0)
+    with ControllerClient(stack.controller) as client:
+        search = client.submit(
+            image,
+            "demo",
+            strategy="simple",
+            start_theta_deg=7.5,
+            start_phi_deg=180,
+            max_iterations=200,
+        )
+        cancelled = httpx.delete(f"{stack.controller}/searches/{search.id}").json()
+        assert cancelled["status"] == "cancelled"
+        time.sleep(1.0)
+        assert client.get(search.id).status == "cancelled"
+
+
+def png_bytes() -> bytes:
+    ok, buffer = cv2.imencode(".png", np.zeros((24, 32, 3), np.uint8))
+    assert ok
+    return bytes(buffer)
+
+
+@pytest.mark.parametrize(
+    ("files", "data", "status", "field"),
+    [
+        ({"image": ("t", b"not an image", "image/png")}, {"scene": "demo"}, 415, None),
+        (
+            {"image": ("t", b"\x89PNG\r\n\x1a\n" + b"\0" * 10, "image/png")},
+            {"scene": "demo"},
+            422,
+            None,
+        ),
+        ({"image": ("t", b"", "image/png")}, {"scene": "demo"}, 422, None),
+        (None, {"scene": "demo"}, 422, "image"),
+        ("png", {"scene": "nope"}, 404, "scene"),
+        ("png", {"scene": "../etc"}, 404, "scene"),
+        ("png", {}, 422, "scene"),
+        ("png", {"scene": "demo", "strategy": "guess"}, 422, "strategy"),
+        (
+            "png",
+            {"scene": "demo", "start_theta_deg": "100", "start_phi_deg": "0"},
+            422,
+            "start_theta_deg",
+        ),
+        ("png", {"scene": "demo", "start_theta_deg": "10"}, 422, "start_theta_deg"),
+        ("png", {"scene": "demo", "max_iterations": "0"}, 422, "max_iterations"),
+        ("png", {"scene": "demo", "seed": "-1"}, 422, "seed"),
+    ],
+)
+def test_bad_submissions_get_problem_details(stack, files, data, status, field):
+    if files == "png":
+        files = {"image": ("t.png", png_bytes(), "image/png")}
+    response = httpx.post(f"{stack.controller}/searches", files=files, data=data, timeout=30)
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/problem+json"
+    if field is not None:
+        assert response.json().get("field") == field, response.json()
+
+
+def test_unknown_searches_and_oversized_uploads(stack):
+    with httpx.Client(base_url=stack.controller, timeout=30) as http:
+        for method, path in [
+            ("GET", "/searches/nope"),
+            ("DELETE", "/searches/nope"),
+            ("GET", "/searches/nope/events"),
+            ("GET", "/searches/nope/trajectory.png"),
+        ]:
+            response = http.request(method, path)
+            assert response.status_code == 404
+            assert response.headers["content-type"] == "application/problem+json"
+        huge = {"image": ("t.png", b"\x89PNG" + b"\0" * (21 * 1024 * 1024), "image/png")}
+        response = http.post("/searches", files=huge, data={"scene": "demo"})
+        assert response.status_code == 413
+
+
+def test_a_killed_controller_resumes_its_searches(tmp_path):
+    """SIGKILL the controller mid-search; a new one on the same database finishes the search
+    from its last recorded iteration."""
+    ports = [free_port() for _ in range(4)]
+    plan = plan_stack(
+        controller_port=ports[0],
+        renderer_port=ports[1],
+        detector_port=ports[2],
+        optimizer_port=ports[3],
+        database_url=f"sqlite:///{tmp_path}/controller.sqlite3",
+    )
+    with running_stack(plan, tmp_path / "logs") as stack:
+        image = render(stack, "demo", 9, 30)
+        with ControllerClient(stack.controller) as client:
+            search = client.submit(
+                image,
+                "demo",
+                strategy="simple",
+                start_theta_deg=7.5,
+                start_phi_deg=0,
+                max_iterations=80,
+            )
+            deadline = time.monotonic() + 120
+            while len(client.get(search.id).iterations) < 3:
+                assert time.monotonic() < deadline, "the search made no progress"
+                time.sleep(0.05)
+        controller = stack.processes[-1]
+        os.kill(controller.process.pid, signal.SIGKILL)
+        controller.process.wait(timeout=10)
+        (spec,) = [p for p in plan if p.name == "controller"]
+        again = spawn_service(spec.app, tmp_path / "logs2", port=spec.port, env=spec.env)
+        try:
+            wait_healthy(again)
+            with ControllerClient(again.url) as client:
+                seen = client.get(search.id)
+                assert seen.status in {"queued", "running", "succeeded"}
+                recorded = len(seen.iterations)
+                deadline = time.monotonic() + 180
+                while client.get(search.id).status in {"queued", "running"}:
+                    assert time.monotonic() < deadline, "the resumed search did not finish"
+                    time.sleep(0.1)
+                final = client.get(search.id)
+        finally:
+            stop_service(again)
+    assert final.status == "succeeded", final.error
+    assert final.result.pose.index.lat == 9
+    assert final.result.pose.index.lon == 30
+    indices = [i.index for i in final.iterations]
+    assert indices == list(range(len(indices)))
+    assert len(indices) > recorded >= 3
+
+
+def test_every_controller_route_answers_within_its_schema(stack):
+    """Schema-driven fuzzing of the public API (see :func:`tests.support.fuzz_service`)."""
+    assert fuzz_service(stack.controller, max_examples=15) >= 8
