@@ -45,7 +45,7 @@ def create_app(settings: ControllerSettings | None = None) -> FastAPI:
             timeouts_s=settings.timeouts(),
             connect_timeout_s=settings.connect_timeout_s,
         )
-        stages = Stages(broker, render_spp=settings.render_spp)
+        stages = Stages(broker, render_spp=settings.render_spp, render_width=settings.render_width)
         notifier = Notifier()
         runner = SearchRunner(store, stages, notifier, settings.max_concurrent_searches)
         await broker.start()

@@ -35,7 +35,12 @@ class ControllerSettings(BaseSettings):
     discovery_interval_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
     max_concurrent_searches: Annotated[int, Field(ge=1, le=1000)] = 4
     default_max_iterations: Annotated[int, Field(ge=1, le=500)] = 40
-    render_spp: Annotated[int, Field(ge=1, le=1024)] | None = None
+    render_spp: Annotated[int, Field(ge=1, le=1024)] | None = 8
+    """Samples per pixel of the search views (None: the renderer's default). 8 is the cheapest
+    setting at which detection and search success did not drop (docs/RESULTS.md, ``--sweep``)."""
+    render_width: Annotated[int, Field(ge=8, le=8192)] | None = None
+    """Film width of the search views (the renderer keeps the scene's aspect); None: the
+    scene's own. ``cosmos bench --sweep`` measures what detection and searches lose."""
     render_timeout_s: Annotated[float, Field(gt=0, le=600)] = 60.0
     detect_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
     optimize_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0

@@ -42,9 +42,12 @@ def _problem(stage: str, response: httpx.Response) -> StageError:
 class Stages:
     """Typed calls of the renderer, detector and optimizer through one broker."""
 
-    def __init__(self, broker: Broker, *, render_spp: int | None = None) -> None:
+    def __init__(
+        self, broker: Broker, *, render_spp: int | None = None, render_width: int | None = None
+    ) -> None:
         self.broker = broker
         self.render_spp = render_spp
+        self.render_width = render_width
         self._scenes: dict[str, SceneDetail] = {}
 
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
@@ -65,6 +68,8 @@ class Stages:
         body: dict[str, Any] = {"scene": scene_id, "pose": index.model_dump()}
         if self.render_spp is not None:
             body["spp"] = self.render_spp
+        if self.render_width is not None:
+            body["width"] = self.render_width
         response = await self.broker.call(
             "renderer",
             "render",

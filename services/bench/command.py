@@ -1,0 +1,411 @@
+"""``cosmos bench``: the paper's evaluation run through the real services, end to end.
+
+Three modes, each writing a JSON report into ``--out`` and regenerating ``--results-md`` from
+every report there:
+
+* the bench (default): ``n`` seeded targets per scene and variant, each searched by every
+  strategy from the same random start, through a local stack started on free ports (or a running
+  one at ``--url``); tables, eq. 9, plots; with ``--profile`` also the floor of a search
+  (:mod:`services.bench.profile`). Report: ``bench.json``.
+* ``--sweep 4,8,16``: render settings by measurement. Detection against the renderer's exact
+  ground truth at each spp and film width, in one process; then the bench's searches through a
+  stack whose controller renders at each spp. Report: ``sweep.json``.
+* ``--throughput``: ``--throughput-searches`` searches submitted at once to a stack with one
+  renderer and detector, then to one with ``--renderers``/``--detectors`` replicas; searches
+  per minute. Report: ``throughput.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from services.bench.profile import profile_searches, profile_summary
+from services.bench.report import (
+    machine_info,
+    percentile,
+    summarize,
+    text_tables,
+    write_plots,
+    write_results_md,
+)
+from services.bench.runner import SearchRecord, Target, local_stack, make_targets, run_searches
+from services.bench.variants import Variant
+from services.common.optimization import StrategyName
+
+__all__ = ["BenchConfig", "run"]
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Everything ``cosmos bench`` was asked to do."""
+
+    n: int = 60
+    scenes: tuple[str, ...] = ("demo", "garden")
+    strategies: tuple[StrategyName, ...] = ("simple", "paper", "reprojection")
+    variants: tuple[Variant, ...] = ("clean", "jpeg", "noise", "offgrid")
+    seed: int = 2024
+    out: Path = Path("docs/results")
+    results_md: Path | None = Path("docs/RESULTS.md")
+    url: str | None = None
+    renderer_url: str | None = None
+    spp: int | None = None
+    width: int | None = None
+    concurrency: int = 1
+    max_iterations: int = 60
+    profile: bool = False
+    profile_n: int = 20
+    sweep: tuple[int, ...] = ()
+    sweep_widths: tuple[int, ...] = ()
+    sweep_poses: int = 24
+    throughput: bool = False
+    throughput_searches: int = 20
+    renderers: int = 2
+    detectors: int = 2
+    max_concurrent_searches: int | None = None
+    regenerate: bool = False
+    verbose: bool = False
+    notes: tuple[str, ...] = ()
+    command: str = field(default_factory=lambda: "cosmos " + shlex.join(sys.argv[1:]))
+
+
+def _say(message: str) -> None:
+    print(message, flush=True)  # noqa: T201 - the command's own output
+
+
+@dataclass(frozen=True)
+class _Endpoints:
+    controller: str
+    renderer: str
+    renderers: tuple[str, ...] = ()
+    detectors: tuple[str, ...] = ()
+
+    def warm(self, scenes: Sequence[str]) -> None:
+        """Render every scene on every renderer and detect it on every detector once, so that
+        no replica pays a first-call cost (scene load, kernel compile) inside a measurement."""
+        from services.common.models import PoseQuery, RenderRequest
+        from services.renderer.client import RendererClient
+
+        for url in self.renderers:
+            with RendererClient(url) as renderer:
+                for scene in scenes:
+                    request = RenderRequest(scene=scene, pose=PoseQuery(lat=0, lon=0))
+                    png = renderer.render_png(request)
+                    for detector in self.detectors:
+                        httpx.post(
+                            f"{detector}/detect",
+                            files={"image": ("warm.png", png, "image/png")},
+                            timeout=60.0,
+                        ).raise_for_status()
+
+
+@contextmanager
+def _endpoints(
+    config: BenchConfig,
+    *,
+    spp: int | None,
+    width: int | None,
+    renderers: int = 1,
+    detectors: int = 1,
+) -> Iterator[_Endpoints]:
+    if config.url is not None:
+        if config.renderer_url is None:
+            raise ValueError("--url needs --renderer-url too (the targets are rendered there)")
+        yield _Endpoints(config.url.rstrip("/"), config.renderer_url.rstrip("/"))
+        return
+    with tempfile.TemporaryDirectory(prefix="cosmos-bench-") as tmp:
+        started = time.perf_counter()
+        with local_stack(
+            Path(tmp),
+            renderers=renderers,
+            detectors=detectors,
+            render_spp=spp,
+            render_width=width,
+            max_concurrent_searches=config.max_concurrent_searches,
+        ) as stack:
+            _say(
+                f"stack up in {time.perf_counter() - started:.1f} s: controller "
+                f"{stack.controller}, {renderers} renderer(s), {detectors} detector(s)"
+                + (f", search views at {spp} spp" if spp is not None else "")
+                + (f", {width} px wide" if width is not None else "")
+            )
+            yield _Endpoints(stack.controller, stack.renderers[0], stack.renderers, stack.detectors)
+
+
+def _services(endpoints: _Endpoints, spp: int | None, width: int | None) -> dict[str, Any]:
+    """What the running services say about themselves (variant, model), for the report."""
+    info: dict[str, Any] = {}
+    with httpx.Client(timeout=10.0) as http:
+        try:
+            renderer = http.get(f"{endpoints.renderer}/health").json()
+            info["mitsuba_variant"] = renderer.get("variant")
+            controller = http.get(f"{endpoints.controller}/health").json()
+            detectors = [r["url"] for r in controller["replicas"] if r["stage"] == "detector"]
+            model = http.get(f"{detectors[0]}/model").json()
+            info["detector_model"] = f"{model['name']} (sha256 {model['sha256'][:12]})"
+            info["detector_input"] = "×".join(str(v) for v in model["input_size"])
+        except (httpx.HTTPError, KeyError, IndexError, ValueError) as exc:
+            info["services"] = f"not fully reported ({exc})"
+    info["search_view_spp"] = spp if spp is not None else "controller default"
+    info["search_view_width"] = width if width is not None else "controller default"
+    return info
+
+
+def _progress(total: int, verbose: bool) -> Any:
+    started = time.perf_counter()
+    step = max(1, total // 20)
+
+    def report(done: int, record: SearchRecord) -> None:
+        if verbose or record.status == "error":
+            mark = "ok " if record.success else "MISS"
+            _say(
+                f"  [{done:>4}/{total}] {mark} {record.scene} {record.variant:<8} "
+                f"{record.strategy:<12} #{record.number:<3} {record.renders:>2} renders "
+                f"{record.wall_ms:7.0f} ms {record.status}"
+                + (f": {record.error}" if record.error else "")
+            )
+        elif done % step == 0 or done == total:
+            elapsed = time.perf_counter() - started
+            _say(
+                f"  {done}/{total} searches, {elapsed:.0f} s, "
+                f"~{elapsed / done * (total - done):.0f} s left"
+            )
+
+    return report
+
+
+def _search_all(
+    config: BenchConfig,
+    endpoints: _Endpoints,
+    variants: Sequence[Variant],
+    strategies: Sequence[StrategyName],
+) -> tuple[list[Target], list[SearchRecord]]:
+    targets = make_targets(
+        endpoints.renderer, config.scenes, variants, config.n, config.seed, progress=_say
+    )
+    endpoints.warm(config.scenes)
+    firsts = {t.scene: t for t in reversed(targets)}
+    run_searches(  # untimed: every stage's first call per scene and strategy
+        endpoints.controller,
+        [(t, s) for t in firsts.values() for s in strategies],
+        max_iterations=config.max_iterations,
+    )
+    jobs = [(t, s) for t in targets for s in strategies]
+    _say(f"{len(jobs)} searches, {config.concurrency} in flight")
+    records = run_searches(
+        endpoints.controller,
+        jobs,
+        concurrency=config.concurrency,
+        max_iterations=config.max_iterations,
+        progress=_progress(len(jobs), config.verbose),
+    )
+    return targets, records
+
+
+def _write(config: BenchConfig, name: str, report: dict[str, Any]) -> None:
+    config.out.mkdir(parents=True, exist_ok=True)
+    path = config.out / name
+    path.write_text(json.dumps(report, indent=1, default=str) + "\n")
+    _say(f"wrote {path}")
+    if config.results_md is not None:
+        write_results_md(config.results_md, config.out)
+        _say(f"wrote {config.results_md}")
+
+
+def run_main(config: BenchConfig) -> int:
+    """The bench: searches, tables, plots, and the profile when asked."""
+    started = time.perf_counter()
+    with _endpoints(config, spp=config.spp, width=config.width) as endpoints:
+        machine = machine_info(_services(endpoints, config.spp, config.width))
+        targets, records = _search_all(config, endpoints, config.variants, config.strategies)
+        summaries = summarize(records)
+        _say("")
+        _say(text_tables(summaries))
+        profile = None
+        if config.profile:
+            sample = _profile_sample(targets, config)
+            _say(f"\nprofile: {len(sample)} clean on-grid targets, reprojection")
+            samples = profile_searches(
+                endpoints.controller,
+                sample,
+                render_spp=config.spp,
+                render_width=config.width,
+                max_iterations=config.max_iterations,
+                progress=_say if config.verbose else None,
+            )
+            profile = profile_summary(samples)
+            for row in profile["rows"]:
+                _say(
+                    f"  {row['scene']:<8} n={row['n']:<3} wall p50 {row['wall_p50_ms']:.0f} ms, "
+                    f"floor p50 {row['floor_p50_ms']:.0f} ms, one process p50 "
+                    f"{row['pipeline_p50_ms']:.0f} ms; median wall/floor "
+                    f"{row['floor_ratio_p50']:.2f} (goal ≤ 1.3), median stack/one process "
+                    f"{row['stack_ratio_p50']:.2f} (goal ≤ 1.1)"
+                )
+    duration = time.perf_counter() - started
+    report: dict[str, Any] = {
+        "command": config.command,
+        "machine": machine,
+        "duration_s": duration,
+        "config": {
+            "n": config.n,
+            "scenes": config.scenes,
+            "strategies": config.strategies,
+            "variants": config.variants,
+            "seed": config.seed,
+            "spp": config.spp,
+            "width": config.width,
+            "concurrency": config.concurrency,
+            "max_iterations": config.max_iterations,
+        },
+        "notes": list(config.notes),
+        "summaries": [vars(s) | {"success_rate": s.success_rate} for s in summaries],
+        "records": [r.model_dump(mode="json") for r in records],
+        "profile": profile,
+    }
+    config.out.mkdir(parents=True, exist_ok=True)
+    for path in write_plots(records, config.out):
+        _say(f"wrote {path}")
+    _write(config, "bench.json", report)
+    errors = sum(r.status == "error" for r in records)
+    return 1 if errors else 0
+
+
+def _profile_sample(targets: Sequence[Target], config: BenchConfig) -> list[Target]:
+    """The first ``profile_n`` clean on-grid targets of each scene."""
+    sample: list[Target] = []
+    for scene in config.scenes:
+        clean = [t for t in targets if t.scene == scene and t.variant == "clean"]
+        sample.extend(clean[: config.profile_n])
+    return sample
+
+
+# -- sweep ----------------------------------------------------------------------------------
+
+
+def run_sweep(config: BenchConfig) -> int:
+    """Render settings by measurement: detection quality per (spp, width), searches per spp."""
+    from services.bench.settings_sweep import detection_sweep
+
+    started = time.perf_counter()
+    _say(f"detection against ground truth: {config.sweep_poses} poses per scene")
+    detection = detection_sweep(
+        config.scenes, spps=config.sweep, poses=config.sweep_poses, seed=config.seed, say=_say
+    )
+    searches = []
+    machine: dict[str, Any] = {}
+    for width in config.sweep_widths or (None,):
+        for spp in config.sweep:
+            with _endpoints(config, spp=spp, width=width) as endpoints:
+                machine = machine or machine_info(_services(endpoints, None, None))
+                _, records = _search_all(config, endpoints, config.variants, config.strategies)
+            _say(f"\nsearch views at {spp} spp, {width or 'the scene'}'s width")
+            _say(text_tables(summarize(records)))
+            searches.append(
+                {
+                    "spp": spp,
+                    "width": width,
+                    "records": [r.model_dump(mode="json") for r in records],
+                }
+            )
+    report = {
+        "command": config.command,
+        "machine": machine | {"duration_s": round(time.perf_counter() - started)},
+        "notes": list(config.notes),
+        "detection": detection,
+        "searches": searches,
+    }
+    _write(config, "sweep.json", report)
+    return 0
+
+
+# -- throughput -----------------------------------------------------------------------------
+
+
+def run_throughput(config: BenchConfig) -> int:
+    """``throughput_searches`` searches at once: one replica per stage, then the replicas asked."""
+    started = time.perf_counter()
+    rows = []
+    machine: dict[str, Any] = {}
+    failures = 0
+    for renderers, detectors in ((1, 1), (config.renderers, config.detectors)):
+        with _endpoints(
+            config,
+            spp=config.spp,
+            width=config.width,
+            renderers=renderers,
+            detectors=detectors,
+        ) as ep:
+            machine = machine or machine_info(_services(ep, config.spp, config.width))
+            scenes = config.scenes
+            per_scene = -(-config.throughput_searches // len(scenes))
+            targets = make_targets(ep.renderer, scenes, ("clean",), per_scene, config.seed)
+            jobs: list[tuple[Target, StrategyName]] = [(t, "reprojection") for t in targets]
+            jobs = jobs[: config.throughput_searches]
+            ep.warm(scenes)
+            run_searches(ep.controller, jobs[:1], max_iterations=config.max_iterations)
+            t0 = time.perf_counter()
+            records = run_searches(
+                ep.controller,
+                jobs,
+                concurrency=len(jobs),
+                max_iterations=config.max_iterations,
+            )
+            elapsed = time.perf_counter() - t0
+        errors = sum(r.status == "error" for r in records)
+        failures += errors
+        walls = [r.wall_ms for r in records]
+        row = {
+            "renderers": renderers,
+            "detectors": detectors,
+            "searches": len(records),
+            "max_concurrent_searches": config.max_concurrent_searches or "default (4)",
+            "errors": errors,
+            "succeeded": sum(r.status == "succeeded" for r in records),
+            "found": sum(r.success for r in records),
+            "elapsed_s": elapsed,
+            "per_minute": 60.0 * len(records) / elapsed,
+            "wall_p50_ms": percentile(walls, 50),
+            "wall_p95_ms": percentile(walls, 95),
+        }
+        rows.append(row)
+        _say(
+            f"{renderers} renderer(s), {detectors} detector(s): {len(records)} searches at once in "
+            f"{elapsed:.1f} s = {row['per_minute']:.1f} searches/min, {errors} errors, "
+            f"{row['found']} found the target"
+        )
+    report = {
+        "command": config.command,
+        "machine": machine | {"duration_s": round(time.perf_counter() - started)},
+        "notes": list(config.notes),
+        "rows": rows,
+    }
+    _write(config, "throughput.json", report)
+    return 1 if failures else 0
+
+
+def run(config: BenchConfig) -> int:
+    """Run the mode ``config`` asks for; the exit status (1 if any search errored)."""
+    if config.regenerate:
+        if config.results_md is None:
+            raise ValueError("--regenerate needs --results-md")
+        write_results_md(config.results_md, config.out)
+        _say(f"wrote {config.results_md} from the reports in {config.out}")
+        return 0
+    if config.n < 1:
+        raise ValueError("--n must be at least 1")
+    if config.sweep:
+        return run_sweep(config)
+    if config.throughput:
+        return run_throughput(config)
+    return run_main(config)

@@ -1,0 +1,701 @@
+"""The bench's figures: per-(scene, strategy, variant) summaries, paper eq. 9, text and Markdown
+tables, the JSON report, the plots (matplotlib, Agg) and ``docs/RESULTS.md``.
+
+Definitions used in every table
+-------------------------------
+success
+    The search succeeded and its grid pose is the grid pose nearest the true pose.
+renders
+    Distinct views rendered by the search, the start view included (``result.renders``).
+steps (moves)
+    Views visited after the start view: iterations − 1. The paper's "steps".
+wall
+    From sending ``POST /searches`` to receiving the search's ``end`` event.
+render / detect / optimize
+    Sums over a search's iterations of the controller's stage timings (``timings.*_ms``).
+HTTP+queue
+    Wall time minus those three sums: the submission, queueing, the target's detection where it
+    did not overlap the start render, storing iterations, the events stream.
+Percentiles are the sample's own values (inverted CDF), never interpolated between searches.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import platform
+import statistics
+import subprocess
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from services.bench.runner import SearchRecord
+from services.bench.variants import VARIANTS
+
+__all__ = [
+    "PAPER_OPTIMISED_STEPS",
+    "PAPER_SIMPLE_STEPS",
+    "Summary",
+    "choose_setting",
+    "eq9_rows",
+    "machine_info",
+    "markdown_tables",
+    "percentile",
+    "summarize",
+    "text_tables",
+    "write_plots",
+    "write_results_md",
+]
+
+PAPER_SIMPLE_STEPS: Final = 36
+PAPER_OPTIMISED_STEPS: Final = 2
+PAPER_EQ9: Final = (PAPER_OPTIMISED_STEPS - PAPER_SIMPLE_STEPS) / PAPER_SIMPLE_STEPS
+STRATEGY_ORDER: Final = ("simple", "paper", "reprojection")
+
+
+def percentile(values: Sequence[float], q: float) -> float:
+    """The ``q``-th percentile of ``values`` as one of its own values (NaN when empty)."""
+    if not values:
+        return math.nan
+    return float(np.percentile(np.asarray(values, dtype=np.float64), q, method="inverted_cdf"))
+
+
+def _mean(values: Sequence[float]) -> float:
+    return float(np.mean(values)) if values else math.nan
+
+
+@dataclass(frozen=True)
+class Summary:
+    """One (scene, strategy, variant) cell of the bench."""
+
+    scene: str
+    strategy: str
+    variant: str
+    n: int
+    succeeded: int
+    errors: int
+    renders_mean: float
+    renders_p50: float
+    renders_p95: float
+    renders_max: float
+    moves_mean: float
+    moves_max: float
+    wall_p50_ms: float
+    wall_p95_ms: float
+    render_ms: float
+    detect_ms: float
+    optimize_ms: float
+    other_ms: float
+    refined_p50_deg: float
+    refined_p95_deg: float
+
+    @property
+    def success_rate(self) -> float:
+        return self.succeeded / self.n if self.n else math.nan
+
+
+def _order(strategy: str) -> int:
+    return STRATEGY_ORDER.index(strategy) if strategy in STRATEGY_ORDER else len(STRATEGY_ORDER)
+
+
+def summarize(records: Iterable[SearchRecord]) -> list[Summary]:
+    """One summary per (scene, strategy, variant), ordered by variant, scene, strategy."""
+    groups: dict[tuple[str, str, str], list[SearchRecord]] = {}
+    for record in records:
+        groups.setdefault((record.scene, record.strategy, record.variant), []).append(record)
+    out = []
+    for (scene, strategy, variant), group in groups.items():
+        ran = [r for r in group if r.status != "error"]
+        renders = [float(r.renders) for r in ran]
+        moves = [float(r.moves) for r in ran]
+        walls = [r.wall_ms for r in ran]
+        refined = [r.refined_error_deg for r in ran if r.refined_error_deg is not None]
+        out.append(
+            Summary(
+                scene=scene,
+                strategy=strategy,
+                variant=variant,
+                n=len(group),
+                succeeded=sum(r.success for r in group),
+                errors=len(group) - len(ran),
+                renders_mean=_mean(renders),
+                renders_p50=percentile(renders, 50),
+                renders_p95=percentile(renders, 95),
+                renders_max=max(renders, default=math.nan),
+                moves_mean=_mean(moves),
+                moves_max=max(moves, default=math.nan),
+                wall_p50_ms=percentile(walls, 50),
+                wall_p95_ms=percentile(walls, 95),
+                render_ms=_mean([r.render_ms for r in ran]),
+                detect_ms=_mean([r.detect_ms for r in ran]),
+                optimize_ms=_mean([r.optimize_ms for r in ran]),
+                other_ms=_mean([r.other_ms for r in ran]),
+                refined_p50_deg=percentile(refined, 50),
+                refined_p95_deg=percentile(refined, 95),
+            )
+        )
+    variant_rank: dict[str, int] = {v: i for i, v in enumerate(VARIANTS)}
+    out.sort(key=lambda s: (variant_rank.get(s.variant, 99), s.scene, _order(s.strategy)))
+    return out
+
+
+@dataclass(frozen=True)
+class Eq9Row:
+    """Paper eq. 9, improvement = (optimised − step-by-step) / step-by-step, measured."""
+
+    scene: str
+    variant: str
+    strategy: str
+    moves_mean: float
+    simple_moves_mean: float
+    moves_max: float
+    simple_moves_max: float
+    renders_mean: float
+    simple_renders_mean: float
+
+    @staticmethod
+    def _change(new: float, old: float) -> float:
+        return (new - old) / old if old else math.nan
+
+    @property
+    def mean_change(self) -> float:
+        return self._change(self.moves_mean, self.simple_moves_mean)
+
+    @property
+    def worst_change(self) -> float:
+        return self._change(self.moves_max, self.simple_moves_max)
+
+    @property
+    def renders_change(self) -> float:
+        return self._change(self.renders_mean, self.simple_renders_mean)
+
+
+def eq9_rows(summaries: Sequence[Summary]) -> list[Eq9Row]:
+    """paper and reprojection against simple, per scene and variant (where simple ran)."""
+    by = {(s.scene, s.variant, s.strategy): s for s in summaries}
+    rows = []
+    for s in summaries:
+        simple = by.get((s.scene, s.variant, "simple"))
+        if s.strategy == "simple" or simple is None:
+            continue
+        rows.append(
+            Eq9Row(
+                scene=s.scene,
+                variant=s.variant,
+                strategy=s.strategy,
+                moves_mean=s.moves_mean,
+                simple_moves_mean=simple.moves_mean,
+                moves_max=s.moves_max,
+                simple_moves_max=simple.moves_max,
+                renders_mean=s.renders_mean,
+                simple_renders_mean=simple.renders_mean,
+            )
+        )
+    return rows
+
+
+# -- tables ---------------------------------------------------------------------------------
+
+_COLUMNS: Final = (
+    "scene",
+    "strategy",
+    "n",
+    "success",
+    "renders mean/p50/p95/max",
+    "steps mean/max",
+    "wall p50/p95 ms",
+    "render ms",
+    "detect ms",
+    "optimize ms",
+    "HTTP+queue ms",
+    "refined err p50/p95 °",
+)
+
+
+def _f(value: float, digits: int = 0) -> str:
+    return "—" if not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _cells(s: Summary) -> list[str]:
+    errors = f" ({s.errors} errors)" if s.errors else ""
+    return [
+        s.scene,
+        s.strategy,
+        str(s.n),
+        f"{100 * s.success_rate:.1f}%{errors}",
+        f"{_f(s.renders_mean, 2)} / {_f(s.renders_p50)} / {_f(s.renders_p95)} / "
+        f"{_f(s.renders_max)}",
+        f"{_f(s.moves_mean, 2)} / {_f(s.moves_max)}",
+        f"{_f(s.wall_p50_ms)} / {_f(s.wall_p95_ms)}",
+        _f(s.render_ms),
+        _f(s.detect_ms),
+        _f(s.optimize_ms),
+        _f(s.other_ms),
+        f"{_f(s.refined_p50_deg, 2)} / {_f(s.refined_p95_deg, 2)}",
+    ]
+
+
+_VARIANT_TITLES: Final = {
+    "clean": "on-grid, clean",
+    "jpeg": "on-grid, JPEG quality 60",
+    "noise": "on-grid, Gaussian pixel noise σ = 6",
+    "offgrid": "off-grid (θ, φ up to ⅓ step from a grid pose)",
+}
+
+
+def _eq9_cells(row: Eq9Row) -> list[str]:
+    return [
+        row.scene,
+        row.variant,
+        row.strategy,
+        f"{row.moves_mean:.2f} vs {row.simple_moves_mean:.2f}",
+        f"{row.mean_change:+.2%}",
+        f"{row.moves_max:.0f} vs {row.simple_moves_max:.0f}",
+        f"{row.worst_change:+.2%}",
+        f"{row.renders_mean:.2f} vs {row.simple_renders_mean:.2f}",
+        f"{row.renders_change:+.2%}",
+    ]
+
+
+_EQ9_COLUMNS: Final = (
+    "scene",
+    "variant",
+    "strategy",
+    "mean steps vs simple",
+    "eq. 9 (mean)",
+    "worst steps vs simple",
+    "eq. 9 (worst)",
+    "mean renders vs simple",
+    "change in renders",
+)
+
+EQ9_NOTE: Final = (
+    f"paper eq. 9 at angle_step = π/24: ({PAPER_OPTIMISED_STEPS} − {PAPER_SIMPLE_STEPS}) / "
+    f"{PAPER_SIMPLE_STEPS} = {PAPER_EQ9:+.2%} (steps = moves after the start view = "
+    "iterations − 1; the paper's 36 is the step-by-step worst case)"
+)
+
+
+def _text_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    return "\n".join(lines)
+
+
+def _md_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _by_variant(summaries: Sequence[Summary]) -> dict[str, list[Summary]]:
+    out: dict[str, list[Summary]] = {}
+    for s in summaries:
+        out.setdefault(s.variant, []).append(s)
+    return out
+
+
+def text_tables(summaries: Sequence[Summary]) -> str:
+    """The bench's tables for a terminal: one per variant, then eq. 9."""
+    parts = []
+    for variant, group in _by_variant(summaries).items():
+        parts.append(f"targets: {_VARIANT_TITLES.get(variant, variant)}")
+        parts.append(_text_table(_COLUMNS, [_cells(s) for s in group]))
+        parts.append("")
+    eq9 = eq9_rows(summaries)
+    if eq9:
+        parts.append(EQ9_NOTE)
+        parts.append(_text_table(_EQ9_COLUMNS, [_eq9_cells(r) for r in eq9]))
+    return "\n".join(parts)
+
+
+def markdown_tables(summaries: Sequence[Summary]) -> str:
+    """The same tables in Markdown."""
+    parts = []
+    for variant, group in _by_variant(summaries).items():
+        parts.append(f"#### Targets {_VARIANT_TITLES.get(variant, variant)}\n")
+        parts.append(_md_table(_COLUMNS, [_cells(s) for s in group]) + "\n")
+    eq9 = eq9_rows(summaries)
+    if eq9:
+        parts.append("#### Paper eq. 9\n")
+        parts.append(EQ9_NOTE + ".\n")
+        parts.append(_md_table(_EQ9_COLUMNS, [_eq9_cells(r) for r in eq9]) + "\n")
+    return "\n".join(parts)
+
+
+# -- machine --------------------------------------------------------------------------------
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _git_commit() -> str:
+    root = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=10,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=10,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return head + (" (with uncommitted changes)" if dirty else "")
+
+
+def machine_info(services: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """What ran the bench: CPU, cores, load, Python, the commit, and what the services report."""
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
+    return {
+        "date_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "cpu": _cpu_model(),
+        "cores": os.cpu_count(),
+        "load_average_1m_at_start": round(load[0], 2),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "commit": _git_commit(),
+        **dict(services or {}),
+    }
+
+
+# -- plots ----------------------------------------------------------------------------------
+
+
+def _strategies(records: Sequence[SearchRecord]) -> list[str]:
+    return sorted({r.strategy for r in records}, key=_order)
+
+
+def write_plots(records: Sequence[SearchRecord], out: Path) -> list[Path]:
+    """``renders_hist.png`` (renders per search, per strategy and variant) and
+    ``distance.png`` (angle from the camera to the true pose per iteration, clean on-grid
+    targets, like the paper's Fig. 8). Returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    strategies = _strategies(records)
+    written: list[Path] = []
+    if not strategies:
+        return written
+
+    fig, axes = plt.subplots(
+        1, len(strategies), figsize=(4.2 * len(strategies), 3.4), squeeze=False
+    )
+    for ax, strategy in zip(axes[0], strategies, strict=True):
+        mine = [r for r in records if r.strategy == strategy and r.status != "error"]
+        top = max((r.renders for r in mine), default=1)
+        bins = np.arange(0.5, top + 1.5, 1.0)
+        for variant in VARIANTS:
+            values = [r.renders for r in mine if r.variant == variant]
+            if values:
+                ax.hist(values, bins=bins, histtype="step", linewidth=1.5, label=variant)
+        ax.set_title(strategy)
+        ax.set_xlabel("renders per search (start view included)")
+        ax.set_ylabel("searches")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / "renders_hist.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+
+    fig, axes = plt.subplots(
+        1, len(strategies), figsize=(4.2 * len(strategies), 3.4), squeeze=False, sharey=True
+    )
+    for ax, strategy in zip(axes[0], strategies, strict=True):
+        mine = [r for r in records if r.strategy == strategy and r.variant == "clean"]
+        curves = [[t.distance_deg for t in r.trajectory] for r in mine if r.trajectory]
+        for curve in curves:
+            ax.plot(range(1, len(curve) + 1), curve, color="0.6", linewidth=0.6, alpha=0.5)
+        if curves:
+            length = max(len(c) for c in curves)
+            # A finished search stays where it ended: pad each curve with its last distance.
+            padded = np.array([c + [c[-1]] * (length - len(c)) for c in curves])
+            ax.plot(
+                range(1, length + 1),
+                np.median(padded, axis=0),
+                color="C3",
+                linewidth=2.0,
+                label="median",
+            )
+            ax.legend(fontsize=8)
+        ax.set_title(f"{strategy} (clean targets)")
+        ax.set_xlabel("iteration (1 = start view)")
+        ax.set_ylabel("angle to the true pose (°)")
+    fig.tight_layout()
+    path = out / "distance.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+    return written
+
+
+# -- render settings -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Setting:
+    """One sweep run's outcome: the film and spp, successes per (scene, variant), costs."""
+
+    width: int | None
+    spp: int
+    cells: Mapping[tuple[str, str], int]
+    success: float
+    renders: float
+    wall_ms: float
+
+    @property
+    def name(self) -> str:
+        return f"{self.width or 'scene'} px wide at {self.spp} spp"
+
+
+CHOICE_RULE: Final = (
+    "the cheapest setting by median search wall time whose searches lose nothing against the "
+    "largest film at the most spp: as many successes in all, no (scene, variant) cell more than "
+    "one search down, renders per search within 5 % + 0.05"
+)
+
+
+def choose_setting(searches: Sequence[Mapping[str, Any]]) -> str:
+    """The cheapest render setting (median search wall time) whose searches lose nothing against
+    the reference, the most expensive setting (largest film, then most spp): as many searches
+    succeed in all, no (scene, variant) cell has more than one fewer, and renders per search stay
+    within 5 % + 0.05 of the reference's."""
+    settings = []
+    for run in searches:
+        records = [SearchRecord.model_validate(r) for r in run["records"]]
+        if not records:
+            continue
+        cells: dict[tuple[str, str], int] = {}
+        for r in records:
+            cells[(r.scene, r.variant)] = cells.get((r.scene, r.variant), 0) + int(r.success)
+        settings.append(
+            _Setting(
+                width=run["width"],
+                spp=run["spp"],
+                cells=cells,
+                success=float(np.mean([r.success for r in records])),
+                renders=float(np.mean([r.renders for r in records])),
+                wall_ms=statistics.median(r.wall_ms for r in records),
+            )
+        )
+    if not settings:
+        return ""
+    ref = max(settings, key=lambda s: (s.width or 1 << 30, s.spp))
+    good = [
+        s
+        for s in settings
+        if sum(s.cells.values()) >= sum(ref.cells.values())
+        and all(s.cells.get(k, 0) >= n - 1 for k, n in ref.cells.items())
+        and s.renders <= ref.renders * 1.05 + 0.05
+    ]
+    best = min(good, key=lambda s: s.wall_ms)
+    return (
+        f"{best.name}: success {best.success:.1%} and {best.renders:.2f} renders per search, "
+        f"median wall {best.wall_ms:.0f} ms, against {ref.success:.1%}, {ref.renders:.2f} and "
+        f"{ref.wall_ms:.0f} ms at {ref.name}"
+    )
+
+
+# -- RESULTS.md -----------------------------------------------------------------------------
+
+
+def _machine_md(machine: Mapping[str, Any]) -> str:
+    return "\n".join(f"- {key.replace('_', ' ')}: {value}" for key, value in machine.items())
+
+
+def write_results_md(path: Path, out: Path) -> None:
+    """``docs/RESULTS.md`` from the JSON reports in ``out`` (bench, sweep, throughput)."""
+    rel = Path(os.path.relpath(out, path.parent))
+    text = io.StringIO()
+    text.write(
+        "# Results\n\n"
+        "Generated by `cosmos bench` from the JSON reports in "
+        f"`{out.as_posix()}`; never edited by hand. Regenerate it when a change moves the "
+        "numbers. Definitions (success, renders, steps, wall, HTTP+queue) are in "
+        "`services/bench/report.py`.\n\n"
+    )
+    bench = out / "bench.json"
+    if bench.exists():
+        data = json.loads(bench.read_text())
+        text.write(section_of_bench(data, rel))
+    sweep = out / "sweep.json"
+    if sweep.exists():
+        text.write(section_of_sweep(json.loads(sweep.read_text())))
+    throughput = out / "throughput.json"
+    if throughput.exists():
+        text.write(section_of_throughput(json.loads(throughput.read_text())))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text.getvalue())
+
+
+def _records(data: Mapping[str, Any]) -> list[SearchRecord]:
+    return [SearchRecord.model_validate(r) for r in data.get("records", [])]
+
+
+def section_of_bench(data: Mapping[str, Any], plots: Path) -> str:
+    text = io.StringIO()
+    text.write("## Searches through the local stack\n\n")
+    text.write(f"```sh\n{data['command']}\n```\n\n")
+    text.write(_machine_md(data["machine"]) + "\n")
+    text.write(f"- duration: {data['duration_s']:.0f} s\n\n")
+    for note in data.get("notes", []):
+        text.write(f"{note}\n\n")
+    text.write(markdown_tables(summarize(_records(data))))
+    text.write(
+        f"\n![renders per search]({(plots / 'renders_hist.png').as_posix()})\n\n"
+        f"![angle to the true pose per iteration]({(plots / 'distance.png').as_posix()})\n\n"
+    )
+    profile = data.get("profile")
+    if profile:
+        text.write(section_of_profile(profile))
+    return text.getvalue()
+
+
+def section_of_profile(profile: Mapping[str, Any]) -> str:
+    text = io.StringIO()
+    text.write("### Profile: a search against the work it cannot avoid (`--profile`)\n\n")
+    text.write(profile["definition"] + "\n\n")
+    header = (
+        "scene",
+        "searches",
+        "wall p50 ms",
+        "floor p50 ms",
+        "one-process pipeline p50 ms",
+        "wall / floor p50 (p95)",
+        "stack / one process p50 (p95)",
+    )
+    rows = []
+    for row in profile["rows"]:
+        rows.append(
+            [
+                row["scene"],
+                str(row["n"]),
+                f"{row['wall_p50_ms']:.0f}",
+                f"{row['floor_p50_ms']:.0f}",
+                f"{row['pipeline_p50_ms']:.0f}",
+                f"{row['floor_ratio_p50']:.2f} ({row['floor_ratio_p95']:.2f})",
+                f"{row['stack_ratio_p50']:.2f} ({row['stack_ratio_p95']:.2f})",
+            ]
+        )
+    text.write(_md_table(header, rows) + "\n\n")
+    parts = profile.get("floor_parts_p50_ms")
+    if parts:
+        text.write(
+            "Median floor parts (ms): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in parts.items())
+            + ".\n\n"
+        )
+    return text.getvalue()
+
+
+def section_of_sweep(data: Mapping[str, Any]) -> str:
+    text = io.StringIO()
+    text.write("## Render settings by measurement (`--sweep`)\n\n")
+    text.write(f"```sh\n{data['command']}\n```\n\n")
+    text.write(_machine_md(data["machine"]) + "\n\n")
+    for note in data.get("notes", []):
+        text.write(f"{note}\n\n")
+    detection = data.get("detection")
+    if detection:
+        text.write("### Detection against the renderer's ground truth, in one process\n\n")
+        text.write(detection["definition"] + "\n\n")
+        header = (
+            "width×height",
+            "spp",
+            "render ms p50",
+            "detect ms p50",
+            "recall",
+            "precision",
+            "box error p50 px (at 320)",
+        )
+        rows = [
+            [
+                f"{r['width']}×{r['height']}",
+                str(r["spp"]),
+                f"{r['render_p50_ms']:.1f}",
+                f"{r['detect_p50_ms']:.1f}",
+                f"{r['recall']:.3f}",
+                f"{r['precision']:.3f}",
+                f"{r['box_error_p50_px']:.2f}",
+            ]
+            for r in detection["rows"]
+        ]
+        text.write(_md_table(header, rows) + "\n\n")
+    searches = data.get("searches")
+    if searches:
+        text.write("### Searches through the stack at each spp\n\n")
+        rows = []
+        for run in searches:
+            for s in summarize(_records(run)):
+                rows.append([str(run.get("width") or "scene"), str(run["spp"]), *_cells(s)])
+        text.write(_md_table(("film width", "spp", *_COLUMNS), rows) + "\n\n")
+    choice = choose_setting(searches or [])
+    if choice:
+        text.write(f"**Choice** ({CHOICE_RULE}): {choice}\n\n")
+    return text.getvalue()
+
+
+def section_of_throughput(data: Mapping[str, Any]) -> str:
+    text = io.StringIO()
+    text.write("## Throughput (`--throughput`)\n\n")
+    text.write(f"```sh\n{data['command']}\n```\n\n")
+    text.write(_machine_md(data["machine"]) + "\n\n")
+    for note in data.get("notes", []):
+        text.write(f"{note}\n\n")
+    header = (
+        "renderers",
+        "detectors",
+        "concurrent searches",
+        "controller workers",
+        "errors",
+        "succeeded",
+        "found the target",
+        "wall s",
+        "searches / min",
+        "search wall p50 / p95 ms",
+    )
+    rows = [
+        [
+            str(r["renderers"]),
+            str(r["detectors"]),
+            str(r["searches"]),
+            str(r["max_concurrent_searches"]),
+            str(r["errors"]),
+            str(r["succeeded"]),
+            str(r["found"]),
+            f"{r['elapsed_s']:.1f}",
+            f"{r['per_minute']:.1f}",
+            f"{r['wall_p50_ms']:.0f} / {r['wall_p95_ms']:.0f}",
+        ]
+        for r in data["rows"]
+    ]
+    text.write(_md_table(header, rows) + "\n\n")
+    return text.getvalue()

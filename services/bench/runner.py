@@ -1,0 +1,390 @@
+"""Running the evaluation's searches through the controller over HTTP, as a user's client would.
+
+A bench run first renders every target (through a renderer, with its own seed and the
+renderer's default sampling, so a target is never pixel-identical to a view the search renders),
+then submits each (target, strategy) pair to ``POST /searches`` with the target's start pose,
+follows the search's server-sent events until its ``end`` event and fetches the search. The wall
+time of a search runs from sending the ``POST`` to receiving ``end``: everything a client waits
+for. Every strategy gets the same targets and start poses, so strategies are compared pairwise.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+import zlib
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import httpx
+import numpy as np
+from pydantic import Field
+
+from services.bench.variants import VARIANTS, Variant, degrade, draw_pose
+from services.common.client import media_type_of
+from services.common.grid import HemisphereGrid, angular_distance_deg
+from services.common.launch import free_port
+from services.common.models import FrozenModel, GridIndex, Pose, PoseQuery, RenderRequest
+from services.common.optimization import StrategyName
+from services.common.search import Search
+from services.renderer.client import RendererClient
+from services.stack import Stack, plan_stack, running_stack
+
+__all__ = [
+    "IterationRecord",
+    "SearchRecord",
+    "Target",
+    "local_stack",
+    "make_targets",
+    "run_searches",
+]
+
+TARGET_SPP = 16
+"""Samples per pixel of the targets (the renderer's default): a user's image, not the bench's."""
+
+
+@dataclass(frozen=True)
+class Target:
+    """One target image and where its search starts."""
+
+    scene: str
+    variant: Variant
+    number: int
+    pose: Pose
+    truth: GridIndex
+    truth_pose: Pose
+    start: GridIndex
+    start_pose: Pose
+    seed: int
+    image: bytes = field(repr=False)
+
+    @property
+    def key(self) -> tuple[str, str, int]:
+        return (self.scene, self.variant, self.number)
+
+
+class IterationRecord(FrozenModel):
+    """One rendered view of a bench search, with its angle to the true pose."""
+
+    lat: int
+    lon: int
+    theta_deg: float
+    phi_deg: float
+    distance_deg: Annotated[float, Field(ge=0.0)]
+    render_ms: float
+    detect_ms: float
+    optimize_ms: float
+    total_ms: float
+
+
+class SearchRecord(FrozenModel):
+    """What one bench search did and how long it took (milliseconds)."""
+
+    scene: str
+    strategy: StrategyName
+    variant: Variant
+    number: int
+    search_id: str | None
+    status: str
+    true_theta_deg: float
+    true_phi_deg: float
+    truth: GridIndex
+    start: GridIndex
+    found: GridIndex | None = None
+    refined_theta_deg: float | None = None
+    refined_phi_deg: float | None = None
+    success: bool = False
+    refined_error_deg: float | None = Field(
+        default=None, description="Angle between the true view direction and refined_pose."
+    )
+    renders: int = 0
+    iterations: int = 0
+    wall_ms: float = 0.0
+    render_ms: float = 0.0
+    detect_ms: float = 0.0
+    optimize_ms: float = 0.0
+    loop_ms: float = Field(default=0.0, description="Sum of the iterations' total_ms.")
+    error: str | None = None
+    trajectory: tuple[IterationRecord, ...] = ()
+
+    @property
+    def moves(self) -> int:
+        """Moves after the start view (the paper's steps): iterations − 1."""
+        return max(0, self.iterations - 1)
+
+    @property
+    def stage_ms(self) -> float:
+        return self.render_ms + self.detect_ms + self.optimize_ms
+
+    @property
+    def other_ms(self) -> float:
+        """HTTP and queueing: the wall time not spent in a render, detection or optimizer call."""
+        return max(0.0, self.wall_ms - self.stage_ms)
+
+
+def _rng(seed: int, scene: str, variant: Variant) -> np.random.Generator:
+    """One independent stream per (seed, scene, variant): adding a scene changes no other's."""
+    return np.random.default_rng([seed, zlib.crc32(scene.encode()), VARIANTS.index(variant)])
+
+
+def make_targets(
+    renderer_url: str,
+    scenes: Sequence[str],
+    variants: Sequence[Variant],
+    n: int,
+    seed: int,
+    progress: Callable[[str], None] | None = None,
+) -> list[Target]:
+    """``n`` seeded targets per scene and variant, rendered by the renderer at ``renderer_url``."""
+    targets: list[Target] = []
+    with RendererClient(renderer_url) as renderer:
+        for scene in scenes:
+            grid = HemisphereGrid.from_info(renderer.scene(scene).grid)
+            for variant in variants:
+                rng = _rng(seed, scene, variant)
+                for number in range(n):
+                    where = draw_pose(grid, variant, rng)
+                    start = grid.unflat(int(rng.integers(grid.size)))
+                    render_seed, search_seed = (int(v) for v in rng.integers(2**31, size=2))
+                    query = (
+                        PoseQuery(lat=where.truth.lat, lon=where.truth.lon)
+                        if where.on_grid
+                        else PoseQuery(theta_deg=where.pose.theta_deg, phi_deg=where.pose.phi_deg)
+                    )
+                    png = renderer.render_png(
+                        RenderRequest(scene=scene, pose=query, spp=TARGET_SPP, seed=render_seed)
+                    )
+                    targets.append(
+                        Target(
+                            scene=scene,
+                            variant=variant,
+                            number=number,
+                            pose=where.pose,
+                            truth=where.truth,
+                            truth_pose=grid.pose(where.truth),
+                            start=start,
+                            start_pose=grid.pose(start),
+                            seed=search_seed,
+                            image=degrade(png, variant, rng),
+                        )
+                    )
+                if progress is not None:
+                    progress(f"rendered {n} {variant} targets of {scene}")
+    return targets
+
+
+def record_of(
+    target: Target, strategy: StrategyName, search: Search, wall_ms: float
+) -> SearchRecord:
+    """The bench's view of a finished search: success against the ground truth, stage times."""
+    trajectory = tuple(
+        IterationRecord(
+            lat=it.pose.index.lat,
+            lon=it.pose.index.lon,
+            theta_deg=it.pose.theta_deg,
+            phi_deg=it.pose.phi_deg,
+            distance_deg=float(
+                angular_distance_deg((it.pose.theta_deg, it.pose.phi_deg), target.pose)
+            ),
+            render_ms=it.timings.render_ms,
+            detect_ms=it.timings.detect_ms,
+            optimize_ms=it.timings.optimize_ms,
+            total_ms=it.timings.total_ms,
+        )
+        for it in search.iterations
+    )
+    result = search.result
+    found = result.pose.index if result is not None else None
+    refined = result.refined_pose if result is not None else None
+    return SearchRecord(
+        scene=target.scene,
+        strategy=strategy,
+        variant=target.variant,
+        number=target.number,
+        search_id=search.id,
+        status=search.status,
+        true_theta_deg=target.pose.theta_deg,
+        true_phi_deg=target.pose.phi_deg,
+        truth=target.truth,
+        start=target.start,
+        found=found,
+        refined_theta_deg=refined.theta_deg if refined is not None else None,
+        refined_phi_deg=refined.phi_deg if refined is not None else None,
+        success=search.status == "succeeded" and found == target.truth,
+        refined_error_deg=(
+            float(angular_distance_deg(refined, target.pose)) if refined is not None else None
+        ),
+        renders=result.renders if result is not None else len({(t.lat, t.lon) for t in trajectory}),
+        iterations=len(trajectory),
+        wall_ms=wall_ms,
+        render_ms=sum(t.render_ms for t in trajectory),
+        detect_ms=sum(t.detect_ms for t in trajectory),
+        optimize_ms=sum(t.optimize_ms for t in trajectory),
+        loop_ms=sum(t.total_ms for t in trajectory),
+        error=search.error.detail if search.error is not None else None,
+        trajectory=trajectory,
+    )
+
+
+def _failed(target: Target, strategy: StrategyName, detail: str, wall_ms: float) -> SearchRecord:
+    return SearchRecord(
+        scene=target.scene,
+        strategy=strategy,
+        variant=target.variant,
+        number=target.number,
+        search_id=None,
+        status="error",
+        true_theta_deg=target.pose.theta_deg,
+        true_phi_deg=target.pose.phi_deg,
+        truth=target.truth,
+        start=target.start,
+        wall_ms=wall_ms,
+        error=detail,
+    )
+
+
+async def _one_search(
+    http: httpx.AsyncClient, target: Target, strategy: StrategyName, max_iterations: int
+) -> SearchRecord:
+    media = media_type_of(target.image)
+    form = {
+        "scene": target.scene,
+        "strategy": strategy,
+        "start_theta_deg": repr(target.start_pose.theta_deg),
+        "start_phi_deg": repr(target.start_pose.phi_deg),
+        "seed": str(target.seed),
+        "max_iterations": str(max_iterations),
+    }
+    started = time.perf_counter()
+    try:
+        response = await http.post(
+            "/searches", files={"image": ("target", target.image, media)}, data=form
+        )
+        if response.status_code != 202:
+            return _failed(
+                target,
+                strategy,
+                f"POST /searches answered {response.status_code}: {response.text[:300]}",
+                (time.perf_counter() - started) * 1000,
+            )
+        search_id = response.json()["id"]
+        async with http.stream("GET", f"/searches/{search_id}/events") as events:
+            async for line in events.aiter_lines():
+                if line == "event: end":
+                    break
+        wall_ms = (time.perf_counter() - started) * 1000
+        final = await http.get(f"/searches/{search_id}")
+        final.raise_for_status()
+    except httpx.HTTPError as exc:
+        detail = f"{type(exc).__name__}: {exc}"
+        return _failed(target, strategy, detail, (time.perf_counter() - started) * 1000)
+    return record_of(target, strategy, Search.model_validate(final.json()), wall_ms)
+
+
+async def _run(
+    controller_url: str,
+    jobs: Sequence[tuple[Target, StrategyName]],
+    concurrency: int,
+    max_iterations: int,
+    progress: Callable[[int, SearchRecord], None] | None,
+    timeout_s: float,
+) -> list[SearchRecord]:
+    records: list[SearchRecord | None] = [None] * len(jobs)
+    queue: asyncio.Queue[int] = asyncio.Queue()
+    for i in range(len(jobs)):
+        queue.put_nowait(i)
+    done = 0
+    limits = httpx.Limits(max_connections=2 * concurrency + 4)
+    timeout = httpx.Timeout(timeout_s, connect=5.0)
+
+    async with httpx.AsyncClient(base_url=controller_url, timeout=timeout, limits=limits) as http:
+
+        async def worker() -> None:
+            nonlocal done
+            while not queue.empty():
+                i = queue.get_nowait()
+                target, strategy = jobs[i]
+                record = await _one_search(http, target, strategy, max_iterations)
+                records[i] = record
+                done += 1
+                if progress is not None:
+                    progress(done, record)
+
+        await asyncio.gather(*(worker() for _ in range(max(1, concurrency))))
+    return [r for r in records if r is not None]
+
+
+def run_searches(
+    controller_url: str,
+    jobs: Sequence[tuple[Target, StrategyName]],
+    *,
+    concurrency: int = 1,
+    max_iterations: int = 60,
+    progress: Callable[[int, SearchRecord], None] | None = None,
+    timeout_s: float = 600.0,
+) -> list[SearchRecord]:
+    """Run every (target, strategy) search with ``concurrency`` in flight; records in job order.
+
+    A search the controller refused or lost is recorded with status ``error``, never raised.
+    """
+    return asyncio.run(_run(controller_url, jobs, concurrency, max_iterations, progress, timeout_s))
+
+
+_STRIDE = 10
+
+
+def _free_base(count: int, host: str = "127.0.0.1") -> int:
+    """A port ``p`` with ``p + i * _STRIDE`` free for every replica ``i < count``."""
+    for _ in range(100):
+        base = free_port(host)
+        if base + (count - 1) * _STRIDE > 65535:
+            continue
+        try:
+            for i in range(1, count):
+                with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+                    sock.bind((host, base + i * _STRIDE))
+        except OSError:
+            continue
+        return base
+    raise RuntimeError(f"no {count} free ports {_STRIDE} apart on {host}")
+
+
+@contextmanager
+def local_stack(
+    workdir: Path,
+    *,
+    renderers: int = 1,
+    detectors: int = 1,
+    render_spp: int | None = None,
+    render_width: int | None = None,
+    max_concurrent_searches: int | None = None,
+) -> Iterator[Stack]:
+    """The four services as local processes on free loopback ports, a fresh SQLite database in
+    ``workdir``. ``render_spp`` and ``render_width`` set the controller's samples per pixel and
+    film width for search views (``COSMOS_RENDER_SPP``, ``COSMOS_RENDER_WIDTH``; targets always
+    ask for :data:`TARGET_SPP` at the scene's film explicitly)."""
+    env: dict[str, str] = {}
+    if render_spp is not None:
+        env["COSMOS_RENDER_SPP"] = str(render_spp)
+    if render_width is not None:
+        env["COSMOS_RENDER_WIDTH"] = str(render_width)
+    if max_concurrent_searches is not None:
+        env["COSMOS_MAX_CONCURRENT_SEARCHES"] = str(max_concurrent_searches)
+    ports = [_free_base(count) for count in (1, renderers, detectors, 1)]
+    plan = plan_stack(
+        controller_port=ports[0],
+        renderer_port=ports[1],
+        detector_port=ports[2],
+        optimizer_port=ports[3],
+        renderers=renderers,
+        detectors=detectors,
+        port_stride=_STRIDE,
+        database_url=f"sqlite:///{workdir}/controller.sqlite3",
+        env=env,
+    )
+    with running_stack(plan, workdir / "logs") as stack:
+        yield stack

@@ -1,0 +1,100 @@
+"""Target images of the evaluation: where they are taken from and how they are degraded.
+
+Four variants, reported separately:
+
+``clean``
+    A grid pose, rendered as the renderer delivers it (PNG).
+``jpeg``
+    The same, re-encoded as JPEG at quality 60 (what a phone or a web upload does to it).
+``noise``
+    The same with additive Gaussian pixel noise, σ = 6 on the 0–255 scale, per channel.
+``offgrid``
+    A continuous pose: a grid pose moved by up to a third of a step in θ (``Δ/3``) and in φ
+    (a third of that ring's spacing ``360°/n_k``), rendered at the continuous pose. Its ground
+    truth is the grid pose nearest to it by great-circle angle (:meth:`HemisphereGrid.nearest`),
+    which need not be the grid pose it was drawn around.
+
+Every draw comes from a :class:`numpy.random.Generator` the caller seeds, so a bench run is
+reproducible to the pixel (the renderer is deterministic for a given seed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final, Literal, get_args
+
+import cv2
+import numpy as np
+
+from services.common.grid import HemisphereGrid
+from services.common.models import GridIndex, Pose
+
+__all__ = [
+    "JPEG_QUALITY",
+    "NOISE_SIGMA",
+    "OFFGRID_FRACTION",
+    "VARIANTS",
+    "TargetPose",
+    "Variant",
+    "degrade",
+    "draw_pose",
+]
+
+Variant = Literal["clean", "jpeg", "noise", "offgrid"]
+VARIANTS: Final[tuple[Variant, ...]] = get_args(Variant)
+
+JPEG_QUALITY: Final = 60
+NOISE_SIGMA: Final = 6.0
+"""Standard deviation of the pixel noise, on the 0–255 scale."""
+OFFGRID_FRACTION: Final = 1.0 / 3.0
+"""Off-grid targets lie up to this fraction of a step from a grid pose, in θ and in φ."""
+
+
+@dataclass(frozen=True)
+class TargetPose:
+    """Where a target is taken from: the pose rendered and the grid pose a search must find."""
+
+    pose: Pose
+    truth: GridIndex
+    on_grid: bool
+
+
+def draw_pose(grid: HemisphereGrid, variant: Variant, rng: np.random.Generator) -> TargetPose:
+    """A uniformly drawn grid pose, moved off the grid for ``offgrid`` (module docstring).
+
+    θ stays within [0°, 90°] (a move past the horizon or the zenith is reflected back).
+    """
+    flat = int(rng.integers(grid.size))
+    index = grid.unflat(flat)
+    base = grid.pose(index)
+    if variant != "offgrid":
+        return TargetPose(pose=base, truth=index, on_grid=True)
+    step = grid.angle_step_deg
+    d_theta, d_phi = rng.uniform(-OFFGRID_FRACTION, OFFGRID_FRACTION, size=2)
+    theta = base.theta_deg + d_theta * step
+    theta = abs(theta) if theta < 0.0 else (180.0 - theta if theta > 90.0 else theta)
+    phi = base.phi_deg + d_phi * 360.0 / grid.ring_size(index.lat)
+    pose = Pose(theta_deg=theta, phi_deg=phi)
+    return TargetPose(pose=pose, truth=grid.nearest(pose), on_grid=False)
+
+
+def degrade(png: bytes, variant: Variant, rng: np.random.Generator) -> bytes:
+    """The target image of ``variant`` from the renderer's PNG (``clean``/``offgrid``: as is).
+
+    ``jpeg`` re-encodes at :data:`JPEG_QUALITY`; ``noise`` adds N(0, :data:`NOISE_SIGMA`²) per
+    pixel and channel, rounds and clips to 0–255, and encodes PNG again.
+    """
+    if variant in ("clean", "offgrid"):
+        return png
+    bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError("the renderer's PNG does not decode")
+    if variant == "jpeg":
+        ok, buffer = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    else:
+        noisy = bgr.astype(np.float64) + rng.normal(0.0, NOISE_SIGMA, size=bgr.shape)
+        out = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+        ok, buffer = cv2.imencode(".png", out, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ValueError(f"encoding the {variant} target failed")
+    return bytes(buffer)
