@@ -18,6 +18,7 @@ every report there:
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import sys
 import tempfile
@@ -156,9 +157,25 @@ def _services(endpoints: _Endpoints, spp: int | None, width: int | None) -> dict
             info["detector_input"] = "×".join(str(v) for v in model["input_size"])
         except (httpx.HTTPError, KeyError, IndexError, ValueError) as exc:
             info["services"] = f"not fully reported ({exc})"
-    info["search_view_spp"] = spp if spp is not None else "controller default"
-    info["search_view_width"] = width if width is not None else "controller default"
+    from services.controller.settings import ControllerSettings
+
+    defaults = ControllerSettings()  # what a local stack's controller reads too
+    default_spp = defaults.render_spp if defaults.render_spp is not None else "renderer default"
+    default_width = defaults.render_width if defaults.render_width is not None else "scene's own"
+    info["search_view_spp"] = spp if spp is not None else f"{default_spp} (controller default)"
+    info["search_view_width"] = (
+        width if width is not None else f"{default_width} (controller default)"
+    )
     return info
+
+
+def _load_at_end() -> dict[str, float]:
+    """The 1-minute load average as the run ends (other work on the machine skews timings)."""
+    return (
+        {"load_average_1m_at_end": round(os.getloadavg()[0], 2)}
+        if hasattr(os, "getloadavg")
+        else {}
+    )
 
 
 def _progress(total: int, verbose: bool) -> Any:
@@ -255,7 +272,7 @@ def run_main(config: BenchConfig) -> int:
     duration = time.perf_counter() - started
     report: dict[str, Any] = {
         "command": config.command,
-        "machine": machine,
+        "machine": machine | _load_at_end(),
         "duration_s": duration,
         "config": {
             "n": config.n,
@@ -320,7 +337,7 @@ def run_sweep(config: BenchConfig) -> int:
             )
     report = {
         "command": config.command,
-        "machine": machine | {"duration_s": round(time.perf_counter() - started)},
+        "machine": machine | _load_at_end() | {"duration_s": round(time.perf_counter() - started)},
         "notes": list(config.notes),
         "detection": detection,
         "searches": searches,
@@ -386,7 +403,7 @@ def run_throughput(config: BenchConfig) -> int:
         )
     report = {
         "command": config.command,
-        "machine": machine | {"duration_s": round(time.perf_counter() - started)},
+        "machine": machine | _load_at_end() | {"duration_s": round(time.perf_counter() - started)},
         "notes": list(config.notes),
         "rows": rows,
     }

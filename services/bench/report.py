@@ -651,7 +651,7 @@ def section_of_sweep(data: Mapping[str, Any]) -> str:
         text.write(_md_table(header, rows) + "\n\n")
     searches = data.get("searches")
     if searches:
-        text.write("### Searches through the stack at each spp\n\n")
+        text.write("### Searches through the stack at each film width and spp\n\n")
         rows = []
         for run in searches:
             for s in summarize(_records(run)):
