@@ -16,7 +16,14 @@ import cv2
 import numpy as np
 import pytest
 
-from services.bench.report import eq9_rows, markdown_tables, percentile, summarize, text_tables
+from services.bench.report import (
+    choose_setting,
+    eq9_rows,
+    markdown_tables,
+    percentile,
+    summarize,
+    text_tables,
+)
 from services.bench.runner import IterationRecord, SearchRecord
 from services.bench.variants import (
     JPEG_QUALITY,
@@ -216,3 +223,26 @@ def test_a_ci_sized_bench_through_the_real_stack(tmp_path, capsys):
     results = (tmp_path / "RESULTS.md").read_text()
     assert "#### Targets on-grid, clean" in results
     assert "wall / floor" in results
+
+
+def _run(width, spp, outcomes, wall):
+    records = [
+        _record("reprojection", 2, success=ok, wall=wall, number=i, scene=scene)
+        for i, (scene, ok) in enumerate(outcomes)
+    ]
+    return {"width": width, "spp": spp, "records": [r.model_dump(mode="json") for r in records]}
+
+
+def test_the_render_setting_chosen_is_the_cheapest_that_loses_nothing():
+    ok = [("demo", True)] * 10 + [("garden", True)] * 10
+    one_miss = [("demo", False)] + ok[1:]
+    runs = [
+        _run(None, 16, ok, 300.0),
+        _run(None, 8, ok, 200.0),
+        _run(None, 4, one_miss, 150.0),  # cheaper, but one search fewer succeeds
+        _run(160, 8, ok, 120.0),
+    ]
+    assert choose_setting(runs[:3]).startswith("scene px wide at 8 spp")
+    # the reference is the largest film: a smaller one that loses nothing wins on cost
+    assert choose_setting(runs).startswith("160 px wide at 8 spp")
+    assert choose_setting([]) == ""
