@@ -655,8 +655,10 @@ def section_of_sweep(data: Mapping[str, Any]) -> str:
         rows = []
         for run in searches:
             for s in summarize(_records(run)):
-                rows.append([str(run.get("width") or "scene"), str(run["spp"]), *_cells(s)])
-        text.write(_md_table(("film width", "spp", *_COLUMNS), rows) + "\n\n")
+                rows.append(
+                    [str(run.get("width") or "scene"), str(run["spp"]), s.variant, *_cells(s)]
+                )
+        text.write(_md_table(("film width", "spp", "variant", *_COLUMNS), rows) + "\n\n")
     choice = choose_setting(searches or [])
     if choice:
         text.write(f"**Choice** ({CHOICE_RULE}): {choice}\n\n")
