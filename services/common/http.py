@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
+from contextlib import AbstractAsyncContextManager
 from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -21,6 +23,7 @@ from services.common.errors import PayloadTooLargeError, ProblemDetails, Service
 
 __all__ = [
     "PROBLEM_JSON",
+    "service_app",
     "BodySizeLimitMiddleware",
     "ProblemResponse",
     "install_problem_handlers",
@@ -208,3 +211,18 @@ def _content_length(scope: Scope) -> int | None:
             except ValueError:
                 return None
     return None
+
+
+def service_app(
+    name: str,
+    summary: str,
+    lifespan: Callable[[FastAPI], AbstractAsyncContextManager[None]],
+    router: APIRouter,
+    max_body_bytes: int,
+) -> FastAPI:
+    """A COSMOS service app: its routes, problem+json errors and a request body limit."""
+    app = FastAPI(title=f"COSMOS {name}", version="0.1.0", summary=summary, lifespan=lifespan)
+    install_problem_handlers(app)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=max_body_bytes)
+    app.include_router(router)
+    return app

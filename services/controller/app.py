@@ -11,7 +11,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.common.http import service_app
 from services.controller.api import ControllerState, router
 from services.controller.broker import Broker
 from services.controller.discovery import expand_urls
@@ -63,16 +63,13 @@ def create_app(settings: ControllerSettings | None = None) -> FastAPI:
             await broker.close()
             store.close()
 
-    app = FastAPI(
-        title="COSMOS controller",
-        version="0.1.0",
-        summary="Runs searches for where a camera stood, over the renderer, detector, optimizer.",
-        lifespan=lifespan,
+    return service_app(
+        "controller",
+        "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
+        lifespan,
+        router,
+        settings.max_upload_bytes,
     )
-    install_problem_handlers(app)
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_upload_bytes)
-    app.include_router(router)
-    return app
 
 
 app = create_app()

@@ -15,7 +15,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.common.http import service_app
 from services.detector.api import DetectorState, router
 from services.detector.detect import Detector
 from services.detector.model import DetectorModel
@@ -51,16 +51,13 @@ def create_app(settings: DetectorSettings | None = None) -> FastAPI:
         finally:
             await detector.close()
 
-    app = FastAPI(
-        title="COSMOS detector",
-        version="0.1.0",
-        summary="Finds the scene's objects in an image: class, box, confidence and colour.",
-        lifespan=lifespan,
+    return service_app(
+        "detector",
+        "Finds the scene's objects in an image: class, box, confidence and colour.",
+        lifespan,
+        router,
+        settings.detector_max_upload_bytes,
     )
-    install_problem_handlers(app)
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.detector_max_upload_bytes)
-    app.include_router(router)
-    return app
 
 
 app = create_app()

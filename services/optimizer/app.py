@@ -11,7 +11,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.common.http import service_app
 from services.optimizer.api import OptimizerState, router
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.planning import OptimizerContext
@@ -40,16 +40,13 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
         )
         yield
 
-    app = FastAPI(
-        title="COSMOS optimizer",
-        version="0.1.0",
-        summary="Maps detections to the ground and proposes the next camera pose of a search.",
-        lifespan=lifespan,
+    return service_app(
+        "optimizer",
+        "Maps detections to the ground and proposes the next camera pose of a search.",
+        lifespan,
+        router,
+        settings.max_body_bytes,
     )
-    install_problem_handlers(app)
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
-    app.include_router(router)
-    return app
 
 
 app = create_app()

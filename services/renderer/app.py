@@ -11,7 +11,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.common.http import BodySizeLimitMiddleware, install_problem_handlers
+from services.common.http import service_app
 from services.renderer.api import RendererState, router
 from services.renderer.catalog import SceneCatalog
 from services.renderer.engine import RenderEngine
@@ -37,16 +37,13 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
         finally:
             await asyncio.to_thread(engine.close)
 
-    app = FastAPI(
-        title="COSMOS renderer",
-        version="0.1.0",
-        summary="Renders views of known scenes with Mitsuba 3, with exact ground truth.",
-        lifespan=lifespan,
+    return service_app(
+        "renderer",
+        "Renders views of known scenes with Mitsuba 3, with exact ground truth.",
+        lifespan,
+        router,
+        settings.max_body_bytes,
     )
-    install_problem_handlers(app)
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
-    app.include_router(router)
-    return app
 
 
 app = create_app()
