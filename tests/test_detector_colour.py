@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.common.models import Pose
-from services.detector.colour import measure_colour
+from services.detector.colour import _far_from, _hue_consistent, _lab, _median, measure_colour
 from tests.support import ROOT
 
 
@@ -125,6 +125,50 @@ def test_any_image_and_box_give_a_colour_or_none(seed, size, box, blobs):
     y1, y2 = sorted(box[1::2])
     colour = measure_colour(image, (x1, y1, x2, y2))
     assert colour is None or all(0.0 <= c <= 255.0 for c in colour)
+
+
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    sizes=st.tuples(st.integers(1, 300), st.integers(1, 400)),
+    delta_e=st.sampled_from([0.0, 2.3, 12.0, 12.3, 40.0]),
+)
+@settings(max_examples=100, deadline=None, database=None)
+def test_far_from_ground_decides_as_brute_force(seed, sizes, delta_e):
+    """The pruned matrix-product search decides exactly as ``cv2.batchDistance``, also for
+    points at the limit (within float32 rounding of ``delta_e`` from a ground colour)."""
+    rng = np.random.default_rng(seed)
+    m, n = sizes
+    ground = np.clip(rng.normal(rng.integers(0, 256, 3), 25, (m, 3)), 0, 255).astype(np.uint8)
+    palette = _lab(ground)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    offset = rng.choice([0.0, 1e-7, -1e-7, 1e-5, -1e-5, 0.3, -0.3, 2.0], (n, 1))
+    points = palette[rng.integers(0, m, n)] + direction * delta_e * (1.0 + offset)
+    points = np.concatenate([points.astype(np.float32), _lab(rng.integers(0, 256, (50, 3)))])
+    nearest, _ = cv2.batchDistance(points, palette, cv2.CV_32F, normType=cv2.NORM_L2SQR, K=1)
+    np.testing.assert_array_equal(_far_from(points, palette, delta_e), nearest[:, 0] > delta_e**2)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 1000, 1001])
+def test_median_is_numpy_median(n):
+    values = np.random.default_rng(n).normal(20, 10, n).astype(np.float32)
+    assert _median(values) == float(np.median(values))
+
+
+def test_hue_consistency_is_the_hue_angle_test():
+    """Keeping ``a cos h + b sin h >= chroma cos 35°`` is keeping hues within 35° of ``h``."""
+    rng = np.random.default_rng(3)
+    hue = rng.normal(1.0, 0.6, 5000)
+    chroma = rng.uniform(5, 60, 5000)
+    a, b = (chroma * np.cos(hue)).astype(np.float32), (chroma * np.sin(hue)).astype(np.float32)
+    keep = _hue_consistent(a, b, np.hypot(a, b))
+    mean_hue = np.arctan2(float(b.sum()), float(a.sum()))
+    gap = np.abs(np.angle(np.exp(1j * (np.arctan2(b, a) - mean_hue))))
+    median = float(np.median(np.hypot(a, b)))
+    expected = (gap <= np.radians(35.0)) & (np.hypot(a, b) >= 0.25 * median)
+    clear = np.abs(gap - np.radians(35.0)) > 1e-5  # away from float rounding at the edge
+    np.testing.assert_array_equal(keep[clear], expected[clear])
+    assert clear.sum() > 4900
 
 
 def srgb8(linear) -> np.ndarray:
