@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from asgi_lifespan import LifespanManager
 
+from services.common.images import encode_ppm
 from services.detector.app import create_app
 from services.detector.letterbox import PAD_VALUE
 from services.detector.model import ModelError
@@ -185,6 +186,16 @@ async def test_detections_carry_the_objects_colour(client):
     assert len(colours) == 2
     for colour in colours:
         assert colour == pytest.approx([30, 90, 220], abs=1)
+
+
+async def test_ppm_uploads_are_detected_like_png(client):
+    image = grey(320, 180)  # under the test upload limit uncompressed
+    cv2.ellipse(image, (100, 50), (19, 39), 0, 0, 360, (30, 90, 220), thickness=-1)
+    ppm = encode_ppm(image)
+    from_png = await detect(client, png(image))
+    from_ppm = await client.post("/detect", files={"image": ("x", ppm, "image/x-portable-pixmap")})
+    assert from_ppm.status_code == 200, from_ppm.text
+    assert from_ppm.json()["detections"] == from_png.json()["detections"]
 
 
 async def test_colour_is_null_on_bare_ground(client):

@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from services.common.errors import ServiceError
-from services.common.images import decode_image, read_header
+from services.common.images import decode_image, encode_ppm, media_type_of, read_header
 from tests.support import ROOT
 
 LIMITS = {"max_pixels": 4_000_000, "max_side": 8192}
@@ -145,6 +145,57 @@ def test_jpeg_without_a_frame_header_is_422():
     assert problem_of(data).status == 422
 
 
+def ppm(rgb: np.ndarray) -> bytes:
+    return encode_ppm(rgb)
+
+
+def test_ppm_round_trips_exactly():
+    rgb = picture()[..., ::-1].copy()
+    data = ppm(rgb)
+    assert data.startswith(b"P6\n64 48\n255\n")
+    assert media_type_of(data) == "image/x-portable-pixmap"
+    header = read_header(data)
+    assert (header.format, header.width, header.height) == ("ppm", 64, 48)
+    decoded = decode_image(data, **LIMITS)
+    assert np.array_equal(decoded, rgb)
+    decoded[0, 0] = 0  # a writable copy, not a view of the upload
+    assert np.array_equal(decode_image(data, **LIMITS), rgb)
+
+
+def test_ppm_agrees_with_opencv_and_allows_comments():
+    rgb = picture(5, 7)[..., ::-1].copy()
+    data = b"P6 # made by hand\n7\t5\n# max:\n255\r" + rgb.tobytes()
+    assert np.array_equal(decode_image(data, **LIMITS), rgb)
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    assert np.array_equal(bgr[..., ::-1], rgb)
+
+
+@pytest.mark.parametrize(
+    ("data", "status"),
+    [
+        (b"P6", 422),  # no header
+        (b"P6 7 5 255", 422),  # no separator before the pixels
+        (b"P67 5 255\n", 422),  # no whitespace after the magic
+        (b"P6 7 5 255\n" + b"\x00" * 104, 422),  # one byte short
+        (b"P6 0 5 255\n", 422),
+        (b"P6 7 -5 255\n" + b"\x00" * 105, 422),
+        (b"P6 7 5 # comment without end", 422),
+        (b"P6 1234567890 5 255\n", 422),  # more digits than any real size
+        (b"P6 7 5 65535\n" + b"\x00" * 210, 415),  # 16-bit
+        (b"P3 1 1 255\n0 0 0\n", 415),  # plain (ASCII) PPM
+        (b"P5 1 1 255\n\x00", 415),  # grey PGM
+    ],
+)
+def test_bad_ppm_is_refused(data, status):
+    assert problem_of(data).status == status
+
+
+def test_ppm_size_limit_comes_from_the_header():
+    data = b"P6\n60000 60000\n255\n" + b"\x00" * 30
+    problem = problem_of(data, max_pixels=1_000_000)
+    assert (problem.status, problem.slug) == (413, "image-too-large")
+
+
 def outcome(data: bytes) -> tuple[np.ndarray | None, int]:
     """The decoded image and 200, or None and the error's status."""
     try:
@@ -153,7 +204,7 @@ def outcome(data: bytes) -> tuple[np.ndarray | None, int]:
         return None, exc.status
 
 
-VALID = [encode(".png", picture()), encode(".jpg", picture())]
+VALID = [encode(".png", picture()), encode(".jpg", picture()), encode_ppm(picture())]
 
 
 @given(
@@ -165,7 +216,7 @@ VALID = [encode(".png", picture()), encode(".jpg", picture())]
     max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None
 )
 def test_mangled_images_decode_or_fail_cleanly(base, cut, flips):
-    """Truncated or bit-flipped PNG/JPEG data is either decoded to its declared size or refused
+    """Truncated or bit-flipped PNG/JPEG/PPM data is either decoded to its declared size or refused
     with a 4xx service error - never any other exception."""
     data = bytearray(base[: max(1, cut % (len(base) + 1))])
     for position, value in flips:

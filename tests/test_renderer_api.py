@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from asgi_lifespan import LifespanManager
 
+from services.common.images import decode_image
 from services.renderer.app import create_app
 from services.renderer.settings import RendererSettings
 
@@ -101,6 +102,25 @@ async def test_seed_makes_renders_repeatable(client):
     other = await client.post("/render", json={**body, "seed": 6})
     assert np.array_equal(decode(first.content), decode(again.content))
     assert not np.array_equal(decode(first.content), decode(other.content))
+
+
+@pytest.mark.parametrize(
+    ("accept", "media_type"),
+    [
+        ("image/x-portable-pixmap", "image/x-portable-pixmap"),
+        ("image/x-portable-pixmap, image/png;q=0.5", "image/x-portable-pixmap"),
+        ("image/png", "image/png"),
+        ("*/*", "image/png"),
+    ],
+)
+async def test_accept_chooses_ppm_or_png_with_the_same_pixels(client, accept, media_type):
+    body = {"scene": "demo", "pose": {"lat": 2, "lon": 1}, "spp": 2, "seed": 5}
+    png = await client.post("/render", json=body)
+    response = await client.post("/render", json=body, headers={"Accept": accept})
+    assert response.status_code == 200
+    assert response.headers["content-type"] == media_type
+    rgb = decode_image(response.content, max_pixels=10**6, max_side=1024)
+    assert np.array_equal(rgb[..., ::-1], decode(png.content))
 
 
 async def test_annotations_match_the_requested_view(client):

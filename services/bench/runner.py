@@ -25,8 +25,8 @@ import numpy as np
 from pydantic import Field
 
 from services.bench.variants import VARIANTS, Variant, degrade, draw_pose
-from services.common.client import media_type_of
 from services.common.grid import HemisphereGrid, angular_distance_deg
+from services.common.images import media_type_of
 from services.common.launch import free_port
 from services.common.models import FrozenModel, GridIndex, Pose, PoseQuery, RenderRequest
 from services.common.optimization import StrategyName

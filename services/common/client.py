@@ -8,7 +8,7 @@ from typing import ClassVar, Self
 
 import httpx
 
-__all__ = ["ServiceCallError", "ServiceClient", "media_type_of"]
+__all__ = ["ServiceCallError", "ServiceClient"]
 
 
 class ServiceCallError(RuntimeError):
@@ -18,15 +18,6 @@ class ServiceCallError(RuntimeError):
         super().__init__(f"{service} answered {status}: {detail}")
         self.status = status
         self.detail = detail
-
-
-def media_type_of(data: bytes) -> str:
-    """The media type of PNG or JPEG bytes, by signature."""
-    if data.startswith(b"\x89PNG\r\n\x1a\n"):
-        return "image/png"
-    if data.startswith(b"\xff\xd8"):
-        return "image/jpeg"
-    return "application/octet-stream"
 
 
 class ServiceClient:

@@ -1,13 +1,15 @@
-"""Safe decoding of uploaded images (every service): PNG or JPEG only, sized from the header first.
+"""Safe decoding of uploaded images (every service): PNG, JPEG or binary PPM, sized from the header.
 
 The header is read here, in Python, so an image whose width x height exceeds the cap is refused
 before OpenCV allocates anything (a small PNG can declare 60000 x 60000 pixels of zeros: a
 decompression bomb). Only the PNG and JPEG decoders are reachable; other formats OpenCV knows
-(TIFF, WebP, JPEG 2000, ...) are refused by their signature.
+(TIFF, WebP, JPEG 2000, ...) are refused by their signature. Binary PPM (``P6``, 8-bit) is read
+here without a codec: it is the uncompressed format the renderer hands to the detector.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Literal
 
@@ -21,9 +23,16 @@ from services.common.errors import (
     UnsupportedMediaTypeError,
 )
 
-__all__ = ["ImageHeader", "decode_image", "read_header"]
+__all__ = [
+    "PPM_MEDIA_TYPE",
+    "ImageHeader",
+    "decode_image",
+    "encode_ppm",
+    "media_type_of",
+    "read_header",
+]
 
-ImageFormat = Literal["png", "jpeg"]
+ImageFormat = Literal["png", "jpeg", "ppm"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _JPEG_SOI = b"\xff\xd8"
@@ -31,6 +40,11 @@ _JPEG_SOI = b"\xff\xd8"
 _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 _JPEG_SOS, _JPEG_EOI = 0xDA, 0xD9
 _JPEG_MAX_SEGMENTS = 4096  # a real header has a few dozen; this bounds the scan of a hostile one
+PPM_MEDIA_TYPE = "image/x-portable-pixmap"
+_PPM_MAGIC = b"P6"
+_PPM_MAX_HEADER = 1024  # magic, three numbers, comments: a real header has a few dozen bytes
+_PPM_FIELD = rb"(?:(?:\s|#[^\n]*\n)+(\d{1,9}))"  # whitespace or comment lines, then a number
+_PPM_HEADER = re.compile(_PPM_MAGIC + _PPM_FIELD * 3 + rb"\s")
 
 
 @dataclass(frozen=True)
@@ -40,6 +54,19 @@ class ImageHeader:
     format: ImageFormat
     width: int
     height: int
+    offset: int = 0
+    """Where the pixel data starts (PPM only)."""
+
+
+def media_type_of(data: bytes) -> str:
+    """The media type of PNG, JPEG or binary PPM bytes, by signature."""
+    if data.startswith(_PNG_SIGNATURE):
+        return "image/png"
+    if data.startswith(_JPEG_SOI):
+        return "image/jpeg"
+    if data.startswith(_PPM_MAGIC):
+        return PPM_MEDIA_TYPE
+    return "application/octet-stream"
 
 
 def _invalid(detail: str) -> UnprocessableError:
@@ -47,14 +74,14 @@ def _invalid(detail: str) -> UnprocessableError:
 
 
 def read_header(data: bytes) -> ImageHeader:
-    """The format and size of a PNG or JPEG image, read from its first bytes.
+    """The format and size of a PNG, JPEG or binary PPM image, read from its first bytes.
 
     Raises
     ------
     UnprocessableError
-        Empty data, or a PNG/JPEG whose header is malformed, truncated or declares no pixels.
+        Empty data, or an image whose header is malformed, truncated or declares no pixels.
     UnsupportedMediaTypeError
-        Anything that is neither PNG nor JPEG.
+        Anything that is neither PNG, JPEG nor binary PPM.
     """
     if not data:
         raise UnprocessableError(
@@ -64,8 +91,10 @@ def read_header(data: bytes) -> ImageHeader:
         return _png_header(data)
     if data.startswith(_JPEG_SOI):
         return _jpeg_header(data)
+    if data.startswith(_PPM_MAGIC):
+        return _ppm_header(data)
     raise UnsupportedMediaTypeError(
-        "the upload is not a PNG or JPEG image (by its signature)",
+        "the upload is not a PNG, JPEG or binary PPM image (by its signature)",
         field="image",
         slug="unsupported-image-format",
         title="Unsupported image format",
@@ -125,8 +154,43 @@ def _jpeg_header(data: bytes) -> ImageHeader:
     raise _invalid("the JPEG header has too many segments")
 
 
+def _ppm_header(data: bytes) -> ImageHeader:
+    """``P6``, then width, height and maxval as decimal numbers, each after whitespace or
+    ``#`` comments, then exactly one whitespace byte and the pixels."""
+    match = _PPM_HEADER.match(data[:_PPM_MAX_HEADER])
+    if match is None:
+        raise _invalid("the PPM header is truncated or corrupt")
+    width, height, maxval = (int(group) for group in match.groups())
+    if maxval != 255:
+        raise UnsupportedMediaTypeError(
+            f"only 8-bit PPM images (maxval 255) are accepted, not maxval {maxval}",
+            field="image",
+            slug="unsupported-image-format",
+            title="Unsupported image format",
+        )
+    if width == 0 or height == 0:
+        raise _invalid(f"the PPM declares a size of {width}x{height} pixels")
+    return ImageHeader("ppm", width, height, offset=match.end())
+
+
+def encode_ppm(rgb: NDArray[np.uint8]) -> bytes:
+    """Binary PPM (``P6``, 8-bit) bytes of an RGB ``(H, W, 3)`` image: no compression at all."""
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"expected an (H, W, 3) uint8 image, got {rgb.shape} {rgb.dtype}")
+    height, width = rgb.shape[:2]
+    return b"P6\n%d %d\n255\n" % (width, height) + np.ascontiguousarray(rgb).tobytes()
+
+
+def _decode_ppm(data: bytes, header: ImageHeader) -> NDArray[np.uint8]:
+    size = header.width * header.height * 3
+    if len(data) - header.offset < size:
+        raise _invalid("the PPM image is truncated")
+    pixels = np.frombuffer(data, dtype=np.uint8, count=size, offset=header.offset)
+    return pixels.reshape(header.height, header.width, 3).copy()
+
+
 def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.uint8]:
-    """Decode PNG or JPEG bytes to an 8-bit RGB ``(H, W, 3)`` array.
+    """Decode PNG, JPEG or binary PPM bytes to an 8-bit RGB ``(H, W, 3)`` array.
 
     Grey, palette, 16-bit and alpha images are converted to 8-bit RGB (alpha dropped). EXIF
     orientation is ignored: the array is the stored pixel grid, whose size the header states.
@@ -148,6 +212,8 @@ def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.u
             slug="image-too-large",
             title="Image too large",
         )
+    if header.format == "ppm":
+        return _decode_ppm(data, header)
     flags = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
     try:
         bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)

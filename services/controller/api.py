@@ -112,7 +112,7 @@ def _unavailable(exc: BrokerError) -> ServiceUnavailableError:
 )
 async def submit(
     state: State,
-    image: Annotated[UploadFile, File(description="The target view, PNG or JPEG.")],
+    image: Annotated[UploadFile, File(description="The target view: PNG, JPEG or binary PPM.")],
     scene: Annotated[str, Form(min_length=1, max_length=128)],
     strategy: Annotated[StrategyName, Form()] = "reprojection",
     start_theta_deg: Annotated[float | None, Form(ge=0.0, le=90.0, allow_inf_nan=False)] = None,

@@ -8,7 +8,8 @@ from typing import Any
 
 import httpx
 
-from services.common.client import ServiceCallError, ServiceClient, media_type_of
+from services.common.client import ServiceCallError, ServiceClient
+from services.common.images import media_type_of
 from services.common.search import Iteration, Search
 
 __all__ = ["ControllerClient", "ControllerError"]

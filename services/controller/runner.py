@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 from pydantic import ValidationError
 
-from services.common.client import media_type_of
 from services.common.errors import ProblemDetails, problem_type
+from services.common.images import media_type_of
 from services.common.models import Detection, DetectResponse, Pose, PoseQuery
 from services.common.optimization import (
     GridPose,
@@ -215,11 +215,11 @@ class SearchRunner:
         try:
             t0 = time.perf_counter()
             try:
-                png = await self.stages.render(search.scene, pose.index, sid)
+                view_image = await self.stages.render(search.scene, pose.index, sid)
             except (StageError, BrokerError) as exc:
                 raise _stage_failure(exc) from exc
             t1 = time.perf_counter()
-            found = await self._detect(png, "image/png", sid)
+            found = await self._detect(view_image, media_type_of(view_image), sid)
             t2 = time.perf_counter()
             seen = await target_task if target_task is not None else None
         finally:

@@ -12,6 +12,7 @@ from typing import Any
 import httpx
 
 from services.common.errors import ProblemDetails
+from services.common.images import PPM_MEDIA_TYPE
 from services.common.models import DetectResponse, GridIndex
 from services.common.scene import SceneDetail
 from services.controller.broker import Broker
@@ -64,16 +65,18 @@ class Stages:
         return self._scenes[scene_id]
 
     async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
-        """PNG bytes of the scene seen from grid pose ``index``."""
+        """The scene seen from grid pose ``index``: binary PPM bytes (PNG from a renderer that
+        does not offer PPM). The view only travels on to the detector, so it is not compressed."""
         body: dict[str, Any] = {"scene": scene_id, "pose": index.model_dump()}
         if self.render_spp is not None:
             body["spp"] = self.render_spp
         if self.render_width is not None:
             body["width"] = self.render_width
+        headers = {"X-Request-ID": request_id, "Accept": f"{PPM_MEDIA_TYPE}, image/png;q=0.5"}
         response = await self.broker.call(
             "renderer",
             "render",
-            lambda c: c.post("/render", json=body, headers={"X-Request-ID": request_id}),
+            lambda c: c.post("/render", json=body, headers=headers),
         )
         if response.status_code != 200:
             raise _problem("renderer", response)

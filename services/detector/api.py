@@ -95,7 +95,7 @@ async def model(state: State) -> ModelInfo:
 )
 async def detect(
     state: State,
-    image: Annotated[UploadFile, File(description="The image: PNG or JPEG bytes.")],
+    image: Annotated[UploadFile, File(description="The image: PNG, JPEG or binary PPM bytes.")],
     conf: Annotated[
         float | None,
         Query(

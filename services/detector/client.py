@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.client import ServiceCallError, ServiceClient, media_type_of
+from services.common.client import ServiceCallError, ServiceClient
+from services.common.images import media_type_of
 from services.common.models import DetectResponse, ModelInfo
 
 __all__ = ["DetectorClient", "DetectorError"]
@@ -41,7 +42,7 @@ class DetectorClient(ServiceClient):
         max_detections: int | None = None,
         filename: str = "image",
     ) -> DetectResponse:
-        """``POST /detect`` with PNG or JPEG bytes."""
+        """``POST /detect`` with PNG, JPEG or binary PPM bytes."""
         params: dict[str, float | int] = {}
         if conf is not None:
             params["conf"] = conf
