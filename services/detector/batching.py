@@ -6,6 +6,9 @@ for company (only when it is alone and batching is possible), takes whatever els
 queue up and form the next batch, so under load batches fill without any added wait; a lone
 request pays at most ``window_s``. With ``max_batch = 1`` (a model of fixed batch size 1) it is
 a plain serial queue: one run at a time, each using all of onnxruntime's threads.
+
+Each request may hand in a ``finish`` function of its output row (post-processing); it runs on
+the worker thread right after the batch, so a request crosses threads once, not twice.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +27,7 @@ from numpy.typing import NDArray
 __all__ = ["BatchStats", "MicroBatcher"]
 
 Run = Callable[[NDArray[np.float32]], NDArray[np.float32]]
+Finish = Callable[[NDArray[np.float32]], Any]
 
 
 @dataclass
@@ -34,10 +39,15 @@ class BatchStats:
     largest: int = 0
 
 
+def _identity(row: NDArray[np.float32]) -> NDArray[np.float32]:
+    return row
+
+
 @dataclass
 class _Item:
     tensor: NDArray[np.float32]
-    future: asyncio.Future[tuple[NDArray[np.float32], float]] = field(repr=False)
+    finish: Finish
+    future: asyncio.Future[tuple[Any, float]] = field(repr=False)
 
 
 class MicroBatcher:
@@ -76,14 +86,16 @@ class MicroBatcher:
                     item.future.set_exception(RuntimeError("the detector is shutting down"))
         self._executor.shutdown(wait=True, cancel_futures=True)
 
-    async def submit(self, tensor: NDArray[np.float32]) -> tuple[NDArray[np.float32], float]:
-        """This input's output row and the duration of the run that produced it, in ms."""
+    async def submit(
+        self, tensor: NDArray[np.float32], finish: Finish = _identity
+    ) -> tuple[Any, float]:
+        """``finish(row)`` of this input's output row (the row itself by default), and the
+        duration of the run that produced it in ms. ``finish`` runs on the worker thread; what
+        it raises is raised here."""
         if self._queue is None or self._task is None or self._task.done():
             raise RuntimeError("the batcher is not running")
-        future: asyncio.Future[tuple[NDArray[np.float32], float]] = (
-            asyncio.get_running_loop().create_future()
-        )
-        self._queue.put_nowait(_Item(tensor, future))
+        future: asyncio.Future[tuple[Any, float]] = asyncio.get_running_loop().create_future()
+        self._queue.put_nowait(_Item(tensor, finish, future))
         return await future
 
     async def _serve(self, queue: asyncio.Queue[_Item]) -> None:
@@ -97,23 +109,37 @@ class MicroBatcher:
             items = [item for item in items if not item.future.done()]  # callers that left
             if not items:
                 continue
-            started = time.perf_counter()
             try:
-                batch = np.stack([item.tensor for item in items])
-                outputs = await loop.run_in_executor(self._executor, self._run, batch)
-                if outputs.shape[0] != len(items):
-                    raise RuntimeError(
-                        f"the model returned {outputs.shape[0]} outputs for {len(items)} inputs"
-                    )
+                results = await loop.run_in_executor(self._executor, self._run_batch, items)
             except Exception as exc:  # handed to every caller of this batch
                 for item in items:
                     if not item.future.done():
                         item.future.set_exception(exc)
                 continue
-            run_ms = (time.perf_counter() - started) * 1000.0
             self.stats.batches += 1
             self.stats.images += len(items)
             self.stats.largest = max(self.stats.largest, len(items))
-            for row, item in enumerate(items):
-                if not item.future.done():
-                    item.future.set_result((outputs[row], run_ms))
+            for item, result in zip(items, results, strict=True):
+                if item.future.done():
+                    continue
+                if isinstance(result, BaseException):
+                    item.future.set_exception(result)
+                else:
+                    item.future.set_result(result)
+
+    def _run_batch(self, items: list[_Item]) -> list[tuple[Any, float] | Exception]:
+        """On the worker thread: one run for the batch, then each item's ``finish``."""
+        started = time.perf_counter()
+        outputs = self._run(np.stack([item.tensor for item in items]))
+        if outputs.shape[0] != len(items):
+            raise RuntimeError(
+                f"the model returned {outputs.shape[0]} outputs for {len(items)} inputs"
+            )
+        run_ms = (time.perf_counter() - started) * 1000.0
+        results: list[tuple[Any, float] | Exception] = []
+        for row, item in enumerate(items):
+            try:
+                results.append((item.finish(outputs[row]), run_ms))
+            except Exception as exc:  # this caller's post-processing failed, not the batch
+                results.append(exc)
+        return results

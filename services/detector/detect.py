@@ -144,12 +144,11 @@ class Detector:
     async def detect(
         self, data: bytes, *, conf: float | None = None, max_detections: int | None = None
     ) -> DetectResponse:
-        """Detect objects in PNG or JPEG bytes; ``conf`` and ``max_detections`` override the
-        settings for this call."""
+        """Detect objects in PNG, JPEG or binary PPM bytes; ``conf`` and ``max_detections``
+        override the settings for this call."""
         self._admit()
         try:
             rgb, tensor, box = await asyncio.to_thread(self._prepare, data)
-            output, run_ms = await self.batcher.submit(tensor)
             options = DetectOptions(
                 conf=self.options.conf if conf is None else conf,
                 iou=self.options.iou,
@@ -157,8 +156,10 @@ class Detector:
                 max_candidates=self.options.max_candidates,
                 colour=self.options.colour,
             )
-            detections = await asyncio.to_thread(
-                detections_from_output, output, box, self.model.classes, rgb, options
+            classes = self.model.classes
+            detections, run_ms = await self.batcher.submit(
+                tensor,
+                lambda output: detections_from_output(output, box, classes, rgb, options),
             )
         finally:
             self._release()
