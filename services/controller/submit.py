@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import random
 import re
 import uuid
@@ -36,11 +37,14 @@ async def create_search(
 ) -> Search:
     """Validate a new search and record it as queued (the caller queues it).
 
-    The image must decode (PNG or JPEG within the size caps); the scene must be known to the
-    renderers. A start pose given by angles is snapped to the nearest grid pose; without one, a
-    grid pose is drawn from ``seed`` (itself drawn when absent, and recorded).
+    The image must decode (PNG, JPEG or binary PPM within the size caps; decoded off the event
+    loop); the scene must be known to the renderers. A start pose given by angles is snapped to
+    the nearest grid pose; without one, a grid pose is drawn from ``seed`` (itself drawn when
+    absent, and recorded).
     """
-    rgb = decode_image(image, max_pixels=max_image_pixels, max_side=max_image_side)
+    rgb = await asyncio.to_thread(
+        decode_image, image, max_pixels=max_image_pixels, max_side=max_image_side
+    )
     if not 1 <= max_iterations <= MAX_ITERATIONS:
         raise UnprocessableError(
             f"max_iterations must be within 1..{MAX_ITERATIONS}", field="max_iterations"
