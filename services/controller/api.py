@@ -8,11 +8,11 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
-from services.common.http import problem_responses
+from services.common.http import app_state, problem_responses
 from services.common.models import FrozenModel, SceneSummary
 from services.common.optimization import GridSpec, StrategyName
 from services.common.search import TERMINAL_STATUSES, Search, SearchPage
@@ -60,12 +60,7 @@ class ControllerHealth(FrozenModel):
     replicas: tuple[ReplicaHealth, ...]
 
 
-def get_state(request: Request) -> ControllerState:
-    state: ControllerState = request.app.state.controller
-    return state
-
-
-State = Annotated[ControllerState, Depends(get_state)]
+State = Annotated[ControllerState, Depends(app_state("controller"))]
 
 
 def _search_or_404(state: ControllerState, search_id: str) -> Search:

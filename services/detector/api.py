@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
 from pydantic import Field
 
 from services.common.errors import UnsupportedMediaTypeError
-from services.common.http import problem_responses
+from services.common.http import app_state, problem_responses
 from services.common.models import DetectResponse, FrozenModel, ModelInfo
 from services.detector.detect import Detector
 from services.detector.settings import DetectorSettings
@@ -44,15 +44,10 @@ class DetectorState:
     detector: Detector
 
 
-def get_state(request: Request) -> DetectorState:
-    state: DetectorState = request.app.state.detector
-    return state
+State = Annotated[DetectorState, Depends(app_state("detector"))]
 
 
-State = Annotated[DetectorState, Depends(get_state)]
-
-
-def require_multipart(request: Request) -> None:
+async def require_multipart(request: Request) -> None:
     """415 unless the body is ``multipart/form-data`` (checked before the form's fields)."""
     media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
     if media_type != "multipart/form-data":

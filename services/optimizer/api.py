@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, get_args
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends
 
-from services.common.http import problem_responses
+from services.common.http import app_state, problem_responses
 from services.common.optimization import (
     MapRequest,
     MapResponse,
@@ -32,12 +32,7 @@ class OptimizerState:
     context: OptimizerContext
 
 
-def get_state(request: Request) -> OptimizerState:
-    state: OptimizerState = request.app.state.optimizer
-    return state
-
-
-State = Annotated[OptimizerState, Depends(get_state)]
+State = Annotated[OptimizerState, Depends(app_state("optimizer"))]
 
 
 @router.get("/health", response_model=OptimizerHealth)

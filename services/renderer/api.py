@@ -5,10 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Header, Request
+from fastapi import APIRouter, Depends, Header
 from fastapi.responses import Response
 
-from services.common.http import problem_responses
+from services.common.http import app_state, problem_responses
 from services.common.images import PPM_MEDIA_TYPE, encode_ppm
 from services.common.models import RenderAnnotations, RenderHealth, RenderRequest, SceneSummary
 from services.common.scene import SceneDetail, scene_json_schema
@@ -32,12 +32,7 @@ class RendererState:
     engine: RenderEngine
 
 
-def get_state(request: Request) -> RendererState:
-    state: RendererState = request.app.state.renderer
-    return state
-
-
-State = Annotated[RendererState, Depends(get_state)]
+State = Annotated[RendererState, Depends(app_state("renderer"))]
 
 
 @router.get("/health", response_model=RenderHealth)
