@@ -12,7 +12,14 @@ from services.common.camera import camera_model, project
 from services.common.models import Pose
 from services.common.scene import Camera
 from services.optimizer.geometry import Cameras
-from services.optimizer.proxies import ProxyKind, clip_boxes, kind_of, proxy_boxes, sphere_boxes
+from services.optimizer.proxies import (
+    RIM_POINTS,
+    ProxyKind,
+    clip_boxes,
+    kind_of,
+    proxy_boxes,
+    sphere_boxes,
+)
 
 CAMERA = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
 thetas = st.floats(0.0, 90.0)
@@ -87,6 +94,72 @@ def test_prism_and_cone_boxes_bound_the_solid(kind):
     solid = np.stack([x + r * np.cos(a), y + r * np.sin(a), height * t], axis=-1)
     sampled = sampled_box(cams, solid)[0]
     assert np.all(np.abs(box - sampled) < 0.5)
+
+
+def rim_sample_boxes(cams: Cameras, kind: int, x: float, y: float, rho: float, height: float):
+    """The definition of a prism or cone box: bounds of the projected rim samples (and apex),
+    NaN when any sample is not in front of the camera."""
+    a = np.linspace(0.0, 2.0 * np.pi, RIM_POINTS, endpoint=False)
+    ring = np.stack([x + rho * np.cos(a), y + rho * np.sin(a)], axis=-1)
+    base = np.column_stack([ring, np.zeros(RIM_POINTS)])
+    if kind == ProxyKind.CONE:
+        top = np.array([[x, y, height]])
+    else:
+        top = np.column_stack([ring, np.full(RIM_POINTS, height)])
+    pixels, depth = cams.project(np.concatenate([base, top]))
+    boxes = np.concatenate([pixels.min(axis=1), pixels.max(axis=1)], axis=-1)
+    boxes[~(depth > 0.0).all(axis=1)] = np.nan
+    return boxes
+
+
+solids = hnp.arrays(
+    np.float64,
+    (5, 4),
+    elements=st.floats(0.0, 1.0),
+).map(lambda u: u * [8.0, 8.0, 1.5, 4.0] + [-4.0, -4.0, 0.05, 0.05])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    theta=hnp.arrays(np.float64, 7, elements=thetas),
+    phi=hnp.arrays(np.float64, 7, elements=phis),
+    params=solids,
+    kinds=hnp.arrays(np.int_, 5, elements=st.sampled_from([1, 2])),
+)
+def test_prism_and_cone_boxes_are_the_bounds_of_their_rim_samples(theta, phi, params, kinds):
+    """The per-camera ring and the bounds taken before scaling to pixels give the boxes of the
+    plain definition, to rounding, including NaN for solids reaching behind a camera."""
+    cams = Cameras.at(theta, phi, Camera(fov_deg=60.0, width=320, height=240, radius=3.0))
+    boxes = proxy_boxes(cams, kinds, params)
+    for m, (kind, row) in enumerate(zip(kinds, params, strict=True)):
+        expected = rim_sample_boxes(cams, int(kind), *row)
+        np.testing.assert_array_equal(np.isnan(boxes[:, m]), np.isnan(expected))
+        np.testing.assert_allclose(boxes[:, m], expected, rtol=1e-9, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    theta=thetas,
+    phi=phis,
+    params=solids,
+    kinds=hnp.arrays(np.int_, 5, elements=st.sampled_from([0, 1, 2])),
+)
+def test_an_objects_box_does_not_depend_on_the_others(theta, phi, params, kinds):
+    """Bit for bit: the Gauss-Newton mapping batches its finite differences with the residuals."""
+    cams = Cameras.at(theta, phi, CAMERA)
+    together = proxy_boxes(cams, kinds, params)
+    for m in range(len(kinds)):
+        alone = proxy_boxes(cams, kinds[m : m + 1], params[m : m + 1])[:, 0]
+        np.testing.assert_array_equal(together[:, m], alone)
+
+
+@settings(max_examples=40, deadline=None)
+@given(theta=thetas, phi=phis, pts=points)
+def test_the_camera_frame_transforms_like_to_camera(theta, phi, pts):
+    cams = Cameras.at([theta, 90.0 - theta], [phi, phi + 90.0], CAMERA)
+    origin, axes = cams.frame
+    mine = origin[:, :, None] + np.einsum("cjn,pj->cnp", axes, pts)
+    np.testing.assert_allclose(mine.transpose(1, 2, 0), cams.to_camera(pts), atol=1e-12)
 
 
 def test_kinds_of_classes():

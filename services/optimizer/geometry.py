@@ -26,6 +26,7 @@ rotation fit.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,6 +109,15 @@ class Cameras:
 
     def __len__(self) -> int:
         return int(self.position.shape[0])
+
+    @functools.cached_property
+    def frame(self) -> tuple[FloatArray, FloatArray]:
+        """``(o, e)``: camera coordinates ``(3, N)`` of the world origin, ``o = −R c``, and
+        ``(3, 3, N)`` of the world's unit axes (``e[:, j]`` is axis j, i.e. column j of R), so
+        that ``R (p − c) = o + Σ_j p_j e[:, j]`` elementwise (computed once per cameras)."""
+        origin = -np.einsum("nij,nj->in", self.rotation, self.position)
+        axes = np.ascontiguousarray(self.rotation.transpose(1, 2, 0))
+        return origin, axes
 
     def to_camera(self, points: ArrayLike) -> FloatArray:
         """Camera coordinates ``(N, P, 3)`` of world points ``(P, 3)`` or ``(N, P, 3)``."""

@@ -264,26 +264,23 @@ def _refine(
     # Sizes stay between a millionth and twice the hemisphere radius: keeps exp() finite.
     log_lo, log_hi = math.log(1e-6 * radius), math.log(2.0 * radius)
 
-    def residual(p: FloatArray) -> FloatArray:
-        r = (_edges(cam, kinds, p) - boxes) * mask
-        return np.where(np.isfinite(r), r, 1e6)
+    shifts = np.zeros((5, 1, 4))
+    shifts[np.arange(1, 5), 0, np.arange(4)] = steps
+    kinds5, boxes5, mask5 = np.tile(kinds, 5), np.tile(boxes, (5, 1)), np.tile(mask, (5, 1))
 
-    def jacobian(p: FloatArray, r0: FloatArray) -> FloatArray:
-        shifted = np.repeat(p[np.newaxis], 4, axis=0)  # (4, n, 4)
-        shifted[np.arange(4), :, np.arange(4)] += steps[:, np.newaxis]
-        kinds4 = np.tile(kinds, 4)
-        r = (_edges(cam, kinds4, shifted.reshape(-1, 4)) - np.tile(boxes, (4, 1))) * np.tile(
-            mask, (4, 1)
-        )
-        r = np.where(np.isfinite(r), r, 1e6).reshape(4, n, 4)
-        jac = (r - r0[np.newaxis]) / steps[:, np.newaxis, np.newaxis]  # (param, n, edge)
-        return np.transpose(jac, (1, 2, 0)) * free[:, np.newaxis, :]  # (n, edge, param)
+    def evaluate(p: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Residuals ``(n, edge)`` at ``p`` and their forward-difference Jacobian
+        ``(n, edge, param)`` from one batch of proxies (a proxy's box does not depend on the
+        rest of the batch), so an accepted trial step brings its Jacobian along."""
+        r = (_edges(cam, kinds5, (p + shifts).reshape(-1, 4)) - boxes5) * mask5
+        r = np.where(np.isfinite(r), r, 1e6).reshape(5, n, 4)
+        jac = (r[1:] - r[0]) / steps[:, np.newaxis, np.newaxis]  # (param, n, edge)
+        return r[0], np.transpose(jac, (1, 2, 0)) * free[:, np.newaxis, :]
 
-    r0 = residual(params)
+    r0, jac = evaluate(params)
     cost = np.sum(r0**2, axis=1)
     eye = np.eye(4)
     for _ in range(_LM_ITERATIONS):
-        jac = jacobian(params, r0)
         normal = np.einsum("nei,nej->nij", jac, jac)
         gradient = np.einsum("nei,ne->ni", jac, r0)
         diag = np.einsum("nii->ni", normal)
@@ -294,14 +291,14 @@ def _refine(
             break  # converged everywhere
         trial = params + delta
         trial[:, 2:] = np.clip(trial[:, 2:], log_lo, log_hi)
-        r_trial = residual(trial)
+        r_trial, jac_trial = evaluate(trial)
         cost_trial = np.sum(r_trial**2, axis=1)
         better = cost_trial < cost
         params = np.where(better[:, np.newaxis], trial, params)
         r0 = np.where(better[:, np.newaxis], r_trial, r0)
+        jac = np.where(better[:, np.newaxis, np.newaxis], jac_trial, jac)
         cost = np.where(better, cost_trial, cost)
         damping = np.where(better, damping * 0.3, damping * 10.0)
-    jac = jacobian(params, r0)
     normal = np.einsum("nei,nej->nij", jac, jac) + eye * (1.0 - free[:, :, np.newaxis])
     # A tiny ridge instead of a pseudo-inverse: a direction the edges do not constrain (the
     # scale of everything seen from the horizon) must come out with a huge variance, not zero.

@@ -37,6 +37,9 @@ COLOUR_GATE: Final = 3.0
 one class are taken to be different objects."""
 
 
+_LOWEST: Final = float(np.finfo(np.float64).min)
+
+
 @dataclass(frozen=True)
 class Assignment:
     """Matched pairs ``(rows[k], cols[k])`` and their costs."""
@@ -55,7 +58,9 @@ def assign(cost: ArrayLike, gate: float) -> Assignment:
     if c.size == 0:
         empty = np.zeros(0, dtype=np.intp)
         return Assignment(empty, empty, np.zeros(0))
-    capped = np.minimum(np.nan_to_num(c, nan=gate, posinf=gate), gate)
+    # min(c, gate) with NaN and +inf as the gate and -inf as the lowest float (what
+    # nan_to_num + minimum did, in fewer passes: score_poses assigns a dozen times a call).
+    capped = np.maximum(np.where(c < gate, c, gate), _LOWEST)
     rows, cols = linear_sum_assignment(capped)
     keep = c[rows, cols] < gate
     return Assignment(rows[keep], cols[keep], c[rows[keep], cols[keep]])

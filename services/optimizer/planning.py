@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Final
 
 import numpy as np
@@ -38,6 +38,7 @@ from services.optimizer.mapping import map_exact, map_paper
 from services.optimizer.observations import Observation
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 from services.optimizer.strategies import STRATEGIES, CalibrationMissingError
+from services.optimizer.view_cache import ViewMappings
 from services.renderer.catalog import SceneCatalog, scene_grid
 
 __all__ = ["STUCK_VISITS", "OptimizerContext", "map_detections", "next_pose"]
@@ -50,13 +51,15 @@ _BOX_SLACK: Final = 1e-6
 
 @dataclass(frozen=True)
 class OptimizerContext:
-    """What planning needs besides the request: stored coefficients, scenes, limits."""
+    """What planning needs besides the request: stored coefficients, scenes, limits, and the
+    cache of view mappings that lets a search's later requests map only their new view."""
 
     calibrations: CalibrationStore
     catalog: SceneCatalog | None
     default_strategy: StrategyName = "reprojection"
     max_grid_poses: int = 25_000
     max_history_detections: int = 4_000
+    mappings: ViewMappings = field(default_factory=ViewMappings, compare=False, repr=False)
 
 
 def _invalid(detail: str, field: str, slug: str = "invalid-request") -> UnprocessableError:
@@ -234,6 +237,7 @@ def next_pose(request: NextPoseRequest, context: OptimizerContext) -> NextPoseRe
         max_unmatched=request.tolerances.max_unmatched,
         ambiguity_ratio=request.tolerances.ambiguity_ratio,
         calibration=context.calibrations.find(camera),
+        mappings=context.mappings,
     )
     try:
         plan = STRATEGIES[strategy].plan(problem)

@@ -9,6 +9,7 @@ from services.common.grid import HemisphereGrid
 from services.common.scene import Camera
 from services.optimizer.calibration import PaperCalibration
 from services.optimizer.observations import Observation
+from services.optimizer.view_cache import ViewMappings
 
 __all__ = ["Estimate", "Move", "Plan", "SearchProblem", "Visit"]
 
@@ -45,6 +46,8 @@ class SearchProblem:
         Candidates scoring within this factor of the best (plus a small margin) look alike.
     calibration : PaperCalibration or None
         The paper mapping's coefficients for this camera, when stored.
+    mappings : ViewMappings or None
+        Where the views' exact mappings are cached (None: the process's shared cache).
     """
 
     grid: HemisphereGrid
@@ -55,6 +58,7 @@ class SearchProblem:
     max_unmatched: int = 1
     ambiguity_ratio: float = 1.25
     calibration: PaperCalibration | None = None
+    mappings: ViewMappings | None = None
 
     @property
     def current(self) -> Visit | None:

@@ -68,7 +68,7 @@ def _tangent_bounds(lateral: FloatArray, depth: FloatArray, radius: FloatArray) 
 
     .. math:: a_\\pm = \\frac{C_x C_z \\pm ρ \\sqrt{C_x^2 + C_z^2 - ρ^2}}{C_z^2 - ρ^2}.
 
-    Returns ``(..., 2)`` = ``(a_-, a_+)``, NaN unless the sphere lies wholly in front
+    Returns ``(2, ...)`` = ``(a_-, a_+)``, NaN unless the sphere lies wholly in front
     (``C_z > ρ``).
     """
     denom = depth**2 - radius**2
@@ -76,11 +76,32 @@ def _tangent_bounds(lateral: FloatArray, depth: FloatArray, radius: FloatArray) 
     ok = (depth > radius) & (disc > 0.0)
     root = radius * np.sqrt(np.where(ok, disc, 1.0))
     safe = np.where(ok, denom, 1.0)
-    lo = (lateral * depth - root) / safe
-    hi = (lateral * depth + root) / safe
-    out = np.stack([lo, hi], axis=-1)
-    out[~ok] = np.nan
+    out = np.stack([lateral * depth - root, lateral * depth + root]) / safe
+    out[:, ~ok] = np.nan
     return out
+
+
+def _camera_frame(cameras: Cameras, points: FloatArray) -> FloatArray:
+    """Camera coordinates ``(3, N, P)`` of world points ``(P, 3)``, ``o + Σ_j p_j e_j``
+    (:attr:`.geometry.Cameras.frame`). Elementwise, so a point's coordinates do not depend on
+    the other points (the Gauss–Newton solve of :mod:`.mapping` batches its finite
+    differences)."""
+    origin, axes = cameras.frame
+    cam: FloatArray = (
+        origin[:, :, np.newaxis]
+        + axes[:, 0, :, np.newaxis] * points[:, 0]
+        + axes[:, 1, :, np.newaxis] * points[:, 1]
+        + axes[:, 2, :, np.newaxis] * points[:, 2]
+    )
+    return cam
+
+
+def _to_pixels(cameras: Cameras, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """Boxes ``(..., 4)`` from the bounds ``(2, ...)`` of normalised coordinates."""
+    centre = np.array([cameras.cx, cameras.cy, cameras.cx, cameras.cy])
+    bounds = np.concatenate([lo, hi]).transpose(*range(1, lo.ndim), 0)
+    boxes: FloatArray = cameras.focal_px * bounds + centre
+    return boxes
 
 
 def sphere_boxes(cameras: Cameras, centres: ArrayLike, radii: ArrayLike) -> FloatArray:
@@ -91,36 +112,57 @@ def sphere_boxes(cameras: Cameras, centres: ArrayLike, radii: ArrayLike) -> Floa
     silhouette is an ellipse whose centre lies farther from the principal point than the
     projected centre, by ``≈ a (ρ/C_z)²`` in normalised units (see :mod:`.mapping`).
     """
-    cam = cameras.to_camera(centres)
-    rho = np.broadcast_to(np.asarray(radii, dtype=np.float64), cam.shape[:-1])
-    ax = _tangent_bounds(cam[..., 0], cam[..., 2], rho)
-    ay = _tangent_bounds(cam[..., 1], cam[..., 2], rho)
-    f = cameras.focal_px
-    return np.stack(
-        [
-            f * ax[..., 0] + cameras.cx,
-            f * ay[..., 0] + cameras.cy,
-            f * ax[..., 1] + cameras.cx,
-            f * ay[..., 1] + cameras.cy,
-        ],
-        axis=-1,
-    )
+    points = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    cam = _camera_frame(cameras, points)
+    rho = np.asarray(radii, dtype=np.float64)
+    bounds = _tangent_bounds(cam[:2], cam[2], rho)  # (2 bounds, 2 axes, N, M)
+    return _to_pixels(cameras, bounds[0], bounds[1])
 
 
 _ANGLES: Final = np.linspace(0.0, 2.0 * math.pi, RIM_POINTS, endpoint=False)
-_RIM: Final = np.stack([np.cos(_ANGLES), np.sin(_ANGLES)], axis=-1)
+_COS: Final = np.cos(_ANGLES)[:, np.newaxis]
+_SIN: Final = np.sin(_ANGLES)[:, np.newaxis]
+_CHUNK_SAMPLES: Final = 6_000
+"""Rim samples (points × cameras × rims) per pass: keeps temporaries in cache, off mmap."""
 
 
-def _solid_points(kinds: NDArray[np.int_], params: FloatArray) -> FloatArray:
-    """Sample points ``(M, 2K, 3)`` of prisms (two rims) and cones (base rim and apex)."""
-    x, y, rho, height = (params[:, i] for i in range(4))
-    ring = _RIM[np.newaxis] * rho[:, np.newaxis, np.newaxis] + np.stack([x, y], -1)[:, None]
-    bottom = np.concatenate([ring, np.zeros(ring.shape[:-1] + (1,))], axis=-1)
-    top = np.concatenate([ring, np.broadcast_to(height[:, None, None], bottom[..., :1].shape)], -1)
-    apex = np.stack([x, y, height], axis=-1)[:, np.newaxis, :]
-    cone = (kinds == ProxyKind.CONE)[:, np.newaxis, np.newaxis]
-    top = np.where(cone, np.broadcast_to(apex, top.shape), top)
-    return np.concatenate([bottom, top], axis=1)
+def _solid_boxes(cameras: Cameras, kinds: NDArray[np.int_], params: FloatArray) -> FloatArray:
+    """Boxes ``(N, M, 4)`` of prisms and cones: bounds of their projected rim samples, NaN
+    unless every sample lies in front of the camera.
+
+    Every solid has two rims, its base and its top; a cone's top is a rim of radius 0, its
+    apex. Rim sample ``k`` of a rim centred at ``C`` (camera coordinates) is
+    ``C + ρ (cos a_k e_x + sin a_k e_y)``, with ``e_x``, ``e_y`` the world's horizontal axes
+    in camera coordinates: the camera-frame ring is built once per camera, and each sample
+    costs a multiply-add per coordinate. The bounds are taken over the normalised coordinates
+    ``x/z``, ``y/z`` and scaled to pixels afterwards (``f a + c`` is increasing in ``a``).
+    """
+    n, m = len(cameras), len(params)
+    x, y, rho, height = params[:, 0], params[:, 1], params[:, 2], params[:, 3]
+    rims = np.empty((2, m, 3))
+    rims[:, :, 0], rims[:, :, 1], rims[0, :, 2], rims[1, :, 2] = x, y, 0.0, height
+    centres = _camera_frame(cameras, rims.reshape(2 * m, 3))  # (3, N, L)
+    radii = np.concatenate([rho, np.where(kinds == ProxyKind.CONE, 0.0, rho)])
+    axes = cameras.frame[1]
+    ring = _COS * axes[:, 0, np.newaxis, :] + _SIN * axes[:, 1, np.newaxis, :]  # (3, K, N)
+    bounds = np.empty((2, 2, n, 2 * m))  # (lo/hi, x/y, camera, rim)
+    near = np.empty((n, 2 * m))
+    step = max(1, _CHUNK_SAMPLES // (2 * m * RIM_POINTS))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for start in range(0, n, step):
+            part = slice(start, start + step)
+            # (3, K, c, L): samples lead, so bounds reduce over an outer axis (~6x faster).
+            samples = radii * ring[:, :, part, np.newaxis]
+            samples += centres[:, np.newaxis, part]
+            near[part] = samples[2].min(axis=0)
+            ratio = np.divide(samples[:2], samples[2], out=samples[:2])
+            np.minimum.reduce(ratio, axis=1, out=bounds[0, :, part])
+            np.maximum.reduce(ratio, axis=1, out=bounds[1, :, part])
+    lo = np.minimum(bounds[0, ..., :m], bounds[0, ..., m:])
+    hi = np.maximum(bounds[1, ..., :m], bounds[1, ..., m:])
+    boxes = _to_pixels(cameras, lo, hi)
+    boxes[~(np.minimum(near[:, :m], near[:, m:]) > 0.0)] = np.nan
+    return boxes
 
 
 def proxy_boxes(cameras: Cameras, kinds: ArrayLike, params: ArrayLike) -> FloatArray:
@@ -138,7 +180,8 @@ def proxy_boxes(cameras: Cameras, kinds: ArrayLike, params: ArrayLike) -> FloatA
     Returns
     -------
     ndarray, shape (N, M, 4)
-        Pixel boxes; NaN where a proxy is not wholly in front of the camera.
+        Pixel boxes; NaN where a proxy is not wholly in front of the camera. Each object's box
+        is computed independently of the others (to the last bit).
     """
     kind = np.asarray(kinds, dtype=np.int_)
     par = np.asarray(params, dtype=np.float64).reshape(-1, 4)
@@ -146,16 +189,9 @@ def proxy_boxes(cameras: Cameras, kinds: ArrayLike, params: ArrayLike) -> FloatA
     spheres = kind == ProxyKind.SPHERE
     if spheres.any():
         p = par[spheres]
-        centres = np.stack([p[:, 0], p[:, 1], p[:, 2]], axis=-1)
-        boxes[:, spheres] = sphere_boxes(cameras, centres, p[:, 2])
+        boxes[:, spheres] = sphere_boxes(cameras, p[:, :3], p[:, 2])
     if (~spheres).any():
-        pts = _solid_points(kind[~spheres], par[~spheres])
-        m, k = pts.shape[:2]
-        pixels, _ = cameras.project(pts.reshape(-1, 3))
-        # (N, M, 2, K) in memory, so min/max run along the contiguous axis: ~10x faster than
-        # reducing the strided sample axis of (N, M, K, 2), and exactly the same values.
-        pixels = np.ascontiguousarray(pixels.reshape(len(cameras), m, k, 2).transpose(0, 1, 3, 2))
-        boxes[:, ~spheres] = np.concatenate([pixels.min(axis=-1), pixels.max(axis=-1)], axis=-1)
+        boxes[:, ~spheres] = _solid_boxes(cameras, kind[~spheres], par[~spheres])
     return boxes
 
 
@@ -170,13 +206,12 @@ def clip_boxes(boxes: ArrayLike, width: float, height: float) -> tuple[FloatArra
         Clipped area over full area, 0 for missing boxes.
     """
     b = np.asarray(boxes, dtype=np.float64)
-    lo = np.array([0.0, 0.0, 0.0, 0.0])
-    hi = np.array([width, height, width, height])
-    clipped = np.clip(b, lo, hi)
+    # minimum(maximum()) is np.clip without its Python wrapper (NaN stays NaN in both).
+    clipped = np.minimum(np.maximum(b, 0.0), np.array([width, height, width, height]))
     area = (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])
     kept = (clipped[..., 2] - clipped[..., 0]) * (clipped[..., 3] - clipped[..., 1])
     with np.errstate(invalid="ignore", divide="ignore"):
         inside = np.where(area > 0.0, kept / area, 0.0)
-    inside = np.nan_to_num(inside, nan=0.0)
+    inside[np.isnan(inside)] = 0.0
     clipped[~(inside > 0.0)] = np.nan
     return clipped, inside

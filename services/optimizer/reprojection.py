@@ -70,6 +70,7 @@ __all__ = [
     "PoseScores",
     "Prediction",
     "Refinement",
+    "anchored_boxes",
     "predict",
     "refine_pose",
     "score_poses",
@@ -131,10 +132,40 @@ class Anchoring:
                 offsets[v, entries] = np.nan_to_num(delta, nan=0.0)
         return cls(offsets=offsets, directions=directions)
 
+    def subset(self, entries: NDArray[np.intp]) -> Anchoring:
+        """The anchoring of the map entries ``entries`` only (see :meth:`.WorldMap.subset`)."""
+        return Anchoring(offsets=self.offsets[:, entries], directions=self.directions)
+
 
 def _weights(step_deg: float, angle_deg: FloatArray) -> FloatArray:
     full, fade = _ANCHOR_FULL_STEPS * step_deg, _ANCHOR_FADE_STEPS * step_deg
-    return np.clip((fade - angle_deg) / (fade - full), 0.0, 1.0)
+    return np.minimum(np.maximum((fade - angle_deg) / (fade - full), 0.0), 1.0)
+
+
+def anchored_boxes(
+    world: WorldMap,
+    cameras: Cameras,
+    theta_deg: ArrayLike,
+    phi_deg: ArrayLike,
+    anchoring: Anchoring,
+    step_deg: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Anchored predicted boxes ``(N, K, 4)`` (clipped) of the map at poses (θ, φ) seen by
+    ``cameras``, and the fraction ``(N, K)`` of each unanchored box inside the image (module
+    docstring). Each entry's boxes depend on that entry alone."""
+    boxes, inside = world.boxes(cameras)
+    if len(anchoring.directions) and len(world):
+        poses = pose_to_cartesian(theta_deg, phi_deg).reshape(-1, 3)
+        # minimum(maximum()) is np.clip without its Python wrapper (refine_pose calls this often).
+        cosines = np.minimum(np.maximum(poses @ anchoring.directions.T, -1.0), 1.0)
+        # Ties go to the latest visit: it was fused last and reflects the newest map.
+        last = len(anchoring.directions) - 1
+        nearest = last - np.argmax(cosines[:, ::-1], axis=1)
+        angle = np.degrees(np.arccos(cosines[np.arange(len(poses)), nearest]))
+        weight = _weights(step_deg, angle)[:, np.newaxis, np.newaxis]
+        shift = anchoring.offsets[nearest] * weight
+        boxes, _ = clip_boxes(boxes + shift, cameras.width, cameras.height)
+    return boxes, inside
 
 
 def predict(
@@ -145,19 +176,9 @@ def predict(
     anchoring: Anchoring,
     step_deg: float,
 ) -> Prediction:
-    """Anchored predicted boxes of the map at poses (θ, φ) seen by ``cameras`` (module
-    docstring)."""
-    boxes, inside = world.boxes(cameras)
-    if len(anchoring.directions) and len(world):
-        poses = pose_to_cartesian(theta_deg, phi_deg).reshape(-1, 3)
-        cosines = np.clip(poses @ anchoring.directions.T, -1.0, 1.0)
-        # Ties go to the latest visit: it was fused last and reflects the newest map.
-        last = len(anchoring.directions) - 1
-        nearest = last - np.argmax(cosines[:, ::-1], axis=1)
-        angle = np.degrees(np.arccos(cosines[np.arange(len(poses)), nearest]))
-        weight = _weights(step_deg, angle)[:, np.newaxis, np.newaxis]
-        shift = anchoring.offsets[nearest] * weight
-        boxes, _ = clip_boxes(boxes + shift, cameras.width, cameras.height)
+    """Anchored predicted boxes of the map at poses (θ, φ) seen by ``cameras``, and which
+    entries each pose is expected to see (module docstring)."""
+    boxes, inside = anchored_boxes(world, cameras, theta_deg, phi_deg, anchoring, step_deg)
     sides = np.nan_to_num(
         np.stack([boxes[..., 2] - boxes[..., 0], boxes[..., 3] - boxes[..., 1]], axis=-1),
         nan=0.0,
@@ -243,9 +264,10 @@ def score_poses(
     order = _candidates(coarse, directions, max(1, candidates), FAR_CANDIDATES, separation_deg)
     exact = np.empty(len(order))
     pairs: list[Assignment] = []
+    expected_count = expected.sum(axis=1)
     for i, pose in enumerate(order):
         assignment = assign(cost[pose], GATE)
-        unpaired_map = int(np.sum(np.delete(expected[pose], assignment.cols)))
+        unpaired_map = int(expected_count[pose]) - int(expected[pose, assignment.cols].sum())
         exact[i] = (
             float(np.sum(assignment.costs))
             + GATE * (n - len(assignment))
@@ -289,12 +311,20 @@ def refine_pose(
     observed = target.boxes[pairs.rows]
     lo, hi = theta_bounds
     step = grid.angle_step_deg
+    # Only the paired entries' boxes enter the residuals: predict those alone.
+    paired, paired_anchoring = world.subset(pairs.cols), anchoring.subset(pairs.cols)
+
+    # The solver starts at and returns poses it has evaluated: remember them, not recompute.
+    evaluated: dict[bytes, FloatArray] = {}
 
     def residuals(x: FloatArray) -> FloatArray:
-        cams = Cameras.at(x[0], x[1], camera)
-        predicted = predict(world, cams, x[:1], x[1:], anchoring, step).boxes[0]
-        r = (predicted[pairs.cols] - observed).ravel()
-        return np.where(np.isfinite(r), r, 50.0)
+        key = np.asarray(x, dtype=np.float64).tobytes()
+        if key not in evaluated:
+            cams = Cameras.at(x[0], x[1], camera)
+            predicted = anchored_boxes(paired, cams, x[:1], x[1:], paired_anchoring, step)
+            r = (predicted[0][0] - observed).ravel()
+            evaluated[key] = np.where(np.isfinite(r), r, 50.0)
+        return evaluated[key].copy()
 
     start = np.array([min(max(theta_deg, lo + 1e-9), hi - 1e-9), phi_deg])
     result = least_squares(

@@ -77,7 +77,6 @@ from services.common.models import GridIndex
 from services.common.scene import Camera
 from services.optimizer.geometry import Cameras
 from services.optimizer.layout import LayoutEstimate, estimate_layout
-from services.optimizer.mapping import map_exact
 from services.optimizer.matching import Assignment, ViewComparison, compare_views
 from services.optimizer.observations import Observation
 from services.optimizer.problem import Estimate, Move, Plan, SearchProblem, Visit
@@ -91,6 +90,7 @@ from services.optimizer.reprojection import (
     refine_pose,
     score_poses,
 )
+from services.optimizer.view_cache import SHARED_MAPPINGS, ViewMappings
 from services.optimizer.world_map import MappedView, WorldMap, build_map
 
 __all__ = [
@@ -294,9 +294,14 @@ class _MapEstimate:
 _Mapped = tuple[WorldMap, tuple[Anchor, ...], Anchoring, Prediction]
 
 
-def _mapped(visits: Sequence[Visit], grid: HemisphereGrid, camera: Camera) -> _Mapped:
+def _mapped(
+    visits: Sequence[Visit],
+    grid: HemisphereGrid,
+    camera: Camera,
+    mappings: ViewMappings | None = None,
+) -> _Mapped:
     views = [MappedView(v.theta_deg, v.phi_deg, v.observation) for v in visits]
-    world, links = build_map(views, camera)
+    world, links = build_map(views, camera, mappings)
     anchors = tuple(
         Anchor(v.theta_deg, v.phi_deg, v.observation, link)
         for v, link in zip(visits, links, strict=True)
@@ -320,13 +325,14 @@ def _mapped_single(
     phi_deg: float,
     grid: HemisphereGrid,
     camera: Camera,
+    mappings: ViewMappings | None = None,
 ) -> _Mapped:
     """One view alone, mapped and predicted into every grid pose; cached per view (observations
     compare by identity, so only a caller that reuses them — a simulator — ever hits) unless the
     grid is so large that the cached predictions would weigh too much."""
     if grid.size > _CACHED_GRID_POSES:
-        return _mapped([Visit(flat, theta_deg, phi_deg, observation)], grid, camera)
-    return _mapped_single_cached(observation, flat, theta_deg, phi_deg, grid, camera)
+        return _mapped([Visit(flat, theta_deg, phi_deg, observation)], grid, camera, mappings)
+    return _mapped_single_cached(observation, flat, theta_deg, phi_deg, grid, camera, mappings)
 
 
 @functools.lru_cache(maxsize=512)
@@ -337,8 +343,9 @@ def _mapped_single_cached(
     phi_deg: float,
     grid: HemisphereGrid,
     camera: Camera,
+    mappings: ViewMappings | None,
 ) -> _Mapped:
-    return _mapped([Visit(flat, theta_deg, phi_deg, observation)], grid, camera)
+    return _mapped([Visit(flat, theta_deg, phi_deg, observation)], grid, camera, mappings)
 
 
 def _map_estimate(problem: SearchProblem, mapped: _Mapped) -> _MapEstimate | None:
@@ -444,14 +451,12 @@ def _map_plan_estimate(
 # -- simple ------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=2048)
-def _reliable_count(
-    observation: Observation, theta_deg: float, phi_deg: float, camera: Camera
-) -> int:
+def _reliable_count(problem: SearchProblem, visit: Visit) -> int:
     """How many of the view's objects the exact mapping places reliably."""
-    if len(observation) == 0:
+    if len(visit.observation) == 0:
         return 0
-    mapped = map_exact(observation.boxes, observation.kinds, camera, theta_deg, phi_deg)
+    mappings = SHARED_MAPPINGS if problem.mappings is None else problem.mappings
+    mapped = mappings.get(visit.observation, visit.theta_deg, visit.phi_deg, problem.camera)
     return int(mapped.reliable.sum())
 
 
@@ -461,10 +466,7 @@ def _reference_view(problem: SearchProblem) -> Visit | None:
     Usually the current view; an earlier one when the current view maps fewer objects (some
     hidden, or cut by the border) or none (on the horizon, where an object twice as large and
     twice as far looks the same), so that one poor view does not turn the search around."""
-    counts = [
-        _reliable_count(v.observation, v.theta_deg, v.phi_deg, problem.camera)
-        for v in problem.history
-    ]
+    counts = [_reliable_count(problem, v) for v in problem.history]
     if not counts or max(counts) == 0:
         return None
     best = max(counts)
@@ -498,6 +500,7 @@ def plan_simple(problem: SearchProblem) -> Plan:
         reference.phi_deg,
         grid,
         problem.camera,
+        problem.mappings,
     )
     if grid.size > _CACHED_GRID_POSES:
         found = _scored(mapped, problem.target, grid, problem.ambiguity_ratio)
@@ -620,7 +623,7 @@ def plan_reprojection(problem: SearchProblem) -> Plan:
     if current is None:
         return _start(problem)
     grid = problem.grid
-    found = _map_estimate(problem, _mapped(problem.history, grid, problem.camera))
+    found = _map_estimate(problem, _mapped(problem.history, grid, problem.camera, problem.mappings))
     comparison = compare_views(current.observation, problem.target)
     if found is None:
         done = _done(problem, current, comparison, None, False)

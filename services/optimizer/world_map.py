@@ -1,6 +1,7 @@
 """A world map of the objects, fused from every visited view, and its projection into any pose.
 
-Each visited view's detections are mapped to proxies with the exact method (:mod:`.mapping`).
+Each visited view's detections are mapped to proxies with the exact method (:mod:`.mapping`),
+once per view content (:mod:`.view_cache`: a search sends its earlier views with every request).
 Views are folded in one at a time: a mapped object joins the map entry it matches (same class,
 alike colour, footprints closer than the gate) by a gated Hungarian assignment, else it starts a
 new entry. An entry's parameters ``(x, y, ρ, H)`` are the inverse-variance weighted mean of its
@@ -22,10 +23,10 @@ from numpy.typing import NDArray
 
 from services.common.scene import Camera
 from services.optimizer.geometry import Cameras, FloatArray
-from services.optimizer.mapping import MappedObjects, map_exact
 from services.optimizer.matching import COLOUR_GATE, assign
 from services.optimizer.observations import Observation, appearance_cost
 from services.optimizer.proxies import clip_boxes, kind_of, proxy_boxes
+from services.optimizer.view_cache import SHARED_MAPPINGS, ViewMappings
 
 __all__ = ["MappedView", "WorldMap", "build_map"]
 
@@ -78,8 +79,9 @@ class WorldMap:
     def __len__(self) -> int:
         return len(self.labels)
 
-    @property
+    @functools.cached_property
     def kinds(self) -> NDArray[np.int_]:
+        """:class:`~.proxies.ProxyKind` per entry (computed once: predictions ask often)."""
         return np.array([kind_of(label) for label in self.labels], dtype=np.int_)
 
     @property
@@ -92,20 +94,22 @@ class WorldMap:
             weight = np.clip((scale / self.sigma) ** 2, _MIN_TRUST, 1.0)
         return np.nan_to_num(weight, nan=_MIN_TRUST)
 
+    def subset(self, entries: NDArray[np.intp]) -> WorldMap:
+        """The map of the entries ``entries`` alone, in that order."""
+        return WorldMap(
+            labels=tuple(self.labels[int(i)] for i in entries),
+            colors=self.colors[entries],
+            params=self.params[entries],
+            sigma=self.sigma[entries],
+            support=self.support[entries],
+            sigma_floor=self.sigma_floor,
+        )
+
     def boxes(self, cameras: Cameras) -> tuple[FloatArray, FloatArray]:
         """Predicted boxes ``(N, K, 4)`` clipped to the image, and the fraction of each
         unclipped box inside it ``(N, K)``, in every camera."""
         full = proxy_boxes(cameras, self.kinds, self.params)
         return clip_boxes(full, cameras.width, cameras.height)
-
-
-@functools.lru_cache(maxsize=4096)
-def _map_view(
-    observation: Observation, theta_deg: float, phi_deg: float, camera: Camera
-) -> MappedObjects:
-    """The exact mapping of one view, cached per observation (a search maps each view again
-    at every step)."""
-    return map_exact(observation.boxes, observation.kinds, camera, theta_deg, phi_deg)
 
 
 @dataclass
@@ -124,11 +128,15 @@ class _Entry:
         return params, colour, float(1.0 / np.sqrt(w.sum()))
 
 
-def build_map(views: Sequence[MappedView], camera: Camera) -> tuple[WorldMap, Links]:
+def build_map(
+    views: Sequence[MappedView], camera: Camera, mappings: ViewMappings | None = None
+) -> tuple[WorldMap, Links]:
     """Fuse the exact mappings of ``views`` into one map (module docstring).
 
-    Returns the map and, per view, the entry each detection joined (-1 when it joined none).
+    Views are mapped through ``mappings`` (default: the process's shared cache). Returns the
+    map and, per view, the entry each detection joined (-1 when it joined none).
     """
+    cache = SHARED_MAPPINGS if mappings is None else mappings
     entries: list[_Entry] = []
     links: Links = []
     floor = _SIGMA_FLOOR * camera.radius
@@ -138,7 +146,7 @@ def build_map(views: Sequence[MappedView], camera: Camera) -> tuple[WorldMap, Li
         links.append(link)
         if len(obs) == 0:
             continue
-        mapped = _map_view(obs, view.theta_deg, view.phi_deg, camera)
+        mapped = cache.get(obs, view.theta_deg, view.phi_deg, camera)
         params = np.column_stack([mapped.position, mapped.radius, mapped.height])
         # A σ beyond the hemisphere radius carries no information (horizon views).
         usable = np.isfinite(params).all(axis=1) & (mapped.sigma <= camera.radius)

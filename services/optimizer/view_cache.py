@@ -1,0 +1,83 @@
+"""A bounded, thread-safe cache of the exact mappings of views, keyed by what they depend on.
+
+The optimizer is stateless over HTTP: every request carries the search's whole history, so a
+search's k-th request would map all k views again although only the last one is new. A view's
+exact mapping (:func:`.mapping.map_exact`) depends only on its boxes, their classes, the camera
+and the pose, so those — by value, not by object identity — are the key, and the cached answer
+is exactly the one a fresh mapping would give.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Hashable
+from dataclasses import fields
+from typing import Final
+
+import numpy as np
+
+from services.common.scene import Camera
+from services.optimizer.mapping import MappedObjects, map_exact
+from services.optimizer.observations import Observation
+
+__all__ = ["DEFAULT_VIEW_MAPPINGS", "SHARED_MAPPINGS", "ViewMappings"]
+
+DEFAULT_VIEW_MAPPINGS: Final = 4096
+"""Views kept: a search sends a few dozen at most, so this serves ~100 concurrent searches
+(a few kB each)."""
+
+
+class ViewMappings:
+    """LRU of :func:`.mapping.map_exact` results per (classes, boxes, pose, camera).
+
+    The arrays handed out are read-only: they are shared by every caller that asks for the
+    same view.
+    """
+
+    def __init__(self, maxsize: int = DEFAULT_VIEW_MAPPINGS) -> None:
+        if maxsize < 0:
+            raise ValueError(f"maxsize must be >= 0, got {maxsize}")
+        self.maxsize = maxsize
+        self.hits = 0
+        self.misses = 0
+        self._entries: OrderedDict[Hashable, MappedObjects] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def get(
+        self, observation: Observation, theta_deg: float, phi_deg: float, camera: Camera
+    ) -> MappedObjects:
+        """The exact mapping of ``observation`` seen from (θ, φ) in degrees, cached."""
+        boxes = np.ascontiguousarray(observation.boxes, dtype=np.float64)
+        key = (observation.labels, boxes.tobytes(), float(theta_deg), float(phi_deg), camera)
+        with self._lock:
+            found = self._entries.get(key)
+            if found is not None:
+                self._entries.move_to_end(key)
+                self.hits += 1
+                return found
+            self.misses += 1
+        # Mapped outside the lock: two threads may map one view at once, never wait on it.
+        mapped = map_exact(boxes, observation.kinds, camera, theta_deg, phi_deg)
+        for field in fields(mapped):
+            getattr(mapped, field.name).flags.writeable = False
+        if self.maxsize:
+            with self._lock:
+                self._entries[key] = mapped
+                self._entries.move_to_end(key)
+                while len(self._entries) > self.maxsize:
+                    self._entries.popitem(last=False)
+        return mapped
+
+    def clear(self) -> None:
+        """Forget every mapping and reset the counters."""
+        with self._lock:
+            self._entries.clear()
+            self.hits = self.misses = 0
+
+
+SHARED_MAPPINGS: Final = ViewMappings()
+"""The cache of callers that bring none (the simulator, direct strategy calls)."""
