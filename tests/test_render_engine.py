@@ -4,8 +4,10 @@ determinism, in-place camera moves without recompilation, and scalar/LLVM agreem
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from services.common.camera import camera_model
 from services.common.models import Pose
 from services.renderer.catalog import SceneCatalog, scene_grid
 from services.renderer.engine import RenderEngine
+from services.renderer.pool import WORKER_NICE
 from services.renderer.variant import SCALAR_VARIANT
 from tests.support import ROOT
 
@@ -141,6 +144,23 @@ def test_frozen_renders_are_the_traced_renders_and_record_once(engine, catalog):
         assert recordings[2:] == [recordings[2]] * 3, recordings
     finally:
         traced.close()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="threads are found in /proc")
+def test_jit_worker_threads_run_at_low_priority_after_a_render(engine, catalog):
+    """Dr.Jit's workers spin after each launch; at nice 19 the spin yields to the detector."""
+    if engine.variant == SCALAR_VARIANT:
+        pytest.skip("the scalar variant has no worker pool")
+    own = os.getpriority(os.PRIO_PROCESS, 0)  # this thread's nice value
+    engine.render(catalog.get("demo"), Pose(theta_deg=40, phi_deg=10), 64, 48, 1)
+    workers = [
+        int(task.name)
+        for task in Path("/proc/self/task").iterdir()
+        if (task / "comm").read_text().startswith("nt [")
+    ]
+    assert workers, "no Dr.Jit worker thread found"
+    assert {os.getpriority(os.PRIO_PROCESS, tid) for tid in workers} == {WORKER_NICE}
+    assert os.getpriority(os.PRIO_PROCESS, 0) == own  # the rest of the process is untouched
 
 
 def test_the_scalar_variant_gives_the_same_ground_truth(engine, catalog):

@@ -29,6 +29,7 @@ from services.common.models import GridIndex, ObjectAnnotation, Pose, RenderAnno
 from services.common.scene import LoadedScene
 from services.renderer.annotate import silhouettes
 from services.renderer.imaging import linear_to_srgb8
+from services.renderer.pool import lower_worker_priority
 from services.renderer.scene_builder import build_object_scene, build_scene, object_index_of
 from services.renderer.variant import SCALAR_VARIANT, VariantChoice, VariantRequest, choose_variant
 
@@ -83,6 +84,7 @@ class RenderEngine:
         self._cache_size = cache_size
         self._max_queue = max_queue
         self._freeze = freeze
+        self._workers_niced = False
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mitsuba")
         self._lock = threading.Lock()
         self._in_flight = 0
@@ -291,6 +293,8 @@ class RenderEngine:
         image = self._render_view(loaded.scene, loaded.camera_sensor, jit_seed, spp)
         linear = np.asarray(image, dtype=np.float32).reshape(height, width, -1)[..., :3]
         render_ms = (time.perf_counter() - started) * 1000.0
+        if not self._workers_niced:  # the pool starts with the first launch
+            self._workers_niced = lower_worker_priority() > 0
         return RenderedImage(rgb=linear_to_srgb8(linear), render_ms=render_ms)
 
     def _shape_ids(self, scene: Any, sensor: Any, width: int, height: int) -> NDArray[np.int64]:
