@@ -21,10 +21,10 @@ from collections import defaultdict
 
 import numpy as np
 
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.optimizer.calibration import CalibrationStore, PaperCalibration
 from services.optimizer.mapping import map_exact, map_paper
 from services.optimizer.proxies import kind_of
-from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.renderer.engine import RenderEngine
 
 METHODS = ("exact", "paper", "paper h=0")

@@ -31,13 +31,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.common.grid import HemisphereGrid, grid_for, pose_to_cartesian
 from services.common.scene import LoadedScene
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.problem import Plan
 from services.optimizer.simulator import NoiseModel, SceneSimulator, SearchOutcome, run_search
 from services.optimizer.strategies import STRATEGIES
-from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 
 ALL_PAIRS = ("simple", "paper")
 PAPER_SIMPLE_WORST = 36

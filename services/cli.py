@@ -22,12 +22,12 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.common.errors import ServiceError
 from services.common.launch import free_port
 from services.common.models import PoseQuery, RenderAnnotations, RenderRequest
 from services.common.search import Iteration, Search
 from services.controller.client import ControllerClient, ControllerError
-from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
 from services.stack import plan_stack, running_stack

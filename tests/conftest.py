@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.launch import ServiceProcess, running_service
-from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.renderer.engine import RenderEngine
 
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.common.errors import NotFoundError, UnprocessableError
-from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.renderer.settings import RendererSettings
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,12 +9,12 @@ import httpx
 import pytest
 from asgi_lifespan import LifespanManager
 
+from services.common.catalog import scene_grid
 from services.common.grid import grid_for
 from services.common.models import GridIndex
 from services.optimizer.app import create_app
 from services.optimizer.settings import OptimizerSettings
 from services.optimizer.simulator import SceneSimulator
-from services.renderer.catalog import scene_grid
 
 pytestmark = pytest.mark.anyio
 

@@ -12,10 +12,10 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import positive_data_acceptance
 
+from services.common.catalog import scene_grid
 from services.common.launch import ServiceProcess, running_service
 from services.common.models import GridIndex
 from services.optimizer.simulator import SceneSimulator
-from services.renderer.catalog import scene_grid
 
 pytestmark = pytest.mark.slow
 

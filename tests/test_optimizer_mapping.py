@@ -8,12 +8,12 @@ import dataclasses
 import numpy as np
 import pytest
 
+from services.common.catalog import scene_grid
 from services.common.models import Pose
 from services.common.scene import Camera
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.mapping import clipped_sides, hidden_behind, map_exact, map_paper
 from services.optimizer.proxies import kind_of
-from services.renderer.catalog import scene_grid
 
 
 def annotated_errors(engine, catalog, scene_id: str, step: int):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
+from services.common.catalog import scene_grid
 from services.optimizer.simulator import NoiseModel, SceneSimulator, read_ply_vertices, srgb8
-from services.renderer.catalog import scene_grid
 
 
 def iou(a, b) -> float:

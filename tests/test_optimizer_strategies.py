@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.common.catalog import scene_grid
 from services.common.grid import angular_distance_deg, grid_for
 from services.common.models import GridIndex
 from services.common.scene import LoadedScene, SceneSpec
@@ -16,7 +17,6 @@ from services.optimizer.observations import Observation
 from services.optimizer.problem import SearchProblem, Visit
 from services.optimizer.simulator import NoiseModel, SceneSimulator, run_search
 from services.optimizer.strategies import STRATEGIES, plan_next
-from services.renderer.catalog import scene_grid
 
 FULL = grid_for(7.5, 0.0, 90.0)
 

@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from services.common.catalog import scene_grid
 from services.common.models import PoseQuery
 from services.common.optimization import NextPoseRequest, TargetImage, VisitedView
 from services.common.scene import Camera
@@ -17,7 +18,6 @@ from services.optimizer.observations import Observation
 from services.optimizer.planning import OptimizerContext, next_pose
 from services.optimizer.simulator import NoiseModel, SceneSimulator
 from services.optimizer.view_cache import ViewMappings
-from services.renderer.catalog import scene_grid
 
 CAMERA = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
 

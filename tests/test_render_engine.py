@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from services.common.camera import camera_model
+from services.common.catalog import SceneCatalog, scene_grid
 from services.common.models import Pose
-from services.renderer.catalog import SceneCatalog, scene_grid
 from services.renderer.engine import RenderEngine
 from services.renderer.pool import WORKER_NICE
 from services.renderer.variant import SCALAR_VARIANT
@@ -168,7 +168,7 @@ def test_the_scalar_variant_gives_the_same_ground_truth(engine, catalog):
     script = (
         "import json\n"
         "from services.common.models import Pose\n"
-        "from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog\n"
+        "from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog\n"
         "from services.renderer.engine import RenderEngine\n"
         "e = RenderEngine('scalar_rgb'); e.start()\n"
         "s = SceneCatalog([BUILTIN_SCENES_DIR]).get('garden')\n"

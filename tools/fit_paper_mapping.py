@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from services.common.camera import focal_length_px
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.models import Pose
 from services.common.scene import Camera, LoadedScene
 from services.optimizer.calibration import (
@@ -32,7 +33,6 @@ from services.optimizer.calibration import (
     fit_reference_height,
 )
 from services.optimizer.mapping import clipped_sides
-from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.renderer.engine import RenderEngine
 
 __all__ = ["calibration_thetas", "collect_samples", "fit_calibration", "main"]

@@ -29,9 +29,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.models import Pose, RenderAnnotations
 from services.common.scene import LoadedScene, SceneSpec
-from services.renderer.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 

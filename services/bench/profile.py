@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from services.bench.report import percentile
 from services.bench.runner import SearchRecord, Target, run_searches
+from services.common.catalog import SceneCatalog, scene_grid
 from services.common.images import decode_image
 from services.common.models import Detection, GridIndex, PoseQuery
 from services.common.optimization import (
@@ -42,7 +43,6 @@ from services.common.optimization import (
     VisitedView,
 )
 from services.common.scene import LoadedScene
-from services.renderer.catalog import SceneCatalog, scene_grid
 
 __all__ = ["DEFINITION", "InProcess", "ProfileSample", "profile_searches", "profile_summary"]
 

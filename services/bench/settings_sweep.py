@@ -20,8 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.bench.profile import InProcess
+from services.common.catalog import scene_grid
 from services.common.models import Detection, ObjectAnnotation
-from services.renderer.catalog import scene_grid
 
 __all__ = ["DEFINITION", "MIN_VISIBLE_FRACTION", "MIN_VISIBLE_PIXELS", "detection_sweep"]
 

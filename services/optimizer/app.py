@@ -11,12 +11,12 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from services.common.catalog import SceneCatalog
 from services.common.http import service_app
 from services.optimizer.api import OptimizerState, router
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.planning import OptimizerContext
 from services.optimizer.settings import OptimizerSettings
-from services.renderer.catalog import SceneCatalog
 
 __all__ = ["app", "create_app"]
 

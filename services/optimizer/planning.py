@@ -17,6 +17,7 @@ from typing import Final
 
 import numpy as np
 
+from services.common.catalog import SceneCatalog, scene_grid
 from services.common.errors import UnprocessableError
 from services.common.grid import GridError, HemisphereGrid
 from services.common.models import Detection
@@ -39,7 +40,6 @@ from services.optimizer.observations import Observation
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 from services.optimizer.strategies import STRATEGIES, CalibrationMissingError
 from services.optimizer.view_cache import ViewMappings
-from services.renderer.catalog import SceneCatalog, scene_grid
 
 __all__ = ["STUCK_VISITS", "OptimizerContext", "map_detections", "next_pose"]
 

@@ -8,10 +8,10 @@ from typing import Annotated
 from pydantic import Field
 from pydantic_settings import BaseSettings
 
+from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.optimization import StrategyName
 from services.common.settings import settings_config, split_paths
 from services.optimizer.calibration import DEFAULT_CALIBRATION_FILE
-from services.renderer.catalog import BUILTIN_SCENES_DIR
 
 __all__ = ["OptimizerSettings"]
 

@@ -8,11 +8,11 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Header
 from fastapi.responses import Response
 
+from services.common.catalog import SceneCatalog, scene_grid
 from services.common.http import app_state, problem_responses
 from services.common.images import PPM_MEDIA_TYPE, encode_ppm
 from services.common.models import RenderAnnotations, RenderHealth, RenderRequest, SceneSummary
 from services.common.scene import SceneDetail, scene_json_schema
-from services.renderer.catalog import SceneCatalog, scene_grid
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 from services.renderer.settings import RendererSettings

@@ -11,9 +11,9 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from services.common.catalog import SceneCatalog
 from services.common.http import service_app
 from services.renderer.api import RendererState, router
-from services.renderer.catalog import SceneCatalog
 from services.renderer.engine import RenderEngine
 from services.renderer.settings import RendererSettings
 

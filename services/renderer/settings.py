@@ -8,8 +8,8 @@ from typing import Annotated
 from pydantic import Field
 from pydantic_settings import BaseSettings
 
+from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.settings import settings_config, split_paths
-from services.renderer.catalog import BUILTIN_SCENES_DIR
 from services.renderer.variant import VariantRequest
 
 __all__ = ["RendererSettings"]

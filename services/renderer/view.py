@@ -8,11 +8,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from services.common.catalog import SceneCatalog, scene_grid
 from services.common.errors import UnprocessableError
 from services.common.grid import GridError
 from services.common.models import GridIndex, Pose, PoseQuery, RenderRequest
 from services.common.scene import LoadedScene
-from services.renderer.catalog import SceneCatalog, scene_grid
 from services.renderer.settings import RendererSettings
 
 __all__ = ["View", "resolve_pose", "resolve_view"]
