@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import shutil
@@ -265,7 +266,12 @@ FIELD_ERRORS: list[tuple[tuple[str | int, ...], Any, str, str]] = [
     (("objects",), [], "objects", "at least 1"),
     (("objects", 3, "file"), DELETE, "objects[3].file", "required"),
     (("search", "angle_step_deg"), 91, "search.angle_step_deg", "90"),
-    (("search",), [7.5], "search", "dictionary"),
+    (("search",), [7.5], "search", "object"),
+    # strict, like the published JSON Schema: no strings for numbers, no fractions for counts
+    (("camera", "fov_deg"), "45", "camera.fov_deg", "number"),
+    (("camera", "width"), "320", "camera.width", "integer"),
+    (("camera", "width"), 320.0, "camera.width", "integer"),
+    (("objects", 0, "color", 0), "1", "objects[0].color[0]", "number"),
     (("lighting",), DELETE, "lighting", "required"),
 ]
 
@@ -285,6 +291,13 @@ def test_error_names_the_field_and_the_file(path, value, field, fragment):
     assert error.path == str(PATH)
     assert str(error).startswith(f"{PATH}: {field}: ")
     assert fragment.lower() in error.message.lower()
+
+
+def test_yaml_values_without_a_json_counterpart_are_refused():
+    data = example()
+    data["camera"]["fov_deg"] = datetime.date(2020, 1, 1)
+    error = rejection(data)
+    assert "json" in error.message.lower()
 
 
 def test_load_scene_errors_name_the_real_file(example_dir):

@@ -8,6 +8,7 @@ rests on the ground.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from dataclasses import dataclass
@@ -367,7 +368,13 @@ def parse_scene(text: str, path: Path) -> SceneSpec:
     if not isinstance(data, dict):
         raise SceneFileError(path, None, "a scene file must be a YAML mapping")
     try:
-        return SceneSpec.model_validate(data)
+        # Strict, as the published JSON Schema: no '45' for a number, no 320.5 for a width.
+        # JSON mode, so that YAML sequences stand for tuples as JSON arrays do.
+        document = json.dumps(data, allow_nan=True)
+    except (TypeError, ValueError) as exc:  # a YAML date, set or binary: no JSON counterpart
+        raise SceneFileError(path, None, f"not a JSON-compatible document ({exc})") from exc
+    try:
+        return SceneSpec.model_validate_json(document, strict=True)
     except ValidationError as exc:
         first = exc.errors()[0]
         more = len(exc.errors()) - 1
