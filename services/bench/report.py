@@ -560,14 +560,18 @@ def _records(data: Mapping[str, Any]) -> list[SearchRecord]:
     return [SearchRecord.model_validate(r) for r in data.get("records", [])]
 
 
+def _section_head(title: str, data: Mapping[str, Any], *, duration: bool = False) -> str:
+    """A report section's title, command, machine (and duration) and notes."""
+    machine = _machine_md(data["machine"]) + "\n"
+    if duration:
+        machine += f"- duration: {data['duration_s']:.0f} s\n"
+    notes = "".join(f"{note}\n\n" for note in data.get("notes", []))
+    return f"## {title}\n\n```sh\n{data['command']}\n```\n\n{machine}\n{notes}"
+
+
 def section_of_bench(data: Mapping[str, Any], plots: Path) -> str:
     text = io.StringIO()
-    text.write("## Searches through the local stack\n\n")
-    text.write(f"```sh\n{data['command']}\n```\n\n")
-    text.write(_machine_md(data["machine"]) + "\n")
-    text.write(f"- duration: {data['duration_s']:.0f} s\n\n")
-    for note in data.get("notes", []):
-        text.write(f"{note}\n\n")
+    text.write(_section_head("Searches through the local stack", data, duration=True))
     text.write(markdown_tables(summarize(_records(data))))
     text.write(
         f"\n![renders per search]({(plots / 'renders_hist.png').as_posix()})\n\n"
@@ -618,11 +622,7 @@ def section_of_profile(profile: Mapping[str, Any]) -> str:
 
 def section_of_sweep(data: Mapping[str, Any]) -> str:
     text = io.StringIO()
-    text.write("## Render settings by measurement (`--sweep`)\n\n")
-    text.write(f"```sh\n{data['command']}\n```\n\n")
-    text.write(_machine_md(data["machine"]) + "\n\n")
-    for note in data.get("notes", []):
-        text.write(f"{note}\n\n")
+    text.write(_section_head("Render settings by measurement (`--sweep`)", data))
     detection = data.get("detection")
     if detection:
         text.write("### Detection against the renderer's ground truth, in one process\n\n")
@@ -667,11 +667,7 @@ def section_of_sweep(data: Mapping[str, Any]) -> str:
 
 def section_of_throughput(data: Mapping[str, Any]) -> str:
     text = io.StringIO()
-    text.write("## Throughput (`--throughput`)\n\n")
-    text.write(f"```sh\n{data['command']}\n```\n\n")
-    text.write(_machine_md(data["machine"]) + "\n\n")
-    for note in data.get("notes", []):
-        text.write(f"{note}\n\n")
+    text.write(_section_head("Throughput (`--throughput`)", data))
     header = (
         "renderers",
         "detectors",
