@@ -16,6 +16,7 @@ __all__ = [
     "BoxXYXY",
     "CameraModel",
     "DetectResponse",
+    "DetectorHealth",
     "Detection",
     "FrozenModel",
     "GridIndex",
@@ -285,3 +286,20 @@ class DetectResponse(FrozenModel):
     image_size: tuple[int, int]
     model: ModelInfo
     inference_ms: Annotated[float, Field(ge=0.0)] = 0.0
+
+
+class DetectorHealth(FrozenModel):
+    """``GET /health`` of the detector."""
+
+    status: Literal["ok"]
+    service: Literal["detector"]
+    model: str
+    model_sha256: str
+    in_flight: NonNegInt
+    providers: tuple[str, ...] = Field(description="onnxruntime execution providers in use.")
+    intra_op_threads: NonNegInt = Field(
+        description="onnxruntime intra-op threads (0: one per core)."
+    )
+    max_batch: Annotated[int, Field(ge=1)] = Field(description="Images per inference run.")
+    batches_run: NonNegInt
+    images_run: NonNegInt

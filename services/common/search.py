@@ -12,7 +12,9 @@ from services.common.models import Detection, FrozenModel, Pose
 from services.common.optimization import GridPose, StrategyName
 
 __all__ = [
+    "ControllerHealth",
     "Iteration",
+    "ReplicaHealth",
     "Search",
     "SearchPage",
     "SearchResult",
@@ -93,3 +95,27 @@ class SearchPage(FrozenModel):
     total: int
     limit: int
     offset: int
+
+
+class ReplicaHealth(FrozenModel):
+    """A stage replica as the controller's broker knows it."""
+
+    stage: str
+    url: str
+    up: bool
+    in_flight: int
+    reported_load: float
+    expected_ms: dict[str, float]
+    served: int
+    failed: int
+
+
+class ControllerHealth(FrozenModel):
+    """``GET /health`` of the controller."""
+
+    status: Literal["ok"]
+    service: Literal["controller"]
+    searches_queued: int
+    searches_running: int
+    broker_heuristic: str
+    replicas: tuple[ReplicaHealth, ...]

@@ -6,16 +6,16 @@ import asyncio
 import json
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
 from services.common.http import app_state, problem_responses
-from services.common.models import FrozenModel, SceneSummary
+from services.common.models import SceneSummary
 from services.common.optimization import GridSpec, StrategyName
-from services.common.search import TERMINAL_STATUSES, Search, SearchPage
+from services.common.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
 from services.controller.plots import distance_png, trajectory_png
@@ -25,7 +25,7 @@ from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
 from services.controller.submit import MAX_ITERATIONS, create_search
 
-__all__ = ["ControllerHealth", "ControllerState", "router"]
+__all__ = ["ControllerState", "router"]
 
 router = APIRouter()
 
@@ -38,26 +38,6 @@ class ControllerState:
     stages: Stages
     runner: SearchRunner
     notifier: Notifier
-
-
-class ReplicaHealth(FrozenModel):
-    stage: str
-    url: str
-    up: bool
-    in_flight: int
-    reported_load: float
-    expected_ms: dict[str, float]
-    served: int
-    failed: int
-
-
-class ControllerHealth(FrozenModel):
-    status: Literal["ok"]
-    service: Literal["controller"]
-    searches_queued: int
-    searches_running: int
-    broker_heuristic: str
-    replicas: tuple[ReplicaHealth, ...]
 
 
 State = Annotated[ControllerState, Depends(app_state("controller"))]
@@ -81,7 +61,7 @@ async def health(state: State) -> ControllerHealth:
         searches_queued=state.runner.queued,
         searches_running=state.runner.running,
         broker_heuristic=state.broker.heuristic.value,
-        replicas=tuple(ReplicaHealth(**vars(s)) for s in state.broker.stats()),
+        replicas=tuple(state.broker.stats()),
     )
 
 

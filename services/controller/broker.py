@@ -29,7 +29,9 @@ from typing import Any
 
 import httpx
 
-__all__ = ["Broker", "BrokerError", "Heuristic", "Replica", "ReplicaStats"]
+from services.common.search import ReplicaHealth
+
+__all__ = ["Broker", "BrokerError", "Heuristic", "Replica"]
 
 _log = logging.getLogger("cosmos.broker")
 EWMA_WEIGHT = 0.3
@@ -74,20 +76,6 @@ class Replica:
 
     def available(self, now: float) -> bool:
         return now >= self.down_until
-
-
-@dataclass(frozen=True)
-class ReplicaStats:
-    """A replica as reported by the controller's ``/health``."""
-
-    stage: str
-    url: str
-    up: bool
-    in_flight: int
-    reported_load: float
-    expected_ms: dict[str, float]
-    served: int
-    failed: int
 
 
 class Broker:
@@ -167,10 +155,11 @@ class Broker:
             return list(self._replicas.get(stage, []))
         return [r for pool in self._replicas.values() for r in pool]
 
-    def stats(self) -> list[ReplicaStats]:
+    def stats(self) -> list[ReplicaHealth]:
+        """What is known of every replica, as the controller's ``/health`` reports it."""
         now = time.monotonic()
         return [
-            ReplicaStats(
+            ReplicaHealth(
                 stage=r.stage,
                 url=r.url,
                 up=r.available(now),

@@ -3,37 +3,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
-from pydantic import Field
 
 from services.common.errors import UnsupportedMediaTypeError
 from services.common.http import app_state, problem_responses
-from services.common.models import DetectResponse, FrozenModel, ModelInfo
+from services.common.models import DetectorHealth, DetectResponse, ModelInfo
 from services.detector.detect import Detector
 from services.detector.settings import DetectorSettings
 
-__all__ = ["DetectorHealth", "DetectorState", "router"]
+__all__ = ["DetectorState", "router"]
 
 router = APIRouter()
-
-
-class DetectorHealth(FrozenModel):
-    """``GET /health`` of the detector."""
-
-    status: Literal["ok"]
-    service: Literal["detector"]
-    model: str
-    model_sha256: str
-    in_flight: Annotated[int, Field(ge=0)]
-    providers: tuple[str, ...] = Field(description="onnxruntime execution providers in use.")
-    intra_op_threads: Annotated[int, Field(ge=0)] = Field(
-        description="onnxruntime intra-op threads (0: one per core)."
-    )
-    max_batch: Annotated[int, Field(ge=1)] = Field(description="Images per inference run.")
-    batches_run: Annotated[int, Field(ge=0)]
-    images_run: Annotated[int, Field(ge=0)]
 
 
 @dataclass(frozen=True)
