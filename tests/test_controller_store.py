@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import sqlite3
 from datetime import timedelta
 
 import pytest
 
 from services.common.errors import ProblemDetails
-from services.common.models import GridIndex, Pose
+from services.common.models import Detection, GridIndex, Pose
 from services.common.optimization import GridPose
 from services.common.search import Iteration, Search, SearchResult, StageTimings
 from services.controller.store import SearchStore, database_path, utcnow
@@ -92,3 +93,21 @@ def test_unknown_searches_and_bad_urls(tmp_path):
     with pytest.raises(ValueError, match="sqlite:///"):
         database_path("postgres://x")
     assert database_path("sqlite:///:memory:") == ":memory:"
+
+
+def test_an_iteration_and_the_target_detections_are_recorded_together(tmp_path):
+    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store.create(search("a"), b"\x89PNG-a")
+    seen = (Detection(label="sphere", class_id=0, confidence=0.9, box=(1.0, 2.0, 30.0, 40.0)),)
+    store.add_iteration("a", iteration(0), target_detections=seen)
+    found = store.get("a")
+    assert found is not None
+    assert found.target_detections == seen
+    assert [it.index for it in found.iterations] == [0]
+    # An iteration of an unknown search is refused whole, and the store carries on.
+    with pytest.raises((KeyError, sqlite3.IntegrityError)):
+        store.add_iteration("nope", iteration(0), target_detections=seen)
+    assert store.iterations("nope") == []
+    store.add_iteration("a", iteration(1))
+    assert [it.index for it in store.iterations("a")] == [0, 1]
+    store.close()

@@ -18,6 +18,7 @@ import httpx
 import numpy as np
 import pytest
 
+from services.common.images import encode_ppm
 from services.common.launch import free_port, spawn_service, stop_service, wait_healthy
 from services.common.models import PoseQuery, RenderRequest
 from services.controller.client import ControllerClient
@@ -111,6 +112,22 @@ def test_a_jpeg_target_is_accepted(stack):
     assert final.status == "succeeded", final.error
     assert final.result.pose.index.lat == 5
     assert final.result.pose.index.lon == 20
+
+
+def test_a_ppm_target_is_accepted_and_an_empty_one_fails_clearly(stack):
+    png = render(stack, "demo", 4, 7)
+    rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    final = run_search(stack, encode_ppm(np.ascontiguousarray(rgb)), "demo", seed=4)
+    assert final.status == "succeeded", final.error
+    assert (final.result.pose.index.lat, final.result.pose.index.lon) == (4, 7)
+
+    bare = np.full((240, 320, 3), 128, np.uint8)  # ground only: nothing to search for
+    failed = run_search(stack, encode_ppm(bare), "demo", seed=4)
+    assert failed.status == "failed"
+    assert failed.error is not None
+    assert failed.error.type.endswith("no-target-objects")
+    assert failed.target_detections == ()  # recorded with the failure
+    assert failed.iterations == ()
 
 
 def test_plots_events_listing_and_scenes(stack):

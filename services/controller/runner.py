@@ -269,18 +269,20 @@ class SearchRunner:
             key = (current.index.lat, current.index.lon)
             started = time.perf_counter()
             render_ms = detect_ms = 0.0
+            new_target: tuple[Detection, ...] | None = None
             if key in views:
                 view = views[key]
             else:
                 view, seen, render_ms, detect_ms = await self._observe(
                     search, current, image if target is None else None
                 )
-                if seen is not None:
+                if seen is not None:  # recorded with this iteration, below
                     target, target_size = seen.detections, seen.image_size
-                    self.store.update(sid, target_detections=target)
+                    new_target = target
                 views[key] = view
                 renders += 1
             if not target:
+                self.store.update(sid, target_detections=target)  # recorded with the failure
                 raise _failure(
                     "no-target-objects",
                     "Nothing to search for",
@@ -344,10 +346,10 @@ class SearchRunner:
                 reason=answer.reason,
             )
             history.append(iteration)
-            self.store.add_iteration(sid, iteration)
-            self.notifier.publish(sid)
-            if answer.done:
+            self.store.add_iteration(sid, iteration, target_detections=new_target)
+            if answer.done:  # published with the result, so followers wake once for both
                 return _result_of(iteration, renders)
+            self.notifier.publish(sid)
             if answer.stuck:
                 raise _failure(
                     "search-stuck",

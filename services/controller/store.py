@@ -118,14 +118,27 @@ class SearchStore:
             ).fetchall()
         return [Iteration.model_validate_json(row[0]) for row in rows]
 
-    def add_iteration(self, search_id: str, iteration: Iteration) -> None:
-        """Record an iteration (replacing one of the same index, as a resumed search may)."""
+    def add_iteration(
+        self,
+        search_id: str,
+        iteration: Iteration,
+        *,
+        target_detections: tuple[Detection, ...] | None = None,
+    ) -> None:
+        """Record an iteration (replacing one of the same index, as a resumed search may), and
+        the target's detections with it when given, in one transaction."""
         with self._lock:
-            self._db.execute(
-                "INSERT OR REPLACE INTO iterations (search_id, idx, doc) VALUES (?, ?, ?)",
-                (search_id, iteration.index, iteration.model_dump_json()),
-            )
-        self.update(search_id)
+            self._db.execute("BEGIN")
+            try:
+                self._db.execute(
+                    "INSERT OR REPLACE INTO iterations (search_id, idx, doc) VALUES (?, ?, ?)",
+                    (search_id, iteration.index, iteration.model_dump_json()),
+                )
+                self._update(search_id, target_detections=target_detections)
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
 
     def update(
         self,
@@ -138,24 +151,42 @@ class SearchStore:
     ) -> Search:
         """Change a search's status, result, error or target detections; stamps ``updated_at``."""
         with self._lock:
-            row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
-            if row is None:
-                raise KeyError(search_id)
-            search = Search.model_validate_json(row[0])
-            changes: dict[str, Any] = {"updated_at": utcnow()}
-            if status is not None:
-                changes["status"] = status
-            if result is not None:
-                changes["result"] = result
-            if error is not None:
-                changes["error"] = error
-            if target_detections is not None:
-                changes["target_detections"] = target_detections
-            search = search.model_copy(update=changes)
-            self._db.execute(
-                "UPDATE searches SET status = ?, doc = ? WHERE id = ?",
-                (search.status, search.model_dump_json(), search_id),
+            return self._update(
+                search_id,
+                status=status,
+                result=result,
+                error=error,
+                target_detections=target_detections,
             )
+
+    def _update(
+        self,
+        search_id: str,
+        *,
+        status: SearchStatus | None = None,
+        result: SearchResult | None = None,
+        error: ProblemDetails | None = None,
+        target_detections: tuple[Detection, ...] | None = None,
+    ) -> Search:
+        """:meth:`update`, with the lock held."""
+        row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
+        if row is None:
+            raise KeyError(search_id)
+        search = Search.model_validate_json(row[0])
+        changes: dict[str, Any] = {"updated_at": utcnow()}
+        if status is not None:
+            changes["status"] = status
+        if result is not None:
+            changes["result"] = result
+        if error is not None:
+            changes["error"] = error
+        if target_detections is not None:
+            changes["target_detections"] = target_detections
+        search = search.model_copy(update=changes)
+        self._db.execute(
+            "UPDATE searches SET status = ?, doc = ? WHERE id = ?",
+            (search.status, search.model_dump_json(), search_id),
+        )
         return search
 
     def unfinished(self) -> list[str]:
