@@ -11,7 +11,7 @@ import sqlite3
 import threading
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 from services.common.errors import ProblemDetails
 from services.common.models import Detection
@@ -35,6 +35,15 @@ CREATE TABLE IF NOT EXISTS iterations (
     PRIMARY KEY (search_id, idx)
 );
 """
+
+
+class SearchChanges(TypedDict, total=False):
+    """What :meth:`SearchStore.update` may change (None: leave as it is)."""
+
+    status: SearchStatus | None
+    result: SearchResult | None
+    error: ProblemDetails | None
+    target_detections: tuple[Detection, ...] | None
 
 
 def utcnow() -> datetime:
@@ -134,55 +143,26 @@ class SearchStore:
                     "INSERT OR REPLACE INTO iterations (search_id, idx, doc) VALUES (?, ?, ?)",
                     (search_id, iteration.index, iteration.model_dump_json()),
                 )
-                self._update(search_id, target_detections=target_detections)
+                self._update(search_id, {"target_detections": target_detections})
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise
             self._db.execute("COMMIT")
 
-    def update(
-        self,
-        search_id: str,
-        *,
-        status: SearchStatus | None = None,
-        result: SearchResult | None = None,
-        error: ProblemDetails | None = None,
-        target_detections: tuple[Detection, ...] | None = None,
-    ) -> Search:
+    def update(self, search_id: str, **changes: Unpack[SearchChanges]) -> Search:
         """Change a search's status, result, error or target detections; stamps ``updated_at``."""
         with self._lock:
-            return self._update(
-                search_id,
-                status=status,
-                result=result,
-                error=error,
-                target_detections=target_detections,
-            )
+            return self._update(search_id, changes)
 
-    def _update(
-        self,
-        search_id: str,
-        *,
-        status: SearchStatus | None = None,
-        result: SearchResult | None = None,
-        error: ProblemDetails | None = None,
-        target_detections: tuple[Detection, ...] | None = None,
-    ) -> Search:
+    def _update(self, search_id: str, changes: SearchChanges) -> Search:
         """:meth:`update`, with the lock held."""
         row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
         if row is None:
             raise KeyError(search_id)
-        search = Search.model_validate_json(row[0])
-        changes: dict[str, Any] = {"updated_at": utcnow()}
-        if status is not None:
-            changes["status"] = status
-        if result is not None:
-            changes["result"] = result
-        if error is not None:
-            changes["error"] = error
-        if target_detections is not None:
-            changes["target_detections"] = target_detections
-        search = search.model_copy(update=changes)
+        given = {key: value for key, value in changes.items() if value is not None}
+        search = Search.model_validate_json(row[0]).model_copy(
+            update={**given, "updated_at": utcnow()}
+        )
         self._db.execute(
             "UPDATE searches SET status = ?, doc = ? WHERE id = ?",
             (search.status, search.model_dump_json(), search_id),
