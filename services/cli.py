@@ -24,13 +24,12 @@ from pathlib import Path
 
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
 from services.common.errors import ServiceError
-from services.common.launch import free_port
 from services.common.models import PoseQuery, RenderAnnotations, RenderRequest
 from services.common.search import Iteration, Search
 from services.controller.client import ControllerClient, ControllerError
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
-from services.stack import plan_stack, running_stack
+from services.stack import local_stack, plan_stack, running_stack
 
 __all__ = ["main"]
 
@@ -210,15 +209,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"demo scene: {len(scene.spec.objects)} objects, {grid.size} grid poses")
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        ports = [free_port() for _ in range(4)]
-        plan = plan_stack(
-            controller_port=ports[0],
-            renderer_port=ports[1],
-            detector_port=ports[2],
-            optimizer_port=ports[3],
-            database_url=f"sqlite:///{tmp}/controller.sqlite3",
-        )
-        with running_stack(plan, Path(tmp) / "logs") as stack:
+        with local_stack(Path(tmp)) as stack:
             print(
                 f"stack up in {time.perf_counter() - started:.1f} s (controller {stack.controller})"
             )

@@ -7,14 +7,23 @@ through to every process.
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.common.launch import ServiceProcess, spawn_service, stop_service, wait_healthy
+from services.common.launch import (
+    ServiceProcess,
+    free_port,
+    spawn_service,
+    stop_service,
+    wait_healthy,
+)
 
-__all__ = ["ServicePlan", "Stack", "plan_stack", "running_stack"]
+__all__ = ["ServicePlan", "Stack", "local_stack", "plan_stack", "running_stack"]
+
+LOCAL_STRIDE = 10  # port step between replicas of a stage in :func:`local_stack`
 
 
 @dataclass(frozen=True)
@@ -124,3 +133,47 @@ def running_stack(
     finally:
         for process in reversed(started):
             stop_service(process)
+
+
+def _free_base(count: int, host: str) -> int:
+    """A port ``p`` with ``p + i * LOCAL_STRIDE`` free for every replica ``i < count``."""
+    for _ in range(100):
+        base = free_port(host)
+        if base + (count - 1) * LOCAL_STRIDE > 65535:
+            continue
+        try:
+            for i in range(1, count):
+                with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+                    sock.bind((host, base + i * LOCAL_STRIDE))
+        except OSError:
+            continue
+        return base
+    raise RuntimeError(f"no {count} free ports {LOCAL_STRIDE} apart on {host}")
+
+
+@contextmanager
+def local_stack(
+    workdir: Path,
+    *,
+    renderers: int = 1,
+    detectors: int = 1,
+    env: Mapping[str, str] | None = None,
+    host: str = "127.0.0.1",
+) -> Iterator[Stack]:
+    """A stack on free ports of ``host`` with a fresh SQLite database and the logs in
+    ``workdir``, stopped when the block ends (demos, tests, benchmarks)."""
+    ports = [_free_base(count, host) for count in (1, renderers, detectors, 1)]
+    plan = plan_stack(
+        host=host,
+        controller_port=ports[0],
+        renderer_port=ports[1],
+        detector_port=ports[2],
+        optimizer_port=ports[3],
+        renderers=renderers,
+        detectors=detectors,
+        port_stride=LOCAL_STRIDE,
+        database_url=f"sqlite:///{workdir}/controller.sqlite3",
+        env=env,
+    )
+    with running_stack(plan, workdir / "logs", host=host) as stack:
+        yield stack

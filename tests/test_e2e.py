@@ -23,7 +23,7 @@ from services.common.launch import free_port, spawn_service, stop_service, wait_
 from services.common.models import PoseQuery, RenderRequest
 from services.controller.client import ControllerClient
 from services.renderer.client import RendererClient
-from services.stack import Stack, plan_stack, running_stack
+from services.stack import Stack, local_stack, plan_stack, running_stack
 from tests.support import fuzz_service
 
 pytestmark = pytest.mark.slow
@@ -35,16 +35,7 @@ MODEL = Path(__file__).resolve().parents[1] / "models" / "detector.onnx"
 def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     if not MODEL.exists() and "COSMOS_DETECTOR_MODEL" not in os.environ:
         pytest.fail(f"the shipped detector model {MODEL} is missing")
-    tmp = tmp_path_factory.mktemp("stack")
-    ports = [free_port() for _ in range(4)]
-    plan = plan_stack(
-        controller_port=ports[0],
-        renderer_port=ports[1],
-        detector_port=ports[2],
-        optimizer_port=ports[3],
-        database_url=f"sqlite:///{tmp}/controller.sqlite3",
-    )
-    with running_stack(plan, tmp / "logs") as running:
+    with local_stack(tmp_path_factory.mktemp("stack")) as running:
         yield running
 
 

@@ -11,7 +11,6 @@ for. Every strategy gets the same targets and start poses, so strategies are com
 from __future__ import annotations
 
 import asyncio
-import socket
 import time
 import zlib
 from collections.abc import Callable, Iterator, Sequence
@@ -27,12 +26,12 @@ from pydantic import Field
 from services.bench.variants import VARIANTS, Variant, degrade, draw_pose
 from services.common.grid import HemisphereGrid, angular_distance_deg
 from services.common.images import media_type_of
-from services.common.launch import free_port
 from services.common.models import FrozenModel, GridIndex, Pose, PoseQuery, RenderRequest
 from services.common.optimization import StrategyName
 from services.common.search import Search
 from services.renderer.client import RendererClient
-from services.stack import Stack, plan_stack, running_stack
+from services.stack import Stack
+from services.stack import local_stack as services_stack
 
 __all__ = [
     "IterationRecord",
@@ -334,25 +333,6 @@ def run_searches(
     return asyncio.run(_run(controller_url, jobs, concurrency, max_iterations, progress, timeout_s))
 
 
-_STRIDE = 10
-
-
-def _free_base(count: int, host: str = "127.0.0.1") -> int:
-    """A port ``p`` with ``p + i * _STRIDE`` free for every replica ``i < count``."""
-    for _ in range(100):
-        base = free_port(host)
-        if base + (count - 1) * _STRIDE > 65535:
-            continue
-        try:
-            for i in range(1, count):
-                with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-                    sock.bind((host, base + i * _STRIDE))
-        except OSError:
-            continue
-        return base
-    raise RuntimeError(f"no {count} free ports {_STRIDE} apart on {host}")
-
-
 @contextmanager
 def local_stack(
     workdir: Path,
@@ -374,17 +354,5 @@ def local_stack(
         env["COSMOS_RENDER_WIDTH"] = str(render_width)
     if max_concurrent_searches is not None:
         env["COSMOS_MAX_CONCURRENT_SEARCHES"] = str(max_concurrent_searches)
-    ports = [_free_base(count) for count in (1, renderers, detectors, 1)]
-    plan = plan_stack(
-        controller_port=ports[0],
-        renderer_port=ports[1],
-        detector_port=ports[2],
-        optimizer_port=ports[3],
-        renderers=renderers,
-        detectors=detectors,
-        port_stride=_STRIDE,
-        database_url=f"sqlite:///{workdir}/controller.sqlite3",
-        env=env,
-    )
-    with running_stack(plan, workdir / "logs") as stack:
+    with services_stack(workdir, renderers=renderers, detectors=detectors, env=env) as stack:
         yield stack

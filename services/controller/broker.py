@@ -31,7 +31,7 @@ import httpx
 
 from services.common.search import ReplicaHealth
 
-__all__ = ["Broker", "BrokerError", "Heuristic", "Replica"]
+__all__ = ["Broker", "BrokerError", "Heuristic", "Replica", "Request"]
 
 _log = logging.getLogger("cosmos.broker")
 EWMA_WEIGHT = 0.3

@@ -15,7 +15,7 @@ from services.common.errors import ProblemDetails
 from services.common.images import PPM_MEDIA_TYPE
 from services.common.models import DetectResponse, GridIndex
 from services.common.scene import SceneDetail
-from services.controller.broker import Broker
+from services.controller.broker import Broker, Request
 
 __all__ = ["StageError", "Stages"]
 
@@ -54,13 +54,11 @@ class Stages:
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
         """The scene's spec and grid from a renderer (cached: scenes are static)."""
         if scene_id not in self._scenes:
-            response = await self.broker.call(
+            response = await self._call(
                 "renderer",
                 "scene",
                 lambda c: c.get(f"/scenes/{scene_id}", headers={"X-Request-ID": request_id}),
             )
-            if response.status_code != 200:
-                raise _problem("renderer", response)
             self._scenes[scene_id] = SceneDetail.model_validate(response.json())
         return self._scenes[scene_id]
 
@@ -73,35 +71,34 @@ class Stages:
         if self.render_width is not None:
             body["width"] = self.render_width
         headers = {"X-Request-ID": request_id, "Accept": f"{PPM_MEDIA_TYPE}, image/png;q=0.5"}
-        response = await self.broker.call(
-            "renderer",
-            "render",
-            lambda c: c.post("/render", json=body, headers=headers),
+        response = await self._call(
+            "renderer", "render", lambda c: c.post("/render", json=body, headers=headers)
         )
-        if response.status_code != 200:
-            raise _problem("renderer", response)
         return response.content
 
     async def detect(self, image: bytes, media_type: str, request_id: str = "") -> DetectResponse:
         """The objects found in an image."""
         files = {"image": ("image", image, media_type)}
-        response = await self.broker.call(
+        response = await self._call(
             "detector",
             "detect",
             lambda c: c.post("/detect", files=files, headers={"X-Request-ID": request_id}),
         )
-        if response.status_code != 200:
-            raise _problem("detector", response)
         return DetectResponse.model_validate(response.json())
 
     async def optimize(self, body: dict[str, Any], request_id: str = "") -> dict[str, Any]:
         """The optimizer's answer to ``POST /next-pose`` (validated by the caller)."""
-        response = await self.broker.call(
+        response = await self._call(
             "optimizer",
             "optimize",
             lambda c: c.post("/next-pose", json=body, headers={"X-Request-ID": request_id}),
         )
-        if response.status_code != 200:
-            raise _problem("optimizer", response)
         answer: dict[str, Any] = response.json()
         return answer
+
+    async def _call(self, stage: str, kind: str, request: Request) -> httpx.Response:
+        """``request`` through the broker; any answer but 200 is the stage's :class:`StageError`."""
+        response = await self.broker.call(stage, kind, request)
+        if response.status_code != 200:
+            raise _problem(stage, response)
+        return response
