@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Query, Request, Response, UploadFile
 
 from services.common.errors import UnsupportedMediaTypeError
 from services.common.http import app_state, problem_responses
@@ -86,8 +86,10 @@ async def detect(
         int | None,
         Query(ge=1, le=1000, description="At most this many detections, best first."),
     ] = None,
-) -> DetectResponse:
+) -> Response:
     """Detect the objects in an image (multipart field ``image``): per object its class,
     confidence, box in pixels of the uploaded image and mean colour."""
     data = await image.read()
-    return await state.detector.detect(data, conf=conf, max_detections=max_detections)
+    found = await state.detector.detect(data, conf=conf, max_detections=max_detections)
+    # Serialised once by pydantic-core; returning the model would validate it again first.
+    return Response(found.model_dump_json(), media_type="application/json")
