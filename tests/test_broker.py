@@ -1,16 +1,19 @@
 """The broker: placement heuristics, retries, taking failing replicas out and back, with
-injected faults (httpx.MockTransport) and with real slow, failing and hanging replica processes."""
+injected faults (a scripted transport) and with real slow, failing and hanging replica processes."""
 
 from __future__ import annotations
 
 import asyncio
+import json
 from collections import Counter
+from collections.abc import Callable
+from urllib.parse import urlsplit
 
-import httpx
 import pytest
 
 from services.common.launch import running_service
 from services.controller.broker import Broker, BrokerError, Heuristic
+from services.controller.transport import StageAnswer, StageRequest, TransportError
 
 pytestmark = pytest.mark.anyio
 
@@ -20,20 +23,33 @@ def anyio_backend() -> str:
     return "asyncio"
 
 
-def work(client: httpx.AsyncClient):
-    return client.post("/work")
+work = StageRequest("POST", "/work")
+Behaviour = Callable[[str, StageRequest], StageAnswer]
 
 
-def mock_broker(behaviour, heuristic=Heuristic.SHORTEST_EXPECTED, **kwargs) -> Broker:
-    """Replicas a, b, c served by ``behaviour(host, request) -> httpx.Response``."""
+def answer(status: int, body: object = None) -> StageAnswer:
+    return StageAnswer(status, b"" if body is None else json.dumps(body).encode())
 
-    def handler(request: httpx.Request) -> httpx.Response:
-        return behaviour(request.url.host, request)
 
+class Scripted:
+    """A transport whose replicas answer ``behaviour(host, request)`` (or raise)."""
+
+    def __init__(self, behaviour: Behaviour) -> None:
+        self.behaviour = behaviour
+
+    async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer:
+        return self.behaviour(urlsplit(base_url).hostname or "", request)
+
+    async def close(self) -> None:
+        pass
+
+
+def mock_broker(behaviour: Behaviour, heuristic=Heuristic.SHORTEST_EXPECTED, **kwargs) -> Broker:
+    """Replicas a, b, c served by ``behaviour``."""
     return Broker(
         {"renderer": ["http://a", "http://b", "http://c"]},
         heuristic=heuristic,
-        transport=httpx.MockTransport(handler),
+        transport=Scripted(behaviour),
         backoff_s=0.0,
         health_interval_s=0,
         **kwargs,
@@ -41,16 +57,14 @@ def mock_broker(behaviour, heuristic=Heuristic.SHORTEST_EXPECTED, **kwargs) -> B
 
 
 async def test_round_robin_takes_turns():
-    broker = mock_broker(
-        lambda host, _: httpx.Response(200, json={"host": host}), Heuristic.ROUND_ROBIN
-    )
+    broker = mock_broker(lambda host, _: answer(200, {"host": host}), Heuristic.ROUND_ROBIN)
     hosts = [(await broker.call("renderer", "render", work)).json()["host"] for _ in range(6)]
     assert Counter(hosts) == {"a": 2, "b": 2, "c": 2}
     await broker.close()
 
 
 async def test_least_loaded_avoids_busy_replicas():
-    broker = mock_broker(lambda host, _: httpx.Response(200), Heuristic.LEAST_LOADED)
+    broker = mock_broker(lambda host, _: answer(200), Heuristic.LEAST_LOADED)
     a, b, c = broker.replicas("renderer")
     a.in_flight, b.reported_load, c.in_flight = 3, 5, 1
     assert broker.choose("renderer", "render") is c
@@ -58,7 +72,7 @@ async def test_least_loaded_avoids_busy_replicas():
 
 
 async def test_shortest_expected_completion_prefers_the_fast_replica():
-    broker = mock_broker(lambda host, _: httpx.Response(200))
+    broker = mock_broker(lambda host, _: answer(200))
     a, b, c = broker.replicas("renderer")
     a.expected_ms["render"], b.expected_ms["render"], c.expected_ms["render"] = 300.0, 40.0, 90.0
     assert broker.choose("renderer", "render") is b
@@ -71,10 +85,10 @@ async def test_shortest_expected_completion_prefers_the_fast_replica():
 async def test_connect_errors_and_5xx_go_to_another_replica():
     def behaviour(host, request):
         if host == "a":
-            raise httpx.ConnectError("refused", request=request)
+            raise TransportError("ClientConnectorError: refused")
         if host == "b":
-            return httpx.Response(503)
-        return httpx.Response(200, json={"host": host})
+            return answer(503)
+        return answer(200, {"host": host})
 
     broker = mock_broker(behaviour, Heuristic.ROUND_ROBIN)
     for _ in range(5):
@@ -91,7 +105,7 @@ async def test_client_errors_are_returned_not_retried():
 
     def behaviour(host, request):
         calls[host] += 1
-        return httpx.Response(422, json={"detail": "bad"})
+        return answer(422, {"detail": "bad"})
 
     broker = mock_broker(behaviour)
     response = await broker.call("renderer", "render", work)
@@ -102,13 +116,13 @@ async def test_client_errors_are_returned_not_retried():
 
 async def test_a_task_fails_with_reasons_only_when_no_replica_can_serve():
     def behaviour(host, request):
-        raise httpx.ReadTimeout("slow", request=request)
+        raise TransportError("timed out (SocketTimeoutError, 60 s)")
 
     broker = mock_broker(behaviour, max_attempts=4)
     with pytest.raises(BrokerError) as caught:
         await broker.call("renderer", "render", work)
     assert len(caught.value.reasons) == 4
-    assert all("ReadTimeout" in reason for reason in caught.value.reasons)
+    assert all("timed out" in reason for reason in caught.value.reasons)
     assert "no renderer replica could render" in str(caught.value)
     await broker.close()
 
@@ -117,15 +131,13 @@ async def test_a_failing_replica_is_taken_out_and_probed_back():
     healthy = {"a": False}
 
     def behaviour(host, request):
-        if request.url.path == "/health":
-            return (
-                httpx.Response(200, json={"in_flight": 2}) if healthy[host] else httpx.Response(500)
-            )
-        return httpx.Response(500)
+        if request.path == "/health":
+            return answer(200, {"in_flight": 2}) if healthy[host] else answer(500)
+        return answer(500)
 
     broker = Broker(
         {"renderer": ["http://a"]},
-        transport=httpx.MockTransport(lambda r: behaviour(r.url.host, r)),
+        transport=Scripted(behaviour),
         backoff_s=0.0,
         failure_threshold=2,
         cooldown_s=60.0,
@@ -145,7 +157,7 @@ async def test_a_failing_replica_is_taken_out_and_probed_back():
 
 
 async def test_unknown_stage_is_an_error():
-    broker = mock_broker(lambda host, _: httpx.Response(200))
+    broker = mock_broker(lambda host, _: answer(200))
     with pytest.raises(BrokerError):
         await broker.call("detector", "detect", work)
     await broker.close()
@@ -206,7 +218,7 @@ async def test_dns_discovery_gives_one_replica_per_address():
 
 
 async def test_a_new_pool_keeps_what_is_known_of_remaining_replicas():
-    broker = mock_broker(lambda host, _: httpx.Response(200))
+    broker = mock_broker(lambda host, _: answer(200))
     a = broker.replicas("renderer")[0]
     a.expected_ms["render"] = 42.0
     await broker.set_pool("renderer", ["http://a", "http://d"])

@@ -4,6 +4,7 @@ are fetched as binary PPM and detected as such, and a renderer that only answers
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
+from urllib.parse import urlsplit
 
 import httpx
 import pytest
@@ -14,6 +15,7 @@ from services.common.images import PPM_MEDIA_TYPE, media_type_of
 from services.common.models import GridIndex
 from services.controller.broker import Broker
 from services.controller.stages import Stages
+from services.controller.transport import StageAnswer, StageRequest
 from services.detector.app import create_app as create_detector
 from services.renderer.app import create_app as create_renderer
 
@@ -47,16 +49,31 @@ async def apps() -> AsyncIterator[tuple[ASGIApp, ASGIApp]]:
         yield renderer.app, detector.app
 
 
+class InProcessApps:
+    """A transport that hands each request to the in-process app named by the URL's host."""
+
+    def __init__(self, apps: dict[str, ASGIApp]) -> None:
+        self.clients = {
+            host: httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://app")
+            for host, app in apps.items()
+        }
+
+    async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer:
+        client = self.clients[urlsplit(base_url).hostname or ""]
+        response = await client.request(
+            request.method, request.path, content=request.body, headers=dict(request.headers)
+        )
+        return StageAnswer(response.status_code, response.content, dict(response.headers))
+
+    async def close(self) -> None:
+        for client in self.clients.values():
+            await client.aclose()
+
+
 def stages_over(renderer: ASGIApp, detector: ASGIApp) -> Stages:
-    routes = {"renderer": renderer, "detector": detector}
-
-    async def route(scope: Scope, receive: Receive, send: Send) -> None:
-        host = dict(scope["headers"])[b"host"].decode()
-        await routes[host](scope, receive, send)
-
     broker = Broker(
         {"renderer": ["http://renderer"], "detector": ["http://detector"]},
-        transport=httpx.ASGITransport(app=route),
+        transport=InProcessApps({"renderer": renderer, "detector": detector}),
         health_interval_s=0,
     )
     return Stages(broker, render_spp=2)

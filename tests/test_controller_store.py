@@ -111,3 +111,25 @@ def test_an_iteration_and_the_target_detections_are_recorded_together(tmp_path):
     store.add_iteration("a", iteration(1))
     assert [it.index for it in store.iterations("a")] == [0, 1]
     store.close()
+
+
+def test_the_last_iteration_and_the_result_are_recorded_together(tmp_path):
+    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store.create(search("a"), b"\x89PNG-a")
+    store.add_iteration("a", iteration(0))
+    assert store.status_doc("a") is not None
+    assert store.status_doc("a")[0] == "queued"
+    result = SearchResult(
+        pose=START, refined_pose=Pose(theta_deg=22.0, phi_deg=61.0), confidence=0.9, renders=2
+    )
+    store.add_iteration("a", iteration(1), status="succeeded", result=result)
+    status, doc = store.status_doc("a")
+    assert status == "succeeded"
+    assert Search.model_validate_json(doc).result == result
+    # What the event stream sends: the stored documents, from an index on.
+    assert [Iteration.model_validate_json(d) for d in store.iteration_docs("a", start=1)] == [
+        iteration(1)
+    ]
+    assert store.iteration_docs("a", start=2) == []
+    assert store.status_doc("nope") is None
+    store.close()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import json
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated, Any
@@ -24,6 +23,7 @@ from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
 from services.controller.submit import MAX_ITERATIONS, create_search
+from services.controller.transport import StageRequest
 
 __all__ = ["ControllerState", "router"]
 
@@ -69,7 +69,7 @@ async def health(state: State) -> ControllerHealth:
 async def scenes(state: State) -> Any:
     """The scenes the renderers know (proxied)."""
     try:
-        response = await state.broker.call("renderer", "scene", lambda c: c.get("/scenes"))
+        response = await state.broker.call("renderer", "scene", StageRequest("GET", "/scenes"))
     except BrokerError as exc:
         raise _unavailable(exc) from exc
     return JSONResponse(response.json(), status_code=response.status_code)
@@ -147,8 +147,8 @@ async def cancel_search(search_id: str, state: State) -> Search:
     return state.runner.cancel(search_id)
 
 
-def _sse(event: str, data: Any) -> bytes:
-    return f"event: {event}\ndata: {json.dumps(data)}\n\n".encode()
+def _sse(event: str, data: str) -> bytes:
+    return f"event: {event}\ndata: {data}\n\n".encode()
 
 
 @router.get(
@@ -157,20 +157,23 @@ def _sse(event: str, data: Any) -> bytes:
     responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(404)},
 )
 async def search_events(search_id: str, state: State) -> StreamingResponse:
-    """Server-sent events: ``iteration`` for each recorded iteration, then one ``end``."""
+    """Server-sent events: ``iteration`` for each recorded iteration, then one ``end`` with the
+    search without its iterations. The stored JSON documents are sent as they are."""
     _search_or_404(state, search_id)
 
     async def stream() -> AsyncIterator[bytes]:
         sent = 0
         while True:
             changed = state.notifier.current(search_id)
-            search = _search_or_404(state, search_id)
-            for iteration in search.iterations[sent:]:
-                yield _sse("iteration", iteration.model_dump(mode="json"))
-            sent = len(search.iterations)
-            if search.status in TERMINAL_STATUSES:
-                summary = search.model_dump(mode="json", exclude={"iterations"})
-                yield _sse("end", summary)
+            status_doc = state.store.status_doc(search_id)  # before the iterations: a search
+            docs = state.store.iteration_docs(search_id, start=sent)  # ends after its last one
+            for doc in docs:
+                yield _sse("iteration", doc)
+            sent += len(docs)
+            if status_doc is None:  # searches are never deleted; stop rather than spin
+                return
+            if status_doc[0] in TERMINAL_STATUSES:
+                yield _sse("end", status_doc[1])
                 return
             try:
                 await asyncio.wait_for(changed.wait(), timeout=15.0)

@@ -22,22 +22,26 @@ import asyncio
 import itertools
 import logging
 import time
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-import httpx
-
 from services.common.search import ReplicaHealth
+from services.controller.transport import (
+    AiohttpTransport,
+    StageAnswer,
+    StageRequest,
+    Transport,
+    TransportError,
+)
 
-__all__ = ["Broker", "BrokerError", "Heuristic", "Replica", "Request"]
+__all__ = ["Broker", "BrokerError", "Heuristic", "Replica"]
 
 _log = logging.getLogger("cosmos.broker")
 EWMA_WEIGHT = 0.3
 DEFAULT_EXPECTED_MS = 100.0
-
-Request = Callable[[httpx.AsyncClient], Awaitable[httpx.Response]]
+HEALTH_TIMEOUT_S = 2.0
 
 
 class Heuristic(StrEnum):
@@ -61,7 +65,6 @@ class Replica:
 
     stage: str
     url: str
-    client: httpx.AsyncClient
     in_flight: int = 0
     reported_load: float = 0.0
     expected_ms: dict[str, float] = field(default_factory=dict)
@@ -93,7 +96,7 @@ class Broker:
         failure_threshold: int = 3,
         cooldown_s: float = 5.0,
         health_interval_s: float = 2.0,
-        transport: httpx.AsyncBaseTransport | None = None,
+        transport: Transport | None = None,
     ) -> None:
         if max_attempts < 1 or failure_threshold < 1:
             raise ValueError("max_attempts and failure_threshold must be at least 1")
@@ -103,10 +106,8 @@ class Broker:
         self.failure_threshold = failure_threshold
         self.cooldown_s = cooldown_s
         self.health_interval_s = health_interval_s
-        timeouts = dict(timeouts_s or {})
-        self._timeouts = timeouts
-        self._connect_timeout_s = connect_timeout_s
-        self._transport = transport
+        self._timeouts = dict(timeouts_s or {})
+        self._transport = transport or AiohttpTransport(connect_timeout_s)
         self._replicas: dict[str, list[Replica]] = {}
         self._turns: dict[str, itertools.count[int]] = {}
         for stage, urls in pools.items():
@@ -115,10 +116,7 @@ class Broker:
         self._health_task: asyncio.Task[None] | None = None
 
     def _replica(self, stage: str, url: str) -> Replica:
-        url = url.rstrip("/")
-        timeout = httpx.Timeout(self._timeouts.get(stage, 60.0), connect=self._connect_timeout_s)
-        client = httpx.AsyncClient(base_url=url, timeout=timeout, transport=self._transport)
-        return Replica(stage=stage, url=url, client=client)
+        return Replica(stage=stage, url=url.rstrip("/"))
 
     async def set_pool(self, stage: str, urls: Sequence[str]) -> None:
         """Replace a stage's replicas (keeping what is known of those that stay)."""
@@ -126,9 +124,6 @@ class Broker:
         current = {r.url: r for r in self._replicas.get(stage, [])}
         self._replicas[stage] = [current.get(url) or self._replica(stage, url) for url in wanted]
         self._turns.setdefault(stage, itertools.count())
-        for url, replica in current.items():
-            if url not in wanted:
-                await replica.client.aclose()
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -145,8 +140,7 @@ class Broker:
             except asyncio.CancelledError:
                 pass
             self._health_task = None
-        for replica in self.replicas():
-            await replica.client.aclose()
+        await self._transport.close()
 
     # -- introspection ------------------------------------------------------------------------
 
@@ -201,8 +195,8 @@ class Broker:
 
     # -- calls --------------------------------------------------------------------------------
 
-    async def call(self, stage: str, kind: str, request: Request) -> httpx.Response:
-        """Run ``request`` against a replica of ``stage``, retrying elsewhere on failure.
+    async def call(self, stage: str, kind: str, request: StageRequest) -> StageAnswer:
+        """Send ``request`` to a replica of ``stage``, retrying elsewhere on failure.
 
         Returns the first answer below 500; raises :class:`BrokerError` when every attempt met
         a connect error, a timeout or a 5xx.
@@ -218,9 +212,11 @@ class Broker:
             replica.in_flight += 1
             started = time.perf_counter()
             try:
-                response = await request(replica.client)
-            except httpx.TransportError as exc:
-                reason = f"{replica.url}: {type(exc).__name__}"
+                response = await self._transport.send(
+                    replica.url, request, self._timeouts.get(stage, 60.0)
+                )
+            except TransportError as exc:
+                reason = f"{replica.url}: {exc}"
             else:
                 elapsed_ms = (time.perf_counter() - started) * 1000.0
                 if response.status_code < 500:
@@ -258,9 +254,11 @@ class Broker:
 
     async def _probe(self, replica: Replica) -> None:
         try:
-            response = await replica.client.get("/health", timeout=2.0)
+            response = await self._transport.send(
+                replica.url, StageRequest("GET", "/health"), HEALTH_TIMEOUT_S
+            )
             body: Any = response.json() if response.status_code == 200 else None
-        except (httpx.TransportError, ValueError):
+        except (TransportError, ValueError):
             body = None
         if not isinstance(body, dict):
             if replica.available(time.monotonic()):

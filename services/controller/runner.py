@@ -27,7 +27,6 @@ from services.common.optimization import (
     GridPose,
     GridSpec,
     NextPoseRequest,
-    NextPoseResponse,
     TargetImage,
     VisitedView,
 )
@@ -168,7 +167,7 @@ class SearchRunner:
         self.store.update(search_id, status="running")
         self.notifier.publish(search_id)
         try:
-            result = await self._search(search)
+            await self._search(search)  # records the result with the last iteration
         except asyncio.CancelledError:
             if search_id in self._cancelled:
                 return
@@ -188,8 +187,6 @@ class SearchRunner:
                     detail="the search failed unexpectedly; the error was logged",
                 ),
             )
-        else:
-            self.store.update(search_id, status="succeeded", result=result)
         finally:
             self.notifier.publish(search_id)
 
@@ -256,8 +253,10 @@ class SearchRunner:
             (it.pose.index.lat, it.pose.index.lon): _View(it.image_size, it.detections)
             for it in history
         }
-        if history and history[-1].done:  # finished just before a restart
-            return _result_of(history[-1], len(views))
+        if history and history[-1].done:  # recorded by an older controller without its result
+            result = _result_of(history[-1], len(views))
+            self.store.update(sid, status="succeeded", result=result)
+            return result
         current = history[-1].next_pose if history else search.start
         target = search.target_detections
         target_size = search.target_size
@@ -313,10 +312,7 @@ class SearchRunner:
             )
             t0 = time.perf_counter()
             try:
-                raw = await self.stages.optimize(
-                    request.model_dump(mode="json", exclude_none=True), sid
-                )
-                answer = NextPoseResponse.model_validate(raw)
+                answer = await self.stages.optimize(request, sid)
             except (StageError, BrokerError) as exc:
                 raise _stage_failure(exc) from exc
             except ValidationError as exc:
@@ -346,9 +342,17 @@ class SearchRunner:
                 reason=answer.reason,
             )
             history.append(iteration)
+            if answer.done:  # recorded and published with the result: followers wake once
+                result = _result_of(iteration, renders)
+                self.store.add_iteration(
+                    sid,
+                    iteration,
+                    target_detections=new_target,
+                    status="succeeded",
+                    result=result,
+                )
+                return result
             self.store.add_iteration(sid, iteration, target_detections=new_target)
-            if answer.done:  # published with the result, so followers wake once for both
-                return _result_of(iteration, renders)
             self.notifier.publish(sid)
             if answer.stuck:
                 raise _failure(

@@ -7,15 +7,16 @@ failures and 5xx answers are the broker's to retry elsewhere.
 
 from __future__ import annotations
 
+import json
 from typing import Any
-
-import httpx
 
 from services.common.errors import ProblemDetails
 from services.common.images import PPM_MEDIA_TYPE
 from services.common.models import DetectResponse, GridIndex
+from services.common.optimization import NextPoseRequest, NextPoseResponse
 from services.common.scene import SceneDetail
-from services.controller.broker import Broker, Request
+from services.controller.broker import Broker
+from services.controller.transport import StageAnswer, StageRequest, multipart_file
 
 __all__ = ["StageError", "Stages"]
 
@@ -29,7 +30,7 @@ class StageError(RuntimeError):
         self.problem = problem
 
 
-def _problem(stage: str, response: httpx.Response) -> StageError:
+def _problem(stage: str, response: StageAnswer) -> StageError:
     try:
         body: Any = response.json()
         problem = ProblemDetails.model_validate(body)
@@ -54,12 +55,11 @@ class Stages:
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
         """The scene's spec and grid from a renderer (cached: scenes are static)."""
         if scene_id not in self._scenes:
-            response = await self._call(
-                "renderer",
-                "scene",
-                lambda c: c.get(f"/scenes/{scene_id}", headers={"X-Request-ID": request_id}),
+            request = StageRequest(
+                "GET", f"/scenes/{scene_id}", headers={"X-Request-ID": request_id}
             )
-            self._scenes[scene_id] = SceneDetail.model_validate(response.json())
+            response = await self._call("renderer", "scene", request)
+            self._scenes[scene_id] = SceneDetail.model_validate_json(response.content)
         return self._scenes[scene_id]
 
     async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
@@ -71,32 +71,26 @@ class Stages:
         if self.render_width is not None:
             body["width"] = self.render_width
         headers = {"X-Request-ID": request_id, "Accept": f"{PPM_MEDIA_TYPE}, image/png;q=0.5"}
-        response = await self._call(
-            "renderer", "render", lambda c: c.post("/render", json=body, headers=headers)
-        )
-        return response.content
+        request = StageRequest.json("/render", json.dumps(body), headers)
+        return (await self._call("renderer", "render", request)).content
 
     async def detect(self, image: bytes, media_type: str, request_id: str = "") -> DetectResponse:
         """The objects found in an image."""
-        files = {"image": ("image", image, media_type)}
+        body, content_type = multipart_file("image", "image", image, media_type)
+        headers = {"X-Request-ID": request_id, "Content-Type": content_type}
         response = await self._call(
-            "detector",
-            "detect",
-            lambda c: c.post("/detect", files=files, headers={"X-Request-ID": request_id}),
+            "detector", "detect", StageRequest("POST", "/detect", body, headers)
         )
-        return DetectResponse.model_validate(response.json())
+        return DetectResponse.model_validate_json(response.content)
 
-    async def optimize(self, body: dict[str, Any], request_id: str = "") -> dict[str, Any]:
-        """The optimizer's answer to ``POST /next-pose`` (validated by the caller)."""
-        response = await self._call(
-            "optimizer",
-            "optimize",
-            lambda c: c.post("/next-pose", json=body, headers={"X-Request-ID": request_id}),
-        )
-        answer: dict[str, Any] = response.json()
-        return answer
+    async def optimize(self, request: NextPoseRequest, request_id: str = "") -> NextPoseResponse:
+        """The optimizer's answer to ``POST /next-pose`` (a ValidationError if it is malformed)."""
+        body = request.model_dump_json(exclude_none=True)
+        call = StageRequest.json("/next-pose", body, {"X-Request-ID": request_id})
+        response = await self._call("optimizer", "optimize", call)
+        return NextPoseResponse.model_validate_json(response.content)
 
-    async def _call(self, stage: str, kind: str, request: Request) -> httpx.Response:
+    async def _call(self, stage: str, kind: str, request: StageRequest) -> StageAnswer:
         """``request`` through the broker; any answer but 200 is the stage's :class:`StageError`."""
         response = await self.broker.call(stage, kind, request)
         if response.status_code != 200:

@@ -121,21 +121,31 @@ class SearchStore:
         return [Search.model_validate_json(row[0]) for row in rows], int(total)
 
     def iterations(self, search_id: str) -> list[Iteration]:
+        return [Iteration.model_validate_json(doc) for doc in self.iteration_docs(search_id)]
+
+    def iteration_docs(self, search_id: str, start: int = 0) -> list[str]:
+        """The recorded iterations from index ``start`` on, as their JSON documents."""
         with self._lock:
             rows = self._db.execute(
-                "SELECT doc FROM iterations WHERE search_id = ? ORDER BY idx", (search_id,)
+                "SELECT doc FROM iterations WHERE search_id = ? AND idx >= ? ORDER BY idx",
+                (search_id, start),
             ).fetchall()
-        return [Iteration.model_validate_json(row[0]) for row in rows]
+        return [row[0] for row in rows]
+
+    def status_doc(self, search_id: str) -> tuple[SearchStatus, str] | None:
+        """The search's status and its JSON document without iterations, or None."""
+        row = self._one("SELECT status, doc FROM searches WHERE id = ?", search_id)
+        return None if row is None else (row[0], row[1])
 
     def add_iteration(
         self,
         search_id: str,
         iteration: Iteration,
-        *,
-        target_detections: tuple[Detection, ...] | None = None,
+        **changes: Unpack[SearchChanges],
     ) -> None:
-        """Record an iteration (replacing one of the same index, as a resumed search may), and
-        the target's detections with it when given, in one transaction."""
+        """Record an iteration (replacing one of the same index, as a resumed search may) and
+        ``changes`` of the search (the target's detections, the final status and result) in one
+        transaction."""
         with self._lock:
             self._db.execute("BEGIN")
             try:
@@ -143,7 +153,7 @@ class SearchStore:
                     "INSERT OR REPLACE INTO iterations (search_id, idx, doc) VALUES (?, ?, ?)",
                     (search_id, iteration.index, iteration.model_dump_json()),
                 )
-                self._update(search_id, {"target_detections": target_detections})
+                self._update(search_id, changes)
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise
