@@ -115,7 +115,7 @@ async def submit(
         raise _unavailable(exc) from exc
     except StageError as exc:
         raise UnprocessableError(str(exc), field="scene") from exc
-    state.runner.submit(search.id)
+    state.runner.submit(search.id, recorded=(search, data))
     return JSONResponse(
         search.model_dump(mode="json"),
         status_code=202,

@@ -85,6 +85,35 @@ def _result_of(last: Iteration, renders: int) -> SearchResult:
     )
 
 
+class _Writes:
+    """A search's writes that can wait for its next stage requests: the running status and the
+    last iteration. Done while the next view renders, they cost the search no time."""
+
+    def __init__(self, store: SearchStore, notifier: Notifier, search: Search) -> None:
+        self.store = store
+        self.notifier = notifier
+        self.sid = search.id
+        self._running = search.status == "running"
+        self._iteration: tuple[Iteration, tuple[Detection, ...] | None] | None = None
+
+    def hold(self, iteration: Iteration, target_detections: tuple[Detection, ...] | None) -> None:
+        """Record ``iteration`` (with the target's detections, when new) at the next flush."""
+        self._iteration = (iteration, target_detections)
+
+    def flush(self) -> None:
+        """Write what waits, and wake the search's followers."""
+        if self._running and self._iteration is None:
+            return
+        if not self._running:
+            self.store.update(self.sid, status="running")
+            self._running = True
+        if self._iteration is not None:
+            iteration, target_detections = self._iteration
+            self.store.add_iteration(self.sid, iteration, target_detections=target_detections)
+            self._iteration = None
+        self.notifier.publish(self.sid)
+
+
 class SearchRunner:
     """Runs queued searches on a bounded number of workers."""
 
@@ -99,6 +128,7 @@ class SearchRunner:
         self._workers: list[asyncio.Task[None]] = []
         self._running: dict[str, asyncio.Task[None]] = {}
         self._cancelled: set[str] = set()
+        self._submitted: dict[str, tuple[Search, bytes]] = {}  # new searches, not yet picked up
 
     async def start(self) -> None:
         """Start the workers and queue every search a previous run left unfinished."""
@@ -117,7 +147,11 @@ class SearchRunner:
                 await worker
         self._workers.clear()
 
-    def submit(self, search_id: str) -> None:
+    def submit(self, search_id: str, *, recorded: tuple[Search, bytes] | None = None) -> None:
+        """Queue a search; a new one hands in its record and target image, already stored, so
+        that it starts without reading them back."""
+        if recorded is not None:
+            self._submitted[search_id] = recorded
         self._queue.put_nowait(search_id)
 
     @property
@@ -161,13 +195,11 @@ class SearchRunner:
                 self._running.pop(search_id, None)
 
     async def _run(self, search_id: str) -> None:
-        search = self.store.get(search_id)
-        if search is None or search.status in TERMINAL_STATUSES:
+        search, image = self._submitted.pop(search_id, None) or (self.store.get(search_id), None)
+        if search is None or search.status in TERMINAL_STATUSES or search_id in self._cancelled:
             return
-        self.store.update(search_id, status="running")
-        self.notifier.publish(search_id)
         try:
-            await self._search(search)  # records the result with the last iteration
+            await self._search(search, image or self.store.image(search_id))
         except asyncio.CancelledError:
             if search_id in self._cancelled:
                 return
@@ -227,7 +259,30 @@ class SearchRunner:
         view = _View(found.image_size, found.detections)
         return view, seen, (t1 - t0) * 1000, (t2 - t1) * 1000
 
-    async def _search(self, search: Search) -> SearchResult:
+    async def _observe_while(
+        self, writes: _Writes, search: Search, pose: GridPose, target_image: bytes | None
+    ) -> tuple[_View, DetectResponse | None, float, float]:
+        """:meth:`_observe`, with the search's waiting writes done once its requests are out."""
+        observing = asyncio.create_task(self._observe(search, pose, target_image))
+        try:
+            await asyncio.sleep(0)  # the task sends the render request first
+            writes.flush()
+            return await observing
+        finally:
+            if not observing.done():
+                observing.cancel()
+                with contextlib.suppress(asyncio.CancelledError, SearchFailed):
+                    await observing
+
+    async def _search(self, search: Search, image: bytes) -> SearchResult:
+        """Run a search to its result, recording every iteration; raises :class:`SearchFailed`."""
+        writes = _Writes(self.store, self.notifier, search)
+        try:
+            return await self._iterate(search, image, writes)
+        finally:
+            writes.flush()  # what is done is recorded before a failure or a cancellation
+
+    async def _iterate(self, search: Search, image: bytes, writes: _Writes) -> SearchResult:
         sid = search.id
         try:
             scene = await self.stages.scene(search.scene, sid)
@@ -247,7 +302,6 @@ class SearchRunner:
                 f"scene {search.scene}'s grid cannot be searched: {exc.errors()[0]['msg']}",
                 status=422,
             ) from exc
-        image = self.store.image(sid)
         history = list(search.iterations)
         views = {
             (it.pose.index.lat, it.pose.index.lon): _View(it.image_size, it.detections)
@@ -271,9 +325,10 @@ class SearchRunner:
             new_target: tuple[Detection, ...] | None = None
             if key in views:
                 view = views[key]
+                writes.flush()
             else:
-                view, seen, render_ms, detect_ms = await self._observe(
-                    search, current, image if target is None else None
+                view, seen, render_ms, detect_ms = await self._observe_while(
+                    writes, search, current, image if target is None else None
                 )
                 if seen is not None:  # recorded with this iteration, below
                     target, target_size = seen.detections, seen.image_size
@@ -344,6 +399,7 @@ class SearchRunner:
             history.append(iteration)
             if answer.done:  # recorded and published with the result: followers wake once
                 result = _result_of(iteration, renders)
+                writes.flush()
                 self.store.add_iteration(
                     sid,
                     iteration,
@@ -352,8 +408,7 @@ class SearchRunner:
                     result=result,
                 )
                 return result
-            self.store.add_iteration(sid, iteration, target_detections=new_target)
-            self.notifier.publish(sid)
+            writes.hold(iteration, new_target)
             if answer.stuck:
                 raise _failure(
                     "search-stuck",
