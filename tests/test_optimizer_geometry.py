@@ -8,9 +8,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from services.common.camera import camera_model, project
+from services.common.camera import camera_axes, camera_model, project
+from services.common.grid import pose_to_cartesian
 from services.common.models import Pose
 from services.common.scene import Camera
+from services.optimizer import proxies
 from services.optimizer.geometry import Cameras
 from services.optimizer.proxies import (
     RIM_POINTS,
@@ -35,6 +37,23 @@ def test_cameras_project_like_the_shared_camera_model(theta, phi, pts):
     theirs, their_depth = project(pts, model)
     np.testing.assert_allclose(mine[0], theirs, atol=1e-9)
     np.testing.assert_allclose(depth[0], their_depth, atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    theta=hnp.arrays(np.float64, st.integers(1, 9), elements=thetas),
+    phi=hnp.arrays(np.float64, st.integers(1, 9), elements=phis),
+)
+def test_cameras_have_the_axes_of_the_shared_camera_model_to_the_last_bit(theta, phi):
+    """Cameras.at writes camera_axes out for speed; refinement results depend on the bits."""
+    count = min(len(theta), len(phi))
+    theta, phi = theta[:count], phi[:count]
+    cams = Cameras.at(theta, phi, CAMERA)
+    right, down, forward = camera_axes(theta, phi)
+    np.testing.assert_array_equal(cams.rotation, np.stack([right, down, forward], axis=-2))
+    np.testing.assert_array_equal(cams.position, -forward * CAMERA.radius)
+    np.testing.assert_array_equal(cams.unit_positions, pose_to_cartesian(theta, phi))
+    np.testing.assert_array_equal(Cameras.at(theta[0], phi[0], CAMERA).rotation, cams.rotation[:1])
 
 
 @settings(max_examples=60, deadline=None)
@@ -151,6 +170,23 @@ def test_an_objects_box_does_not_depend_on_the_others(theta, phi, params, kinds)
     for m in range(len(kinds)):
         alone = proxy_boxes(cams, kinds[m : m + 1], params[m : m + 1])[:, 0]
         np.testing.assert_array_equal(together[:, m], alone)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    theta=hnp.arrays(np.float64, 40, elements=thetas),
+    phi=hnp.arrays(np.float64, 40, elements=phis),
+    params=solids,
+    kinds=hnp.arrays(np.int_, 5, elements=st.sampled_from([0, 1, 2])),
+)
+def test_boxes_do_not_depend_on_how_the_cameras_are_chunked(theta, phi, params, kinds):
+    """Bit for bit: grids larger than one pass of rim samples are split into passes."""
+    cams = Cameras.at(theta, phi, CAMERA)
+    whole = proxy_boxes(cams, kinds, params)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(proxies, "_CHUNK_SAMPLES", 7 * 2 * 5 * RIM_POINTS)  # passes of 7 cameras
+        chunked = proxy_boxes(cams, kinds, params)
+    np.testing.assert_array_equal(chunked, whole)
 
 
 @settings(max_examples=40, deadline=None)

@@ -48,9 +48,13 @@ def camera_axes(
     phi = np.radians(np.asarray(phi_deg, dtype=np.float64))
     theta, phi = np.broadcast_arrays(theta, phi)
     st, ct, sp, cp = np.sin(theta), np.cos(theta), np.sin(phi), np.cos(phi)
-    forward = -np.stack([st * cp, st * sp, ct], axis=-1)
-    up = np.stack([-ct * cp, -ct * sp, st], axis=-1)
-    right = np.cross(forward, up)
+    fx, fy, fz = -(st * cp), -(st * sp), -ct
+    ux, uy, uz = -ct * cp, -ct * sp, st
+    forward = np.stack([fx, fy, fz], axis=-1)
+    up = np.stack([ux, uy, uz], axis=-1)
+    # f × u written out (np.cross's own order of operations, without its wrapper's cost: the
+    # optimizer builds cameras for a few poses at a time, many times per request).
+    right = np.stack([fy * uz - fz * uy, fz * ux - fx * uz, fx * uy - fy * ux], axis=-1)
     return right, -up, forward
 
 

@@ -110,6 +110,13 @@ class Cameras:
     def __len__(self) -> int:
         return int(self.position.shape[0])
 
+    @property
+    def unit_positions(self) -> FloatArray:
+        """Camera centres ``(N, 3)`` on the unit sphere, ``(sinθ cosφ, sinθ sinφ, cosθ)``: minus
+        the forward axes (to the last bit :func:`services.common.grid.pose_to_cartesian`)."""
+        units: FloatArray = -self.rotation[:, 2]
+        return units
+
     @functools.cached_property
     def frame(self) -> tuple[FloatArray, FloatArray]:
         """``(o, e)``: camera coordinates ``(3, N)`` of the world origin, ``o = −R c``, and

@@ -235,11 +235,15 @@ def _solid_guess(
     return np.stack([foot[:, 0], foot[:, 1], rho, height], axis=-1)
 
 
-def _edges(cam: Cameras, kinds: NDArray[np.int_], params: FloatArray) -> FloatArray:
-    """Forward model: boxes ``(m, 4)`` of proxies with ``params = (x, y, log ρ, log H)``."""
-    rho = np.exp(params[:, 2])
-    height = np.where(kinds == ProxyKind.SPHERE, 2.0 * rho, np.exp(params[:, 3]))
-    physical = np.stack([params[:, 0], params[:, 1], rho, height], axis=-1)
+def _edges(
+    cam: Cameras, kinds: NDArray[np.int_], spheres: NDArray[np.bool_], params: FloatArray
+) -> FloatArray:
+    """Forward model: boxes ``(m, 4)`` of proxies with ``params = (x, y, log ρ, log H)``
+    (``spheres`` flags the balls, whose height is their diameter)."""
+    physical = np.empty_like(params)
+    physical[:, :2] = params[:, :2]
+    physical[:, 2] = np.exp(params[:, 2])
+    physical[:, 3] = np.where(spheres, 2.0 * physical[:, 2], np.exp(params[:, 3]))
     boxes: FloatArray = proxy_boxes(cam, kinds, physical)[0]
     return boxes
 
@@ -257,8 +261,9 @@ def _refine(
     n = len(kinds)
     params = start.copy()
     mask = valid.astype(np.float64)
+    spheres = kinds == ProxyKind.SPHERE.value
     free = np.ones((n, 4))
-    free[kinds == ProxyKind.SPHERE, 3] = 0.0  # a ball's height is its diameter
+    free[spheres, 3] = 0.0  # a ball's height is its diameter
     steps = np.array([1e-6 * radius, 1e-6 * radius, 1e-6, 1e-6])
     damping = np.full(n, 1e-3)
     # Sizes stay between a millionth and twice the hemisphere radius: keeps exp() finite.
@@ -266,40 +271,42 @@ def _refine(
 
     shifts = np.zeros((5, 1, 4))
     shifts[np.arange(1, 5), 0, np.arange(4)] = steps
-    kinds5, boxes5, mask5 = np.tile(kinds, 5), np.tile(boxes, (5, 1)), np.tile(mask, (5, 1))
+    kinds5, spheres5 = np.tile(kinds, 5), np.tile(spheres, 5)
+    boxes5, mask5 = np.tile(boxes, (5, 1)), np.tile(mask, (5, 1))
 
     def evaluate(p: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Residuals ``(n, edge)`` at ``p`` and their forward-difference Jacobian
         ``(n, edge, param)`` from one batch of proxies (a proxy's box does not depend on the
         rest of the batch), so an accepted trial step brings its Jacobian along."""
-        r = (_edges(cam, kinds5, (p + shifts).reshape(-1, 4)) - boxes5) * mask5
+        r = (_edges(cam, kinds5, spheres5, (p + shifts).reshape(-1, 4)) - boxes5) * mask5
         r = np.where(np.isfinite(r), r, 1e6).reshape(5, n, 4)
         jac = (r[1:] - r[0]) / steps[:, np.newaxis, np.newaxis]  # (param, n, edge)
         return r[0], np.transpose(jac, (1, 2, 0)) * free[:, np.newaxis, :]
 
     r0, jac = evaluate(params)
-    cost = np.sum(r0**2, axis=1)
+    cost = (r0**2).sum(axis=1)
     eye = np.eye(4)
+    tiny, pinned = 1e-9 * eye, eye * (1.0 - free[:, :, np.newaxis])
     for _ in range(_LM_ITERATIONS):
         normal = np.einsum("nei,nej->nij", jac, jac)
         gradient = np.einsum("nei,ne->ni", jac, r0)
         diag = np.einsum("nii->ni", normal)
-        system = normal + (damping[:, None, None] * (diag[:, :, None] * eye + 1e-9 * eye))
-        system += eye * (1.0 - free[:, :, np.newaxis])
+        system = normal + (damping[:, None, None] * (diag[:, :, None] * eye + tiny))
+        system += pinned
         delta = -np.linalg.solve(system, gradient[..., np.newaxis])[..., 0] * free
-        if float(np.max(np.abs(delta), initial=0.0)) < 1e-10:
+        if float(np.abs(delta).max(initial=0.0)) < 1e-10:
             break  # converged everywhere
         trial = params + delta
-        trial[:, 2:] = np.clip(trial[:, 2:], log_lo, log_hi)
+        trial[:, 2:] = np.minimum(np.maximum(trial[:, 2:], log_lo), log_hi)
         r_trial, jac_trial = evaluate(trial)
-        cost_trial = np.sum(r_trial**2, axis=1)
+        cost_trial = (r_trial**2).sum(axis=1)
         better = cost_trial < cost
-        params = np.where(better[:, np.newaxis], trial, params)
-        r0 = np.where(better[:, np.newaxis], r_trial, r0)
-        jac = np.where(better[:, np.newaxis, np.newaxis], jac_trial, jac)
-        cost = np.where(better, cost_trial, cost)
-        damping = np.where(better, damping * 0.3, damping * 10.0)
-    normal = np.einsum("nei,nej->nij", jac, jac) + eye * (1.0 - free[:, :, np.newaxis])
+        np.copyto(params, trial, where=better[:, np.newaxis])
+        np.copyto(r0, r_trial, where=better[:, np.newaxis])
+        np.copyto(jac, jac_trial, where=better[:, np.newaxis, np.newaxis])
+        np.copyto(cost, cost_trial, where=better)
+        damping *= np.where(better, 0.3, 10.0)
+    normal = np.einsum("nei,nej->nij", jac, jac) + pinned
     # A tiny ridge instead of a pseudo-inverse: a direction the edges do not constrain (the
     # scale of everything seen from the horizon) must come out with a huge variance, not zero.
     ridge = 1e-12 * np.maximum(np.einsum("nii->n", normal), 1e-300)

@@ -62,8 +62,9 @@ def assign(cost: ArrayLike, gate: float) -> Assignment:
     # nan_to_num + minimum did, in fewer passes: score_poses assigns a dozen times a call).
     capped = np.maximum(np.where(c < gate, c, gate), _LOWEST)
     rows, cols = linear_sum_assignment(capped)
-    keep = c[rows, cols] < gate
-    return Assignment(rows[keep], cols[keep], c[rows[keep], cols[keep]])
+    picked = c[rows, cols]
+    keep = picked < gate
+    return Assignment(rows[keep], cols[keep], picked[keep])
 
 
 def box_rms(a: ArrayLike, b: ArrayLike) -> FloatArray:

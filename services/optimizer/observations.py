@@ -49,8 +49,7 @@ def chromaticity(colors: ArrayLike) -> FloatArray:
     """``(..., 3)`` sRGB colours to ``(..., 3)`` chromaticities; NaN stays NaN, black is grey."""
     c = np.asarray(colors, dtype=np.float64)
     total = c.sum(axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(total > 1e-9, c / total, 1.0 / 3.0)
+    out: FloatArray = np.divide(c, total, out=np.full_like(c, 1.0 / 3.0), where=total > 1e-9)
     out[np.isnan(c).any(axis=-1)] = np.nan
     return out
 
@@ -157,5 +156,4 @@ def appearance_cost(
     ca = chromaticity(np.asarray(colors_a, dtype=np.float64).reshape(-1, 3))[:, np.newaxis, :]
     cb = chromaticity(np.asarray(colors_b, dtype=np.float64).reshape(-1, 3))[np.newaxis, :, :]
     distance = np.sqrt(np.sum((ca - cb) ** 2, axis=-1)) / COLOUR_SCALE
-    distance = np.nan_to_num(distance, nan=0.0)
-    return np.where(same, distance, FORBIDDEN)
+    return np.where(same, np.where(np.isnan(distance), 0.0, distance), FORBIDDEN)

@@ -74,34 +74,44 @@ def _tangent_bounds(lateral: FloatArray, depth: FloatArray, radius: FloatArray) 
     denom = depth**2 - radius**2
     disc = lateral**2 + denom
     ok = (depth > radius) & (disc > 0.0)
-    root = radius * np.sqrt(np.where(ok, disc, 1.0))
-    safe = np.where(ok, denom, 1.0)
-    out = np.stack([lateral * depth - root, lateral * depth + root]) / safe
-    out[:, ~ok] = np.nan
+    root = radius * np.sqrt(disc, out=np.ones_like(disc), where=ok)
+    centre = lateral * depth
+    out = np.empty((2,) + disc.shape)
+    np.subtract(centre, root, out=out[0])
+    np.add(centre, root, out=out[1])
+    np.divide(out, denom, out=out, where=ok)
+    np.copyto(out, np.nan, where=~ok)
     return out
 
 
 def _camera_frame(cameras: Cameras, points: FloatArray) -> FloatArray:
-    """Camera coordinates ``(3, N, P)`` of world points ``(P, 3)``, ``o + Σ_j p_j e_j``
+    """Camera coordinates ``(3, P, N)`` of world points ``(P, 3)``, ``o + Σ_j p_j e_j``
     (:attr:`.geometry.Cameras.frame`). Elementwise, so a point's coordinates do not depend on
     the other points (the Gauss–Newton solve of :mod:`.mapping` batches its finite
-    differences)."""
+    differences). Cameras last: the grid's are many, the points few."""
     origin, axes = cameras.frame
     cam: FloatArray = (
-        origin[:, :, np.newaxis]
-        + axes[:, 0, :, np.newaxis] * points[:, 0]
-        + axes[:, 1, :, np.newaxis] * points[:, 1]
-        + axes[:, 2, :, np.newaxis] * points[:, 2]
+        origin[:, np.newaxis, :]
+        + axes[:, 0, np.newaxis, :] * points[:, 0, np.newaxis]
+        + axes[:, 1, np.newaxis, :] * points[:, 1, np.newaxis]
+        + axes[:, 2, np.newaxis, :] * points[:, 2, np.newaxis]
     )
     return cam
 
 
-def _to_pixels(cameras: Cameras, lo: FloatArray, hi: FloatArray) -> FloatArray:
-    """Boxes ``(..., 4)`` from the bounds ``(2, ...)`` of normalised coordinates."""
+def _to_pixels(cameras: Cameras, bounds: FloatArray) -> FloatArray:
+    """Boxes ``(N, M, 4)`` from the bounds ``(4, M, N)`` ``(x_lo, y_lo, x_hi, y_hi)`` of
+    normalised coordinates (NaN stays NaN)."""
     centre = np.array([cameras.cx, cameras.cy, cameras.cx, cameras.cy])
-    bounds = np.concatenate([lo, hi]).transpose(*range(1, lo.ndim), 0)
-    boxes: FloatArray = cameras.focal_px * bounds + centre
+    boxes: FloatArray = cameras.focal_px * bounds.T + centre
     return boxes
+
+
+def _sphere_bounds(cameras: Cameras, centres: FloatArray, radii: FloatArray) -> FloatArray:
+    """Normalised bounds ``(4, M, N)`` (:func:`_to_pixels`) of spheres ``(M, 3)`` / ``(M,)``."""
+    cam = _camera_frame(cameras, centres)
+    bounds = _tangent_bounds(cam[:2], cam[2], radii[:, np.newaxis])  # (lo/hi, x/y, M, N)
+    return bounds.reshape((4,) + bounds.shape[2:])
 
 
 def sphere_boxes(cameras: Cameras, centres: ArrayLike, radii: ArrayLike) -> FloatArray:
@@ -113,22 +123,23 @@ def sphere_boxes(cameras: Cameras, centres: ArrayLike, radii: ArrayLike) -> Floa
     projected centre, by ``≈ a (ρ/C_z)²`` in normalised units (see :mod:`.mapping`).
     """
     points = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    cam = _camera_frame(cameras, points)
-    rho = np.asarray(radii, dtype=np.float64)
-    bounds = _tangent_bounds(cam[:2], cam[2], rho)  # (2 bounds, 2 axes, N, M)
-    return _to_pixels(cameras, bounds[0], bounds[1])
+    rho = np.broadcast_to(np.asarray(radii, dtype=np.float64), len(points))
+    return _to_pixels(cameras, _sphere_bounds(cameras, points, rho))
 
 
 _ANGLES: Final = np.linspace(0.0, 2.0 * math.pi, RIM_POINTS, endpoint=False)
 _COS: Final = np.cos(_ANGLES)[:, np.newaxis]
 _SIN: Final = np.sin(_ANGLES)[:, np.newaxis]
-_CHUNK_SAMPLES: Final = 6_000
-"""Rim samples (points × cameras × rims) per pass: keeps temporaries in cache, off mmap."""
+_CHUNK_SAMPLES: Final = 262_144
+"""Rim samples (points × rims × cameras) per pass: long inner loops over the cameras (which
+matter more than cache-sized temporaries), yet bounded temporaries however large the grid."""
+_SPHERE: Final = ProxyKind.SPHERE.value  # plain ints: comparing arrays with enums is slow
+_CONE: Final = ProxyKind.CONE.value
 
 
-def _solid_boxes(cameras: Cameras, kinds: NDArray[np.int_], params: FloatArray) -> FloatArray:
-    """Boxes ``(N, M, 4)`` of prisms and cones: bounds of their projected rim samples, NaN
-    unless every sample lies in front of the camera.
+def _solid_bounds(cameras: Cameras, kinds: NDArray[np.int_], params: FloatArray) -> FloatArray:
+    """Normalised bounds ``(4, M, N)`` (:func:`_to_pixels`) of prisms and cones: bounds of their
+    projected rim samples, NaN unless every sample lies in front of the camera.
 
     Every solid has two rims, its base and its top; a cone's top is a rim of radius 0, its
     apex. Rim sample ``k`` of a rim centred at ``C`` (camera coordinates) is
@@ -138,31 +149,34 @@ def _solid_boxes(cameras: Cameras, kinds: NDArray[np.int_], params: FloatArray) 
     ``x/z``, ``y/z`` and scaled to pixels afterwards (``f a + c`` is increasing in ``a``).
     """
     n, m = len(cameras), len(params)
-    x, y, rho, height = params[:, 0], params[:, 1], params[:, 2], params[:, 3]
     rims = np.empty((2, m, 3))
-    rims[:, :, 0], rims[:, :, 1], rims[0, :, 2], rims[1, :, 2] = x, y, 0.0, height
-    centres = _camera_frame(cameras, rims.reshape(2 * m, 3))  # (3, N, L)
-    radii = np.concatenate([rho, np.where(kinds == ProxyKind.CONE, 0.0, rho)])
+    rims[:, :, :2] = params[:, :2]
+    rims[0, :, 2] = 0.0
+    rims[1, :, 2] = params[:, 3]
+    # Samples are (3, rim × K, M, c) for a pass of c cameras: both rims' samples lead, so the
+    # bounds reduce over one outer axis, and the cameras run along the fast inner axis.
+    centres = _camera_frame(cameras, rims.reshape(2 * m, 3)).reshape(3, 2, 1, m, n)
+    radii = np.empty((2, m))
+    radii[:] = params[:, 2]
+    radii[1, kinds == _CONE] = 0.0
     axes = cameras.frame[1]
     ring = _COS * axes[:, 0, np.newaxis, :] + _SIN * axes[:, 1, np.newaxis, :]  # (3, K, N)
-    bounds = np.empty((2, 2, n, 2 * m))  # (lo/hi, x/y, camera, rim)
-    near = np.empty((n, 2 * m))
+    radii, ring = radii[:, np.newaxis, :, np.newaxis], ring[:, np.newaxis, :, np.newaxis, :]
+    # Rounding is monotonic, so the least sample depth of a rim is that of its least ring depth.
+    near = (radii * ring[2].min(axis=1) + centres[2]).min(axis=0)[0]  # (M, N)
+    bounds = np.empty((2, 2, m, n))  # (lo/hi, x/y, solid, camera)
     step = max(1, _CHUNK_SAMPLES // (2 * m * RIM_POINTS))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # samples behind: NaN below anyway
         for start in range(0, n, step):
             part = slice(start, start + step)
-            # (3, K, c, L): samples lead, so bounds reduce over an outer axis (~6x faster).
-            samples = radii * ring[:, :, part, np.newaxis]
-            samples += centres[:, np.newaxis, part]
-            near[part] = samples[2].min(axis=0)
+            samples = radii * ring[..., part]
+            samples += centres[..., part]
+            samples = samples.reshape(3, 2 * RIM_POINTS, m, -1)
             ratio = np.divide(samples[:2], samples[2], out=samples[:2])
-            np.minimum.reduce(ratio, axis=1, out=bounds[0, :, part])
-            np.maximum.reduce(ratio, axis=1, out=bounds[1, :, part])
-    lo = np.minimum(bounds[0, ..., :m], bounds[0, ..., m:])
-    hi = np.maximum(bounds[1, ..., :m], bounds[1, ..., m:])
-    boxes = _to_pixels(cameras, lo, hi)
-    boxes[~(np.minimum(near[:, :m], near[:, m:]) > 0.0)] = np.nan
-    return boxes
+            np.minimum.reduce(ratio, axis=1, out=bounds[0, :, :, part])
+            np.maximum.reduce(ratio, axis=1, out=bounds[1, :, :, part])
+    np.copyto(bounds, np.nan, where=~(near > 0.0))
+    return bounds.reshape(4, m, n)
 
 
 def proxy_boxes(cameras: Cameras, kinds: ArrayLike, params: ArrayLike) -> FloatArray:
@@ -185,14 +199,17 @@ def proxy_boxes(cameras: Cameras, kinds: ArrayLike, params: ArrayLike) -> FloatA
     """
     kind = np.asarray(kinds, dtype=np.int_)
     par = np.asarray(params, dtype=np.float64).reshape(-1, 4)
-    boxes = np.full((len(cameras), par.shape[0], 4), np.nan)
-    spheres = kind == ProxyKind.SPHERE
-    if spheres.any():
-        p = par[spheres]
-        boxes[:, spheres] = sphere_boxes(cameras, p[:, :3], p[:, 2])
-    if (~spheres).any():
-        boxes[:, ~spheres] = _solid_boxes(cameras, kind[~spheres], par[~spheres])
-    return boxes
+    spheres = kind == _SPHERE
+    if spheres.all():
+        bounds = _sphere_bounds(cameras, par[:, :3], par[:, 2])
+    elif not spheres.any():
+        bounds = _solid_bounds(cameras, kind, par)
+    else:
+        bounds = np.empty((4, len(par), len(cameras)))
+        balls, solids = par[spheres], ~spheres
+        bounds[:, spheres] = _sphere_bounds(cameras, balls[:, :3], balls[:, 2])
+        bounds[:, solids] = _solid_bounds(cameras, kind[solids], par[solids])
+    return _to_pixels(cameras, bounds)
 
 
 def clip_boxes(boxes: ArrayLike, width: float, height: float) -> tuple[FloatArray, FloatArray]:
@@ -210,8 +227,7 @@ def clip_boxes(boxes: ArrayLike, width: float, height: float) -> tuple[FloatArra
     clipped = np.minimum(np.maximum(b, 0.0), np.array([width, height, width, height]))
     area = (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])
     kept = (clipped[..., 2] - clipped[..., 0]) * (clipped[..., 3] - clipped[..., 1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inside = np.where(area > 0.0, kept / area, 0.0)
-    inside[np.isnan(inside)] = 0.0
+    # Only positive areas divide: NaN boxes have a NaN area, so no fraction comes out NaN.
+    inside = np.divide(kept, area, out=np.zeros_like(area), where=area > 0.0)
     clipped[~(inside > 0.0)] = np.nan
     return clipped, inside

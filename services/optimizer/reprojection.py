@@ -37,7 +37,8 @@ Refinement
 ----------
 At the best pose the pairs are fixed and ``(θ, φ)`` minimise the soft-L1 robust sum of squared
 box-edge residuals (pixels, anchored predictions) with :func:`scipy.optimize.least_squares`; the
-RMS of the final residuals is the estimate's reprojection residual.
+RMS of the final residuals is the estimate's reprojection residual. The Jacobian is the solver's
+own forward differences, predicted in one batch with the residuals (:func:`refine_pose`).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from services.common.grid import HemisphereGrid, pose_to_cartesian
@@ -70,7 +71,7 @@ __all__ = [
     "PoseScores",
     "Prediction",
     "Refinement",
-    "anchored_boxes",
+    "anchor",
     "predict",
     "refine_pose",
     "score_poses",
@@ -86,6 +87,8 @@ _MIN_INSIDE: Final = 0.3
 _MIN_SIDE_PX: Final = 2.0
 _ANCHOR_FULL_STEPS: Final = 2.0
 _ANCHOR_FADE_STEPS: Final = 4.0
+_DIFF_STEP: Final = 1e-4  # relative forward-difference step of the refinement
+_SQRT_EPS: Final = float(np.sqrt(np.finfo(np.float64).eps))
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,21 +118,18 @@ class Anchoring:
     directions: FloatArray
 
     @classmethod
-    def of(cls, world: WorldMap, anchors: Sequence[Anchor], camera: Camera) -> Anchoring:
-        """The anchoring of ``world`` to the views ``anchors``."""
-        k = len(world)
-        offsets = np.zeros((len(anchors), k, 4))
+    def of(cls, anchors: Sequence[Anchor], predicted: FloatArray) -> Anchoring:
+        """The anchoring to the views ``anchors`` of a map whose (unanchored) boxes there are
+        ``predicted`` ``(V, K, 4)`` (:meth:`.WorldMap.boxes`)."""
+        offsets = np.zeros(predicted.shape)
+        for v, anchor in enumerate(anchors):
+            seen = anchor.link >= 0
+            entries = anchor.link[seen]
+            delta = anchor.observation.boxes[seen] - predicted[v, entries]
+            offsets[v, entries] = np.nan_to_num(delta, nan=0.0)
         directions = pose_to_cartesian(
             [a.theta_deg for a in anchors], [a.phi_deg for a in anchors]
         ).reshape(-1, 3)
-        if anchors and k:
-            cams = Cameras.at([a.theta_deg for a in anchors], [a.phi_deg for a in anchors], camera)
-            predicted, _ = world.boxes(cams)
-            for v, anchor in enumerate(anchors):
-                seen = anchor.link >= 0
-                entries = anchor.link[seen]
-                delta = anchor.observation.boxes[seen] - predicted[v, entries]
-                offsets[v, entries] = np.nan_to_num(delta, nan=0.0)
         return cls(offsets=offsets, directions=directions)
 
     def subset(self, entries: NDArray[np.intp]) -> Anchoring:
@@ -142,49 +142,45 @@ def _weights(step_deg: float, angle_deg: FloatArray) -> FloatArray:
     return np.minimum(np.maximum((fade - angle_deg) / (fade - full), 0.0), 1.0)
 
 
-def anchored_boxes(
-    world: WorldMap,
-    cameras: Cameras,
-    theta_deg: ArrayLike,
-    phi_deg: ArrayLike,
-    anchoring: Anchoring,
-    step_deg: float,
-) -> tuple[FloatArray, FloatArray]:
-    """Anchored predicted boxes ``(N, K, 4)`` (clipped) of the map at poses (θ, φ) seen by
-    ``cameras``, and the fraction ``(N, K)`` of each unanchored box inside the image (module
-    docstring). Each entry's boxes depend on that entry alone."""
-    boxes, inside = world.boxes(cameras)
-    if len(anchoring.directions) and len(world):
-        poses = pose_to_cartesian(theta_deg, phi_deg).reshape(-1, 3)
-        # minimum(maximum()) is np.clip without its Python wrapper (refine_pose calls this often).
-        cosines = np.minimum(np.maximum(poses @ anchoring.directions.T, -1.0), 1.0)
-        # Ties go to the latest visit: it was fused last and reflects the newest map.
-        last = len(anchoring.directions) - 1
-        nearest = last - np.argmax(cosines[:, ::-1], axis=1)
-        angle = np.degrees(np.arccos(cosines[np.arange(len(poses)), nearest]))
-        weight = _weights(step_deg, angle)[:, np.newaxis, np.newaxis]
-        shift = anchoring.offsets[nearest] * weight
-        boxes, _ = clip_boxes(boxes + shift, cameras.width, cameras.height)
-    return boxes, inside
+def anchor(
+    boxes: FloatArray, cameras: Cameras, anchoring: Anchoring, step_deg: float
+) -> FloatArray:
+    """Predicted boxes ``(N, K, 4)`` (clipped) of a map in ``cameras``, anchored (module
+    docstring) from its unanchored ones ``boxes`` (:meth:`.WorldMap.boxes`). Each entry's boxes
+    depend on that entry alone."""
+    if not (len(anchoring.directions) and boxes.shape[1]):
+        return boxes
+    poses = cameras.unit_positions
+    # minimum(maximum()) is np.clip without its Python wrapper (refine_pose calls this often).
+    cosines = np.minimum(np.maximum(poses @ anchoring.directions.T, -1.0), 1.0)
+    # Ties go to the latest visit: it was fused last and reflects the newest map.
+    last = len(anchoring.directions) - 1
+    nearest = last - np.argmax(cosines[:, ::-1], axis=1)
+    angle = np.degrees(np.arccos(cosines[np.arange(len(poses)), nearest]))
+    weight = _weights(step_deg, angle)[:, np.newaxis, np.newaxis]
+    shift = anchoring.offsets[nearest] * weight
+    anchored, _ = clip_boxes(boxes + shift, cameras.width, cameras.height)
+    return anchored
 
 
 def predict(
-    world: WorldMap,
+    boxes: FloatArray,
+    inside: FloatArray,
     cameras: Cameras,
-    theta_deg: ArrayLike,
-    phi_deg: ArrayLike,
     anchoring: Anchoring,
     step_deg: float,
 ) -> Prediction:
-    """Anchored predicted boxes of the map at poses (θ, φ) seen by ``cameras``, and which
-    entries each pose is expected to see (module docstring)."""
-    boxes, inside = anchored_boxes(world, cameras, theta_deg, phi_deg, anchoring, step_deg)
-    sides = np.nan_to_num(
-        np.stack([boxes[..., 2] - boxes[..., 0], boxes[..., 3] - boxes[..., 1]], axis=-1),
-        nan=0.0,
+    """Anchored predicted boxes of a map in ``cameras`` and which entries each pose is expected
+    to see (module docstring), from its unanchored boxes ``(N, K, 4)`` and the fraction
+    ``(N, K)`` of each inside the image (:meth:`.WorldMap.boxes`)."""
+    anchored = anchor(boxes, cameras, anchoring, step_deg)
+    # A NaN side (no box) compares False, as a side of 0 would.
+    expected = (
+        (inside >= _MIN_INSIDE)
+        & (anchored[..., 2] - anchored[..., 0] >= _MIN_SIDE_PX)
+        & (anchored[..., 3] - anchored[..., 1] >= _MIN_SIDE_PX)
     )
-    expected = (inside >= _MIN_INSIDE) & (sides >= _MIN_SIDE_PX).all(axis=-1)
-    return Prediction(boxes=boxes, expected=expected)
+    return Prediction(boxes=anchored, expected=expected)
 
 
 @dataclass(frozen=True)
@@ -210,14 +206,16 @@ class PoseScores:
 
 
 def _pair_costs(world: WorldMap, target: Observation, prediction: Prediction) -> FloatArray:
-    """Pair costs ``(N, n, K)``; inf where a pair is not allowed."""
-    diff = target.boxes[np.newaxis, :, np.newaxis, :] - prediction.boxes[:, np.newaxis, :, :]
-    squared = np.einsum("...i,...i->...", diff, diff) / (4.0 * SCALE_PX**2)
+    """Pair costs ``(n, K, N)`` (poses last: the long axis runs fastest); inf where a pair is
+    not allowed."""
+    predicted = np.ascontiguousarray(prediction.boxes.T)[:, np.newaxis]  # (edge, 1, K, N)
+    diff = target.boxes.T[:, :, np.newaxis, np.newaxis] - predicted
+    squared = np.sum(diff * diff, axis=0) / (4.0 * SCALE_PX**2)
     looks = appearance_cost(target.labels, target.colors, world.labels, world.colors)
-    cost = squared * world.trust[np.newaxis, np.newaxis, :] + looks[np.newaxis]
+    cost = squared * world.trust[:, np.newaxis] + looks[:, :, np.newaxis]
     # Any entry with a box in the image may pair, even one mostly outside it (a target can see
     # a sliver of an object); only the penalty for missing entries is limited to expected ones.
-    ok = (looks < COLOUR_GATE)[np.newaxis] & np.isfinite(cost)
+    ok = (looks < COLOUR_GATE)[:, :, np.newaxis] & np.isfinite(cost)
     return np.where(ok, cost, np.inf)
 
 
@@ -256,20 +254,20 @@ def score_poses(
     :data:`FAR_CANDIDATES` distant local optima more than ``separation_deg`` apart."""
     cost = _pair_costs(world, target, prediction)
     expected = prediction.expected
-    capped = np.minimum(cost, GATE)
     n = len(target)
-    coarse = capped.min(axis=2, initial=GATE).sum(axis=1)
-    map_side = capped.min(axis=1, initial=GATE)
+    # Minima capped at the gate: min(c, τ²) over a set is its minimum capped.
+    coarse = cost.min(axis=1, initial=GATE).sum(axis=0)
+    map_side = cost.min(axis=0, initial=GATE).T
     coarse = coarse + MISSING_WEIGHT * GATE * np.sum(expected & (map_side >= GATE), axis=1)
     order = _candidates(coarse, directions, max(1, candidates), FAR_CANDIDATES, separation_deg)
     exact = np.empty(len(order))
     pairs: list[Assignment] = []
     expected_count = expected.sum(axis=1)
     for i, pose in enumerate(order):
-        assignment = assign(cost[pose], GATE)
+        assignment = assign(cost[:, :, pose], GATE)
         unpaired_map = int(expected_count[pose]) - int(expected[pose, assignment.cols].sum())
         exact[i] = (
-            float(np.sum(assignment.costs))
+            float(assignment.costs.sum())
             + GATE * (n - len(assignment))
             + MISSING_WEIGHT * GATE * max(unpaired_map, 0)
         )
@@ -294,6 +292,18 @@ class Refinement:
     matched: int
 
 
+def _forward_steps(x: FloatArray, lower: FloatArray, upper: FloatArray) -> FloatArray:
+    """Forward-difference steps ``(2,)`` (degrees) at pose ``x`` = (θ, φ): those of
+    :func:`scipy.optimize.least_squares` with ``diff_step`` = :data:`_DIFF_STEP`, i.e. that
+    relative step of each coordinate (``√ε max(1, |x|)`` where it rounds to nothing), turned
+    backwards where it would leave the bounds (which lie farther apart than any step)."""
+    sign = np.where(x >= 0.0, 1.0, -1.0)
+    step = _DIFF_STEP * sign * np.abs(x)
+    step = np.where((x + step) - x == 0.0, _SQRT_EPS * sign * np.maximum(1.0, np.abs(x)), step)
+    ahead = x + step
+    return np.where((ahead < lower) | (ahead > upper), -step, step)
+
+
 def refine_pose(
     world: WorldMap,
     target: Observation,
@@ -305,40 +315,52 @@ def refine_pose(
     grid: HemisphereGrid,
     theta_bounds: tuple[float, float] = (0.0, 90.0),
 ) -> Refinement:
-    """Least-squares ``(θ, φ)`` from a starting pose with fixed pairs (module docstring)."""
+    """Least-squares ``(θ, φ)`` from a starting pose with fixed pairs (module docstring).
+
+    The residuals at a pose are predicted together with those at its two forward-difference
+    poses, in one batch of three cameras: the solver asks for the Jacobian at every pose it
+    accepts, and a batch costs about what a single pose does."""
     if len(pairs) == 0:
         return Refinement(theta_deg, phi_deg % 360.0, math.inf, 0)
     observed = target.boxes[pairs.rows]
-    lo, hi = theta_bounds
+    lower, upper = np.array([theta_bounds[0], -np.inf]), np.array([theta_bounds[1], np.inf])
     step = grid.angle_step_deg
     # Only the paired entries' boxes enter the residuals: predict those alone.
     paired, paired_anchoring = world.subset(pairs.cols), anchoring.subset(pairs.cols)
 
-    # The solver starts at and returns poses it has evaluated: remember them, not recompute.
-    evaluated: dict[bytes, FloatArray] = {}
+    def residuals(poses: FloatArray) -> FloatArray:
+        """Residuals ``(P, 4 × pairs)`` in pixels at poses ``(P, 2)`` (degrees)."""
+        cams = Cameras.at(poses[:, 0], poses[:, 1], camera)
+        predicted = anchor(paired.boxes(cams)[0], cams, paired_anchoring, step)
+        r = (predicted - observed).reshape(len(poses), -1)
+        return np.where(np.isfinite(r), r, 50.0)
 
-    def residuals(x: FloatArray) -> FloatArray:
-        key = np.asarray(x, dtype=np.float64).tobytes()
+    # The solver asks for poses it has evaluated again: remember them, not recompute.
+    evaluated: dict[bytes, tuple[FloatArray, FloatArray]] = {}
+
+    def linearise(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Residuals and their forward-difference Jacobian ``(4 × pairs, 2)`` (pixels per
+        degree) at ``x``."""
+        key = x.tobytes()
         if key not in evaluated:
-            cams = Cameras.at(x[0], x[1], camera)
-            predicted = anchored_boxes(paired, cams, x[:1], x[1:], paired_anchoring, step)
-            r = (predicted[0][0] - observed).ravel()
-            evaluated[key] = np.where(np.isfinite(r), r, 50.0)
-        return evaluated[key].copy()
+            h = _forward_steps(x, lower, upper)
+            r = residuals(np.vstack([x, x + np.diag(h)]))
+            evaluated[key] = r[0], ((r[1:] - r[0]) / ((x + h) - x)[:, np.newaxis]).T
+        return evaluated[key]
 
-    start = np.array([min(max(theta_deg, lo + 1e-9), hi - 1e-9), phi_deg])
+    start = np.array([min(max(theta_deg, lower[0] + 1e-9), upper[0] - 1e-9), phi_deg])
+    # Copies: the solver scales its residuals and Jacobian in place.
     result = least_squares(
-        residuals,
+        lambda x: linearise(x)[0].copy(),
         start,
-        bounds=([lo, -np.inf], [hi, np.inf]),
+        jac=lambda x: linearise(x)[1].copy(),
+        bounds=(lower, upper),
         loss="soft_l1",
         f_scale=3.0,
-        diff_step=1e-4,
         max_nfev=60,
     )
-    final = residuals(result.x)
-    rms = float(np.sqrt(np.mean(final**2)))
-    start_rms = float(np.sqrt(np.mean(residuals(start) ** 2)))
+    rms = float(np.sqrt(np.mean(linearise(result.x)[0] ** 2)))
+    start_rms = float(np.sqrt(np.mean(linearise(start)[0] ** 2)))
     if rms > start_rms:
         return Refinement(float(start[0]), phi_deg % 360.0, start_rms, len(pairs))
     return Refinement(float(result.x[0]), float(result.x[1]) % 360.0, rms, len(pairs))

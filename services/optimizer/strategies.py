@@ -306,15 +306,10 @@ def _mapped(
         Anchor(v.theta_deg, v.phi_deg, v.observation, link)
         for v, link in zip(visits, links, strict=True)
     )
-    anchoring = Anchoring.of(world, anchors, camera)
-    prediction = predict(
-        world,
-        grid_cameras(grid, camera),
-        grid.theta_deg,
-        grid.phi_deg,
-        anchoring,
-        grid.angle_step_deg,
-    )
+    cameras = grid_cameras(grid, camera)
+    boxes, inside = world.boxes(cameras)
+    anchoring = Anchoring.of(anchors, boxes[np.array([v.flat for v in visits], dtype=np.intp)])
+    prediction = predict(boxes, inside, cameras, anchoring, grid.angle_step_deg)
     return world, anchors, anchoring, prediction
 
 

@@ -121,11 +121,13 @@ class _Entry:
 
     def fused(self) -> tuple[FloatArray, FloatArray, float]:
         w = np.array(self.weights)
-        params = np.sum(np.array(self.params) * w[:, np.newaxis], axis=0) / w.sum()
+        total = w.sum()
+        params = (np.array(self.params) * w[:, np.newaxis]).sum(axis=0) / total
         colours = np.array(self.colours)
         known = ~np.isnan(colours).any(axis=1)
-        colour = colours[known].mean(axis=0) if known.any() else np.full(3, np.nan)
-        return params, colour, float(1.0 / np.sqrt(w.sum()))
+        count = np.count_nonzero(known)
+        colour = colours[known].sum(axis=0) / count if count else np.full(3, np.nan)
+        return params, colour, float(1.0 / np.sqrt(total))
 
 
 def build_map(
