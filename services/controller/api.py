@@ -43,12 +43,16 @@ class ControllerState:
 State = Annotated[ControllerState, Depends(app_state("controller"))]
 
 
+def _unknown_search(search_id: str) -> NotFoundError:
+    return NotFoundError(
+        f"no search {search_id!r}", field="id", slug="unknown-search", title="Unknown search"
+    )
+
+
 def _search_or_404(state: ControllerState, search_id: str) -> Search:
     search = state.store.get(search_id)
     if search is None:
-        raise NotFoundError(
-            f"no search {search_id!r}", field="id", slug="unknown-search", title="Unknown search"
-        )
+        raise _unknown_search(search_id)
     return search
 
 
@@ -159,7 +163,8 @@ def _sse(event: str, data: str) -> bytes:
 async def search_events(search_id: str, state: State) -> StreamingResponse:
     """Server-sent events: ``iteration`` for each recorded iteration, then one ``end`` with the
     search without its iterations. The stored JSON documents are sent as they are."""
-    _search_or_404(state, search_id)
+    if state.store.status_doc(search_id) is None:
+        raise _unknown_search(search_id)
 
     async def stream() -> AsyncIterator[bytes]:
         sent = 0
