@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, get_args
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, Response
 
 from services.common.http import app_state, problem_responses
 from services.common.optimization import (
@@ -64,11 +64,16 @@ async def strategies(state: State) -> list[StrategyInfo]:
 @router.post(
     "/next-pose", response_model=NextPoseResponse, responses=problem_responses(404, 413, 422)
 )
-def plan(body: NextPoseRequest, state: State) -> NextPoseResponse:
+async def plan(body: NextPoseRequest, state: State) -> Response:
     """One stateless search step: the next grid pose, whether the search is done, the current
-    estimate of the target pose and why. (A plain ``def``: FastAPI runs it in its thread pool,
-    so the numeric work does not block the event loop.)"""
-    return next_pose(body, state.context)
+    estimate of the target pose and why.
+
+    Run on the event loop: a step is a few milliseconds of Python holding the GIL, so FastAPI's
+    thread pool would add two thread hops per request and no parallelism. The answer is
+    serialised once by pydantic-core (returning the model would validate it again first).
+    """
+    answer = next_pose(body, state.context)
+    return Response(answer.model_dump_json(), media_type="application/json")
 
 
 @router.post("/map", response_model=MapResponse, responses=problem_responses(413, 422))
