@@ -47,7 +47,7 @@ class StageRequest:
 
 @dataclass(frozen=True)
 class StageAnswer:
-    """A replica's whole answer."""
+    """A replica's whole answer (header names in lower case)."""
 
     status_code: int
     content: bytes
@@ -116,7 +116,8 @@ class AiohttpTransport:
                 allow_redirects=False,
             ) as response:
                 content = await response.read()
-                return StageAnswer(response.status, content, dict(response.headers))
+                headers = {name.lower(): value for name, value in response.headers.items()}
+                return StageAnswer(response.status, content, headers)
         except TimeoutError as exc:  # before ClientError: aiohttp's timeouts are both
             raise TransportError(f"timed out ({type(exc).__name__}, {total_s:g} s)") from exc
         except aiohttp.ClientError as exc:

@@ -1,0 +1,81 @@
+"""The controller's transport to its stages: real HTTP to a real replica process, its failures as
+:class:`TransportError`, and the multipart body it builds for the detector."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+from starlette.datastructures import UploadFile
+from starlette.requests import Request
+
+from services.common.launch import running_service
+from services.controller.transport import (
+    AiohttpTransport,
+    StageRequest,
+    TransportError,
+    multipart_file,
+)
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def anyio_backend() -> str:
+    return "asyncio"
+
+
+def _closed_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+async def test_answers_refusals_and_timeouts(tmp_path):
+    transport = AiohttpTransport(connect_timeout_s=2.0)
+    try:
+        with running_service("tests.fake_replica:app", tmp_path, {"FAKE_NAME": "x"}) as replica:
+            answer = await transport.send(replica.url, StageRequest("POST", "/work"), 5.0)
+            assert answer.status_code == 200
+            assert answer.json() == {"replica": "x"}
+            assert answer.headers["content-type"] == "application/json"
+            health = await transport.send(replica.url, StageRequest("GET", "/health"), 5.0)
+            assert health.json()["status"] == "ok"  # the same kept-alive connection
+            missing = await transport.send(replica.url, StageRequest("GET", "/nope"), 5.0)
+            assert missing.status_code == 404  # an answer, not a transport error
+        with pytest.raises(TransportError):
+            await transport.send(
+                f"http://127.0.0.1:{_closed_port()}", StageRequest("GET", "/"), 5.0
+            )
+        with running_service("tests.fake_replica:app", tmp_path, {"FAKE_FAIL": "hang"}) as stuck:
+            with pytest.raises(TransportError, match="timed out"):
+                await transport.send(stuck.url, StageRequest("POST", "/work", timeout_s=0.3), 60.0)
+            stuck.process.kill()  # it would wait for its hanging task on a graceful stop
+    finally:
+        await transport.close()
+
+
+async def test_the_multipart_body_parses_as_one_file():
+    data = bytes(range(256)) * 1000 + b"\r\n--not-a-boundary\r\n"
+    body, content_type = multipart_file("image", "view", data, "image/x-portable-pixmap")
+    sent = False
+
+    async def receive() -> dict[str, object]:
+        nonlocal sent
+        chunk, sent = (b"" if sent else body), True
+        return {"type": "http.request", "body": chunk, "more_body": False}
+
+    scope = {
+        "type": "http",
+        "method": "POST",
+        "path": "/",
+        "query_string": b"",
+        "headers": [(b"content-type", content_type.encode())],
+    }
+    form = await Request(scope, receive).form()
+    upload = form["image"]
+    assert isinstance(upload, UploadFile)
+    assert upload.filename == "view"
+    assert upload.content_type == "image/x-portable-pixmap"
+    assert await upload.read() == data
+    await form.close()
