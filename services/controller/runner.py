@@ -265,7 +265,10 @@ class SearchRunner:
         """:meth:`_observe`, with the search's waiting writes done once its requests are out."""
         observing = asyncio.create_task(self._observe(search, pose, target_image))
         try:
-            await asyncio.sleep(0)  # the task sends the render request first
+            # The render request goes out first. It takes the loop a few turns: the task's first
+            # step, then (before Python 3.12) aiohttp writes the body from a task of its own.
+            for _ in range(3):
+                await asyncio.sleep(0)
             writes.flush()
             return await observing
         finally:
