@@ -133,3 +133,36 @@ def test_the_last_iteration_and_the_result_are_recorded_together(tmp_path):
     assert store.iteration_docs("a", start=2) == []
     assert store.status_doc("nope") is None
     store.close()
+
+
+def test_a_database_with_images_in_its_search_rows_is_moved_over(tmp_path):
+    """An earlier version kept the target image in the search's row."""
+    path = tmp_path / "old.sqlite3"
+    old = sqlite3.connect(path)
+    old.executescript(
+        "CREATE TABLE searches (id TEXT PRIMARY KEY, status TEXT NOT NULL, "
+        "created_at TEXT NOT NULL, doc TEXT NOT NULL, image BLOB NOT NULL);"
+        "CREATE TABLE iterations (search_id TEXT NOT NULL REFERENCES searches (id) "
+        "ON DELETE CASCADE, idx INTEGER NOT NULL, doc TEXT NOT NULL, "
+        "PRIMARY KEY (search_id, idx));"
+    )
+    record = search("a")
+    old.execute(
+        "INSERT INTO searches VALUES (?, ?, ?, ?, ?)",
+        ("a", "running", record.created_at.isoformat(), record.model_dump_json(), b"\x89PNG-a"),
+    )
+    old.execute("INSERT INTO iterations VALUES (?, ?, ?)", ("a", 0, iteration(0).model_dump_json()))
+    old.commit()
+    old.close()
+    store = SearchStore(f"sqlite:///{path}")
+    assert store.image("a") == b"\x89PNG-a"
+    assert store.unfinished() == ["a"]
+    assert [it.index for it in store.iterations("a")] == [0]
+    store.add_iteration("a", iteration(1), status="succeeded")  # no image in the row any more
+    store.close()
+    columns = {row[1] for row in sqlite3.connect(path).execute("PRAGMA table_info(searches)")}
+    assert "image" not in columns
+    reopened = SearchStore(f"sqlite:///{path}")  # and opening it again changes nothing
+    assert reopened.image("a") == b"\x89PNG-a"
+    assert reopened.status_doc("a")[0] == "succeeded"
+    reopened.close()

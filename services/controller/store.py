@@ -1,7 +1,10 @@
 """Persistence of searches in SQLite: the search, its target image, its iterations, its result.
 
-One row per search (its JSON document, the fields queries need, and the target image) and one
-row per iteration. Writes are committed as they happen, so a controller that dies loses nothing
+One row per search (its JSON document and the fields queries need), one per target image and one
+per iteration. The image has a table of its own: SQLite rewrites a whole row on every update, and a
+search's document changes several times per search while its ~230 KB image never does (measured:
+0.39 ms per update with the image in the row, 0.04 ms without). Writes are committed as they
+happen, so a controller that dies loses nothing
 recorded: queued and running searches are found again by :meth:`SearchStore.unfinished`.
 """
 
@@ -9,6 +12,8 @@ from __future__ import annotations
 
 import sqlite3
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypedDict, Unpack
@@ -24,10 +29,13 @@ CREATE TABLE IF NOT EXISTS searches (
     id TEXT PRIMARY KEY,
     status TEXT NOT NULL,
     created_at TEXT NOT NULL,
-    doc TEXT NOT NULL,
-    image BLOB NOT NULL
+    doc TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS searches_created ON searches (created_at DESC);
+CREATE TABLE IF NOT EXISTS images (
+    search_id TEXT PRIMARY KEY REFERENCES searches (id) ON DELETE CASCADE,
+    image BLOB NOT NULL
+);
 CREATE TABLE IF NOT EXISTS iterations (
     search_id TEXT NOT NULL REFERENCES searches (id) ON DELETE CASCADE,
     idx INTEGER NOT NULL,
@@ -78,10 +86,35 @@ class SearchStore:
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.execute("PRAGMA foreign_keys=ON")
             self._db.executescript(_SCHEMA)
+            self._move_images()
+
+    def _move_images(self) -> None:
+        """Move target images out of the search rows of a database from an earlier version."""
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(searches)")}
+        if "image" not in columns:
+            return
+        self._db.executescript(
+            "BEGIN;"
+            "INSERT OR IGNORE INTO images (search_id, image) SELECT id, image FROM searches;"
+            "ALTER TABLE searches DROP COLUMN image;"
+            "COMMIT;"
+        )
 
     def close(self) -> None:
         with self._lock:
             self._db.close()
+
+    @contextmanager
+    def _transaction(self) -> Iterator[None]:
+        """The lock and one transaction: committed at the end of the block, or rolled back."""
+        with self._lock:
+            self._db.execute("BEGIN")
+            try:
+                yield
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
 
     def _one(self, sql: str, *args: Any) -> Any:
         with self._lock:
@@ -90,10 +123,13 @@ class SearchStore:
     def create(self, search: Search, image: bytes) -> None:
         """Record a new search and its target image."""
         doc = search.model_copy(update={"iterations": ()}).model_dump_json()
-        with self._lock:
+        with self._transaction():
             self._db.execute(
-                "INSERT INTO searches (id, status, created_at, doc, image) VALUES (?, ?, ?, ?, ?)",
-                (search.id, search.status, search.created_at.isoformat(), doc, image),
+                "INSERT INTO searches (id, status, created_at, doc) VALUES (?, ?, ?, ?)",
+                (search.id, search.status, search.created_at.isoformat(), doc),
+            )
+            self._db.execute(
+                "INSERT INTO images (search_id, image) VALUES (?, ?)", (search.id, image)
             )
 
     def get(self, search_id: str) -> Search | None:
@@ -105,7 +141,7 @@ class SearchStore:
         return search.model_copy(update={"iterations": tuple(self.iterations(search_id))})
 
     def image(self, search_id: str) -> bytes:
-        row = self._one("SELECT image FROM searches WHERE id = ?", search_id)
+        row = self._one("SELECT image FROM images WHERE search_id = ?", search_id)
         if row is None:
             raise KeyError(search_id)
         return bytes(row[0])
@@ -146,18 +182,12 @@ class SearchStore:
         """Record an iteration (replacing one of the same index, as a resumed search may) and
         ``changes`` of the search (the target's detections, the final status and result) in one
         transaction."""
-        with self._lock:
-            self._db.execute("BEGIN")
-            try:
-                self._db.execute(
-                    "INSERT OR REPLACE INTO iterations (search_id, idx, doc) VALUES (?, ?, ?)",
-                    (search_id, iteration.index, iteration.model_dump_json()),
-                )
-                self._update(search_id, changes)
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+        with self._transaction():
+            self._db.execute(
+                "INSERT OR REPLACE INTO iterations (search_id, idx, doc) VALUES (?, ?, ?)",
+                (search_id, iteration.index, iteration.model_dump_json()),
+            )
+            self._update(search_id, changes)
 
     def update(self, search_id: str, **changes: Unpack[SearchChanges]) -> Search:
         """Change a search's status, result, error or target detections; stamps ``updated_at``."""
