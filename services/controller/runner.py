@@ -5,8 +5,10 @@ objects in it and asks the optimizer for the next pose, until the optimizer says
 ``max_iterations`` views were rendered. The target's detection overlaps the start view's render.
 A pose already rendered in this search is never rendered again: its detections are reused.
 
-Every iteration is recorded as it happens, so a search interrupted by a restart resumes from its
-last recorded iteration (the optimizer is stateless: it is given the whole history every time).
+Every iteration is recorded as soon as the next view's render is on its way (the write overlaps
+the render), and before the search ends, fails or is cancelled; a search interrupted by a restart
+resumes from its last recorded iteration (the optimizer is stateless: it is given the whole
+history every time).
 Searches run concurrently on ``max_concurrent`` workers; the rest wait in a FIFO queue.
 """
 
