@@ -4,8 +4,8 @@ One row per search (its JSON document and the fields queries need), one per targ
 per iteration. The image has a table of its own: SQLite rewrites a whole row on every update, and a
 search's document changes several times per search while its ~230 KB image never does (measured:
 0.39 ms per update with the image in the row, 0.04 ms without). Writes are committed as they
-happen, so a controller that dies loses nothing
-recorded: queued and running searches are found again by :meth:`SearchStore.unfinished`.
+happen, so a controller that dies loses nothing recorded: queued and running searches are found
+again by :meth:`SearchStore.unfinished`.
 """
 
 from __future__ import annotations
@@ -86,19 +86,18 @@ class SearchStore:
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.execute("PRAGMA foreign_keys=ON")
             self._db.executescript(_SCHEMA)
-            self._move_images()
+        self._move_images()
 
     def _move_images(self) -> None:
         """Move target images out of the search rows of a database from an earlier version."""
         columns = {row[1] for row in self._db.execute("PRAGMA table_info(searches)")}
         if "image" not in columns:
             return
-        self._db.executescript(
-            "BEGIN;"
-            "INSERT OR IGNORE INTO images (search_id, image) SELECT id, image FROM searches;"
-            "ALTER TABLE searches DROP COLUMN image;"
-            "COMMIT;"
-        )
+        with self._transaction():
+            self._db.execute(
+                "INSERT OR IGNORE INTO images (search_id, image) SELECT id, image FROM searches"
+            )
+            self._db.execute("ALTER TABLE searches DROP COLUMN image")
 
     def close(self) -> None:
         with self._lock:
