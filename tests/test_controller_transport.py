@@ -1,20 +1,17 @@
 """The controller's transport to its stages: real HTTP to a real replica process, its failures as
-:class:`TransportError`, and the multipart body it builds for the detector."""
+:class:`TransportError`."""
 
 from __future__ import annotations
 
 import socket
 
 import pytest
-from starlette.datastructures import UploadFile
-from starlette.requests import Request
 
 from services.common.launch import running_service
 from services.controller.transport import (
     AiohttpTransport,
     StageRequest,
     TransportError,
-    multipart_file,
 )
 
 pytestmark = pytest.mark.anyio
@@ -53,29 +50,3 @@ async def test_answers_refusals_and_timeouts(tmp_path):
             stuck.process.kill()  # it would wait for its hanging task on a graceful stop
     finally:
         await transport.close()
-
-
-async def test_the_multipart_body_parses_as_one_file():
-    data = bytes(range(256)) * 1000 + b"\r\n--not-a-boundary\r\n"
-    body, content_type = multipart_file("image", "view", data, "image/x-portable-pixmap")
-    sent = False
-
-    async def receive() -> dict[str, object]:
-        nonlocal sent
-        chunk, sent = (b"" if sent else body), True
-        return {"type": "http.request", "body": chunk, "more_body": False}
-
-    scope = {
-        "type": "http",
-        "method": "POST",
-        "path": "/",
-        "query_string": b"",
-        "headers": [(b"content-type", content_type.encode())],
-    }
-    form = await Request(scope, receive).form()
-    upload = form["image"]
-    assert isinstance(upload, UploadFile)
-    assert upload.filename == "view"
-    assert upload.content_type == "image/x-portable-pixmap"
-    assert await upload.read() == data
-    await form.close()

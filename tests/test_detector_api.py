@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from asgi_lifespan import LifespanManager
 
-from services.common.images import encode_ppm
+from services.common.images import encode_ppm, media_type_of
 from services.detector.app import create_app
 from services.detector.letterbox import PAD_VALUE
 from services.detector.model import ModelError
@@ -107,8 +107,18 @@ async def client(model_dir) -> AsyncIterator[httpx.AsyncClient]:
         yield c
 
 
-async def detect(client: httpx.AsyncClient, data: bytes, **params) -> httpx.Response:
+async def detect(
+    client: httpx.AsyncClient, data: bytes, *, raw: bool = False, **params
+) -> httpx.Response:
+    """``POST /detect`` of ``data`` as a form's file, or (``raw``) as the body itself."""
+    if raw:
+        media_type = media_type_of(data)
+        headers = {"content-type": "image/png" if "octet" in media_type else media_type}
+        return await client.post("/detect", content=data, headers=headers, params=params)
     return await client.post("/detect", files={"image": ("x", data, "image/png")}, params=params)
+
+
+HOW = pytest.mark.parametrize("raw", [False, True], ids=["multipart", "raw"])
 
 
 # -- answers -----------------------------------------------------------------------------------
@@ -155,8 +165,9 @@ async def test_model_info(client, model_dir):
         ),
     ],
 )
-async def test_boxes_come_back_in_pixels_of_the_upload(client, size, encode, expected):
-    response = await detect(client, encode(grey(*size)))
+@HOW
+async def test_boxes_come_back_in_pixels_of_the_upload(client, size, encode, expected, raw):
+    response = await detect(client, encode(grey(*size)), raw=raw)
     assert response.status_code == 200, response.text
     body = response.json()
     assert body["image_size"] == list(size)
@@ -196,6 +207,9 @@ async def test_ppm_uploads_are_detected_like_png(client):
     from_ppm = await client.post("/detect", files={"image": ("x", ppm, "image/x-portable-pixmap")})
     assert from_ppm.status_code == 200, from_ppm.text
     assert from_ppm.json()["detections"] == from_png.json()["detections"]
+    raw_ppm = await detect(client, ppm, raw=True)  # what the controller sends
+    assert raw_ppm.status_code == 200, raw_ppm.text
+    assert raw_ppm.json()["detections"] == from_png.json()["detections"]
 
 
 async def test_colour_is_null_on_bare_ground(client):
@@ -302,8 +316,9 @@ BAD_UPLOADS = [
 @pytest.mark.parametrize(
     ("data", "status", "kind"), [case[1:] for case in BAD_UPLOADS], ids=[c[0] for c in BAD_UPLOADS]
 )
-async def test_bad_uploads_are_4xx_problems(client, data, status, kind):
-    response = await detect(client, data)
+@HOW
+async def test_bad_uploads_are_4xx_problems(client, data, status, kind, raw):
+    response = await detect(client, data, raw=raw)
     assert response.status_code == status, response.text
     assert response.headers["content-type"] == "application/problem+json"
     problem = response.json()
@@ -334,7 +349,9 @@ async def test_image_sent_as_a_text_field(client):
     ("content", "content_type"),
     [
         (b'{"image": "aGVsbG8="}', "application/json"),
-        (png(grey(8, 8)), "image/png"),
+        (png(grey(8, 8)), "image/gif"),
+        (png(grey(8, 8)), "text/plain"),
+        (png(grey(8, 8)), "application/octet-stream"),
         (b"image=abc", "application/x-www-form-urlencoded"),
         (png(grey(8, 8)), None),
     ],
@@ -358,6 +375,15 @@ async def test_malformed_multipart_is_4xx(client, content, content_type):
     response = await client.post("/detect", content=content, headers={"content-type": content_type})
     assert 400 <= response.status_code < 500
     assert response.headers["content-type"] == "application/problem+json"
+
+
+async def test_a_malformed_form_is_400_naming_the_body(client):
+    response = await client.post(
+        "/detect", content=b"--xyz--\r\n", headers={"content-type": "multipart/form-data"}
+    )
+    body = await problem(response, 400)
+    assert body["field"] == "body"
+    assert "multipart" in body["detail"]
 
 
 @pytest.mark.parametrize(
@@ -384,10 +410,11 @@ def multipart(data: bytes, boundary: str = "cosmos-boundary") -> tuple[bytes, st
     return head + data + f"\r\n--{boundary}--\r\n".encode(), boundary
 
 
-async def test_oversized_upload_is_413_by_content_length(client):
+@HOW
+async def test_oversized_upload_is_413_by_content_length(client, raw):
     big = png(np.random.default_rng(1).integers(0, 255, (300, 300, 3), dtype=np.uint8))
     assert len(big) > UPLOAD_LIMIT
-    response = await detect(client, big)
+    response = await detect(client, big, raw=raw)
     assert (await problem(response, 413))["type"] == "urn:cosmos:problem:payload-too-large"
 
 
@@ -404,6 +431,17 @@ async def test_oversized_chunked_multipart_upload_is_413(client):
         content=stream(),
         headers={"content-type": f"multipart/form-data; boundary={boundary}"},
     )
+    assert (await problem(response, 413))["type"] == "urn:cosmos:problem:payload-too-large"
+
+
+async def test_oversized_chunked_raw_upload_is_413(client):
+    body = b"\x89PNG\r\n\x1a\n" + b"\x00" * (UPLOAD_LIMIT + 10)
+
+    async def stream() -> AsyncIterator[bytes]:
+        for start in range(0, len(body), 16_384):
+            yield body[start : start + 16_384]
+
+    response = await client.post("/detect", content=stream(), headers={"content-type": "image/png"})
     assert (await problem(response, 413))["type"] == "urn:cosmos:problem:payload-too-large"
 
 

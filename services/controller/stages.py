@@ -16,7 +16,7 @@ from services.common.models import DetectResponse, GridIndex
 from services.common.optimization import NextPoseRequest, NextPoseResponse
 from services.common.scene import SceneDetail
 from services.controller.broker import Broker
-from services.controller.transport import StageAnswer, StageRequest, multipart_file
+from services.controller.transport import StageAnswer, StageRequest
 
 __all__ = ["StageError", "Stages"]
 
@@ -75,11 +75,11 @@ class Stages:
         return (await self._call("renderer", "render", request)).content
 
     async def detect(self, image: bytes, media_type: str, request_id: str = "") -> DetectResponse:
-        """The objects found in an image."""
-        body, content_type = multipart_file("image", "image", image, media_type)
-        headers = {"X-Request-ID": request_id, "Content-Type": content_type}
+        """The objects found in an image, sent as the raw body (no multipart to write or parse:
+        the detector takes ``image/png``, ``image/jpeg`` and binary PPM bodies as they are)."""
+        headers = {"X-Request-ID": request_id, "Content-Type": media_type}
         response = await self._call(
-            "detector", "detect", StageRequest("POST", "/detect", body, headers)
+            "detector", "detect", StageRequest("POST", "/detect", image, headers)
         )
         return DetectResponse.model_validate_json(response.content)
 

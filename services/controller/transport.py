@@ -11,7 +11,6 @@ Tests inject other transports (in-process apps, scripted faults).
 from __future__ import annotations
 
 import json
-import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -24,7 +23,6 @@ __all__ = [
     "StageRequest",
     "Transport",
     "TransportError",
-    "multipart_file",
 ]
 
 
@@ -71,20 +69,6 @@ class Transport(Protocol):
     async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer: ...
 
     async def close(self) -> None: ...
-
-
-def multipart_file(
-    field_name: str, filename: str, data: bytes, media_type: str
-) -> tuple[bytes, str]:
-    """A ``multipart/form-data`` body holding one file, and its Content-Type (RFC 7578)."""
-    boundary = uuid.uuid4().hex
-    head = (
-        f"--{boundary}\r\n"
-        f'Content-Disposition: form-data; name="{field_name}"; filename="{filename}"\r\n'
-        f"Content-Type: {media_type}\r\n\r\n"
-    ).encode()
-    body = b"".join((head, data, f"\r\n--{boundary}--\r\n".encode()))
-    return body, f"multipart/form-data; boundary={boundary}"
 
 
 class AiohttpTransport:

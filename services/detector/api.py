@@ -5,13 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Query, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, Query, Request, Response
 
-from services.common.errors import UnsupportedMediaTypeError
 from services.common.http import app_state, problem_responses
 from services.common.models import DetectorHealth, DetectResponse, ModelInfo
 from services.detector.detect import Detector
 from services.detector.settings import DetectorSettings
+from services.detector.upload import REQUEST_BODY, image_bytes
 
 __all__ = ["DetectorState", "router"]
 
@@ -27,17 +27,6 @@ class DetectorState:
 
 
 State = Annotated[DetectorState, Depends(app_state("detector"))]
-
-
-async def require_multipart(request: Request) -> None:
-    """415 unless the body is ``multipart/form-data`` (checked before the form's fields)."""
-    media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
-    if media_type != "multipart/form-data":
-        raise UnsupportedMediaTypeError(
-            f"POST /detect takes multipart/form-data with the image in the field 'image', "
-            f"not {media_type or 'a body without a content type'}",
-            field="content-type",
-        )
 
 
 @router.get("/health", response_model=DetectorHealth)
@@ -68,11 +57,11 @@ async def model(state: State) -> ModelInfo:
     "/detect",
     response_model=DetectResponse,
     responses=problem_responses(400, 413, 415, 422, 503),
-    dependencies=[Depends(require_multipart)],
+    openapi_extra={"requestBody": REQUEST_BODY},
 )
 async def detect(
+    request: Request,
     state: State,
-    image: Annotated[UploadFile, File(description="The image: PNG, JPEG or binary PPM bytes.")],
     conf: Annotated[
         float | None,
         Query(
@@ -87,9 +76,9 @@ async def detect(
         Query(ge=1, le=1000, description="At most this many detections, best first."),
     ] = None,
 ) -> Response:
-    """Detect the objects in an image (multipart field ``image``): per object its class,
-    confidence, box in pixels of the uploaded image and mean colour."""
-    data = await image.read()
+    """Detect the objects in an image (multipart field ``image``, or the raw image body): per
+    object its class, confidence, box in pixels of the uploaded image and mean colour."""
+    data = await image_bytes(request)
     found = await state.detector.detect(data, conf=conf, max_detections=max_detections)
     # Serialised once by pydantic-core; returning the model would validate it again first.
     return Response(found.model_dump_json(), media_type="application/json")

@@ -1,9 +1,9 @@
 """Detection end to end: image bytes -> letterboxed tensor -> model -> boxes in image pixels.
 
 :func:`detections_from_output` is the pure post-processing of one image;
-:class:`Detector` runs requests concurrently (decoding and post-processing on worker threads,
-inference through the :class:`~services.detector.batching.MicroBatcher`) and bounds how many
-are in flight.
+:class:`Detector` runs requests concurrently (PNG and JPEG decoding and post-processing on worker
+threads, inference through the :class:`~services.detector.batching.MicroBatcher`) and bounds how
+many are in flight.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.errors import ServiceUnavailableError
-from services.common.images import decode_image
+from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
 from services.common.models import Detection, DetectResponse, ModelInfo
 from services.detector.batching import MicroBatcher
 from services.detector.colour import measure_colour
@@ -148,7 +148,13 @@ class Detector:
         override the settings for this call."""
         self._admit()
         try:
-            rgb, tensor, box = await asyncio.to_thread(self._prepare, data)
+            # A binary PPM needs no codec: decoding and letterboxing it here costs less than the
+            # thread hop that keeps a PNG or JPEG decode off the event loop.
+            rgb, tensor, box = (
+                self._prepare(data)
+                if media_type_of(data) == PPM_MEDIA_TYPE
+                else await asyncio.to_thread(self._prepare, data)
+            )
             options = DetectOptions(
                 conf=self.options.conf if conf is None else conf,
                 iou=self.options.iou,
