@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sqlite3
+import time
 from datetime import timedelta
 
 import pytest
@@ -11,6 +12,7 @@ from services.common.errors import ProblemDetails
 from services.common.models import Detection, GridIndex, Pose
 from services.common.optimization import GridPose
 from services.common.search import Iteration, Search, SearchResult, StageTimings
+from services.controller.checkpoint import Checkpointer
 from services.controller.store import SearchStore, database_path, utcnow
 
 START = GridPose(index=GridIndex(lat=2, lon=3), theta_deg=22.5, phi_deg=60.0)
@@ -166,3 +168,61 @@ def test_a_database_with_images_in_its_search_rows_is_moved_over(tmp_path):
     assert reopened.image("a") == b"\x89PNG-a"
     assert reopened.status_doc("a")[0] == "succeeded"
     reopened.close()
+
+
+def _wal_bytes(db) -> int:
+    wal = db.parent / f"{db.name}-wal"
+    return wal.stat().st_size if wal.exists() else 0
+
+
+def test_no_commit_copies_the_log_back(tmp_path):
+    """Auto-checkpoints are off: 30 searches with 200 KB images (~1500 pages) grow the log past
+    SQLite's 1000-page auto-checkpoint without any commit copying it back."""
+    db = tmp_path / "c.sqlite3"
+    store = SearchStore(f"sqlite:///{db}", checkpoint_every_s=3600)
+    try:
+        assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 0
+        for n in range(30):
+            store.create(search(f"s{n}"), bytes([n]) * 200_000)
+        assert _wal_bytes(db) > 1000 * 4096
+        busy, log, copied = store._checkpointer.checkpoint()
+        assert busy == 0
+        assert copied == log > 1000
+    finally:
+        store.close()
+    assert _wal_bytes(db) == 0  # the last checkpoint empties the log
+    reopened = SearchStore(f"sqlite:///{db}")
+    try:
+        assert reopened.image("s29") == bytes([29]) * 200_000
+    finally:
+        reopened.close()
+
+
+def test_the_log_is_checkpointed_in_the_background(tmp_path):
+    store = SearchStore(f"sqlite:///{tmp_path / 'c.sqlite3'}", checkpoint_every_s=0.02)
+    try:
+        store.create(search("a"), b"x" * 50_000)
+        checkpointer = store._checkpointer
+        for _ in range(500):
+            if checkpointer.runs >= 2:
+                break
+            time.sleep(0.01)
+        assert checkpointer.runs >= 2
+        assert store.get("a") is not None  # the loop's connection reads on as before
+    finally:
+        store.close()
+
+
+def test_memory_databases_have_no_checkpointer():
+    store = SearchStore("sqlite:///:memory:")
+    try:
+        assert store._checkpointer is None
+        store.create(search("a"), b"x")
+        assert store.image("a") == b"x"
+    finally:
+        store.close()
+
+
+def test_the_checkpoint_interval_must_be_positive(tmp_path):
+    with pytest.raises(ValueError, match="every_s"):
+        Checkpointer(str(tmp_path / "c.sqlite3"), every_s=0)
