@@ -1,20 +1,28 @@
 """The controller's stage calls against the real renderer and detector apps (in process): views
-are fetched as binary PPM and detected as such, and a renderer that only answers PNG still works."""
+are fetched as binary PPM and detected as such, a renderer that only answers PNG still works, and
+a submission's start view is rendered early and taken by its search once (or dropped)."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from urllib.parse import urlsplit
 
+import cv2
 import httpx
+import numpy as np
 import pytest
 from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from services.common.errors import UnprocessableError
 from services.common.images import PPM_MEDIA_TYPE, media_type_of
 from services.common.models import GridIndex
+from services.common.search import Search
 from services.controller.broker import Broker
 from services.controller.stages import Stages
+from services.controller.store import SearchStore
+from services.controller.submit import create_search
 from services.controller.transport import StageAnswer, StageRequest
 from services.detector.app import create_app as create_detector
 from services.renderer.app import create_app as create_renderer
@@ -91,4 +99,116 @@ async def test_a_view_is_rendered_and_detected(apps, old_renderer):
         assert found.image_size == (320, 240)
         assert len(found.detections) >= 3  # the demo's balls seen from an upper ring
     finally:
+        await stages.broker.close()
+
+
+class Counting:
+    """An app that counts the requests it serves."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+        self.requests: list[str] = []
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            self.requests.append(scope["path"])
+        await self.app(scope, receive, send)
+
+
+async def test_an_early_render_is_taken_by_its_search_once(apps):
+    renderer, detector = apps
+    counting = Counting(renderer)
+    stages = stages_over(counting, detector)
+    start = GridIndex(lat=3, lon=5)
+    try:
+        stages.render_early("demo", start, "search-1")
+        stages.render_early("demo", start, "search-1")  # already under way: not asked twice
+        early = await stages.render("demo", start, "search-1")
+        assert counting.requests == ["/render"]
+        assert early == await stages.render("demo", start, "search-1")  # a new render: seed 0
+        assert counting.requests == ["/render", "/render"]
+        stages.render_early("demo", start, "search-2")
+        other = await stages.render("demo", start, "search-3")  # not search-2's
+        assert other == early
+        stages.forget_early("search-2")
+        assert stages._early == {}
+    finally:
+        await stages.broker.close()
+
+
+async def test_a_failed_early_render_nobody_took_is_not_reported(apps):
+    """A failure of a dropped early render is retrieved when it is dropped: asyncio would
+    otherwise log 'Task exception was never retrieved' when the task is collected."""
+    renderer, detector = apps
+    stages = stages_over(renderer, detector)
+    try:
+        stages.render_early("no-such-scene", GridIndex(lat=0, lon=0), "search-1")
+        (task,) = stages._early.values()
+        await asyncio.wait([task])  # failed (an unknown scene); nothing retrieved it yet
+        assert task._log_traceback  # what makes asyncio report it when collected
+        stages.forget_early("search-1")
+        await asyncio.sleep(0)  # the done callback runs
+        assert not task._log_traceback
+        assert stages._early == {}
+    finally:
+        await stages.broker.close()
+
+
+def _png(width: int = 64, height: int = 48) -> bytes:
+    rgb = np.random.default_rng(0).integers(0, 255, (height, width, 3), dtype=np.uint8)
+    ok, buffer = cv2.imencode(".png", rgb)
+    assert ok
+    return buffer.tobytes()
+
+
+async def _submit(stages: Stages, store: SearchStore, image: bytes) -> Search:
+    return await create_search(
+        store,
+        stages,
+        image=image,
+        scene_id="demo",
+        strategy="reprojection",
+        start_theta_deg=45.0,
+        start_phi_deg=30.0,
+        seed=1,
+        max_iterations=10,
+        max_image_pixels=1_000_000,
+        max_image_side=4096,
+        start_early=True,
+    )
+
+
+async def test_a_submission_starts_its_start_view_before_it_is_stored(apps):
+    renderer, detector = apps
+    counting = Counting(renderer)
+    stages = stages_over(counting, detector)
+    store = SearchStore("sqlite:///:memory:")
+    try:
+        search = await _submit(stages, store, _png())
+        assert store.get(search.id) is not None
+        assert search.target_size == (64, 48)
+        assert list(stages._early) == [
+            (search.id, "demo", *search.start.index.model_dump().values())
+        ]
+        view = await stages.render("demo", search.start.index, search.id)  # the early one
+        assert media_type_of(view) == PPM_MEDIA_TYPE
+        assert counting.requests.count("/render") == 1
+    finally:
+        store.close()
+        await stages.broker.close()
+
+
+async def test_a_broken_image_drops_its_early_render_and_records_nothing(apps):
+    renderer, detector = apps
+    stages = stages_over(renderer, detector)
+    store = SearchStore("sqlite:///:memory:")
+    png = _png()
+    try:
+        with pytest.raises(UnprocessableError) as refused:  # the header is fine, the data not
+            await _submit(stages, store, png[: len(png) // 2])
+        assert refused.value.slug == "invalid-image"
+        assert stages._early == {}
+        assert store.page(10, 0) == ([], 0)
+    finally:
+        store.close()
         await stages.broker.close()

@@ -26,6 +26,7 @@ from services.common.errors import (
 __all__ = [
     "PPM_MEDIA_TYPE",
     "ImageHeader",
+    "checked_header",
     "decode_image",
     "encode_ppm",
     "media_type_of",
@@ -189,18 +190,15 @@ def _decode_ppm(data: bytes, header: ImageHeader) -> NDArray[np.uint8]:
     return pixels.reshape(header.height, header.width, 3).copy()
 
 
-def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.uint8]:
-    """Decode PNG, JPEG or binary PPM bytes to an 8-bit RGB ``(H, W, 3)`` array.
-
-    Grey, palette, 16-bit and alpha images are converted to 8-bit RGB (alpha dropped). EXIF
-    orientation is ignored: the array is the stored pixel grid, whose size the header states.
+def checked_header(data: bytes, *, max_pixels: int, max_side: int) -> ImageHeader:
+    """:func:`read_header`, and the caps on the size it declares (no pixel is decoded).
 
     Raises
     ------
     PayloadTooLargeError
         The header declares more than ``max_pixels`` pixels or a side over ``max_side``.
     UnprocessableError, UnsupportedMediaTypeError
-        As :func:`read_header`; also when the image data cannot be decoded.
+        As :func:`read_header`.
     """
     header = read_header(data)
     pixels = header.width * header.height
@@ -212,6 +210,21 @@ def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.u
             slug="image-too-large",
             title="Image too large",
         )
+    return header
+
+
+def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.uint8]:
+    """Decode PNG, JPEG or binary PPM bytes to an 8-bit RGB ``(H, W, 3)`` array.
+
+    Grey, palette, 16-bit and alpha images are converted to 8-bit RGB (alpha dropped). EXIF
+    orientation is ignored: the array is the stored pixel grid, whose size the header states.
+
+    Raises
+    ------
+    PayloadTooLargeError, UnprocessableError, UnsupportedMediaTypeError
+        As :func:`checked_header`; also (422) when the image data cannot be decoded.
+    """
+    header = checked_header(data, max_pixels=max_pixels, max_side=max_side)
     if header.format == "ppm":
         return _decode_ppm(data, header)
     flags = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION

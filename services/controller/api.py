@@ -114,6 +114,7 @@ async def submit(
             max_iterations=max_iterations or state.settings.default_max_iterations,
             max_image_pixels=state.settings.max_image_pixels,
             max_image_side=state.settings.max_image_side,
+            start_early=state.runner.idle,
         )
     except BrokerError as exc:
         raise _unavailable(exc) from exc

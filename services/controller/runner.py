@@ -2,8 +2,10 @@
 
 A search detects its target once, then per iteration renders the current grid pose, detects the
 objects in it and asks the optimizer for the next pose, until the optimizer says done or
-``max_iterations`` views were rendered. The target's detection overlaps the start view's render.
-A pose already rendered in this search is never rendered again: its detections are reused.
+``max_iterations`` views were rendered. The target's detection overlaps the start view's render,
+which a search submitted to an idle runner had started before its submission was even stored
+(:meth:`Stages.render_early`: its first render time is then the part the search waited for). A
+pose already rendered in this search is never rendered again: its detections are reused.
 
 Every iteration is recorded as soon as the next view's render is on its way (the write overlaps
 the render), and before the search ends, fails or is cancelled; a search interrupted by a restart
@@ -164,6 +166,11 @@ class SearchRunner:
     def running(self) -> int:
         return len(self._running)
 
+    @property
+    def idle(self) -> bool:
+        """Whether a search submitted now would start at once (a worker is free, none waits)."""
+        return self._queue.empty() and len(self._running) < self.max_concurrent
+
     def cancel(self, search_id: str) -> Search:
         """Cancel a queued or running search (a finished one is left as it is)."""
         search = self.store.get(search_id)
@@ -199,6 +206,7 @@ class SearchRunner:
     async def _run(self, search_id: str) -> None:
         search, image = self._submitted.pop(search_id, None) or (self.store.get(search_id), None)
         if search is None or search.status in TERMINAL_STATUSES or search_id in self._cancelled:
+            self.stages.forget_early(search_id)
             return
         try:
             await self._search(search, image or self.store.image(search_id))
@@ -222,6 +230,7 @@ class SearchRunner:
                 ),
             )
         finally:
+            self.stages.forget_early(search_id)  # a start view the search did not take
             self.notifier.publish(search_id)
 
     async def _detect(self, image: bytes, media_type: str, sid: str) -> DetectResponse:

@@ -7,6 +7,7 @@ failures and 5xx answers are the broker's to retry elsewhere.
 
 from __future__ import annotations
 
+import asyncio
 import json
 from typing import Any
 
@@ -51,6 +52,7 @@ class Stages:
         self.render_spp = render_spp
         self.render_width = render_width
         self._scenes: dict[str, SceneDetail] = {}
+        self._early: dict[tuple[str, str, int, int], asyncio.Task[bytes]] = {}
 
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
         """The scene's spec and grid from a renderer (cached: scenes are static)."""
@@ -62,9 +64,30 @@ class Stages:
             self._scenes[scene_id] = SceneDetail.model_validate_json(response.content)
         return self._scenes[scene_id]
 
+    def render_early(self, scene_id: str, index: GridIndex, request_id: str) -> None:
+        """Start rendering ``index`` now: the next :meth:`render` of it for ``request_id`` gets
+        this answer instead of asking again (a search's start view, while its submission is still
+        being checked and stored). :meth:`forget_early` drops what is not taken."""
+        key = (request_id, scene_id, index.lat, index.lon)
+        if key not in self._early:
+            self._early[key] = asyncio.create_task(self._render(scene_id, index, request_id))
+
+    def forget_early(self, request_id: str) -> None:
+        """Cancel and drop the early renders of ``request_id`` that nobody took."""
+        for key in [key for key in self._early if key[0] == request_id]:
+            # also marks a failure nobody will await as seen: asyncio does not report it
+            self._early.pop(key).cancel()
+
     async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
         """The scene seen from grid pose ``index``: binary PPM bytes (PNG from a renderer that
-        does not offer PPM). The view only travels on to the detector, so it is not compressed."""
+        does not offer PPM). The view only travels on to the detector, so it is not compressed.
+        An early render of it (:meth:`render_early`) is awaited instead of a new one."""
+        early = self._early.pop((request_id, scene_id, index.lat, index.lon), None)
+        if early is not None:
+            return await early
+        return await self._render(scene_id, index, request_id)
+
+    async def _render(self, scene_id: str, index: GridIndex, request_id: str) -> bytes:
         body: dict[str, Any] = {"scene": scene_id, "pose": index.model_dump()}
         if self.render_spp is not None:
             body["spp"] = self.render_spp

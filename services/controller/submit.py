@@ -8,7 +8,7 @@ import re
 import uuid
 
 from services.common.errors import NotFoundError, UnprocessableError
-from services.common.images import decode_image
+from services.common.images import checked_header, decode_image
 from services.common.models import Pose
 from services.common.optimization import GridPose, GridSpec, StrategyName
 from services.common.scene import SCENE_ID_PATTERN
@@ -34,17 +34,18 @@ async def create_search(
     max_iterations: int,
     max_image_pixels: int,
     max_image_side: int,
+    start_early: bool = False,
 ) -> Search:
     """Validate a new search and record it as queued (the caller queues it).
 
-    The image must decode (PNG, JPEG or binary PPM within the size caps; decoded off the event
-    loop); the scene must be known to the renderers. A start pose given by angles is snapped to
-    the nearest grid pose; without one, a grid pose is drawn from ``seed`` (itself drawn when
-    absent, and recorded).
+    The image must decode (PNG, JPEG or binary PPM within the size caps; its header is checked
+    first, its pixels decoded off the event loop); the scene must be known to the renderers. A
+    start pose given by angles is snapped to the nearest grid pose; without one, a grid pose is
+    drawn from ``seed`` (itself drawn when absent, and recorded). With ``start_early`` the start
+    view's render is under way while the pixels are decoded and the search stored
+    (:meth:`Stages.render_early`; dropped again if the image turns out broken).
     """
-    rgb = await asyncio.to_thread(
-        decode_image, image, max_pixels=max_image_pixels, max_side=max_image_side
-    )
+    header = checked_header(image, max_pixels=max_image_pixels, max_side=max_image_side)
     if not 1 <= max_iterations <= MAX_ITERATIONS:
         raise UnprocessableError(
             f"max_iterations must be within 1..{MAX_ITERATIONS}", field="max_iterations"
@@ -92,18 +93,28 @@ async def create_search(
     else:
         index = grid.unflat(random.Random(seed).randrange(grid.size))
     pose = grid.pose(index)
-    now = utcnow()
-    record = Search(
-        id=uuid.uuid4().hex,
-        status="queued",
-        scene=scene_id,
-        strategy=strategy,
-        start=GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg),
-        seed=seed,
-        max_iterations=max_iterations,
-        created_at=now,
-        updated_at=now,
-        target_size=(int(rgb.shape[1]), int(rgb.shape[0])),
-    )
-    store.create(record, image)
+    search_id = uuid.uuid4().hex
+    if start_early:
+        stages.render_early(scene_id, index, search_id)
+    try:
+        await asyncio.to_thread(
+            decode_image, image, max_pixels=max_image_pixels, max_side=max_image_side
+        )
+        now = utcnow()
+        record = Search(
+            id=search_id,
+            status="queued",
+            scene=scene_id,
+            strategy=strategy,
+            start=GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg),
+            seed=seed,
+            max_iterations=max_iterations,
+            created_at=now,
+            updated_at=now,
+            target_size=(header.width, header.height),
+        )
+        store.create(record, image)
+    except BaseException:
+        stages.forget_early(search_id)
+        raise
     return record
