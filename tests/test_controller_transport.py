@@ -1,5 +1,5 @@
-"""The controller's transport to its stages: real HTTP to a real replica process, its failures as
-:class:`TransportError`."""
+"""The controller's transports to its stages (HTTP/1.1 of its own for ``http://``, aiohttp for
+``https://``): real HTTP to a real replica process, its failures as :class:`TransportError`."""
 
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ import socket
 import pytest
 
 from services.common.launch import running_service
+from services.controller.http1 import Http1Transport
 from services.controller.transport import (
     AiohttpTransport,
     StageRequest,
+    Transport,
     TransportError,
 )
 
@@ -28,8 +30,9 @@ def _closed_port() -> int:
         return int(probe.getsockname()[1])
 
 
-async def test_answers_refusals_and_timeouts(tmp_path):
-    transport = AiohttpTransport(connect_timeout_s=2.0)
+@pytest.mark.parametrize("kind", [Http1Transport, AiohttpTransport])
+async def test_answers_refusals_and_timeouts(tmp_path, kind):
+    transport: Transport = kind(connect_timeout_s=2.0)
     try:
         with running_service("tests.fake_replica:app", tmp_path, {"FAKE_NAME": "x"}) as replica:
             answer = await transport.send(replica.url, StageRequest("POST", "/work"), 5.0)

@@ -1,10 +1,10 @@
 """How the controller's broker sends one request to one replica: plain data in, plain data out.
 
 A :class:`StageRequest` is bytes and headers, so the broker can send it again to another replica;
-a :class:`StageAnswer` is the status, headers and the whole body. :class:`AiohttpTransport` is
-the one used in service: one aiohttp session with keep-alive connections to every replica. It
-costs the controller about a third of the CPU of httpx per call (measured with the stage calls of
-real searches, ``cosmos bench --profile``), and the controller makes seven calls per search.
+a :class:`StageAnswer` is the status, headers and the whole body. The broker's transport for
+``http://`` replicas is :class:`~services.controller.http1.Http1Transport`;
+:class:`AiohttpTransport` (one aiohttp session with keep-alive connections to every replica)
+serves ``https://`` ones.
 Tests inject other transports (in-process apps, scripted faults).
 """
 
@@ -72,7 +72,7 @@ class Transport(Protocol):
 
 
 class AiohttpTransport:
-    """Keep-alive HTTP/1.1 over one aiohttp session (made on first use, inside the loop)."""
+    """Keep-alive HTTP/1.1 (or TLS) over one aiohttp session (made on first use, in the loop)."""
 
     def __init__(self, connect_timeout_s: float) -> None:
         self.connect_timeout_s = connect_timeout_s
