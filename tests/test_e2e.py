@@ -21,6 +21,7 @@ import pytest
 from services.common.images import encode_ppm
 from services.common.launch import free_port, spawn_service, stop_service, wait_healthy
 from services.common.models import PoseQuery, RenderRequest
+from services.common.search import Search
 from services.controller.client import ControllerClient
 from services.renderer.client import RendererClient
 from services.stack import Stack, local_stack, plan_stack, running_stack
@@ -168,21 +169,17 @@ def png_bytes() -> bytes:
     return bytes(buffer)
 
 
+@pytest.mark.parametrize("how", ["form", "raw"])
 @pytest.mark.parametrize(
-    ("files", "data", "status", "field"),
+    ("image", "data", "status", "field"),
     [
-        ({"image": ("t", b"not an image", "image/png")}, {"scene": "demo"}, 415, None),
-        (
-            {"image": ("t", b"\x89PNG\r\n\x1a\n" + b"\0" * 10, "image/png")},
-            {"scene": "demo"},
-            422,
-            None,
-        ),
-        ({"image": ("t", b"", "image/png")}, {"scene": "demo"}, 422, None),
-        (None, {"scene": "demo"}, 422, "image"),
+        ((b"not an image", "image/png"), {"scene": "demo"}, 415, None),
+        ((b"\x89PNG\r\n\x1a\n" + b"\0" * 10, "image/png"), {"scene": "demo"}, 422, None),
+        ((b"", "image/png"), {"scene": "demo"}, 422, None),
         ("png", {"scene": "nope"}, 404, "scene"),
         ("png", {"scene": "../etc"}, 404, "scene"),
         ("png", {}, 422, "scene"),
+        ("png", {"scene": ""}, 422, "scene"),
         ("png", {"scene": "demo", "strategy": "guess"}, 422, "strategy"),
         (
             "png",
@@ -190,19 +187,115 @@ def png_bytes() -> bytes:
             422,
             "start_theta_deg",
         ),
+        ("png", {"scene": "demo", "start_theta_deg": "nan", "start_phi_deg": "0"}, 422, None),
         ("png", {"scene": "demo", "start_theta_deg": "10"}, 422, "start_theta_deg"),
         ("png", {"scene": "demo", "max_iterations": "0"}, 422, "max_iterations"),
+        ("png", {"scene": "demo", "max_iterations": "many"}, 422, "max_iterations"),
         ("png", {"scene": "demo", "seed": "-1"}, 422, "seed"),
     ],
 )
-def test_bad_submissions_get_problem_details(stack, files, data, status, field):
-    if files == "png":
-        files = {"image": ("t.png", png_bytes(), "image/png")}
-    response = httpx.post(f"{stack.controller}/searches", files=files, data=data, timeout=30)
+def test_bad_submissions_get_problem_details(stack, how, image, data, status, field):
+    """Each bad submission as a form (options as fields) and as a raw body (options in the
+    query): the same status and field either way."""
+    content, media_type = (png_bytes(), "image/png") if image == "png" else image
+    url = f"{stack.controller}/searches"
+    if how == "form":
+        files = {"image": ("t", content, media_type)}
+        response = httpx.post(url, files=files, data=data, timeout=30)
+    else:
+        headers = {"Content-Type": media_type}
+        response = httpx.post(url, content=content, params=data, headers=headers, timeout=30)
     assert response.status_code == status, response.text
     assert response.headers["content-type"] == "application/problem+json"
     if field is not None:
         assert response.json().get("field") == field, response.json()
+
+
+PNG_BODY = {"headers": {"Content-Type": "image/png"}}
+
+
+@pytest.mark.parametrize(
+    ("request_args", "status", "field"),
+    [
+        pytest.param({"data": {"scene": "demo"}}, 415, "content-type", id="urlencoded"),
+        pytest.param(
+            {"files": {"other": ("t", b"x", "image/png")}, "data": {"scene": "demo"}},
+            422,
+            "image",
+            id="no-file",
+        ),
+        pytest.param(
+            {"files": {"x": ("t", b"x")}, "data": {"scene": "demo", "image": "text"}},
+            422,
+            "image",
+            id="image-as-text",
+        ),
+        pytest.param(
+            {"content": b"x", "headers": {"Content-Type": "text/plain"}, "params": "scene=demo"},
+            415,
+            "content-type",
+            id="text-body",
+        ),
+        pytest.param(
+            {
+                "files": {"image": ("t", b"x", "image/png")},
+                "data": {"scene": "demo"},
+                "params": "scene=demo",
+            },
+            422,
+            "scene",
+            id="form-and-query",
+        ),
+        pytest.param(
+            {"content": b"x", **PNG_BODY, "params": "scene=demo&seed=1&seed=2"},
+            422,
+            "seed",
+            id="query-twice",
+        ),
+        pytest.param(
+            {"content": b"--x\r\n", "headers": {"Content-Type": "multipart/form-data"}},
+            400,
+            "body",
+            id="broken-form",
+        ),
+    ],
+)
+def test_bad_submission_shapes_get_problem_details(stack, request_args, status, field):
+    response = httpx.post(f"{stack.controller}/searches", timeout=30, **request_args)
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/problem+json"
+    assert response.json().get("field") == field, response.json()
+
+
+def test_a_raw_submission_searches_like_a_form(stack):
+    """The image as the body and the options in the query start the same search a form does."""
+    image = render(stack, "demo", 4, 12)
+    options = {"scene": "demo", "strategy": "reprojection", "seed": "5", "max_iterations": "10"}
+    raw = httpx.post(
+        f"{stack.controller}/searches",
+        content=image,
+        params=options,
+        headers={"Content-Type": "image/png"},
+        timeout=30,
+    )
+    form = httpx.post(
+        f"{stack.controller}/searches",
+        files={"image": ("t.png", image, "image/png")},
+        data=options,
+        timeout=30,
+    )
+    assert raw.status_code == form.status_code == 202, (raw.text, form.text)
+    with ControllerClient(stack.controller) as client:
+        found = []
+        for answer in (raw, form):
+            *_, end = client.follow(answer.json()["id"])
+            assert isinstance(end, Search)
+            found.append(end)
+    assert found[0].start == found[1].start  # the same seed, the same start
+    assert found[0].status == found[1].status == "succeeded"
+    results = [s.result for s in found]
+    assert None not in results
+    assert results[0] == results[1]
 
 
 def test_unknown_searches_and_oversized_uploads(stack):

@@ -250,18 +250,15 @@ def _failed(target: Target, strategy: StrategyName, detail: str, wall_ms: float)
     )
 
 
-def _search_form(target: Target, strategy: StrategyName, max_iterations: int) -> aiohttp.FormData:
-    form = aiohttp.FormData()
-    form.add_field("scene", target.scene)
-    form.add_field("strategy", strategy)
-    form.add_field("start_theta_deg", repr(target.start_pose.theta_deg))
-    form.add_field("start_phi_deg", repr(target.start_pose.phi_deg))
-    form.add_field("seed", str(target.seed))
-    form.add_field("max_iterations", str(max_iterations))
-    form.add_field(
-        "image", target.image, filename="target", content_type=media_type_of(target.image)
-    )
-    return form
+def _search_query(target: Target, strategy: StrategyName, max_iterations: int) -> dict[str, str]:
+    return {
+        "scene": target.scene,
+        "strategy": strategy,
+        "start_theta_deg": repr(target.start_pose.theta_deg),
+        "start_phi_deg": repr(target.start_pose.phi_deg),
+        "seed": str(target.seed),
+        "max_iterations": str(max_iterations),
+    }
 
 
 async def _one_search(
@@ -271,10 +268,14 @@ async def _one_search(
     strategy: StrategyName,
     max_iterations: int,
 ) -> SearchRecord:
-    form = _search_form(target, strategy, max_iterations)
+    # The image as the raw body, the options in the query: what a program sends (no multipart).
+    query = _search_query(target, strategy, max_iterations)
+    headers = {"Content-Type": media_type_of(target.image)}
     started = time.perf_counter()
     try:
-        async with http.post(f"{base_url}/searches", data=form) as response:
+        async with http.post(
+            f"{base_url}/searches", data=target.image, params=query, headers=headers
+        ) as response:
             body = await response.read()
             if response.status != 202:
                 text = body[:300].decode(errors="replace")

@@ -3,19 +3,21 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Literal
+from typing import Annotated, Final, Literal
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from services.common.errors import ProblemDetails
-from services.common.models import Detection, FrozenModel, Pose
+from services.common.models import Angle, Detection, FrozenModel, Pose, ThetaDeg
 from services.common.optimization import GridPose, StrategyName
 
 __all__ = [
+    "MAX_ITERATIONS",
     "ControllerHealth",
     "Iteration",
     "ReplicaHealth",
     "Search",
+    "SearchOptions",
     "SearchPage",
     "SearchResult",
     "SearchStatus",
@@ -28,6 +30,28 @@ TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled
 
 
 NonNegMs = Annotated[float, Field(ge=0.0)]
+
+MAX_ITERATIONS: Final = 500
+
+
+class SearchOptions(FrozenModel):
+    """What ``POST /searches`` takes besides the image: the form's text fields, or the query
+    beside a raw image body. Unknown names are ignored, as for any form."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True, allow_inf_nan=False)
+
+    scene: Annotated[str, Field(min_length=1, max_length=128, description="The scene's id.")]
+    strategy: StrategyName = Field(default="reprojection", description="The search strategy.")
+    start_theta_deg: ThetaDeg | None = Field(
+        default=None, description="Start pose (snapped to the grid); with start_phi_deg."
+    )
+    start_phi_deg: Angle | None = Field(default=None, description="Start pose's longitude.")
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] | None = Field(
+        default=None, description="Draws the start pose when none is given (recorded)."
+    )
+    max_iterations: Annotated[int, Field(ge=1, le=MAX_ITERATIONS)] | None = Field(
+        default=None, description="Give up after this many views (default: the controller's)."
+    )
 
 
 class StageTimings(FrozenModel):

@@ -7,22 +7,24 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
 from services.common.http import app_state, problem_responses
 from services.common.models import SceneSummary
-from services.common.optimization import GridSpec, StrategyName
+from services.common.optimization import GridSpec
 from services.common.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
+from services.common.upload import read_upload
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
+from services.controller.form import OPENAPI, search_options
 from services.controller.plots import distance_png, trajectory_png
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
-from services.controller.submit import MAX_ITERATIONS, create_search
+from services.controller.submit import create_search
 from services.controller.transport import StageRequest
 
 __all__ = ["ControllerState", "router"]
@@ -87,31 +89,27 @@ def _unavailable(exc: BrokerError) -> ServiceUnavailableError:
     "/searches",
     status_code=202,
     response_model=Search,
-    responses=problem_responses(404, 413, 415, 422, 503),
+    responses=problem_responses(400, 404, 413, 415, 422, 503),
+    openapi_extra=OPENAPI,
 )
-async def submit(
-    state: State,
-    image: Annotated[UploadFile, File(description="The target view: PNG, JPEG or binary PPM.")],
-    scene: Annotated[str, Form(min_length=1, max_length=128)],
-    strategy: Annotated[StrategyName, Form()] = "reprojection",
-    start_theta_deg: Annotated[float | None, Form(ge=0.0, le=90.0, allow_inf_nan=False)] = None,
-    start_phi_deg: Annotated[float | None, Form(allow_inf_nan=False)] = None,
-    seed: Annotated[int | None, Form(ge=0, le=2**31 - 1)] = None,
-    max_iterations: Annotated[int | None, Form(ge=1, le=MAX_ITERATIONS)] = None,
-) -> JSONResponse:
-    """Start a search for where ``image`` was taken in ``scene``; answers 202 and a Location."""
-    data = await image.read()
+async def submit(request: Request, state: State) -> JSONResponse:
+    """Start a search for where ``image`` was taken in ``scene``; answers 202 and a Location.
+
+    The image is a form's file field ``image`` with the options as text fields, or the raw PNG,
+    JPEG or binary PPM body with the options in the query."""
+    upload = await read_upload(request)
+    options = search_options(upload.fields, request.query_params.multi_items())
     try:
         search = await create_search(
             state.store,
             state.stages,
-            image=data,
-            scene_id=scene,
-            strategy=strategy,
-            start_theta_deg=start_theta_deg,
-            start_phi_deg=start_phi_deg,
-            seed=seed,
-            max_iterations=max_iterations or state.settings.default_max_iterations,
+            image=upload.image,
+            scene_id=options.scene,
+            strategy=options.strategy,
+            start_theta_deg=options.start_theta_deg,
+            start_phi_deg=options.start_phi_deg,
+            seed=options.seed,
+            max_iterations=options.max_iterations or state.settings.default_max_iterations,
             max_image_pixels=state.settings.max_image_pixels,
             max_image_side=state.settings.max_image_side,
             start_early=state.runner.idle,
@@ -120,7 +118,7 @@ async def submit(
         raise _unavailable(exc) from exc
     except StageError as exc:
         raise UnprocessableError(str(exc), field="scene") from exc
-    state.runner.submit(search.id, recorded=(search, data))
+    state.runner.submit(search.id, recorded=(search, upload.image))
     return JSONResponse(
         search.model_dump(mode="json"),
         status_code=202,

@@ -26,11 +26,14 @@ class ControllerClient(ServiceClient):
     error = ControllerError
 
     def submit(self, image: bytes, scene: str, **options: Any) -> Search:
-        """``POST /searches``; ``options`` are the optional form fields (None values left out)."""
-        media = media_type_of(image)
-        form = {k: str(v) for k, v in options.items() if v is not None}
+        """``POST /searches`` with the image as the body; ``options`` are the optional
+        :class:`~services.common.search.SearchOptions` (None values left out)."""
+        query = {k: str(v) for k, v in options.items() if v is not None}
         response = self._http.post(
-            "/searches", files={"image": ("target", image, media)}, data={"scene": scene, **form}
+            "/searches",
+            content=image,
+            params={"scene": scene, **query},
+            headers={"Content-Type": media_type_of(image)},
         )
         return Search.model_validate(self._check(response).json())
 

@@ -12,13 +12,11 @@ from services.common.images import checked_header, decode_image
 from services.common.models import Pose
 from services.common.optimization import GridPose, GridSpec, StrategyName
 from services.common.scene import SCENE_ID_PATTERN
-from services.common.search import Search
+from services.common.search import MAX_ITERATIONS, Search
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore, utcnow
 
-__all__ = ["MAX_ITERATIONS", "create_search"]
-
-MAX_ITERATIONS = 500
+__all__ = ["create_search"]
 
 
 async def create_search(

@@ -9,9 +9,9 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 
 from services.common.http import app_state, problem_responses
 from services.common.models import DetectorHealth, DetectResponse, ModelInfo
+from services.common.upload import read_upload, request_body
 from services.detector.detect import Detector
 from services.detector.settings import DetectorSettings
-from services.detector.upload import REQUEST_BODY, image_bytes
 
 __all__ = ["DetectorState", "router"]
 
@@ -57,7 +57,7 @@ async def model(state: State) -> ModelInfo:
     "/detect",
     response_model=DetectResponse,
     responses=problem_responses(400, 413, 415, 422, 503),
-    openapi_extra={"requestBody": REQUEST_BODY},
+    openapi_extra={"requestBody": request_body()},
 )
 async def detect(
     request: Request,
@@ -78,7 +78,7 @@ async def detect(
 ) -> Response:
     """Detect the objects in an image (multipart field ``image``, or the raw image body): per
     object its class, confidence, box in pixels of the uploaded image and mean colour."""
-    data = await image_bytes(request)
+    data = (await read_upload(request)).image
     found = await state.detector.detect(data, conf=conf, max_detections=max_detections)
     # Serialised once by pydantic-core; returning the model would validate it again first.
     return Response(found.model_dump_json(), media_type="application/json")
