@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import socket
 
 import pytest
@@ -53,3 +54,29 @@ async def test_answers_refusals_and_timeouts(tmp_path, kind):
             stuck.process.kill()  # it would wait for its hanging task on a graceful stop
     finally:
         await transport.close()
+
+
+async def test_survives_the_replicas_keep_alive_timeout(tmp_path):
+    """uvicorn closes a connection idle for its keep-alive timeout; the next call, made just as
+    or after it closes, is answered on a new connection and never seen as a failure."""
+    transport = Http1Transport(connect_timeout_s=2.0)
+    connect = transport._connect
+    connects = 0
+
+    async def counted(origin):
+        nonlocal connects
+        connects += 1
+        return await connect(origin)
+
+    transport._connect = counted  # type: ignore[method-assign]
+    env = {"FAKE_NAME": "x", "UVICORN_TIMEOUT_KEEP_ALIVE": "1"}
+    try:
+        with running_service("tests.fake_replica:app", tmp_path, env) as replica:
+            for pause_s in (0.0, 1.5, 0.95, 1.05, 1.0):
+                await asyncio.sleep(pause_s)
+                answer = await transport.send(replica.url, StageRequest("POST", "/work"), 5.0)
+                assert answer.status_code == 200
+                assert answer.json() == {"replica": "x"}
+    finally:
+        await transport.close()
+    assert connects >= 2  # the replica did close idle connections under the test
