@@ -9,8 +9,9 @@ by httptools, the parser uvicorn uses, so chunked bodies, keep-alive and malform
 handled by well-tested code; this module only writes requests and keeps connections.
 
 Every stage call is a pure function of its request (render, detect, plan), so a request that
-met a connection the replica had just closed, before any byte of an answer, is sent once more
-on a new connection. Anything else that goes wrong is a :class:`TransportError` for the broker.
+met a kept-alive connection the replica had just closed, before any byte of an answer, is sent
+again on another idle connection or a new one (a new one that closes unanswered is an error).
+Anything else that goes wrong is a :class:`TransportError` for the broker.
 ``https://`` URLs go through :class:`~services.controller.transport.AiohttpTransport`.
 """
 
@@ -88,6 +89,7 @@ class _Connection(asyncio.Protocol):
 
     def __init__(self) -> None:
         self._transport: asyncio.Transport | None = None
+        # One parser for the connection's answers in turn; after a parse error it is closed.
         self._parser = httptools.HttpResponseParser(self)
         self._answer: asyncio.Future[StageAnswer] | None = None
         self._headers: dict[str, str] = {}
@@ -169,7 +171,6 @@ class _Connection(asyncio.Protocol):
         self._answer = asyncio.get_running_loop().create_future()
         self._headers, self._body = {}, []
         self._got_bytes = self._headers_done = self.reusable = False
-        self._parser = httptools.HttpResponseParser(self)
         self._transport.write(data)
         return await self._answer
 
