@@ -277,6 +277,11 @@ class ModelInfo(FrozenModel):
     input_size: tuple[int, int] = Field(description="Network input (width, height) in pixels.")
     sha256: str
     provenance: dict[str, str | int | float] = Field(default_factory=dict)
+    scene: str | None = Field(
+        default=None,
+        description="The scene this model was onboarded for (its classes are that scene's "
+        "objects); null for the general model, whose classes are shape types.",
+    )
 
 
 class DetectResponse(FrozenModel):
