@@ -25,6 +25,7 @@ from services.bench.report import (
     text_tables,
 )
 from services.bench.runner import IterationRecord, SearchRecord
+from services.bench.settings_sweep import _match
 from services.bench.variants import (
     JPEG_QUALITY,
     NOISE_SIGMA,
@@ -34,7 +35,8 @@ from services.bench.variants import (
 )
 from services.cli import main
 from services.common.grid import angular_distance_deg, grid_for
-from services.common.models import GridIndex
+from services.common.models import Detection, GridIndex, ObjectAnnotation
+from services.detector.letterbox import fit
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "detector.onnx"
 GRID = grid_for(7.5, 7.5, 82.5)
@@ -246,3 +248,26 @@ def test_the_render_setting_chosen_is_the_cheapest_that_loses_nothing():
     # the reference is the largest film: a smaller one that loses nothing wins on cost
     assert choose_setting(runs).startswith("160 px wide at 8 spp")
     assert choose_setting([]) == ""
+
+
+def test_sweep_matching_maps_a_smaller_film_onto_the_scene_film():
+    truth = [
+        ObjectAnnotation.model_validate(
+            {
+                "name": "a",
+                "shape": "cube",
+                "position": [0, 0, 0],
+                "centroid": [0, 0, 0.5],
+                "box": [40.0, 40.0, 120.0, 100.0],
+                "visible_pixels": 4000,
+                "full_box": [40.0, 40.0, 120.0, 100.0],
+                "full_pixels": 4000,
+                "visible_fraction": 1.0,
+                "projected_center": [80.0, 70.0],
+            }
+        )
+    ]
+    half = Detection(label="cube", class_id=1, confidence=0.9, box=(20.0, 20.0, 60.0, 50.0))
+    found, expected, correct, errors = _match([half], truth, fit((160, 120), (320, 240)))
+    assert (found, expected, correct) == (1, 1, 1)
+    assert errors == [pytest.approx(0.0)]

@@ -17,11 +17,12 @@ from collections.abc import Callable, Sequence
 from typing import Any, Final
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.bench.profile import InProcess
 from services.common.catalog import scene_grid
 from services.common.models import Detection, ObjectAnnotation
+from services.detector.letterbox import Letterbox, fit
+from services.detector.postprocess import box_iou
 
 __all__ = ["DEFINITION", "MIN_VISIBLE_FRACTION", "MIN_VISIBLE_PIXELS", "detection_sweep"]
 
@@ -39,22 +40,11 @@ DEFINITION: Final = (
 )
 
 
-def _iou(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """IoU of boxes ``a (N, 4)`` against ``b (M, 4)``, xyxy."""
-    lo = np.maximum(a[:, None, :2], b[None, :, :2])
-    hi = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(hi - lo, 0.0, None), axis=-1)
-    area_a = np.prod(a[:, 2:] - a[:, :2], axis=-1)
-    area_b = np.prod(b[:, 2:] - b[:, :2], axis=-1)
-    union = area_a[:, None] + area_b[None, :] - inter
-    iou: NDArray[np.float64] = np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-    return iou
-
-
 def _match(
-    detections: Sequence[Detection], truth: Sequence[ObjectAnnotation], scale: float
+    detections: Sequence[Detection], truth: Sequence[ObjectAnnotation], view: Letterbox
 ) -> tuple[int, int, int, list[float]]:
-    """(expected objects found, expected objects, correct detections, box errors)."""
+    """(expected objects found, expected objects, correct detections, box errors); ``view`` maps
+    the detections' film onto the ground truth's (the detector's letterbox geometry)."""
     objects = [o for o in truth if o.box is not None]
     expected = {
         i
@@ -64,9 +54,9 @@ def _match(
     if not detections or not objects:
         return 0, len(expected), 0, []
     order = sorted(range(len(detections)), key=lambda i: -detections[i].confidence)
-    boxes = np.array([detections[i].box for i in order], dtype=np.float64) * scale
+    boxes = view.to_input(np.array([detections[i].box for i in order], dtype=np.float64))
     gt = np.array([o.box for o in objects], dtype=np.float64)
-    iou = _iou(boxes, gt)
+    iou = np.stack([box_iou(box, gt) for box in boxes])
     taken: set[int] = set()
     correct = 0
     errors: list[float] = []
@@ -104,6 +94,7 @@ def detection_sweep(
             scene = local.catalog.get(scene_id)
             grid = scene_grid(scene)
             camera = scene.spec.camera
+            scene_film = (camera.width, camera.height)
             films = [
                 (round(camera.width * factor), round(camera.height * factor))
                 for factor in FILM_SCALES
@@ -127,7 +118,7 @@ def detection_sweep(
                         _, detections = local.detect_rgb(rgb)
                         t2 = time.perf_counter()
                         found, expected, correct, errors = _match(
-                            detections, truth.objects, camera.width / width
+                            detections, truth.objects, fit((width, height), scene_film)
                         )
                         cell = cells.setdefault(
                             (width, height, spp),
