@@ -253,8 +253,12 @@ def _csv(value: str) -> tuple[str, ...]:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from services.bench import VARIANTS, BenchConfig, run
 
-    strategies = _csv(args.strategies)
-    variants = _csv(args.variants)
+    # Random scenes: the project's strategy on every variant; otherwise the paper's comparison.
+    random = args.random_scenes > 0
+    strategies = _csv(
+        args.strategies or ("reprojection" if random else "simple,paper,reprojection")
+    )
+    variants = _csv(args.variants or (",".join(VARIANTS) if random else "clean,jpeg,noise,offgrid"))
     for name, given, allowed in (
         ("strategy", strategies, ("simple", "paper", "reprojection")),
         ("variant", variants, VARIANTS),
@@ -286,6 +290,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         renderers=args.renderers,
         detectors=args.detectors,
         max_concurrent_searches=args.max_concurrent_searches,
+        random_scenes=args.random_scenes,
+        onboard=args.onboard,
+        scenes_out=Path(args.scenes_out) if args.scenes_out else None,
         regenerate=args.regenerate,
         verbose=args.verbose,
         notes=tuple(args.note or ()),
@@ -353,8 +360,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--n", type=int, default=60, help="targets per scene and variant")
     bench.add_argument("--scenes", default="demo,garden", help="comma-separated scene ids")
-    bench.add_argument("--strategies", default="simple,paper,reprojection")
-    bench.add_argument("--variants", default="clean,jpeg,noise,offgrid")
+    bench.add_argument(
+        "--strategies", help="default simple,paper,reprojection (reprojection with --random-scenes)"
+    )
+    bench.add_argument(
+        "--variants",
+        help="of clean,jpeg,noise,offgrid,photo,changed; default the first four (all six with "
+        "--random-scenes)",
+    )
     bench.add_argument("--seed", type=int, default=2024)
     bench.add_argument("--out", default="docs/results", help="folder for the JSON and plots")
     bench.add_argument(
@@ -385,6 +398,22 @@ def _parser() -> argparse.ArgumentParser:
         "--max-concurrent-searches",
         type=int,
         help="the controller's COSMOS_MAX_CONCURRENT_SEARCHES",
+    )
+    bench.add_argument(
+        "--random-scenes",
+        type=int,
+        default=0,
+        metavar="N",
+        help="search N generated scenes with the general detector, then with each one's own",
+    )
+    bench.add_argument(
+        "--onboard",
+        choices=["none", "tiny", "default"],
+        default="default",
+        help="with --random-scenes: the onboarding preset of the per-scene models (none: skip)",
+    )
+    bench.add_argument(
+        "--scenes-out", help="with --random-scenes: keep the scenes and models here (default: temp)"
     )
     bench.add_argument(
         "--regenerate",

@@ -1,9 +1,12 @@
 """The evaluation of COSMOS 3D Search through its real services (``cosmos bench``).
 
-:mod:`.variants` makes the target images, :mod:`.runner` runs searches over HTTP and records
-them, :mod:`.report` turns records into tables, plots and ``docs/RESULTS.md``, :mod:`.profile`
-measures a search's floor in one process, :mod:`.settings_sweep` the render settings, and
-:mod:`.command` ties them into the command's modes.
+:mod:`.variants` makes the target images (:mod:`.altered` the modified scene copies that
+``photo`` and ``changed`` targets are rendered from), :mod:`.runner` runs searches over HTTP and
+records them (:mod:`.traces` explains the misses), :mod:`.report` turns records into tables,
+plots and ``docs/RESULTS.md``, :mod:`.profile` measures a search's floor in one process,
+:mod:`.settings_sweep` the render settings, :mod:`.scenes` generates random scenes that
+:mod:`.random_run` searches with the general and the per-scene detector
+(:mod:`.random_report` its tables), and :mod:`.command` ties them into the command's modes.
 """
 
 from services.bench.command import BenchConfig, run

@@ -13,6 +13,9 @@ every report there:
 * ``--throughput``: ``--throughput-searches`` searches submitted at once to a stack with one
   renderer and detector, then to one with ``--renderers``/``--detectors`` replicas; searches
   per minute. Report: ``throughput.json``.
+* ``--random-scenes N``: N generated scenes, searched with the general detector, then again with
+  each scene's own after onboarding it (:mod:`services.bench.random_run`). Report:
+  ``random.json``.
 """
 
 from __future__ import annotations
@@ -42,7 +45,9 @@ from services.bench.report import (
 )
 from services.bench.runner import SearchRecord, Target, local_stack, make_targets, run_searches
 from services.bench.variants import Variant
+from services.common.catalog import SceneCatalog
 from services.common.optimization import StrategyName
+from services.common.scene import LoadedScene
 
 __all__ = ["BenchConfig", "run"]
 
@@ -74,6 +79,9 @@ class BenchConfig:
     renderers: int = 2
     detectors: int = 2
     max_concurrent_searches: int | None = None
+    random_scenes: int = 0
+    onboard: str = "default"
+    scenes_out: Path | None = None
     regenerate: bool = False
     verbose: bool = False
     notes: tuple[str, ...] = ()
@@ -90,6 +98,18 @@ class _Endpoints:
     renderer: str
     renderers: tuple[str, ...] = ()
     detectors: tuple[str, ...] = ()
+    scene_dirs: tuple[Path, ...] = ()
+    """Scene folders the local stack reads besides the built-in ones (and this process's
+    ``COSMOS_SCENES_DIR``)."""
+    altered_dir: Path | None = None
+    """Where ``photo`` and ``changed`` targets' scene copies go (a local stack reads it)."""
+
+    def scene_of(self, scene_id: str) -> LoadedScene:
+        """The scene ``scene_id`` as the local stack's renderer reads it."""
+        from services.renderer.settings import RendererSettings
+
+        dirs = [*self.scene_dirs, *RendererSettings().scene_directories()]
+        return SceneCatalog(dirs).get(scene_id)
 
     def warm(self, scenes: Sequence[str]) -> None:
         """Render every scene on every renderer and detect it on every detector once, so that
@@ -118,6 +138,7 @@ def _endpoints(
     width: int | None,
     renderers: int = 1,
     detectors: int = 1,
+    scene_dirs: Sequence[Path] = (),
 ) -> Iterator[_Endpoints]:
     if config.url is not None:
         if config.renderer_url is None:
@@ -126,6 +147,9 @@ def _endpoints(
         return
     with tempfile.TemporaryDirectory(prefix="cosmos-bench-") as tmp:
         started = time.perf_counter()
+        altered = Path(tmp) / "altered"
+        altered.mkdir()
+        dirs = (*scene_dirs, altered)
         with local_stack(
             Path(tmp),
             renderers=renderers,
@@ -133,6 +157,7 @@ def _endpoints(
             render_spp=spp,
             render_width=width,
             max_concurrent_searches=config.max_concurrent_searches,
+            scene_dirs=dirs,
         ) as stack:
             _say(
                 f"stack up in {time.perf_counter() - started:.1f} s: controller "
@@ -140,7 +165,14 @@ def _endpoints(
                 + (f", search views at {spp} spp" if spp is not None else "")
                 + (f", {width} px wide" if width is not None else "")
             )
-            yield _Endpoints(stack.controller, stack.renderers[0], stack.renderers, stack.detectors)
+            yield _Endpoints(
+                stack.controller,
+                stack.renderers[0],
+                stack.renderers,
+                stack.detectors,
+                scene_dirs=tuple(dirs),
+                altered_dir=altered,
+            )
 
 
 def _services(endpoints: _Endpoints, spp: int | None, width: int | None) -> dict[str, Any]:
@@ -208,7 +240,14 @@ def _search_all(
     strategies: Sequence[StrategyName],
 ) -> tuple[list[Target], list[SearchRecord]]:
     targets = make_targets(
-        endpoints.renderer, config.scenes, variants, config.n, config.seed, progress=_say
+        endpoints.renderer,
+        config.scenes,
+        variants,
+        config.n,
+        config.seed,
+        progress=_say,
+        scene_of=endpoints.scene_of,
+        altered_dir=endpoints.altered_dir,
     )
     endpoints.warm(config.scenes)
     firsts = {t.scene: t for t in reversed(targets)}
@@ -432,6 +471,10 @@ def run(config: BenchConfig) -> int:
         return 0
     if config.n < 1:
         raise ValueError("--n must be at least 1")
+    if config.random_scenes:
+        from services.bench.random_run import run_random
+
+        return run_random(config)
     if config.sweep:
         return run_sweep(config)
     if config.throughput:

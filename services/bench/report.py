@@ -47,7 +47,10 @@ __all__ = [
     "eq9_rows",
     "machine_info",
     "markdown_tables",
+    "md_table",
     "percentile",
+    "plain_table",
+    "section_head",
     "summarize",
     "text_tables",
     "write_plots",
@@ -247,6 +250,8 @@ _VARIANT_TITLES: Final = {
     "jpeg": "on-grid, JPEG quality 60",
     "noise": "on-grid, Gaussian pixel noise σ = 6",
     "offgrid": "off-grid (θ, φ up to ⅓ step from a grid pose)",
+    "photo": "on-grid, a photo (light moved, exposure, gamma, blur)",
+    "changed": "on-grid, the scene changed (an object moved or left out)",
 }
 
 
@@ -283,14 +288,14 @@ EQ9_NOTE: Final = (
 )
 
 
-def _text_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+def plain_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
     lines = ["  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))]
     lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
     return "\n".join(lines)
 
 
-def _md_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+def md_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
@@ -308,12 +313,12 @@ def text_tables(summaries: Sequence[Summary]) -> str:
     parts = []
     for variant, group in _by_variant(summaries).items():
         parts.append(f"targets: {_VARIANT_TITLES.get(variant, variant)}")
-        parts.append(_text_table(_COLUMNS, [_cells(s) for s in group]))
+        parts.append(plain_table(_COLUMNS, [_cells(s) for s in group]))
         parts.append("")
     eq9 = eq9_rows(summaries)
     if eq9:
         parts.append(EQ9_NOTE)
-        parts.append(_text_table(_EQ9_COLUMNS, [_eq9_cells(r) for r in eq9]))
+        parts.append(plain_table(_EQ9_COLUMNS, [_eq9_cells(r) for r in eq9]))
     return "\n".join(parts)
 
 
@@ -322,12 +327,12 @@ def markdown_tables(summaries: Sequence[Summary]) -> str:
     parts = []
     for variant, group in _by_variant(summaries).items():
         parts.append(f"#### Targets {_VARIANT_TITLES.get(variant, variant)}\n")
-        parts.append(_md_table(_COLUMNS, [_cells(s) for s in group]) + "\n")
+        parts.append(md_table(_COLUMNS, [_cells(s) for s in group]) + "\n")
     eq9 = eq9_rows(summaries)
     if eq9:
         parts.append("#### Paper eq. 9\n")
         parts.append(EQ9_NOTE + ".\n")
-        parts.append(_md_table(_EQ9_COLUMNS, [_eq9_cells(r) for r in eq9]) + "\n")
+        parts.append(md_table(_EQ9_COLUMNS, [_eq9_cells(r) for r in eq9]) + "\n")
     return "\n".join(parts)
 
 
@@ -529,7 +534,7 @@ def _machine_md(machine: Mapping[str, Any]) -> str:
 
 
 def write_results_md(path: Path, out: Path) -> None:
-    """``docs/RESULTS.md`` from the JSON reports in ``out`` (bench, sweep, throughput)."""
+    """``docs/RESULTS.md`` from the JSON reports in ``out`` (bench, sweep, throughput, random)."""
     rel = Path(os.path.relpath(out, path.parent))
     text = io.StringIO()
     text.write(
@@ -549,6 +554,11 @@ def write_results_md(path: Path, out: Path) -> None:
     throughput = out / "throughput.json"
     if throughput.exists():
         text.write(section_of_throughput(json.loads(throughput.read_text())))
+    random = out / "random.json"
+    if random.exists():
+        from services.bench.random_report import section_of_random  # it builds on this module
+
+        text.write(section_of_random(json.loads(random.read_text())))
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text.getvalue())
 
@@ -557,7 +567,7 @@ def _records(data: Mapping[str, Any]) -> list[SearchRecord]:
     return [SearchRecord.model_validate(r) for r in data.get("records", [])]
 
 
-def _section_head(title: str, data: Mapping[str, Any], *, duration: bool = False) -> str:
+def section_head(title: str, data: Mapping[str, Any], *, duration: bool = False) -> str:
     """A report section's title, command, machine (and duration) and notes."""
     machine = _machine_md(data["machine"]) + "\n"
     if duration:
@@ -568,7 +578,7 @@ def _section_head(title: str, data: Mapping[str, Any], *, duration: bool = False
 
 def section_of_bench(data: Mapping[str, Any], plots: Path) -> str:
     text = io.StringIO()
-    text.write(_section_head("Searches through the local stack", data, duration=True))
+    text.write(section_head("Searches through the local stack", data, duration=True))
     text.write(markdown_tables(summarize(_records(data))))
     text.write(
         f"\n![renders per search]({(plots / 'renders_hist.png').as_posix()})\n\n"
@@ -606,7 +616,7 @@ def section_of_profile(profile: Mapping[str, Any]) -> str:
                 f"{row['stack_ratio_p50']:.2f} ({row['stack_ratio_p95']:.2f})",
             ]
         )
-    text.write(_md_table(header, rows) + "\n\n")
+    text.write(md_table(header, rows) + "\n\n")
     parts = profile.get("floor_parts_p50_ms")
     if parts:
         text.write(
@@ -619,7 +629,7 @@ def section_of_profile(profile: Mapping[str, Any]) -> str:
 
 def section_of_sweep(data: Mapping[str, Any]) -> str:
     text = io.StringIO()
-    text.write(_section_head("Render settings by measurement (`--sweep`)", data))
+    text.write(section_head("Render settings by measurement (`--sweep`)", data))
     detection = data.get("detection")
     if detection:
         text.write("### Detection against the renderer's ground truth, in one process\n\n")
@@ -645,7 +655,7 @@ def section_of_sweep(data: Mapping[str, Any]) -> str:
             ]
             for r in detection["rows"]
         ]
-        text.write(_md_table(header, rows) + "\n\n")
+        text.write(md_table(header, rows) + "\n\n")
     searches = data.get("searches")
     if searches:
         text.write("### Searches through the stack at each film width and spp\n\n")
@@ -655,7 +665,7 @@ def section_of_sweep(data: Mapping[str, Any]) -> str:
                 rows.append(
                     [str(run.get("width") or "scene"), str(run["spp"]), s.variant, *_cells(s)]
                 )
-        text.write(_md_table(("film width", "spp", "variant", *_COLUMNS), rows) + "\n\n")
+        text.write(md_table(("film width", "spp", "variant", *_COLUMNS), rows) + "\n\n")
     choice = choose_setting(searches or [])
     if choice:
         text.write(f"**Choice** ({CHOICE_RULE}): {choice}\n\n")
@@ -664,7 +674,7 @@ def section_of_sweep(data: Mapping[str, Any]) -> str:
 
 def section_of_throughput(data: Mapping[str, Any]) -> str:
     text = io.StringIO()
-    text.write(_section_head("Throughput (`--throughput`)", data))
+    text.write(section_head("Throughput (`--throughput`)", data))
     header = (
         "renderers",
         "detectors",
@@ -692,5 +702,5 @@ def section_of_throughput(data: Mapping[str, Any]) -> str:
         ]
         for r in data["rows"]
     ]
-    text.write(_md_table(header, rows) + "\n\n")
+    text.write(md_table(header, rows) + "\n\n")
     return text.getvalue()

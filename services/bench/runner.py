@@ -9,29 +9,38 @@ for. The client is aiohttp, as in the controller's own stage calls: httpx costs 
 search on the 230 KB upload alone (measured on the 2-core bench machine), which would be the
 bench's cost, not the stack's. Every strategy gets the same targets and start poses, so
 strategies are compared pairwise.
+
+``photo`` and ``changed`` targets are rendered from a modified copy of the scene written by
+:func:`services.bench.altered.alter_scene` into a folder the renderer reads
+(``COSMOS_SCENES_DIR``); their searches run in the original scene. Every search that misses its
+target, or answers without confirming, carries a :class:`~services.bench.traces.FailureTrace`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import os
 import time
 import zlib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import aiohttp
 import numpy as np
 from pydantic import Field
 
-from services.bench.variants import VARIANTS, Variant, degrade, draw_pose
+from services.bench.altered import AlteredScene, alter_scene
+from services.bench.traces import FailureTrace, confirmed_of, failure_trace
+from services.bench.variants import SCENE_VARIANTS, VARIANTS, Variant, degrade, draw_pose
 from services.common.grid import HemisphereGrid, angular_distance_deg
 from services.common.images import media_type_of
 from services.common.models import FrozenModel, GridIndex, Pose, PoseQuery, RenderRequest
 from services.common.optimization import StrategyName
+from services.common.scene import LoadedScene
 from services.common.search import Search
 from services.renderer.client import RendererClient
 from services.stack import Stack
@@ -64,6 +73,10 @@ class Target:
     start_pose: Pose
     seed: int
     image: bytes = field(repr=False)
+    rendered_scene: str | None = None
+    """The modified copy the target was rendered from (``photo``, ``changed``)."""
+    change: str = ""
+    """What the copy changed, in words."""
 
     @property
     def key(self) -> tuple[str, str, int]:
@@ -113,6 +126,19 @@ class SearchRecord(FrozenModel):
     loop_ms: float = Field(default=0.0, description="Sum of the iterations' total_ms.")
     error: str | None = None
     trajectory: tuple[IterationRecord, ...] = ()
+    arm: str = Field(
+        default="general", description="The detector model: general, or the scene's own."
+    )
+    confirmed: bool | None = Field(
+        default=None, description="The result's confirmed flag (None without a result)."
+    )
+    change: str = ""
+    trace: FailureTrace | None = None
+
+    @property
+    def found_truth(self) -> bool:
+        """The search answered the true grid pose, confirmed or not."""
+        return self.found is not None and self.found == self.truth
 
     @property
     def moves(self) -> int:
@@ -141,8 +167,23 @@ def make_targets(
     n: int,
     seed: int,
     progress: Callable[[str], None] | None = None,
+    *,
+    scene_of: Callable[[str], LoadedScene] | None = None,
+    altered_dir: Path | None = None,
 ) -> list[Target]:
-    """``n`` seeded targets per scene and variant, rendered by the renderer at ``renderer_url``."""
+    """``n`` seeded targets per scene and variant, rendered by the renderer at ``renderer_url``.
+
+    ``photo`` and ``changed`` targets need ``scene_of`` (a scene by id, to copy) and
+    ``altered_dir``, a folder that renderer reads scenes from.
+    """
+
+    def copy_of(
+        scene: str, variant: Variant, rng: np.random.Generator, number: int
+    ) -> AlteredScene:
+        if scene_of is None or altered_dir is None:
+            raise ValueError("photo and changed targets need scene_of and altered_dir")
+        return alter_scene(scene_of(scene), variant, rng, altered_dir, f"{scene}_{variant}{number}")
+
     targets: list[Target] = []
     with RendererClient(renderer_url) as renderer:
         for scene in scenes:
@@ -153,13 +194,17 @@ def make_targets(
                     where = draw_pose(grid, variant, rng)
                     start = grid.unflat(int(rng.integers(grid.size)))
                     render_seed, search_seed = (int(v) for v in rng.integers(2**31, size=2))
+                    rendered, change = scene, ""
+                    if variant in SCENE_VARIANTS:
+                        copy = copy_of(scene, variant, rng, number)
+                        rendered, change = copy.id, copy.change
                     query = (
                         PoseQuery(lat=where.truth.lat, lon=where.truth.lon)
                         if where.on_grid
                         else PoseQuery(theta_deg=where.pose.theta_deg, phi_deg=where.pose.phi_deg)
                     )
                     png = renderer.render_png(
-                        RenderRequest(scene=scene, pose=query, spp=TARGET_SPP, seed=render_seed)
+                        RenderRequest(scene=rendered, pose=query, spp=TARGET_SPP, seed=render_seed)
                     )
                     targets.append(
                         Target(
@@ -173,6 +218,8 @@ def make_targets(
                             start_pose=grid.pose(start),
                             seed=search_seed,
                             image=degrade(png, variant, rng),
+                            rendered_scene=rendered if rendered != scene else None,
+                            change=change,
                         )
                     )
                 if progress is not None:
@@ -181,9 +228,18 @@ def make_targets(
 
 
 def record_of(
-    target: Target, strategy: StrategyName, search: Search, wall_ms: float
+    target: Target,
+    strategy: StrategyName,
+    search: Search,
+    wall_ms: float,
+    raw: Mapping[str, Any] | None = None,
+    arm: str = "general",
 ) -> SearchRecord:
-    """The bench's view of a finished search: success against the ground truth, stage times."""
+    """The bench's view of a finished search: success against the ground truth, stage times;
+    from ``raw`` (the search's JSON) whether its answer was confirmed, and the trace of a miss or
+    an unconfirmed answer."""
+    raw = raw if raw is not None else search.model_dump(mode="json")
+    confirmed = confirmed_of(raw)
     trajectory = tuple(
         IterationRecord(
             lat=it.pose.index.lat,
@@ -203,6 +259,7 @@ def record_of(
     result = search.result
     found = result.pose.index if result is not None else None
     refined = result.refined_pose if result is not None else None
+    success = search.status == "succeeded" and found == target.truth
     return SearchRecord(
         scene=target.scene,
         strategy=strategy,
@@ -217,7 +274,7 @@ def record_of(
         found=found,
         refined_theta_deg=refined.theta_deg if refined is not None else None,
         refined_phi_deg=refined.phi_deg if refined is not None else None,
-        success=search.status == "succeeded" and found == target.truth,
+        success=success,
         refined_error_deg=(
             float(angular_distance_deg(refined, target.pose)) if refined is not None else None
         ),
@@ -230,10 +287,16 @@ def record_of(
         loop_ms=sum(t.total_ms for t in trajectory),
         error=search.error.detail if search.error is not None else None,
         trajectory=trajectory,
+        arm=arm,
+        confirmed=confirmed,
+        change=target.change,
+        trace=failure_trace(raw, target.truth) if not success or confirmed is False else None,
     )
 
 
-def _failed(target: Target, strategy: StrategyName, detail: str, wall_ms: float) -> SearchRecord:
+def _failed(
+    target: Target, strategy: StrategyName, detail: str, wall_ms: float, arm: str
+) -> SearchRecord:
     return SearchRecord(
         scene=target.scene,
         strategy=strategy,
@@ -247,6 +310,9 @@ def _failed(target: Target, strategy: StrategyName, detail: str, wall_ms: float)
         start=target.start,
         wall_ms=wall_ms,
         error=detail,
+        arm=arm,
+        change=target.change,
+        trace=FailureTrace(truth_visited=False, status="error", final_reason=detail),
     )
 
 
@@ -267,6 +333,7 @@ async def _one_search(
     target: Target,
     strategy: StrategyName,
     max_iterations: int,
+    arm: str,
 ) -> SearchRecord:
     # The image as the raw body, the options in the query: what a program sends (no multipart).
     query = _search_query(target, strategy, max_iterations)
@@ -284,6 +351,7 @@ async def _one_search(
                     strategy,
                     f"POST /searches answered {response.status}: {text}",
                     (time.perf_counter() - started) * 1000,
+                    arm,
                 )
         search_id = json.loads(body)["id"]
         async with http.get(f"{base_url}/searches/{search_id}/events") as events:
@@ -294,11 +362,12 @@ async def _one_search(
         wall_ms = (time.perf_counter() - started) * 1000
         async with http.get(f"{base_url}/searches/{search_id}") as final:
             final.raise_for_status()
-            search = Search.model_validate_json(await final.read())
+            raw = json.loads(await final.read())
+        search = Search.model_validate(raw)
     except (aiohttp.ClientError, TimeoutError) as exc:
         detail = f"{type(exc).__name__}: {exc}"
-        return _failed(target, strategy, detail, (time.perf_counter() - started) * 1000)
-    return record_of(target, strategy, search, wall_ms)
+        return _failed(target, strategy, detail, (time.perf_counter() - started) * 1000, arm)
+    return record_of(target, strategy, search, wall_ms, raw, arm)
 
 
 async def _run(
@@ -308,6 +377,7 @@ async def _run(
     max_iterations: int,
     progress: Callable[[int, SearchRecord], None] | None,
     timeout_s: float,
+    arm: str,
 ) -> list[SearchRecord]:
     records: list[SearchRecord | None] = [None] * len(jobs)
     queue: asyncio.Queue[int] = asyncio.Queue()
@@ -325,7 +395,7 @@ async def _run(
             while not queue.empty():
                 i = queue.get_nowait()
                 target, strategy = jobs[i]
-                record = await _one_search(http, base_url, target, strategy, max_iterations)
+                record = await _one_search(http, base_url, target, strategy, max_iterations, arm)
                 records[i] = record
                 done += 1
                 if progress is not None:
@@ -343,12 +413,16 @@ def run_searches(
     max_iterations: int = 60,
     progress: Callable[[int, SearchRecord], None] | None = None,
     timeout_s: float = 600.0,
+    arm: str = "general",
 ) -> list[SearchRecord]:
-    """Run every (target, strategy) search with ``concurrency`` in flight; records in job order.
+    """Run every (target, strategy) search with ``concurrency`` in flight; records in job order,
+    labelled with the detector ``arm`` they ran with.
 
     A search the controller refused or lost is recorded with status ``error``, never raised.
     """
-    return asyncio.run(_run(controller_url, jobs, concurrency, max_iterations, progress, timeout_s))
+    return asyncio.run(
+        _run(controller_url, jobs, concurrency, max_iterations, progress, timeout_s, arm)
+    )
 
 
 @contextmanager
@@ -360,12 +434,17 @@ def local_stack(
     render_spp: int | None = None,
     render_width: int | None = None,
     max_concurrent_searches: int | None = None,
+    scene_dirs: Sequence[Path] = (),
 ) -> Iterator[Stack]:
     """The four services as local processes on free loopback ports, a fresh SQLite database in
     ``workdir``. ``render_spp`` and ``render_width`` set the controller's samples per pixel and
     film width for search views (``COSMOS_RENDER_SPP``, ``COSMOS_RENDER_WIDTH``; targets always
-    ask for :data:`TARGET_SPP` at the scene's film explicitly)."""
+    ask for :data:`TARGET_SPP` at the scene's film explicitly); ``scene_dirs`` come before any
+    ``COSMOS_SCENES_DIR`` of this process."""
     env: dict[str, str] = {}
+    if scene_dirs:
+        inherited = [os.environ["COSMOS_SCENES_DIR"]] if os.environ.get("COSMOS_SCENES_DIR") else []
+        env["COSMOS_SCENES_DIR"] = os.pathsep.join([*(str(d) for d in scene_dirs), *inherited])
     if render_spp is not None:
         env["COSMOS_RENDER_SPP"] = str(render_spp)
     if render_width is not None:

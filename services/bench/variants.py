@@ -1,6 +1,6 @@
 """Target images of the evaluation: where they are taken from and how they are degraded.
 
-Four variants, reported separately:
+Six variants, reported separately:
 
 ``clean``
     A grid pose, rendered as the renderer delivers it (PNG).
@@ -13,6 +13,15 @@ Four variants, reported separately:
     (a third of that ring's spacing ``360°/n_k``), rendered at the continuous pose. Its ground
     truth is the grid pose nearest to it by great-circle angle (:meth:`HemisphereGrid.nearest`),
     which need not be the grid pose it was drawn around.
+``photo``
+    "A photo, not a render": a grid pose rendered from a copy of the scene whose point light is
+    moved and scaled (:mod:`services.bench.altered`), then finished as a camera would
+    (:func:`photo_finish`): exposure ×[0.7, 1.4] in linear light, a display gamma
+    ``v' = v^γ``, γ ∈ [0.8, 1.25], and a Gaussian blur of σ ∈ [0.4, 0.9] px.
+``changed``
+    "The scene changed": a grid pose rendered from a copy of the scene with one object moved by
+    0.5–1.5 units on the ground or left out (:mod:`services.bench.altered`). The search runs in
+    the original scene.
 
 Every draw comes from a :class:`numpy.random.Generator` the caller seeds, so a bench run is
 reproducible to the pixel (the renderer is deterministic for a given seed).
@@ -25,6 +34,7 @@ from typing import Final, Literal, get_args
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from services.common.grid import HemisphereGrid
 from services.common.models import GridIndex, Pose
@@ -33,21 +43,28 @@ __all__ = [
     "JPEG_QUALITY",
     "NOISE_SIGMA",
     "OFFGRID_FRACTION",
+    "SCENE_VARIANTS",
     "VARIANTS",
     "TargetPose",
     "Variant",
     "degrade",
     "draw_pose",
+    "photo_finish",
 ]
 
-Variant = Literal["clean", "jpeg", "noise", "offgrid"]
+Variant = Literal["clean", "jpeg", "noise", "offgrid", "photo", "changed"]
 VARIANTS: Final[tuple[Variant, ...]] = get_args(Variant)
+SCENE_VARIANTS: Final[tuple[Variant, ...]] = ("photo", "changed")
+"""Variants whose targets are rendered from a modified copy of the scene."""
 
 JPEG_QUALITY: Final = 60
 NOISE_SIGMA: Final = 6.0
 """Standard deviation of the pixel noise, on the 0–255 scale."""
 OFFGRID_FRACTION: Final = 1.0 / 3.0
 """Off-grid targets lie up to this fraction of a step from a grid pose, in θ and in φ."""
+EXPOSURE: Final = (0.7, 1.4)
+GAMMA: Final = (0.8, 1.25)
+BLUR_SIGMA_PX: Final = (0.4, 0.9)
 
 
 @dataclass(frozen=True)
@@ -79,17 +96,22 @@ def draw_pose(grid: HemisphereGrid, variant: Variant, rng: np.random.Generator) 
 
 
 def degrade(png: bytes, variant: Variant, rng: np.random.Generator) -> bytes:
-    """The target image of ``variant`` from the renderer's PNG (``clean``/``offgrid``: as is).
+    """The target image of ``variant`` from the renderer's PNG (``clean``, ``offgrid`` and
+    ``changed``: as is).
 
     ``jpeg`` re-encodes at :data:`JPEG_QUALITY`; ``noise`` adds N(0, :data:`NOISE_SIGMA`²) per
-    pixel and channel, rounds and clips to 0–255, and encodes PNG again.
+    pixel and channel, rounds and clips to 0–255, and encodes PNG again; ``photo`` is
+    :func:`photo_finish`.
     """
-    if variant in ("clean", "offgrid"):
+    if variant in ("clean", "offgrid", "changed"):
         return png
     bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ValueError("the renderer's PNG does not decode")
-    if variant == "jpeg":
+    if variant == "photo":
+        finished = photo_finish(np.asarray(bgr, dtype=np.uint8), rng)
+        ok, buffer = cv2.imencode(".png", finished, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    elif variant == "jpeg":
         ok, buffer = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     else:
         noisy = bgr.astype(np.float64) + rng.normal(0.0, NOISE_SIGMA, size=bgr.shape)
@@ -98,3 +120,20 @@ def degrade(png: bytes, variant: Variant, rng: np.random.Generator) -> bytes:
     if not ok:
         raise ValueError(f"encoding the {variant} target failed")
     return bytes(buffer)
+
+
+def photo_finish(bgr: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.uint8]:
+    """A rendered 8-bit sRGB image as a camera might have delivered it.
+
+    With ``v`` in [0, 1]: linearise (``v^2.2``), scale by an exposure ``e`` ~ U(0.7, 1.4), back to
+    display (``^(1/2.2)``), apply a gamma ``γ`` ~ U(0.8, 1.25) (``v' = v^γ``), clip, blur with a
+    Gaussian of σ ~ U(0.4, 0.9) px and round. (2.2 stands for the sRGB curve: a photo's is not
+    known either.)
+    """
+    exposure, gamma = rng.uniform(*EXPOSURE), rng.uniform(*GAMMA)
+    sigma = float(rng.uniform(*BLUR_SIGMA_PX))
+    v = bgr.astype(np.float64) / 255.0
+    v = np.clip((v**2.2 * exposure) ** (1 / 2.2), 0.0, 1.0) ** gamma
+    blurred = cv2.GaussianBlur(v * 255.0, (0, 0), sigmaX=sigma)
+    out: NDArray[np.uint8] = np.clip(np.rint(blurred), 0, 255).astype(np.uint8)
+    return out

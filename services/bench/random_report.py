@@ -1,0 +1,303 @@
+"""The random-scene bench's figures: success per θ band × target variant × detector arm, the
+goals, the failures' traces, and its section of ``docs/RESULTS.md``.
+
+Definitions
+-----------
+found
+    The search answered the true grid pose (the pose nearest the target's), confirmed or not.
+confirmed
+    Found, the search succeeded and the controller confirmed the answer (``result.confirmed``;
+    a controller that does not report it confirmed every answer).
+unconfirmed
+    Searches answering with ``confirmed: false`` (an any-time best-visited pose), and how many of
+    those answers were the true pose.
+θ band
+    Of the target's true pose: θ < 30°, 30° ≤ θ ≤ 60°, θ > 60°.
+arm
+    ``general``: the shipped detector; ``scene``: the scene's own, after onboarding.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+from services.bench.report import md_table, percentile, plain_table, section_head
+from services.bench.runner import SearchRecord
+from services.bench.variants import SCENE_VARIANTS, VARIANTS
+
+__all__ = [
+    "ALL",
+    "BANDS",
+    "GOALS",
+    "BandCell",
+    "band_cells",
+    "band_table",
+    "goal_checks",
+    "section_of_random",
+    "theta_band",
+]
+
+BANDS: Final = ("θ < 30°", "30–60°", "θ > 60°")
+ALL: Final = "all"
+ARM_ORDER: Final = ("general", "scene")
+GOAL_OVERALL: Final = 0.99
+GOAL_CELL: Final = 0.98
+GOAL_ALTERED: Final = 0.95
+GOAL_RENDERS_P50: Final = 2.0
+GOALS: Final = (
+    f"found ≥ {GOAL_OVERALL:.0%} overall, ≥ {GOAL_CELL:.0%} in every θ band and every variant "
+    f"(photo and changed ≥ {GOAL_ALTERED:.0%}), median renders ≤ {GOAL_RENDERS_P50:.0f}; per arm"
+)
+
+
+def theta_band(theta_deg: float) -> str:
+    """The θ band of a true pose (module docstring)."""
+    if theta_deg < 30.0:
+        return BANDS[0]
+    return BANDS[1] if theta_deg <= 60.0 else BANDS[2]
+
+
+@dataclass(frozen=True)
+class BandCell:
+    """The searches of one (arm, variant, band); ``variant`` or ``band`` may be :data:`ALL`."""
+
+    arm: str
+    variant: str
+    band: str
+    n: int
+    found: int
+    confirmed: int
+    unconfirmed: int
+    unconfirmed_found: int
+    errors: int
+    renders_p50: float
+    renders_p95: float
+
+    @property
+    def found_rate(self) -> float:
+        return self.found / self.n if self.n else math.nan
+
+    @property
+    def confirmed_rate(self) -> float:
+        return self.confirmed / self.n if self.n else math.nan
+
+
+def _cell(arm: str, variant: str, band: str, records: Sequence[SearchRecord]) -> BandCell:
+    ran = [r for r in records if r.status != "error"]
+    renders = [float(r.renders) for r in ran]
+    unconfirmed = [r for r in records if r.confirmed is False]
+    return BandCell(
+        arm=arm,
+        variant=variant,
+        band=band,
+        n=len(records),
+        found=sum(r.found_truth for r in records),
+        confirmed=sum(r.success and r.confirmed is not False for r in records),
+        unconfirmed=len(unconfirmed),
+        unconfirmed_found=sum(r.found_truth for r in unconfirmed),
+        errors=len(records) - len(ran),
+        renders_p50=percentile(renders, 50),
+        renders_p95=percentile(renders, 95),
+    )
+
+
+def _rank(values: Iterable[str], order: Sequence[str]) -> list[str]:
+    return sorted(set(values), key=lambda v: (order.index(v) if v in order else len(order), v))
+
+
+def band_cells(records: Sequence[SearchRecord]) -> list[BandCell]:
+    """Every (arm, variant, band) cell with searches, plus each arm's and variant's totals
+    (``band`` = all) and each arm's band totals (``variant`` = all)."""
+    cells = []
+    for arm in _rank((r.arm for r in records), ARM_ORDER):
+        mine = [r for r in records if r.arm == arm]
+        for variant in [*_rank((r.variant for r in mine), VARIANTS), ALL]:
+            group = [r for r in mine if variant in (ALL, r.variant)]
+            for band in (*BANDS, ALL):
+                subset = [r for r in group if band in (ALL, theta_band(r.true_theta_deg))]
+                if subset:
+                    cells.append(_cell(arm, variant, band, subset))
+    return cells
+
+
+def _rate(cell: BandCell | None) -> str:
+    if cell is None:
+        return "—"
+    return f"{cell.found}/{cell.n} = {100 * cell.found_rate:.1f}%"
+
+
+_HEADER: Final = (
+    "arm",
+    "variant",
+    *BANDS,
+    "all",
+    "confirmed (all)",
+    "unconfirmed (at truth)",
+    "renders p50 / p95",
+)
+
+
+def _rows(cells: Sequence[BandCell]) -> list[list[str]]:
+    by = {(c.arm, c.variant, c.band): c for c in cells}
+    rows = []
+    for arm, variant in dict.fromkeys((c.arm, c.variant) for c in cells):
+        total = by[(arm, variant, ALL)]
+        errors = f" ({total.errors} errors)" if total.errors else ""
+        rows.append(
+            [
+                arm,
+                variant,
+                *(_rate(by.get((arm, variant, band))) for band in BANDS),
+                _rate(total) + errors,
+                f"{total.confirmed}/{total.n} = {100 * total.confirmed_rate:.1f}%",
+                f"{total.unconfirmed} ({total.unconfirmed_found})",
+                f"{total.renders_p50:.0f} / {total.renders_p95:.0f}",
+            ]
+        )
+    return rows
+
+
+def band_table(cells: Sequence[BandCell], *, markdown: bool = False) -> str:
+    """The θ band × variant × arm table (found = k/n, then confirmed, unconfirmed, renders)."""
+    return (md_table if markdown else plain_table)(_HEADER, _rows(cells))
+
+
+def goal_checks(cells: Sequence[BandCell]) -> list[str]:
+    """One line per arm and goal: met or missed, with the figure."""
+    lines = []
+    for arm in dict.fromkeys(c.arm for c in cells):
+        mine = [c for c in cells if c.arm == arm]
+        overall = next(c for c in mine if c.variant == ALL and c.band == ALL)
+
+        def verdict(ok: bool) -> str:
+            return "met" if ok else "MISSED"
+
+        lines.append(
+            f"{arm}: overall {100 * overall.found_rate:.1f}% (goal ≥ {GOAL_OVERALL:.0%}): "
+            f"{verdict(overall.found_rate >= GOAL_OVERALL)}"
+        )
+        low = []
+        for c in mine:
+            if (c.variant == ALL) == (c.band == ALL):
+                continue  # only the per-band and per-variant totals are goals
+            goal = GOAL_ALTERED if c.variant in SCENE_VARIANTS else GOAL_CELL
+            if c.found_rate < goal:
+                low.append(f"{c.variant}/{c.band} {100 * c.found_rate:.1f}% (< {goal:.0%})")
+        lines.append(
+            f"{arm}: every band and variant at goal: "
+            + (verdict(True) if not low else "MISSED: " + ", ".join(low))
+        )
+        lines.append(
+            f"{arm}: median renders {overall.renders_p50:.0f} (goal ≤ {GOAL_RENDERS_P50:.0f}): "
+            f"{verdict(overall.renders_p50 <= GOAL_RENDERS_P50)}"
+        )
+    return lines
+
+
+def failure_rows(records: Sequence[SearchRecord], limit: int = 40) -> list[list[str]]:
+    """The traced searches (misses and unconfirmed answers), up to ``limit``."""
+    rows = []
+    for r in records:
+        t = r.trace
+        if t is None:
+            continue
+        visited = (
+            f"yes, at {t.visit_iteration}: {t.visit_reason or '—'}" if t.truth_visited else "no"
+        )
+        dets = (
+            f"{t.visit_detections} vs {t.target_detections}"
+            if t.visit_detections is not None
+            else f"— vs {t.target_detections}"
+        )
+        found = f"({r.found.lat}, {r.found.lon})" if r.found is not None else "—"
+        rows.append(
+            [
+                r.scene,
+                r.arm,
+                r.variant,
+                f"{r.true_theta_deg:.1f}",
+                f"({r.truth.lat}, {r.truth.lon})",
+                found + ("" if r.confirmed is not False else " unconfirmed"),
+                visited,
+                dets,
+                f"{t.status}: {t.final_reason}",
+                r.change or "—",
+            ]
+        )
+        if len(rows) == limit:
+            break
+    return rows
+
+
+_FAILURE_HEADER: Final = (
+    "scene",
+    "arm",
+    "variant",
+    "true θ°",
+    "truth",
+    "answer",
+    "truth visited (iteration: optimizer's reason)",
+    "detections there vs target",
+    "end",
+    "scene change",
+)
+
+
+def _escape(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def section_of_random(data: Mapping[str, Any]) -> str:
+    """The random-scene run's section of ``docs/RESULTS.md``."""
+    records = [SearchRecord.model_validate(r) for r in data.get("records", [])]
+    text = io.StringIO()
+    text.write(section_head("Random scenes, general and per-scene detector", data, duration=True))
+    scenes = data.get("scenes", [])
+    if scenes:
+        text.write("### Scenes\n\n")
+        scene_header = ("scene", "film", "fov °", "radius", "grid step °", "objects")
+        rows = [
+            [
+                s["id"],
+                s["film"],
+                f"{s['fov_deg']:.1f}",
+                f"{s['radius']:.2f}",
+                f"{s['angle_step_deg']:g}",
+                ", ".join(s["kinds"]),
+            ]
+            for s in scenes
+        ]
+        text.write(md_table(scene_header, rows) + "\n\n")
+    models = data.get("models", [])
+    if models:
+        text.write("### Detector per scene and arm\n\n")
+        header = ("scene", "arm", "model served", "onboarding")
+        rows = [
+            [m["scene"], m["arm"], _escape(m["served"]), _escape(m.get("onboarding", "—"))]
+            for m in models
+        ]
+        text.write(md_table(header, rows) + "\n\n")
+    text.write("### Found per θ band, variant and arm\n\n")
+    text.write(
+        "found = the answer is the true grid pose, confirmed or not; confirmed = found and "
+        "confirmed; unconfirmed = answers the controller did not confirm (of them, at the "
+        "truth). Definitions in `services/bench/random_report.py`.\n\n"
+    )
+    cells = band_cells(records)
+    if cells:
+        text.write(band_table(cells, markdown=True) + "\n\n")
+        text.write(f"**Goals** ({GOALS}):\n\n")
+        text.write("".join(f"- {line}\n" for line in goal_checks(cells)) + "\n")
+    failures = failure_rows(records)
+    if failures:
+        traced = sum(r.trace is not None for r in records)
+        text.write(f"### Traces of misses and unconfirmed answers ({traced}")
+        text.write(f", first {len(failures)})\n\n" if traced > len(failures) else ")\n\n")
+        text.write(
+            md_table(_FAILURE_HEADER, [[_escape(c) for c in row] for row in failures]) + "\n\n"
+        )
+    return text.getvalue()

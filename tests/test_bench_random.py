@@ -1,0 +1,335 @@
+"""The random-scene bench: photo and changed targets, failure traces, the θ-band table, and a
+CI-sized run through the real stack (general model only: no torch needed)."""
+
+from __future__ import annotations
+
+import json
+import math
+from datetime import UTC, datetime
+
+import cv2
+import numpy as np
+import pytest
+
+from services.bench.altered import INTENSITY_RANGE, MOVE_RANGE, alter_scene
+from services.bench.random_report import (
+    BANDS,
+    band_cells,
+    band_table,
+    goal_checks,
+    section_of_random,
+    theta_band,
+)
+from services.bench.runner import SearchRecord
+from services.bench.scenes import generate_scene
+from services.bench.traces import failure_trace
+from services.bench.variants import degrade, photo_finish
+from services.cli import main
+from services.common.catalog import BUILTIN_SCENES_DIR
+from services.common.models import GridIndex
+from services.common.scene import load_scene
+from services.common.search import Search
+
+# -- photo and changed ----------------------------------------------------------------------
+
+
+def _without_assets(data):
+    """A scene document with asset paths reduced to their file names (copies move them)."""
+    out = json.loads(json.dumps(data))
+    for part in (out["ground"], *out["objects"]):
+        for key in ("texture", "file"):
+            if key in part:
+                part[key] = part[key].rsplit("/", 1)[-1]
+    return out
+
+
+@pytest.fixture(params=["garden", "random"])
+def scene(request, tmp_path):
+    if request.param == "garden":
+        return load_scene(BUILTIN_SCENES_DIR / "garden.yaml")
+    return load_scene(generate_scene(4, tmp_path / "src", "r4"))
+
+
+def test_photo_moves_and_scales_the_light_only(scene, tmp_path):
+    for seed in range(8):
+        copy = alter_scene(scene, "photo", np.random.default_rng(seed), tmp_path, f"p{seed}")
+        altered = load_scene(tmp_path / f"{copy.id}.yaml")  # valid, assets resolved
+        before, after = scene.spec.lighting.point, altered.spec.lighting.point
+        assert math.dist(before.position, after.position) > 1.0
+        assert 5.0 <= math.degrees(math.acos(after.position[2] / math.hypot(*after.position)))
+        ratio = after.intensity / before.intensity
+        assert INTENSITY_RANGE[0] - 1e-3 <= ratio <= INTENSITY_RANGE[1] + 1e-3
+        assert "intensity ×" in copy.change
+        a = _without_assets(scene.spec.model_dump(mode="json", exclude_none=True))
+        b = _without_assets(altered.spec.model_dump(mode="json", exclude_none=True))
+        a["lighting"]["point"] = b["lighting"]["point"] = None
+        assert a == b
+
+
+def test_changed_moves_one_object_on_the_ground_or_leaves_it_out(scene, tmp_path):
+    moved = left_out = 0
+    for seed in range(16):
+        copy = alter_scene(scene, "changed", np.random.default_rng(seed), tmp_path, f"c{seed}")
+        altered = load_scene(tmp_path / f"{copy.id}.yaml")
+        assert altered.spec.camera == scene.spec.camera
+        assert altered.spec.search == scene.spec.search
+        before = {o.name: o for o in scene.spec.objects}
+        after = {o.name: o for o in altered.spec.objects}
+        if len(after) < len(before):
+            left_out += 1
+            assert len(before) - len(after) == 1
+            assert "left out" in copy.change
+            continue
+        moved += 1
+        changed = [n for n in before if before[n].position != after[n].position]
+        assert len(changed) == 1
+        (name,) = changed
+        distance = math.dist(before[name].position, after[name].position)
+        assert MOVE_RANGE[0] - 1e-3 <= distance <= MOVE_RANGE[1] + 1e-3
+        half = altered.spec.ground.size / 2
+        assert max(abs(v) for v in after[name].position) <= half
+        assert name in copy.change
+    assert moved
+    assert left_out
+
+
+def _image(seed=0):
+    rng = np.random.default_rng(seed)
+    image = np.full((60, 80, 3), 90, np.uint8)
+    image[::4] = 200  # stripes: something for the blur to soften
+    image[20:40, 20:50] = rng.integers(30, 230, size=3)
+    return image
+
+
+def test_photo_finish_changes_exposure_gamma_and_sharpness_reproducibly():
+    image = _image()
+    a = photo_finish(image, np.random.default_rng(3))
+    assert a.shape == image.shape
+    assert a.dtype == np.uint8
+    assert np.array_equal(a, photo_finish(image, np.random.default_rng(3)))
+    assert not np.array_equal(a, image)
+
+    def sharpness(x):
+        return float(cv2.Laplacian(x.astype(np.float64), cv2.CV_64F).var())
+
+    assert sharpness(a) < 0.8 * sharpness(image)
+    ok, png = cv2.imencode(".png", image)
+    assert ok
+    assert degrade(bytes(png), "changed", np.random.default_rng(0)) == bytes(png)
+    photo = cv2.imdecode(
+        np.frombuffer(degrade(bytes(png), "photo", np.random.default_rng(3)), np.uint8),
+        cv2.IMREAD_COLOR,
+    )
+    assert np.array_equal(photo, a)
+
+
+# -- traces ---------------------------------------------------------------------------------
+
+
+def _det(label, x=10.0):
+    return {"label": label, "class_id": 0, "confidence": 0.9, "box": [x, 10.0, x + 20, 30.0]}
+
+
+def _iteration(index, lat, lon, detections, reason):
+    return {
+        "index": index,
+        "pose": {"index": {"lat": lat, "lon": lon}, "theta_deg": 10.0 * lat, "phi_deg": 0.0},
+        "image_size": [320, 240],
+        "detections": detections,
+        "timings": {"render_ms": 1.0, "detect_ms": 1.0, "optimize_ms": 1.0, "total_ms": 3.0},
+        "reason": reason,
+    }
+
+
+def _search(status="failed", result=None, error=None):
+    now = datetime.now(UTC).isoformat()
+    return {
+        "id": "s1",
+        "status": status,
+        "scene": "demo",
+        "strategy": "reprojection",
+        "start": {"index": {"lat": 0, "lon": 0}, "theta_deg": 0.0, "phi_deg": 0.0},
+        "seed": 1,
+        "max_iterations": 60,
+        "created_at": now,
+        "updated_at": now,
+        "target_size": [320, 240],
+        "target_detections": [_det("cube"), _det("sphere", 40), _det("mesh", 70)],
+        "iterations": [
+            _iteration(0, 0, 0, [_det("cube")], "moving towards the estimate"),
+            _iteration(1, 3, 2, [_det("cube"), _det("sphere", 40)], "no match: RMS 4.1 px"),
+            _iteration(2, 4, 1, [_det("cube")], "stuck: going round in circles"),
+        ],
+        "result": result,
+        "error": error,
+    }
+
+
+def test_a_trace_says_where_the_truth_was_visited_and_why_it_was_rejected():
+    raw = _search(error={"type": "about:blank", "title": "Search failed", "status": 422,
+                         "detail": "gave up after 3 views"})  # fmt: skip
+    Search.model_validate(raw)  # what the controller answers, as recorded
+    trace = failure_trace(raw, GridIndex(lat=3, lon=2))
+    assert trace.truth_visited
+    assert trace.visit_iteration == 2
+    assert trace.visit_reason == "no match: RMS 4.1 px"
+    assert (trace.visit_detections, trace.target_detections) == (2, 3)
+    assert trace.visit_labels == ("cube", "sphere")
+    assert trace.target_labels == ("cube", "mesh", "sphere")
+    assert trace.status == "failed"
+    assert trace.final_reason == "gave up after 3 views"
+    assert trace.iterations == 3
+    assert trace.found is None
+    assert trace.confirmed is None
+    never = failure_trace(raw, GridIndex(lat=7, lon=7))
+    assert not never.truth_visited
+    assert never.visit_iteration is None
+
+
+def test_a_trace_reads_an_unconfirmed_answer():
+    result = {
+        "pose": {"index": {"lat": 4, "lon": 1}, "theta_deg": 40.0, "phi_deg": 0.0},
+        "refined_pose": {"theta_deg": 40.0, "phi_deg": 0.0},
+        "confidence": 0.4,
+        "renders": 3,
+        "reason": "best visited view",
+        "confirmed": False,  # newer than this tree's SearchResult: read from the JSON
+    }
+    trace = failure_trace(_search("succeeded", result), GridIndex(lat=4, lon=1))
+    assert trace.truth_visited
+    assert trace.visit_iteration == 3
+    assert trace.found == GridIndex(lat=4, lon=1)
+    assert trace.confirmed is False
+    assert trace.final_reason == "best visited view"
+
+
+# -- the θ-band table -----------------------------------------------------------------------
+
+
+def _record(theta, variant="clean", arm="general", found=True, confirmed=True, renders=2):
+    truth = GridIndex(lat=3, lon=0)
+    return SearchRecord(
+        scene="r",
+        strategy="reprojection",
+        variant=variant,
+        number=0,
+        search_id="x",
+        status="succeeded" if found else "failed",
+        true_theta_deg=theta,
+        true_phi_deg=0.0,
+        truth=truth,
+        start=GridIndex(lat=0, lon=0),
+        found=truth if found else None,
+        success=found,
+        renders=renders,
+        iterations=renders,
+        arm=arm,
+        confirmed=confirmed if found else None,
+    )
+
+
+def test_theta_bands():
+    assert [theta_band(t) for t in (0, 29.9, 30, 60, 60.1, 90)] == [
+        BANDS[0], BANDS[0], BANDS[1], BANDS[1], BANDS[2], BANDS[2]
+    ]  # fmt: skip
+
+
+def test_the_band_table_counts_per_arm_variant_and_band():
+    records = [
+        _record(10),
+        _record(45),
+        _record(75, found=False, renders=9),
+        _record(75, variant="photo", confirmed=False),
+        _record(10, arm="scene"),
+        _record(45, arm="scene"),
+        _record(75, arm="scene"),
+        _record(75, variant="photo", arm="scene"),
+    ]
+    cells = {(c.arm, c.variant, c.band): c for c in band_cells(records)}
+    general = cells[("general", "all", "all")]
+    assert (general.n, general.found, general.confirmed) == (4, 3, 2)
+    assert (general.unconfirmed, general.unconfirmed_found) == (1, 1)
+    high = cells[("general", "all", BANDS[2])]
+    assert (high.n, high.found) == (2, 1)
+    assert cells[("general", "clean", BANDS[2])].found_rate == 0.0
+    assert ("general", "photo", BANDS[0]) not in cells
+    assert cells[("scene", "all", "all")].found_rate == 1.0
+    text = band_table(list(cells.values()), markdown=True)
+    assert "| general | clean | 1/1 = 100.0% | 1/1 = 100.0% | 0/1 = 0.0% | 2/3 = 66.7% |" in text
+    goals = goal_checks(list(cells.values()))
+    assert "general: overall 75.0% (goal ≥ 99%): MISSED" in goals
+    assert "scene: overall 100.0% (goal ≥ 99%): met" in goals
+    assert "scene: every band and variant at goal: met" in goals
+    assert any(line.startswith("general: every band") and "clean/all" in line for line in goals)
+
+
+def test_the_random_section_lists_scenes_models_table_goals_and_traces():
+    record = _record(75, found=False)
+    trace = failure_trace(_search(), GridIndex(lat=3, lon=2))
+    record = record.model_copy(update={"trace": trace})
+    data = {
+        "command": "cosmos bench --random-scenes 1",
+        "machine": {"cpu": "test"},
+        "duration_s": 12.0,
+        "notes": ["onboarding skipped (--onboard none)"],
+        "scenes": [
+            {
+                "id": "r",
+                "film": "320x240",
+                "fov_deg": 40.0,
+                "radius": 8.0,
+                "angle_step_deg": 7.5,
+                "objects": 2,
+                "kinds": ["star", "cube"],
+                "ground": "texture",
+            }
+        ],  # fmt: skip
+        "models": [{"scene": "r", "arm": "general", "served": "general: detector"}],
+        "records": [_record(10).model_dump(mode="json"), record.model_dump(mode="json")],
+    }
+    text = section_of_random(data)
+    assert "## Random scenes" in text
+    assert "| r | 320x240 | 40.0 | 8.00 | 7.5 | star, cube |" in text
+    assert "**Goals**" in text
+    assert "yes, at 2: no match: RMS 4.1 px" in text
+    assert "onboarding skipped" in text
+
+
+# -- end to end -----------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_a_ci_sized_random_scene_bench_through_the_real_stack(tmp_path, capsys):
+    out = tmp_path / "results"
+    status = main(
+        [
+            "bench",
+            "--random-scenes", "1",
+            "--n", "1",
+            "--onboard", "none",
+            "--variants", "clean,photo,changed",
+            "--max-iterations", "20",
+            "--seed", "3",
+            "--scenes-out", str(tmp_path / "scenes"),
+            "--out", str(out),
+            "--results-md", str(tmp_path / "RESULTS.md"),
+        ]
+    )  # fmt: skip
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    report = json.loads((out / "random.json").read_text())
+    records = [SearchRecord.model_validate(r) for r in report["records"]]
+    assert [r.variant for r in records] == ["clean", "photo", "changed"]
+    assert all(r.arm == "general" and r.status != "error" for r in records)
+    assert all((r.trace is None) == (r.success and r.confirmed is not False) for r in records)
+    assert records[1].change.startswith("light turned")
+    assert records[2].change
+    assert report["models"] == [
+        {"scene": "rand3-0", "arm": "general", "served": report["models"][0]["served"]}
+    ]
+    assert report["models"][0]["served"].startswith("general")
+    assert (tmp_path / "scenes" / "scenes" / "rand3-0.yaml").exists()
+    results = (tmp_path / "RESULTS.md").read_text()
+    assert "## Random scenes" in results
+    assert "| arm | variant | θ < 30° |" in results
