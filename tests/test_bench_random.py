@@ -333,3 +333,96 @@ def test_a_ci_sized_random_scene_bench_through_the_real_stack(tmp_path, capsys):
     results = (tmp_path / "RESULTS.md").read_text()
     assert "## Random scenes" in results
     assert "| arm | variant | θ < 30° |" in results
+
+
+# -- onboarding, without torch --------------------------------------------------------------
+
+
+def test_without_training_only_the_general_arm_runs(monkeypatch):
+    from services.bench import random_run
+
+    def missing(name):
+        raise ModuleNotFoundError(f"No module named {name!r}")
+
+    monkeypatch.setattr(random_run.importlib, "import_module", missing)
+    onboard, why = random_run._onboarder("tiny")
+    assert onboard is None
+    assert "onboarding unavailable" in why
+
+
+def test_the_onboard_preset_reaches_onboard_scene(monkeypatch, tmp_path):
+    from types import SimpleNamespace
+
+    from services.bench import random_run
+
+    calls = []
+
+    class Options:
+        def __init__(self, name="default"):
+            self.name = name
+
+        @classmethod
+        def tiny(cls):
+            return cls("tiny")
+
+    def onboard_scene(path, options, *, work_dir=None, progress=None):
+        calls.append((path, options.name, work_dir))
+        return SimpleNamespace(minutes=0.5, precision=0.9, recall=0.8, map50=0.85)
+
+    fake = SimpleNamespace(OnboardOptions=Options, onboard_scene=onboard_scene)
+    monkeypatch.setattr(random_run.importlib, "import_module", lambda name: fake)
+    for preset in ("tiny", "default"):
+        onboard, why = random_run._onboarder(preset)
+        assert why == ""
+        report = onboard(tmp_path / "s.yaml", tmp_path / "work")
+        assert random_run._onboarding_summary(report) == "0.5 min, P 0.900, R 0.800, mAP50 0.850"
+    assert [c[1] for c in calls] == ["tiny", "default"]
+    assert calls[0][2] == tmp_path / "work"
+
+
+def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, tmp_path):
+    from services.bench import random_run
+    from services.bench.command import BenchConfig, _Endpoints
+    from services.bench.runner import Target
+    from services.common.models import Pose
+
+    pose = Pose(theta_deg=30.0, phi_deg=0.0)
+    index = GridIndex(lat=1, lon=0)
+    targets = [
+        Target(s, "clean", 0, pose, index, pose, index, pose, 1, b"png") for s in ("a", "b", "c")
+    ]
+
+    def onboard(path, work_dir):
+        if path.stem == "c":
+            raise RuntimeError("training diverged")
+        return None
+
+    monkeypatch.setattr(random_run, "MODEL_WAIT_S", 0.0)
+    monkeypatch.setattr(
+        random_run,
+        "served_model",
+        lambda url, scene, image: {
+            "name": "m",
+            "sha256": "0" * 64,
+            "scene": scene * (scene == "a"),
+        },
+    )
+    searched = []
+
+    def run_searches(url, jobs, **kw):
+        searched.append(([t.scene for t, _ in jobs], kw["arm"]))
+        return [_record(30.0, arm=kw["arm"]) for _ in jobs]
+
+    monkeypatch.setattr(random_run, "run_searches", run_searches)
+    models: list = []
+    config = BenchConfig(scenes=("a", "b", "c"), strategies=("reprojection",), onboard="tiny")
+    endpoints = _Endpoints("http://c", "http://r", detectors=("http://d",))
+    records = random_run._scene_arm(
+        config, endpoints, targets, tmp_path, tmp_path / "work", onboard, models
+    )
+    assert searched == [(["a"], "scene"), (["a"], "scene")]  # the untimed warm-up, then the run
+    assert [r.arm for r in records] == ["scene"]
+    by_scene = {m["scene"]: m for m in models}
+    assert by_scene["a"]["served"].startswith("the scene's own (a)")
+    assert by_scene["b"]["served"].startswith("general")
+    assert by_scene["c"]["onboarding"] == "failed: RuntimeError: training diverged"

@@ -127,7 +127,16 @@ def _scene_arm(
     for scene in config.scenes:
         _say(f"onboarding {scene} ({config.onboard})")
         started = time.perf_counter()
-        report = onboard(scene_dir / f"{scene}.yaml", work_root / scene)
+        try:
+            report = onboard(scene_dir / f"{scene}.yaml", work_root / scene)
+        except (ImportError, OSError, RuntimeError, ValueError) as exc:
+            # One scene's failed training must not cost the run its general arm's figures.
+            failure = f"failed: {type(exc).__name__}: {exc}"
+            _say(f"  onboarding {scene} {failure}")
+            models.append({"scene": scene, "arm": "scene", "served": "—", "onboarding": failure})
+            if isinstance(exc, ImportError):  # torch missing: no other scene will do better
+                break
+            continue
         summary = _onboarding_summary(report)
         _say(f"  onboarded {scene} in {time.perf_counter() - started:.0f} s: {summary}")
         image = next(t.image for t in targets if t.scene == scene)
