@@ -29,6 +29,7 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -104,12 +105,17 @@ class _Endpoints:
     altered_dir: Path | None = None
     """Where ``photo`` and ``changed`` targets' scene copies go (a local stack reads it)."""
 
-    def scene_of(self, scene_id: str) -> LoadedScene:
-        """The scene ``scene_id`` as the local stack's renderer reads it."""
+    @cached_property
+    def _catalog(self) -> SceneCatalog:
         from services.renderer.settings import RendererSettings
 
-        dirs = [*self.scene_dirs, *RendererSettings().scene_directories()]
-        return SceneCatalog(dirs).get(scene_id)
+        # Not the copies' folder: it grows with every target and no copy is copied again.
+        dirs = [d for d in self.scene_dirs if d != self.altered_dir]
+        return SceneCatalog([*dirs, *RendererSettings().scene_directories()])
+
+    def scene_of(self, scene_id: str) -> LoadedScene:
+        """The scene ``scene_id`` as the local stack's renderer reads it."""
+        return self._catalog.get(scene_id)
 
     def warm(self, scenes: Sequence[str]) -> None:
         """Render every scene on every renderer and detect it on every detector once, so that
