@@ -291,7 +291,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         detectors=args.detectors,
         max_concurrent_searches=args.max_concurrent_searches,
         random_scenes=args.random_scenes,
-        onboard=args.onboard,
+        onboard=args.onboard,  # argparse checked the choice
         scenes_out=Path(args.scenes_out) if args.scenes_out else None,
         regenerate=args.regenerate,
         verbose=args.verbose,

@@ -31,7 +31,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import httpx
 
@@ -81,7 +81,7 @@ class BenchConfig:
     detectors: int = 2
     max_concurrent_searches: int | None = None
     random_scenes: int = 0
-    onboard: str = "default"
+    onboard: Literal["none", "tiny", "default"] = "default"
     scenes_out: Path | None = None
     regenerate: bool = False
     verbose: bool = False

@@ -181,7 +181,10 @@ def make_targets(
         scene: str, variant: Variant, rng: np.random.Generator, number: int
     ) -> AlteredScene:
         if scene_of is None or altered_dir is None:
-            raise ValueError("photo and changed targets need scene_of and altered_dir")
+            raise ValueError(
+                "photo and changed targets are rendered from copies of the scene that the "
+                "renderer must read: run them on a local stack (without --url)"
+            )
         return alter_scene(scene_of(scene), variant, rng, altered_dir, f"{scene}_{variant}{number}")
 
     targets: list[Target] = []
