@@ -10,13 +10,13 @@ rings, cells); near colours and, sometimes, two identical objects.
 Layout
 ------
 3–10 objects, footprints (discs of radius ``reach`` about each position) apart by ≥ 0.1, spread
-within ``s = k · R tan(fov/2)``, k ∈ [0.45, 0.8], clamped to [1.2, 3.5], so that most objects are
-in view from most poses. The camera radius ``R`` ∈ [6, 12] is raised when needed to clear every
-object by half again its reach from the origin: ``R ≥ 1.5 · max_i hypot(|p_i| + reach_i, h_i)``.
-Film 256–480 px wide (4:3, 3:2 or 16:10), fov 35–60°, grid step Δ ∈ [5°, 10°] in 0.5° steps with
-rings from θ = Δ to the last ``k Δ ≤ 82°``. The point light stands at ``r`` ∈ [5, 12], θ ≤ 70°,
-with intensity ``r² · U(1.8, 4.5)`` (irradiance at the origin ≈ 1.8–4.5, the built-in scenes'
-range) and ambient 0.05–0.35.
+within ``s = k · R tan(fov/2)``, k ∈ [0.45, 0.8], clamped to [1.2, 3.5] (widened by 0.25 while an
+object finds no room), so that most objects are in view from most poses. The camera radius ``R`` ∈
+[6, 12] is raised when needed to clear every object by half again its reach from the origin: ``R ≥
+1.5 · max_i hypot(|p_i| + reach_i, h_i)``. Film 256–480 px wide (4:3, 3:2 or 16:10), fov 35–60°,
+grid step Δ ∈ [5°, 10°] in 0.5° steps with rings from θ = Δ to the last ``k Δ ≤ 82°``. The point
+light stands at ``r`` ∈ [5, 12], θ ≤ 70°, with intensity ``r² · U(1.8, 4.5)`` (irradiance at the
+origin ≈ 1.8–4.5, the built-in scenes' range) and ambient 0.05–0.35.
 """
 
 from __future__ import annotations
