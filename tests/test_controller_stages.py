@@ -27,7 +27,7 @@ from services.controller.transport import StageAnswer, StageRequest
 from services.detector.app import create_app as create_detector
 from services.detector.settings import DetectorSettings
 from services.renderer.app import create_app as create_renderer
-from tests.test_detector_scene_models import BALLS, add_scene, onboard
+from tests.scene_model_support import BALLS, add_scene, onboard
 
 pytestmark = pytest.mark.anyio
 

@@ -17,8 +17,8 @@ from services.common.grid import grid_for
 from services.detector.client import DetectorClient, DetectorError
 from services.detector.postprocess import box_iou
 from services.detector.synthetic import constant_model
+from tests.scene_model_support import add_scene, balls_png, onboard
 from tests.support import ROOT, ServiceProcess, fuzz_service, homogeneous_tuples, running_service
-from tests.test_detector_scene_models import add_scene, balls_png, onboard
 
 pytestmark = pytest.mark.slow
 
