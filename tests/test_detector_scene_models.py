@@ -287,9 +287,7 @@ def edited_scene(scenes: Path, tmp_path: Path) -> str:
     return "was the scene file edited after onboarding?"
 
 
-@pytest.mark.parametrize(
-    "damage", [corrupt, sha_mismatch, wrong_classes, other_scene, edited_scene]
-)
+@pytest.mark.parametrize("damage", [corrupt, sha_mismatch, wrong_classes, other_scene])
 async def test_a_refused_model_leaves_the_previous_one_serving(scenes, tmp_path, damage, caplog):
     async with serving(scenes) as (client, _):
         before = await scene_status(client, "field")
@@ -303,6 +301,21 @@ async def test_a_refused_model_leaves_the_previous_one_serving(scenes, tmp_path,
         assert expected in caplog.text  # logged, with what serves instead
         assert "its previous model" in caplog.text
         assert (await client.get("/health")).json()["scene_models"] == 1
+
+
+async def test_a_scene_edited_after_onboarding_falls_back_to_the_general_model(
+    scenes, tmp_path, caplog
+):
+    async with serving(scenes) as (client, _):
+        expected = edited_scene(scenes, tmp_path)
+        body = await detect(client, "field")
+        # The old model's classes name a ball the scene no longer has: it must not serve.
+        assert body["model"]["scene"] is None
+        assert labels(body) == ["sphere", "sphere"]
+        status = await scene_status(client, "field")
+        assert (status["state"], status["model"]) == ("refused", None)
+        assert expected in status["error"]
+        assert "the general model serves it" in caplog.text
 
 
 async def test_a_refused_model_with_none_before_leaves_the_general_one(scenes, tmp_path):

@@ -4,7 +4,8 @@ A scene ``<dir>/<id>.yaml`` found through the scene catalog (``COSMOS_SCENES_DIR
 built-in ``scenes/``) may have its own model in ``<dir>/<id>.detector/`` (see
 :mod:`services.common.scene_models`). It serves only when it passes every check of
 :func:`load_scene_model`; a refused model is logged and listed with its error, and the scene's
-previous model (if one was serving) goes on serving, else the general model does.
+previous model (if one was serving and its classes still fit the scene) goes on serving, else
+the general model does.
 
 Scene models are loaded at start-up and looked at again when a request names their scene (at most
 once per ``detector_scene_check_s``): a cheap stat of the files, and a load on a worker thread
@@ -307,9 +308,17 @@ class ModelRegistry:
             model = await asyncio.to_thread(load_scene_model, scene, threads=threads)
         except Exception as exc:  # ModelError, or onnxruntime's own untyped errors
             message = str(exc) if isinstance(exc, ModelError) else f"{type(exc).__name__}: {exc}"
+            previous = entry.detector
+            if previous is not None and list(previous.model.classes) != [
+                c.label for c in object_classes(scene.spec)
+            ]:
+                # The scene file was edited: the previous model's classes no longer fit it
+                # either, and the general model at least labels what it sees truthfully.
+                self._retire(previous)
+                entry.detector = previous = None
             keeps = (
-                f"its previous model {entry.detector.info.sha256[:12]} keeps serving"
-                if entry.detector is not None
+                f"its previous model {previous.info.sha256[:12]} keeps serving"
+                if previous is not None
                 else "the general model serves it"
             )
             _log.warning("refused scene %s's model: %s; %s", scene.id, message, keeps)
