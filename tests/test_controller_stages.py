@@ -25,7 +25,9 @@ from services.controller.store import SearchStore
 from services.controller.submit import create_search
 from services.controller.transport import StageAnswer, StageRequest
 from services.detector.app import create_app as create_detector
+from services.detector.settings import DetectorSettings
 from services.renderer.app import create_app as create_renderer
+from tests.scene_model_support import BALLS, add_scene, onboard
 
 pytestmark = pytest.mark.anyio
 
@@ -103,16 +105,42 @@ async def test_a_view_is_rendered_and_detected(apps, old_renderer):
 
 
 class Counting:
-    """An app that counts the requests it serves."""
+    """An app that counts the requests it serves (their paths and query strings)."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
         self.requests: list[str] = []
+        self.queries: list[str] = []
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "http":
             self.requests.append(scope["path"])
+            self.queries.append(scope["query_string"].decode())
         await self.app(scope, receive, send)
+
+
+async def test_a_detection_names_the_search_scene_so_its_own_model_answers(apps, tmp_path):
+    """The scene travels as ``?scene=``; a scene with its own model (``field``, the demo with its
+    balls as classes) is detected with it, one without (the demo) with the general model."""
+    renderer, _ = apps
+    add_scene(tmp_path, "field")
+    onboard(tmp_path, "field")
+    settings = DetectorSettings(scenes_dir=str(tmp_path), detector_threads=1)
+    async with LifespanManager(create_detector(settings)) as detector:
+        counting = Counting(detector.app)
+        stages = stages_over(renderer, counting)
+        try:
+            view = await stages.render("demo", GridIndex(lat=3, lon=5))
+            own = await stages.detect(view, media_type_of(view), "search-1", scene="field")
+            general = await stages.detect(view, media_type_of(view), "search-1", scene="demo")
+        finally:
+            await stages.broker.close()
+    assert counting.queries == ["scene=field", "scene=demo"]
+    assert own.model.scene == "field"
+    assert {d.label for d in own.detections} <= set(BALLS)
+    assert len(own.detections) >= 3
+    assert general.model.scene is None
+    assert {d.label for d in general.detections} == {"sphere"}
 
 
 async def test_an_early_render_is_taken_by_its_search_once(apps):

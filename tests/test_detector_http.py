@@ -17,6 +17,7 @@ from services.common.grid import grid_for
 from services.detector.client import DetectorClient, DetectorError
 from services.detector.postprocess import box_iou
 from services.detector.synthetic import constant_model
+from tests.scene_model_support import add_scene, balls_png, onboard
 from tests.support import ROOT, ServiceProcess, fuzz_service, homogeneous_tuples, running_service
 
 pytestmark = pytest.mark.slow
@@ -28,8 +29,13 @@ SHIPPED_MODEL = ROOT / "models" / "detector.onnx"
 
 @pytest.fixture(scope="module")
 def detector_process(tmp_path_factory) -> Iterator[ServiceProcess]:
-    """A real detector serving a synthetic model: one sphere at input (80, 80)-(120, 160)."""
+    """A real detector serving a synthetic model: one sphere at input (80, 80)-(120, 160); and
+    scene ``field`` (the demo) with its own model."""
     directory = tmp_path_factory.mktemp("detector-http")
+    scenes = directory / "scenes"
+    scenes.mkdir()
+    add_scene(scenes, "field")
+    onboard(scenes, "field")
     model = constant_model(
         directory / "constant.onnx",
         np.array([[100], [120], [40], [80], [0.9], [0.0]], np.float32),
@@ -40,6 +46,7 @@ def detector_process(tmp_path_factory) -> Iterator[ServiceProcess]:
         "COSMOS_DETECTOR_THREADS": "1",
         "COSMOS_DETECTOR_MAX_UPLOAD_BYTES": str(UPLOAD_LIMIT),
         "COSMOS_DETECTOR_MAX_IMAGE_PIXELS": "1000000",
+        "COSMOS_SCENES_DIR": str(scenes),
     }
     with running_service(APP, directory / "logs", env) as service:
         yield service
@@ -57,6 +64,13 @@ def test_the_client_detects_over_http(detector_process):
         assert response.model == info
         with pytest.raises(DetectorError, match="415"):
             client.detect(b"not an image")
+        own = client.detect(balls_png(), scene="field")
+        assert own.model.scene == "field"
+        assert [d.label for d in own.detections] == ["red", "red"]
+        models = client.models()
+        assert models.general == info
+        field = next(status for status in models.scenes if status.scene == "field")
+        assert (field.state, field.model) == ("serving", own.model)
 
 
 def multipart(data: bytes, boundary: str = "cosmos-boundary") -> tuple[bytes, str]:
@@ -101,7 +115,7 @@ def test_every_route_answers_within_its_schema(detector_process):
     document = httpx.get(f"{detector_process.url}/openapi.json", timeout=10.0).json()
     schema = schemathesis.openapi.from_dict(homogeneous_tuples(document))
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 3
+    assert len(operations) == 4
     # Random bytes are never a PNG, so one real image checks the 200 answer's schema too.
     (detect,) = [op for op in operations if op.path == "/detect"]
     ok, image = cv2.imencode(".png", np.full((90, 160, 3), 70, np.uint8))
@@ -110,7 +124,7 @@ def test_every_route_answers_within_its_schema(detector_process):
     response = real.call_and_validate(base_url=detector_process.url, timeout=30)
     assert response.status_code == 200
     assert len(response.json()["detections"]) == 1
-    assert fuzz_service(detector_process.url, max_examples=30, timeout_s=30) == 3
+    assert fuzz_service(detector_process.url, max_examples=30, timeout_s=30) == 4
 
 
 # -- the shipped model -------------------------------------------------------------------------

@@ -17,6 +17,7 @@ __all__ = [
     "CameraModel",
     "DetectResponse",
     "DetectorHealth",
+    "DetectorModels",
     "Detection",
     "FrozenModel",
     "GridIndex",
@@ -29,6 +30,8 @@ __all__ = [
     "RenderAnnotations",
     "RenderHealth",
     "RenderRequest",
+    "SceneModelState",
+    "SceneModelStatus",
     "SceneSummary",
 ]
 
@@ -308,3 +311,36 @@ class DetectorHealth(FrozenModel):
     max_batch: Annotated[int, Field(ge=1)] = Field(description="Images per inference run.")
     batches_run: NonNegInt
     images_run: NonNegInt
+    scene_models: NonNegInt = Field(
+        default=0, description="Scenes whose own model is serving (see GET /models)."
+    )
+
+
+SceneModelState = Literal["serving", "refused", "none"]
+
+
+class SceneModelStatus(FrozenModel):
+    """One scene's own detector as the detector service sees it."""
+
+    scene: str
+    state: SceneModelState = Field(
+        description="The scene's newest model file: `serving` (validated and in use), `refused` "
+        "(unloadable, or its sha256, scene or classes do not match: see `error`), `none` (the "
+        "scene has no model)."
+    )
+    model: ModelInfo | None = Field(
+        default=None,
+        description="The scene model answering this scene's requests: the newest when serving, "
+        "the previous one when the newest was refused; null when the general model serves it.",
+    )
+    error: str | None = Field(default=None, description="Why the newest model was refused.")
+    classes: NonNegInt = Field(
+        description="Classes a model of this scene must have: one per object, look-alikes shared."
+    )
+
+
+class DetectorModels(FrozenModel):
+    """``GET /models``: the general model and every scene's own model."""
+
+    general: ModelInfo
+    scenes: tuple[SceneModelStatus, ...]

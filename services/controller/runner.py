@@ -233,9 +233,9 @@ class SearchRunner:
             self.stages.forget_early(search_id)  # a start view the search did not take
             self.notifier.publish(search_id)
 
-    async def _detect(self, image: bytes, media_type: str, sid: str) -> DetectResponse:
+    async def _detect(self, image: bytes, media_type: str, sid: str, scene: str) -> DetectResponse:
         try:
-            return await self.stages.detect(image, media_type, sid)
+            return await self.stages.detect(image, media_type, sid, scene=scene)
         except (StageError, BrokerError) as exc:
             raise _stage_failure(exc) from exc
 
@@ -248,7 +248,9 @@ class SearchRunner:
         """
         sid = search.id
         target_task = (
-            asyncio.create_task(self._detect(target_image, media_type_of(target_image), sid))
+            asyncio.create_task(
+                self._detect(target_image, media_type_of(target_image), sid, search.scene)
+            )
             if target_image is not None
             else None
         )
@@ -259,7 +261,7 @@ class SearchRunner:
             except (StageError, BrokerError) as exc:
                 raise _stage_failure(exc) from exc
             t1 = time.perf_counter()
-            found = await self._detect(view_image, media_type_of(view_image), sid)
+            found = await self._detect(view_image, media_type_of(view_image), sid, search.scene)
             t2 = time.perf_counter()
             seen = await target_task if target_task is not None else None
         finally:
@@ -329,7 +331,7 @@ class SearchRunner:
         target = search.target_detections
         target_size = search.target_size
         if target is None and history:  # resumed between the first iteration and this one
-            target_seen = await self._detect(image, media_type_of(image), sid)
+            target_seen = await self._detect(image, media_type_of(image), sid, search.scene)
             target, target_size = target_seen.detections, target_seen.image_size
         renders = len(views)
         while current is not None and len(history) < search.max_iterations:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 from typing import Any
+from urllib.parse import urlencode
 
 from services.common.errors import ProblemDetails
 from services.common.images import PPM_MEDIA_TYPE
@@ -97,12 +98,16 @@ class Stages:
         request = StageRequest.json("/render", json.dumps(body), headers)
         return (await self._call("renderer", "render", request)).content
 
-    async def detect(self, image: bytes, media_type: str, request_id: str = "") -> DetectResponse:
+    async def detect(
+        self, image: bytes, media_type: str, request_id: str = "", *, scene: str | None = None
+    ) -> DetectResponse:
         """The objects found in an image, sent as the raw body (no multipart to write or parse:
-        the detector takes ``image/png``, ``image/jpeg`` and binary PPM bodies as they are)."""
+        the detector takes ``image/png``, ``image/jpeg`` and binary PPM bodies as they are).
+        ``scene`` (the search's) lets the detector use that scene's own model if it has one."""
         headers = {"X-Request-ID": request_id, "Content-Type": media_type}
+        path = "/detect" if scene is None else f"/detect?{urlencode({'scene': scene})}"
         response = await self._call(
-            "detector", "detect", StageRequest("POST", "/detect", image, headers)
+            "detector", "detect", StageRequest("POST", path, image, headers)
         )
         return DetectResponse.model_validate_json(response.content)
 

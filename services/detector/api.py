@@ -1,4 +1,4 @@
-"""Detector routes: thin HTTP wrappers over :class:`~services.detector.detect.Detector`."""
+"""Detector routes: thin HTTP wrappers over :class:`~services.detector.registry.ModelRegistry`."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Request, Response
 
 from services.common.http import app_state, problem_responses
-from services.common.models import DetectorHealth, DetectResponse, ModelInfo
+from services.common.models import DetectorHealth, DetectorModels, DetectResponse, ModelInfo
+from services.common.scene import SCENE_ID_PATTERN
 from services.common.upload import read_upload, request_body
-from services.detector.detect import Detector
+from services.detector.registry import ModelRegistry
 from services.detector.settings import DetectorSettings
 
 __all__ = ["DetectorState", "router"]
@@ -23,7 +24,7 @@ class DetectorState:
     """What the routes need, built in the app's lifespan."""
 
     settings: DetectorSettings
-    detector: Detector
+    registry: ModelRegistry
 
 
 State = Annotated[DetectorState, Depends(app_state("detector"))]
@@ -31,8 +32,9 @@ State = Annotated[DetectorState, Depends(app_state("detector"))]
 
 @router.get("/health", response_model=DetectorHealth)
 async def health(state: State) -> DetectorHealth:
-    """Liveness, the model being served, requests in flight and the inference set-up."""
-    detector = state.detector
+    """Liveness, the general model, requests in flight (all models), the general model's
+    inference set-up and batches, and how many scenes' own models serve."""
+    detector = state.registry.general
     return DetectorHealth(
         status="ok",
         service="detector",
@@ -44,13 +46,22 @@ async def health(state: State) -> DetectorHealth:
         max_batch=detector.batcher.max_batch,
         batches_run=detector.batcher.stats.batches,
         images_run=detector.batcher.stats.images,
+        scene_models=state.registry.serving(),
     )
 
 
 @router.get("/model", response_model=ModelInfo)
 async def model(state: State) -> ModelInfo:
-    """The model: name, classes, input size (width, height), file SHA-256 and provenance."""
-    return state.detector.info
+    """The general model: name, classes, input size (width, height), file SHA-256 and
+    provenance."""
+    return state.registry.general.info
+
+
+@router.get("/models", response_model=DetectorModels)
+async def models(state: State) -> DetectorModels:
+    """The general model and every scene's own model: `serving`, `refused` (with the error; the
+    scene's previous model, if any, goes on serving) or `none`. Looks for new model files first."""
+    return await state.registry.models()
 
 
 @router.post(
@@ -75,10 +86,21 @@ async def detect(
         int | None,
         Query(ge=1, le=1000, description="At most this many detections, best first."),
     ] = None,
+    scene: Annotated[
+        str | None,
+        Query(
+            pattern=SCENE_ID_PATTERN,
+            description="The scene the image shows: its own model detects (labels are its "
+            "objects' names) when it has a valid one; an unknown scene, or one without a valid "
+            "model, gets the general model (labels are shapes). The answer's `model.scene` "
+            "says which served.",
+        ),
+    ] = None,
 ) -> Response:
     """Detect the objects in an image (multipart field ``image``, or the raw image body): per
-    object its class, confidence, box in pixels of the uploaded image and mean colour."""
+    object its class, confidence, box in pixels of the uploaded image and mean colour. With
+    ``scene``, that scene's own model detects if it has a valid one, else the general model."""
     data = (await read_upload(request)).image
-    found = await state.detector.detect(data, conf=conf, max_detections=max_detections)
+    found = await state.registry.detect(data, scene=scene, conf=conf, max_detections=max_detections)
     # Serialised once by pydantic-core; returning the model would validate it again first.
     return Response(found.model_dump_json(), media_type="application/json")

@@ -1,9 +1,10 @@
 """The detector service: ``create_app(settings)`` builds it; ``app`` is the default instance.
 
-Run it with ``uvicorn services.detector.app:app --port 8002``. The model
+Run it with ``uvicorn services.detector.app:app --port 8002``. The general model
 (``COSMOS_DETECTOR_MODEL``, default ``models/detector.onnx``) is loaded at start-up, not at
 import: a missing or malformed model stops the start-up with a
-:class:`~services.detector.model.ModelError` naming the file.
+:class:`~services.detector.model.ModelError` naming the file. The scenes' own models are loaded
+then too, but a refused one only is logged (:mod:`services.detector.registry`).
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from services.common.catalog import SceneCatalog
 from services.common.http import service_app
 from services.detector.api import DetectorState, router
 from services.detector.detect import Detector
 from services.detector.model import DetectorModel
+from services.detector.registry import ModelRegistry
 from services.detector.settings import DetectorSettings
 
 __all__ = ["app", "create_app"]
@@ -45,10 +48,14 @@ def create_app(settings: DetectorSettings | None = None) -> FastAPI:
             ", ".join(model.classes),
             ", ".join(model.providers),
         )
-        app.state.detector = DetectorState(settings=settings, detector=detector)
+        catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
+        registry = ModelRegistry(detector, catalog, settings)
         try:
+            await registry.start()
+            app.state.detector = DetectorState(settings=settings, registry=registry)
             yield
         finally:
+            await registry.close()
             await detector.close()
 
     return service_app(

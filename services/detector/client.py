@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from services.common.client import ServiceCallError, ServiceClient
 from services.common.images import media_type_of
-from services.common.models import DetectResponse, ModelInfo
+from services.common.models import DetectorModels, DetectResponse, ModelInfo
 
 __all__ = ["DetectorClient", "DetectorError"]
 
@@ -31,8 +31,12 @@ class DetectorClient(ServiceClient):
         return body
 
     def model(self) -> ModelInfo:
-        """``GET /model``."""
+        """``GET /model``: the general model."""
         return ModelInfo.model_validate(self._check(self._http.get("/model")).json())
+
+    def models(self) -> DetectorModels:
+        """``GET /models``: the general model and every scene's own."""
+        return DetectorModels.model_validate(self._check(self._http.get("/models")).json())
 
     def detect(
         self,
@@ -41,9 +45,13 @@ class DetectorClient(ServiceClient):
         conf: float | None = None,
         max_detections: int | None = None,
         filename: str = "image",
+        scene: str | None = None,
     ) -> DetectResponse:
-        """``POST /detect`` with PNG, JPEG or binary PPM bytes."""
-        params: dict[str, float | int] = {}
+        """``POST /detect`` with PNG, JPEG or binary PPM bytes; ``scene`` asks for that scene's
+        own model (the general model answers when it has none)."""
+        params: dict[str, float | int | str] = {}
+        if scene is not None:
+            params["scene"] = scene
         if conf is not None:
             params["conf"] = conf
         if max_detections is not None:
@@ -58,6 +66,7 @@ class DetectorClient(ServiceClient):
         *,
         conf: float | None = None,
         max_detections: int | None = None,
+        scene: str | None = None,
     ) -> DetectResponse:
         """``POST /detect`` with an RGB ``(H, W, 3)`` uint8 image, sent as PNG."""
         ok, buffer = cv2.imencode(
@@ -66,5 +75,9 @@ class DetectorClient(ServiceClient):
         if not ok:
             raise ValueError("PNG encoding failed")
         return self.detect(
-            bytes(buffer), conf=conf, max_detections=max_detections, filename="image.png"
+            bytes(buffer),
+            conf=conf,
+            max_detections=max_detections,
+            filename="image.png",
+            scene=scene,
         )

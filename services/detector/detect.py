@@ -26,7 +26,7 @@ from services.detector.model import DetectorModel
 from services.detector.postprocess import Candidates, decode_output, nms
 from services.detector.settings import DetectorSettings
 
-__all__ = ["DetectOptions", "Detector", "detections_from_output"]
+__all__ = ["Admission", "DetectOptions", "Detector", "detections_from_output"]
 
 
 @dataclass(frozen=True)
@@ -87,10 +87,45 @@ def detections_from_output(
     return tuple(detections)
 
 
-class Detector:
-    """Serves detections with one model: admission, decoding, batching, post-processing."""
+class Admission:
+    """Bounds the requests in flight across every model a service runs: each model has its
+    own batcher, but decoding and queueing share the one process."""
 
-    def __init__(self, model: DetectorModel, settings: DetectorSettings) -> None:
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self._lock = threading.Lock()
+        self._in_flight = 0
+
+    @property
+    def in_flight(self) -> int:
+        """Requests being decoded, waiting for or in inference, or post-processed."""
+        return self._in_flight
+
+    def admit(self) -> None:
+        """Count one more request in, or refuse it with a 503 when ``limit`` are in."""
+        with self._lock:
+            if self._in_flight >= self.limit:
+                raise ServiceUnavailableError(
+                    f"the detector has {self._in_flight} requests in flight; try again shortly",
+                    slug="detector-busy",
+                    title="Detector busy",
+                )
+            self._in_flight += 1
+
+    def release(self) -> None:
+        with self._lock:
+            self._in_flight -= 1
+
+
+class Detector:
+    """Serves detections with one model: admission, decoding, batching, post-processing.
+
+    Detectors of several models share one :class:`Admission` when it is given.
+    """
+
+    def __init__(
+        self, model: DetectorModel, settings: DetectorSettings, admission: Admission | None = None
+    ) -> None:
         self.model = model
         self.settings = settings
         self.options = DetectOptions.from_settings(settings)
@@ -100,8 +135,9 @@ class Detector:
             max_batch=settings.detector_max_batch if fixed is None else fixed,
             window_s=settings.detector_batch_window_ms / 1000.0,
         )
-        self._lock = threading.Lock()
-        self._in_flight = 0
+        self.admission = admission or Admission(settings.detector_max_in_flight)
+        self.active = 0
+        """This model's requests under way (what :meth:`retire` waits for)."""
 
     @property
     def info(self) -> ModelInfo:
@@ -109,8 +145,8 @@ class Detector:
 
     @property
     def in_flight(self) -> int:
-        """Requests being decoded, waiting for or in inference, or post-processed."""
-        return self._in_flight
+        """Requests under way in the service (every detector sharing the admission)."""
+        return self.admission.in_flight
 
     async def start(self) -> None:
         await self.batcher.start()
@@ -118,19 +154,12 @@ class Detector:
     async def close(self) -> None:
         await self.batcher.close()
 
-    def _admit(self) -> None:
-        with self._lock:
-            if self._in_flight >= self.settings.detector_max_in_flight:
-                raise ServiceUnavailableError(
-                    f"the detector has {self._in_flight} requests in flight; try again shortly",
-                    slug="detector-busy",
-                    title="Detector busy",
-                )
-            self._in_flight += 1
-
-    def _release(self) -> None:
-        with self._lock:
-            self._in_flight -= 1
+    async def retire(self, poll_s: float = 0.05) -> None:
+        """Close once the requests already handed to this model are answered (a newer model
+        serves the rest): closing the batcher earlier would fail them."""
+        while self.active:
+            await asyncio.sleep(poll_s)
+        await self.close()
 
     def _prepare(self, data: bytes) -> tuple[NDArray[np.uint8], NDArray[np.float32], Letterbox]:
         rgb = decode_image(
@@ -146,7 +175,8 @@ class Detector:
     ) -> DetectResponse:
         """Detect objects in PNG, JPEG or binary PPM bytes; ``conf`` and ``max_detections``
         override the settings for this call."""
-        self._admit()
+        self.admission.admit()
+        self.active += 1  # before any await: see retire()
         try:
             # A binary PPM needs no codec: decoding and letterboxing it here costs less than the
             # thread hop that keeps a PNG or JPEG decode off the event loop.
@@ -168,7 +198,8 @@ class Detector:
                 lambda output: detections_from_output(output, box, classes, rgb, options),
             )
         finally:
-            self._release()
+            self.active -= 1
+            self.admission.release()
         return DetectResponse(
             detections=detections,
             image_size=box.image_size,

@@ -148,13 +148,14 @@ def _static(dim: object) -> int | None:
 
 
 class DetectorModel:
-    """An onnxruntime session over a validated YOLO-format model.
+    """An onnxruntime session over a validated YOLO-format model (``scene``: the scene it was
+    onboarded for, None for the general model).
 
     :meth:`run` is safe to call from any thread (onnxruntime releases the GIL); the service calls
     it from one worker thread so that one batch uses all ``threads``.
     """
 
-    def __init__(self, path: Path, *, threads: int = 0) -> None:
+    def __init__(self, path: Path, *, threads: int = 0, scene: str | None = None) -> None:
         self.path = path = Path(path)
         if not path.is_file():
             raise ModelError(
@@ -193,6 +194,7 @@ class DetectorModel:
             input_size=self.layout.input_size,
             sha256=hashlib.sha256(content).hexdigest(),
             provenance=provenance,
+            scene=scene,
         )
         self._warm_up()
 

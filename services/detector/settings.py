@@ -8,7 +8,8 @@ from typing import Annotated
 from pydantic import Field
 from pydantic_settings import BaseSettings
 
-from services.common.settings import settings_config
+from services.common.catalog import BUILTIN_SCENES_DIR
+from services.common.settings import settings_config, split_paths
 from services.detector import HARD_MAX_IMAGE_PIXELS
 
 __all__ = ["DEFAULT_MODEL", "DetectorSettings"]
@@ -20,13 +21,18 @@ Fraction = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 
 
 class DetectorSettings(BaseSettings):
-    """``COSMOS_DETECTOR_MODEL`` names the ONNX model (a sidecar ``<model>.json`` next to it, if
-    present, supplies the class names and provenance); the rest tune inference and bound what
-    one request may send."""
+    """``COSMOS_DETECTOR_MODEL`` names the general ONNX model (a sidecar ``<model>.json`` next to
+    it, if present, supplies the class names and provenance); ``COSMOS_SCENES_DIR`` adds scene
+    directories (as for the renderer), whose scenes' own models serve requests naming them; the
+    rest tune inference and bound what one request may send."""
 
     model_config = settings_config()
 
     detector_model: Path = DEFAULT_MODEL
+    scenes_dir: str = ""
+    detector_scene_check_s: Annotated[float, Field(ge=0.0, le=3600.0, allow_inf_nan=False)] = 1.0
+    """How often at most a scene's model files are looked at for a new model (a request naming
+    the scene, or ``GET /models``, looks); 0 looks every time."""
     detector_conf: Fraction = 0.25
     """Default confidence threshold (a request may override it with ``?conf=``)."""
     detector_iou: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.5
@@ -51,3 +57,7 @@ class DetectorSettings(BaseSettings):
     detector_max_image_side: Annotated[int, Field(ge=8, le=65_535)] = 16_384
     detector_colour: bool = True
     """Measure each detection's colour (``Detection.color``); off leaves it null."""
+
+    def scene_directories(self) -> list[Path]:
+        """The directories searched for scene files, in order."""
+        return [*split_paths(self.scenes_dir), BUILTIN_SCENES_DIR]
