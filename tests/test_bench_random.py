@@ -414,6 +414,7 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
         return [_record(30.0, arm=kw["arm"]) for _ in jobs]
 
     monkeypatch.setattr(random_run, "run_searches", run_searches)
+    monkeypatch.setattr(random_run, "model_status", lambda url, scene: "refused: wrong classes")
     models: list = []
     config = BenchConfig(scenes=("a", "b", "c"), strategies=("reprojection",), onboard="tiny")
     endpoints = _Endpoints("http://c", "http://r", detectors=("http://d",))
@@ -425,4 +426,28 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
     by_scene = {m["scene"]: m for m in models}
     assert by_scene["a"]["served"].startswith("the scene's own (a)")
     assert by_scene["b"]["served"].startswith("general")
+    assert by_scene["b"]["served"].endswith("the scene's own model: refused: wrong classes")
     assert by_scene["c"]["onboarding"] == "failed: RuntimeError: training diverged"
+
+
+def test_model_status_reads_get_models(monkeypatch):
+    import httpx
+
+    from services.bench import random_run
+
+    body = {
+        "general": {},
+        "scenes": [
+            {"scene": "a", "state": "serving", "classes": 3},
+            {"scene": "b", "state": "refused", "error": "sha256 mismatch", "classes": 2},
+        ],
+    }
+
+    def get(url, timeout):
+        assert url == "http://d/models"
+        return httpx.Response(200, json=body, request=httpx.Request("GET", url))
+
+    monkeypatch.setattr(random_run.httpx, "get", get)
+    assert random_run.model_status("http://d", "a") == "serving"
+    assert random_run.model_status("http://d", "b") == "refused: sha256 mismatch"
+    assert random_run.model_status("http://d", "c") == "not listed by GET /models"

@@ -45,7 +45,7 @@ from services.bench.runner import SearchRecord, Target, run_searches
 from services.bench.scenes import generate_scene, scene_summary
 from services.common.scene import load_scene
 
-__all__ = ["MODEL_WAIT_S", "run_random", "served_model"]
+__all__ = ["MODEL_WAIT_S", "model_status", "run_random", "served_model"]
 
 MODEL_WAIT_S: Final = 60.0
 """How long the detector has to pick up a newly onboarded model."""
@@ -65,6 +65,22 @@ def served_model(detector_url: str, scene: str, image: bytes) -> dict[str, Any]:
     response.raise_for_status()
     model = response.json().get("model", {})
     return {k: model.get(k) for k in ("name", "sha256", "scene")}
+
+
+def model_status(detector_url: str, scene: str) -> str:
+    """What ``GET /models`` says of ``scene``'s own model (``serving``, ``refused: why``,
+    ``none``), or why it cannot say."""
+    try:
+        response = httpx.get(f"{detector_url}/models", timeout=30.0)
+        response.raise_for_status()
+        states = response.json().get("scenes", [])
+    except (httpx.HTTPError, ValueError) as exc:
+        return f"GET /models failed ({exc})"
+    for state in states:
+        if state.get("scene") == scene:
+            error = state.get("error")
+            return str(state.get("state")) + (f": {error}" if error else "")
+    return "not listed by GET /models"
 
 
 def _describe(model: dict[str, Any]) -> str:
@@ -147,7 +163,9 @@ def _scene_arm(
         if model.get("scene") == scene:
             ready.append(scene)
         else:
-            _say(f"  the detector does not serve {scene}'s own model: {_describe(model)}")
+            status = model_status(endpoints.detectors[0], scene)
+            models[-1]["served"] += f"; the scene's own model: {status}"
+            _say(f"  the detector does not serve {scene}'s own model ({status})")
     jobs = [(t, s) for t in targets if t.scene in ready for s in config.strategies]
     if not jobs:
         return []
