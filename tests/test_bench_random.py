@@ -451,3 +451,50 @@ def test_model_status_reads_get_models(monkeypatch):
     assert random_run.model_status("http://d", "a") == "serving"
     assert random_run.model_status("http://d", "b") == "refused: sha256 mismatch"
     assert random_run.model_status("http://d", "c") == "not listed by GET /models"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_the_scene_arm_runs_with_a_model_the_detector_picks_up_without_restart(
+    tmp_path, monkeypatch, capsys
+):
+    """Onboarding stood in for by a model that finds one object of the scene's first class
+    everywhere, installed as onboarding installs one: the running detector must serve it, and
+    the same targets run again labelled ``scene``."""
+    from services.bench import random_run
+    from services.common.scene_models import object_classes
+    from services.detector.synthetic import constant_model
+    from tests.scene_model_support import onboard as install
+
+    def stand_in(scene_path, work_dir):
+        work_dir.mkdir(parents=True)
+        classes = [c.label for c in object_classes(load_scene(scene_path).spec)]
+        predictions = np.zeros((4 + len(classes), 1), np.float32)
+        predictions[:4, 0] = (160, 128, 60, 60)
+        predictions[4, 0] = 0.9
+        onnx = constant_model(work_dir / "m.onnx", predictions, input_size=(320, 256))
+        install(scene_path.parent, scene_path.stem, onnx, classes=classes)
+        return None
+
+    monkeypatch.setattr(random_run, "_onboarder", lambda preset: (stand_in, ""))
+    out = tmp_path / "results"
+    status = main(
+        [
+            "bench",
+            "--random-scenes", "1",
+            "--n", "1",
+            "--onboard", "tiny",
+            "--variants", "clean",
+            "--max-iterations", "8",
+            "--seed", "3",
+            "--out", str(out),
+            "--results-md", "",
+        ]
+    )  # fmt: skip
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    report = json.loads((out / "random.json").read_text())
+    assert [r["arm"] for r in report["records"]] == ["general", "scene"]
+    served = {m["arm"]: m["served"] for m in report["models"]}
+    assert served["general"].startswith("general")
+    assert served["scene"].startswith("the scene's own (rand3-0)")
