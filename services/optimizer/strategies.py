@@ -6,20 +6,41 @@ the target's detections and the visited poses with theirs — to a :class:`~.pro
 When is the search done?
 ------------------------
 Only the images decide, never the true pose. The current view's detections are matched to the
-target's (:func:`~.matching.compare_views`: pairs of one class and alike colour, RMS box-edge
-difference over the pairs, at most ``max_unmatched`` detections per image unpaired). The search
-is done when
+target's (:func:`~.matching.compare_views`: pairs of alike class and colour, RMS box-edge
+difference over the pairs). A match allows unpaired detections in each image up to a summed
+*confidence* of ``max_unmatched``: a target detection at confidence 0.3 without a partner (a
+doubtful box the search view, rendered at few samples per pixel, does not reproduce) weighs a
+third of a sure one. The search is done when
 
 1. the views match *strictly*: RMS within ``tolerance_px``; or
 2. the strategy's own estimate puts the target at the current grid pose and the views match
-   *loosely*: RMS within ``3 × tolerance_px`` — or, for the map-based strategies, the map's
-   prediction at the refined continuous estimate matches the target that closely (a target
-   between grid poses).
+   *loosely*: RMS within the loose tolerance ``T`` below — or, for the map-based strategies,
+   the map's prediction at the refined continuous estimate matches the target that closely (a
+   target between grid poses).
 
 The strict test alone needs a tolerance below the smallest difference between adjacent grid
 views, which can be tiny: near the zenith one 7.5° step in θ moves the demo balls by only
 ≈ 2 px RMS, less than a real detector's noise. The loose test lets noisy detections and targets
 between grid poses finish, but only where the estimate agrees.
+
+The loose tolerance grows with the noise expected of the pairs' box edges. Each edge of pair
+``j`` differs between the views by the geometric change ``δ`` plus the two detections' errors,
+of standard deviations ``σ_aj``, ``σ_bj`` (:func:`~.observations.edge_sigma`: pixel quantisation
+and a fraction of the box size), so the mean squared RMS over the pairs is
+
+.. math:: E[\\mathrm{rms}^2] = δ^2 + N^2, \\qquad
+          N^2 = \\frac{1}{P} \\sum_j (σ_{aj}^2 + σ_{bj}^2)
+
+(:attr:`~.matching.ViewComparison.noise_px`), and the test is
+
+.. math:: \\mathrm{rms} \\le T = \\sqrt{(3 \\, t)^2 + (z N)^2}, \\qquad z = 2
+
+(``t`` = ``tolerance_px``, z = :data:`NOISE_SIGMAS`). At the true pose (δ = 0) ``rms²/N²``
+is a mean of ``4P`` squared standard normals, whose 99th percentile is below z² = 4 already for
+two pairs, so a photo or JPEG target of the true pose passes; a neighbouring pose passes only
+with ``δ² < 9 t² + 3 N²`` *and* the estimate at that pose, which the estimate rules out where
+neighbouring views differ that little. The strict test is not grown: it has no estimate to rule
+out a neighbour.
 
 Strategies
 ----------
@@ -95,6 +116,7 @@ from services.optimizer.world_map import MappedView, WorldMap, build_map
 
 __all__ = [
     "DEFAULT_STRATEGY",
+    "NOISE_SIGMAS",
     "STRATEGIES",
     "CalibrationMissingError",
     "StrategyName",
@@ -109,6 +131,8 @@ StrategyName = Literal["simple", "paper", "reprojection"]
 DEFAULT_STRATEGY: Final[StrategyName] = "reprojection"
 
 _LOOSE_FACTOR: Final = 3.0
+NOISE_SIGMAS: Final = 2.0
+"""z: standard deviations of edge noise the loose done test allows (module docstring)."""
 _AMBIGUITY_MARGIN: Final = 1.0  # score units: one object off by SCALE_PX pixels
 _MAX_ALTERNATIVES: Final = 5
 _CACHED_GRID_POSES: Final = 2_000  # larger grids: predictions too heavy to keep 512 of
@@ -204,10 +228,14 @@ def _start(problem: SearchProblem) -> Plan:
 def _matched_text(comparison: ViewComparison) -> str:
     if math.isinf(comparison.rms_px):
         return "no detection pairs with the target"
-    return (
-        f"RMS {comparison.rms_px:.2f} px over {len(comparison.pairs)} pairs, "
+    text = (
+        f"RMS {comparison.rms_px:.2f} px over {len(comparison.pairs)} pairs "
+        f"(edge noise {comparison.noise_px:.2f} px), "
         f"{comparison.unmatched_a} current / {comparison.unmatched_b} target unpaired"
     )
+    if comparison.unmatched_a or comparison.unmatched_b:
+        text += f" (confidence {comparison.unpaired_a:.2f} / {comparison.unpaired_b:.2f})"
+    return text
 
 
 def _done(
@@ -242,15 +270,14 @@ def _done(
         )  # fmt: skip
     if not here:
         return None
-    loose = _LOOSE_FACTOR * tol
+    loose = comparison.tolerance(_LOOSE_FACTOR * tol, NOISE_SIGMAS)
     if comparison.within(loose, problem.max_unmatched):
         return Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
             f"the estimate puts the target at this grid pose and the views agree within "
-            f"{loose:g} px ({_matched_text(comparison)})",
+            f"{loose:.2f} px ({_matched_text(comparison)})",
         )  # fmt: skip
-    paired = comparison.unmatched_a <= problem.max_unmatched
-    paired = paired and comparison.unmatched_b <= problem.max_unmatched
+    paired = comparison.paired(problem.max_unmatched)
     if refined_px is not None and refined_px <= loose and paired:
         assert est is not None  # a refined residual comes with its estimate
         return Plan(
