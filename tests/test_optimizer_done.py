@@ -4,13 +4,19 @@ neighbouring grid pose."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from services.common.catalog import scene_grid
 from services.common.models import GridIndex
+from services.common.optimization import NextPoseRequest
+from services.optimizer.calibration import CalibrationStore
 from services.optimizer.matching import compare_views
 from services.optimizer.observations import EDGE_NOISE_FRACTION, Observation, box_sizes
+from services.optimizer.planning import OptimizerContext, next_pose
 from services.optimizer.problem import SearchProblem, Visit
 from services.optimizer.simulator import SceneSimulator
 from services.optimizer.strategies import plan_reprojection
@@ -93,3 +99,22 @@ def test_a_noisy_target_passes_at_the_true_pose_and_not_at_a_neighbour(demo):
             for flats in ([flat], [true, flat]):
                 plan = step(simulator, grid, views, target, flats, tolerance)
                 assert not plan.done, plan.reason
+
+
+def test_a_target_between_grid_poses_is_found_at_the_nearest_one_that_looks_less_like_it(
+    catalog,
+):
+    """Recorded search (tests/data): the estimate refined at the best-scoring visited view
+    (lat 1 lon 9) puts the target nearest the current pose, whose view differs more."""
+    recorded = json.loads(
+        (Path(__file__).parent / "data" / "garden_offgrid_search.json").read_text()
+    )
+    del recorded["about"]
+    request = NextPoseRequest.model_validate({"scene": "garden", **recorded})
+    context = OptimizerContext(calibrations=CalibrationStore.load(), catalog=catalog)
+    answer = next_pose(request, context)
+    assert answer.done, answer.reason
+    assert answer.next.index == GridIndex(lat=2, lon=13)
+    assert answer.estimate is not None
+    assert abs(answer.estimate.theta_deg - 22.14) < 1.0
+    assert abs(answer.estimate.phi_deg - 265.64) < 1.0
