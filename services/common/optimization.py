@@ -210,9 +210,10 @@ class ViewMatch(FrozenModel):
     pairs), ``noise_px`` the RMS difference detection noise alone would give those pairs.
     ``unpaired_current`` / ``unpaired_target`` are the summed confidences of each image's
     detections without a partner. ``score`` in [0, 1] is the paired share of both images'
-    confidence times ``exp(−½ rms² / (t² + noise²))`` (``t`` the strict tolerance): 1 for
-    identical views, falling with the box differences and with what stays unpaired. A caller
-    that never hears ``done`` can answer with the visited pose that scored best.
+    confidence times ``exp(−½ (rms / T)²)``, ``T = √((3 t)² + (2 noise)²)`` the loose done
+    test's tolerance (``t`` = ``match_rms_px``): 1 for identical views, ≈ 0.61 at that
+    tolerance, falling with the box differences and with what stays unpaired. A caller that
+    never hears ``done`` can answer with the visited pose that scored best.
     """
 
     rms_px: Annotated[float, Field(ge=0.0)] | None

@@ -121,13 +121,12 @@ class ViewComparison:
         most ``max_unmatched`` (summed confidence) in each image."""
         return len(self.pairs) > 0 and self.rms_px <= rms_px and self.paired(max_unmatched)
 
-    def score(self, rms_px: float) -> float:
+    def score(self, tolerance_px: float) -> float:
         """How well the views match, in [0, 1]: the paired share of confidence times
-        ``exp(−½ rms² / (rms_px² + noise_px²))`` (1 for identical views)."""
+        ``exp(−½ (rms / tolerance_px)²)`` (1 for identical views)."""
         if len(self.pairs) == 0:
             return 0.0
-        spread = rms_px**2 + self.noise_px**2
-        return float(self.paired_weight * math.exp(-0.5 * self.rms_px**2 / spread))
+        return float(self.paired_weight * math.exp(-0.5 * (self.rms_px / tolerance_px) ** 2))
 
 
 def compare_views(a: Observation, b: Observation, gate_px: float = PAIR_GATE_PX) -> ViewComparison:

@@ -46,7 +46,12 @@ from services.optimizer.matching import ViewComparison, compare_views
 from services.optimizer.observations import Observation, merge_duplicates
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 from services.optimizer.proxies import ProxyKind, kind_of
-from services.optimizer.strategies import STRATEGIES, CalibrationMissingError
+from services.optimizer.strategies import (
+    LOOSE_FACTOR,
+    NOISE_SIGMAS,
+    STRATEGIES,
+    CalibrationMissingError,
+)
 from services.optimizer.view_cache import ViewMappings
 
 __all__ = ["STUCK_VISITS", "OptimizerContext", "map_detections", "next_pose"]
@@ -233,8 +238,11 @@ def _estimate(grid: HemisphereGrid, estimate: Estimate | None) -> PoseEstimate |
 
 
 def _match(comparison: ViewComparison | None, tolerance_px: float) -> ViewMatch | None:
+    """The match of the current view, scored against the loose done test's tolerance: a view
+    at its bound scores ``e^{-1/2}`` ≈ 0.61 of its paired share of confidence."""
     if comparison is None:
         return None
+    loose = comparison.tolerance(LOOSE_FACTOR * tolerance_px, NOISE_SIGMAS)
     rms = comparison.rms_px if math.isfinite(comparison.rms_px) else None
     return ViewMatch(
         rms_px=rms,
@@ -242,7 +250,7 @@ def _match(comparison: ViewComparison | None, tolerance_px: float) -> ViewMatch 
         pairs=len(comparison.pairs),
         unpaired_current=max(comparison.unpaired_a, 0.0),
         unpaired_target=max(comparison.unpaired_b, 0.0),
-        score=float(np.clip(comparison.score(tolerance_px), 0.0, 1.0)),
+        score=float(np.clip(comparison.score(loose), 0.0, 1.0)),
     )
 
 

@@ -121,6 +121,7 @@ from services.optimizer.world_map import MappedView, WorldMap, build_map
 
 __all__ = [
     "DEFAULT_STRATEGY",
+    "LOOSE_FACTOR",
     "NOISE_SIGMAS",
     "STRATEGIES",
     "CalibrationMissingError",
@@ -135,7 +136,8 @@ __all__ = [
 StrategyName = Literal["simple", "paper", "reprojection"]
 DEFAULT_STRATEGY: Final[StrategyName] = "reprojection"
 
-_LOOSE_FACTOR: Final = 3.0
+LOOSE_FACTOR: Final = 3.0
+"""The loose done test's tolerance before noise, in strict tolerances (module docstring)."""
 NOISE_SIGMAS: Final = 2.0
 """z: standard deviations of edge noise the loose done test allows (module docstring)."""
 _AMBIGUITY_MARGIN: Final = 1.0  # score units: one object off by SCALE_PX pixels
@@ -275,7 +277,7 @@ def _done(
         )  # fmt: skip
     if not here:
         return None
-    loose = comparison.tolerance(_LOOSE_FACTOR * tol, NOISE_SIGMAS)
+    loose = comparison.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
     if comparison.within(loose, problem.max_unmatched):
         return Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
