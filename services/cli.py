@@ -126,12 +126,15 @@ def _follow(client: ControllerClient, search: Search, out: Path | None) -> Searc
             final = item
     if final.result is not None:
         r = final.result
+        status = final.status if r.confirmed else f"{final.status}, NOT CONFIRMED"
         print(
-            f"{final.status}: lat {r.pose.index.lat} lon {r.pose.index.lon} "
+            f"{status}: lat {r.pose.index.lat} lon {r.pose.index.lon} "
             f"(θ {r.pose.theta_deg:.1f}° φ {r.pose.phi_deg:.1f}°), refined θ "
             f"{r.refined_pose.theta_deg:.2f}° φ {r.refined_pose.phi_deg:.2f}°, confidence "
             f"{r.confidence:.2f}, {r.renders} renders"
         )
+        if not r.confirmed:  # the best visited pose, not a match: say why
+            print(r.reason)
     if final.error is not None:
         print(f"{final.status}: {final.error.detail}")
     if out is not None:

@@ -70,6 +70,8 @@ def test_searches_find_the_targets_grid_pose(stack, scene, count):
         final = run_search(stack, image, scene, seed=int(flat))
         assert final.status == "succeeded", (target, final.error)
         assert final.result is not None
+        assert final.result.confirmed, final.result
+        assert final.result is not None
         assert final.result.pose.index == target, (target, final.result)
         assert final.result.renders == len(
             {(i.pose.index.lat, i.pose.index.lon) for i in final.iterations}
@@ -91,6 +93,8 @@ def test_the_papers_strategies_run_end_to_end(stack, strategy):
     )
     assert final.status == "succeeded", final.error
     assert final.result is not None
+    assert final.result.confirmed, final.result
+    assert final.result is not None
     assert final.result.pose.index.lat == 3
     assert final.result.pose.index.lon == 7
 
@@ -102,6 +106,8 @@ def test_a_jpeg_target_is_accepted(stack):
     assert ok
     final = run_search(stack, bytes(jpeg), "demo", seed=3)
     assert final.status == "succeeded", final.error
+    assert final.result is not None
+    assert final.result.confirmed, final.result
     assert final.result.pose.index.lat == 5
     assert final.result.pose.index.lon == 20
 
@@ -111,6 +117,8 @@ def test_a_ppm_target_is_accepted_and_an_empty_one_fails_clearly(stack):
     rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
     final = run_search(stack, encode_ppm(np.ascontiguousarray(rgb)), "demo", seed=4)
     assert final.status == "succeeded", final.error
+    assert final.result is not None
+    assert final.result.confirmed, final.result
     assert (final.result.pose.index.lat, final.result.pose.index.lon) == (4, 7)
 
     bare = np.full((240, 320, 3), 128, np.uint8)  # ground only: nothing to search for
@@ -359,6 +367,8 @@ def test_a_killed_controller_resumes_its_searches(tmp_path):
         finally:
             stop_service(again)
     assert final.status == "succeeded", final.error
+    assert final.result is not None
+    assert final.result.confirmed, final.result
     assert final.result.pose.index.lat == 9
     assert final.result.pose.index.lon == 30
     indices = [i.index for i in final.iterations]

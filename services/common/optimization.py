@@ -14,6 +14,7 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 from services.common.grid import HemisphereGrid, grid_for
 from services.common.models import Detection, FrozenModel, GridIndex, Pose, PoseQuery
 from services.common.scene import SCENE_ID_PATTERN, Camera
+from services.common.scene_models import ObjectClass
 
 __all__ = [
     "MAX_DETECTIONS",
@@ -35,6 +36,7 @@ __all__ = [
     "StrategyInfo",
     "StrategyName",
     "TargetImage",
+    "ViewMatch",
     "VisitedView",
 ]
 
@@ -50,6 +52,7 @@ Move = Literal["start", "stay", "N", "S", "E", "W", "jump"]
 
 ThetaDeg = Annotated[float, Field(ge=0.0, le=90.0, allow_inf_nan=False)]
 ImageSide = Annotated[int, Field(ge=1, le=16384)]
+ObjectClasses = Annotated[tuple[ObjectClass, ...], Field(min_length=1, max_length=256)]
 
 
 class GridSpec(FrozenModel):
@@ -102,7 +105,9 @@ class SearchTolerances(FrozenModel):
     """When two views count as the same (see the strategies' done test).
 
     ``match_rms_px`` is in the camera's pixels: RMS of box-edge differences between the current
-    view and the target under which they match strictly (3× that when the estimate agrees).
+    view and the target under which they match strictly (3× that, grown by the boxes' expected
+    edge noise, when the estimate agrees). ``max_unmatched`` bounds the summed confidence of
+    each image's unpaired detections.
     """
 
     match_rms_px: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 1.0
@@ -132,6 +137,12 @@ class NextPoseRequest(FrozenModel):
     (explicit ``camera``/``grid`` must then agree with the scene's). ``history`` lists the
     visited poses in order; the last one is where the camera is now. ``strategy`` defaults to
     the service's setting (``reprojection`` unless configured).
+
+    ``object_classes``, when given, says the detections came from the scene's own detector:
+    every label is one of these classes (an object, or look-alike objects sharing a class),
+    detections pair only with equal labels and each class's ``shape`` gives its proxy. Left
+    out, labels are the general detector's shape classes, which may be wrong: different
+    classes may still pair, at a cost.
     """
 
     model_config = ConfigDict(json_schema_extra=_optional_not_null)
@@ -143,12 +154,22 @@ class NextPoseRequest(FrozenModel):
     target: TargetImage
     history: Annotated[tuple[VisitedView, ...], Field(max_length=MAX_HISTORY)] = ()
     tolerances: SearchTolerances = SearchTolerances()
+    object_classes: ObjectClasses | None = None
 
-    @field_validator("strategy", "scene", "camera", "grid", mode="before")
+    @field_validator("strategy", "scene", "camera", "grid", "object_classes", mode="before")
     @classmethod
     def _not_null(cls, value: object) -> object:
         if value is None:
             raise ValueError("leave the field out instead of sending null")
+        return value
+
+    @field_validator("object_classes")
+    @classmethod
+    def _distinct_labels(
+        cls, value: tuple[ObjectClass, ...] | None
+    ) -> tuple[ObjectClass, ...] | None:
+        if value is not None and len({c.label for c in value}) != len(value):
+            raise ValueError("object class labels must be distinct")
         return value
 
 
@@ -182,12 +203,34 @@ class CandidatePose(FrozenModel):
     score: float
 
 
+class ViewMatch(FrozenModel):
+    """How well the current view matches the target, whatever the search decides.
+
+    ``rms_px`` is the RMS box-edge difference over the ``pairs`` (camera pixels; null without
+    pairs), ``noise_px`` the RMS difference detection noise alone would give those pairs.
+    ``unpaired_current`` / ``unpaired_target`` are the summed confidences of each image's
+    detections without a partner. ``score`` in [0, 1] is the paired share of both images'
+    confidence times ``exp(−½ (rms / T)²)``, ``T = √((3 t)² + (2 noise)²)`` the loose done
+    test's tolerance (``t`` = ``match_rms_px``): 1 for identical views, ≈ 0.61 at that
+    tolerance, falling with the box differences and with what stays unpaired. A caller that
+    never hears ``done`` can answer with the visited pose that scored best.
+    """
+
+    rms_px: Annotated[float, Field(ge=0.0)] | None
+    noise_px: Annotated[float, Field(ge=0.0)]
+    pairs: Annotated[int, Field(ge=0)]
+    unpaired_current: Annotated[float, Field(ge=0.0)]
+    unpaired_target: Annotated[float, Field(ge=0.0)]
+    score: Annotated[float, Field(ge=0.0, le=1.0)]
+
+
 class NextPoseResponse(FrozenModel):
     """``POST /next-pose``: where to go next and whether the search is done.
 
     ``done`` is decided from the detections alone; when it is true ``next`` is the current pose.
     ``stuck`` is true when the proposed pose has been visited three times already: the strategy
-    is going round in circles and the caller should stop or switch strategy.
+    is going round in circles and the caller should stop or switch strategy. ``match`` says
+    how well the current view matches the target (null before the first view).
     """
 
     strategy: StrategyName
@@ -199,6 +242,7 @@ class NextPoseResponse(FrozenModel):
     ambiguous: bool
     alternatives: tuple[CandidatePose, ...]
     reason: str
+    match: ViewMatch | None = None
 
 
 class MapRequest(FrozenModel):

@@ -9,7 +9,7 @@ from pydantic import ConfigDict, Field
 
 from services.common.errors import ProblemDetails
 from services.common.models import Angle, Detection, FrozenModel, Pose, ThetaDeg
-from services.common.optimization import GridPose, StrategyName
+from services.common.optimization import GridPose, StrategyName, ViewMatch
 
 __all__ = [
     "MAX_ITERATIONS",
@@ -80,10 +80,19 @@ class Iteration(FrozenModel):
     next_pose: GridPose | None = None
     done: bool = False
     reason: str = ""
+    match: ViewMatch | None = Field(
+        default=None, description="How well this view matches the target (optimizer's answer)."
+    )
 
 
 class SearchResult(FrozenModel):
-    """Where the camera stood: the grid pose, the continuous estimate and how sure it is."""
+    """Where the camera stood: the grid pose, the continuous estimate and how sure it is.
+
+    ``confirmed`` is false for an any-time answer: no view was confirmed to match the target
+    before the search ran out of iterations or went round in circles, so the result is the
+    visited pose whose view matched best, its match score as ``confidence``, and ``reason``
+    says why it is not confirmed.
+    """
 
     pose: GridPose
     refined_pose: Pose
@@ -91,6 +100,11 @@ class SearchResult(FrozenModel):
     renders: int
     ambiguous: bool = False
     reason: str = ""
+    confirmed: bool = Field(
+        default=True,
+        description="False when no view was confirmed to match the target: the pose is the "
+        "best visited one, not a found one.",
+    )
 
 
 class Search(FrozenModel):

@@ -2,7 +2,20 @@
 
 A search detects its target once, then per iteration renders the current grid pose, detects the
 objects in it and asks the optimizer for the next pose, until the optimizer says done or
-``max_iterations`` views were rendered. The target's detection overlaps the start view's render,
+``max_iterations`` views were rendered.
+
+A search that runs out of iterations, or whose strategy goes round in circles, still succeeds,
+with an *unconfirmed* answer (``result.confirmed`` false): the visited pose whose view matched
+the target best by the optimizer's match score. Only real errors fail a search (a stage
+unavailable or refusing, nothing detected in the target, a grid the optimizer cannot search).
+
+Detector classes: when the target was detected by the scene's own model (``model.scene`` is
+the search's scene), its labels are the scene's object classes and the optimizer is told so
+(``object_classes``). That holds only while every view of the request came from the very model
+(sha256) that detected the target; if a view's model differs (a model swapped mid-search) or
+is unknown (a view recorded before a restart), the request leaves ``object_classes`` out and
+the optimizer treats labels as mere evidence (different labels pair at a cost) rather than
+re-detecting the target. The target's detection overlaps the start view's render,
 which a search submitted to an idle runner had started before its submission was even stored
 (:meth:`Stages.render_early`: its first render time is then the part the search waited for). A
 pose already rendered in this search is never rendered again: its detections are reused.
@@ -26,7 +39,7 @@ from pydantic import ValidationError
 
 from services.common.errors import ProblemDetails, problem_type
 from services.common.images import media_type_of
-from services.common.models import Detection, DetectResponse, Pose, PoseQuery
+from services.common.models import Detection, DetectResponse, ModelInfo, Pose, PoseQuery
 from services.common.optimization import (
     GridPose,
     GridSpec,
@@ -34,6 +47,8 @@ from services.common.optimization import (
     TargetImage,
     VisitedView,
 )
+from services.common.scene import SceneDetail
+from services.common.scene_models import ObjectClass, object_classes
 from services.common.search import TERMINAL_STATUSES, Iteration, Search, SearchResult, StageTimings
 from services.controller.broker import BrokerError
 from services.controller.events import Notifier
@@ -61,10 +76,12 @@ def _failure(slug: str, title: str, detail: str, status: int = 502) -> SearchFai
 
 @dataclass(frozen=True)
 class _View:
-    """A rendered pose's detections, reused if the search comes back to it."""
+    """A rendered pose's detections, reused if the search comes back to it, and the sha256 of
+    the model that detected them (None when recorded by an earlier run)."""
 
     image_size: tuple[int, int]
     detections: tuple[Detection, ...]
+    model: str | None = None
 
 
 def _stage_failure(exc: StageError | BrokerError) -> SearchFailed:
@@ -87,6 +104,48 @@ def _result_of(last: Iteration, renders: int) -> SearchResult:
         ambiguous=last.ambiguous,
         reason=last.reason,
     )
+
+
+def _best_visited(history: list[Iteration], renders: int, why: str) -> SearchResult:
+    """The any-time answer: the visited pose whose view matched the target best (by the
+    optimizer's match score; the earliest among equals), unconfirmed, saying ``why``."""
+    best = max(history, key=lambda it: (it.match.score if it.match is not None else 0.0, -it.index))
+    score = best.match.score if best.match is not None else 0.0
+    # The estimate refines this pose only when it is nearest to it.
+    refined = best.estimate if best.estimate_grid == best.pose and best.estimate else None
+    rms = best.match.rms_px if best.match is not None else None
+    how = (
+        f"RMS {rms:.2f} px over {best.match.pairs} pairs"
+        if best.match is not None and rms is not None
+        else "no detection pairs with the target"
+    )
+    return SearchResult(
+        pose=best.pose,
+        refined_pose=refined or Pose(theta_deg=best.pose.theta_deg, phi_deg=best.pose.phi_deg),
+        confidence=score,
+        renders=renders,
+        ambiguous=best.ambiguous,
+        confirmed=False,
+        reason=(
+            f"not confirmed: {why}; the best match was view {best.index} at lat "
+            f"{best.pose.index.lat} lon {best.pose.index.lon} (score {score:.2f}, {how})"
+        ),
+    )
+
+
+def _classes_for(
+    search: Search,
+    scene: SceneDetail,
+    target_model: ModelInfo | None,
+    views: list[_View],
+) -> tuple[ObjectClass, ...] | None:
+    """The scene's object classes when the target and every view came from the scene's own
+    model (module docstring), else None."""
+    if target_model is None or target_model.scene != search.scene:
+        return None
+    if any(view.model != target_model.sha256 for view in views):
+        return None
+    return object_classes(scene.spec)
 
 
 class _Writes:
@@ -269,7 +328,7 @@ class SearchRunner:
                 target_task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, SearchFailed):
                     await target_task
-        view = _View(found.image_size, found.detections)
+        view = _View(found.image_size, found.detections, found.model.sha256)
         return view, seen, (t1 - t0) * 1000, (t2 - t1) * 1000
 
     async def _observe_while(
@@ -330,10 +389,13 @@ class SearchRunner:
         current = history[-1].next_pose if history else search.start
         target = search.target_detections
         target_size = search.target_size
+        target_model: ModelInfo | None = None  # unknown for a target recorded by an earlier run
         if target is None and history:  # resumed between the first iteration and this one
             target_seen = await self._detect(image, media_type_of(image), sid, search.scene)
             target, target_size = target_seen.detections, target_seen.image_size
+            target_model = target_seen.model
         renders = len(views)
+        view_models = [views[(it.pose.index.lat, it.pose.index.lon)] for it in history]
         while current is not None and len(history) < search.max_iterations:
             key = (current.index.lat, current.index.lon)
             started = time.perf_counter()
@@ -348,6 +410,7 @@ class SearchRunner:
                 )
                 if seen is not None:  # recorded with this iteration, below
                     target, target_size = seen.detections, seen.image_size
+                    target_model = seen.model
                     new_target = target
                 views[key] = view
                 renders += 1
@@ -374,12 +437,14 @@ class SearchRunner:
                     detections=view.detections,
                 )
             )
+            classes = _classes_for(search, scene, target_model, [*view_models, view])
             request = NextPoseRequest(
                 strategy=search.strategy,
                 camera=camera,
                 grid=grid,
                 target=TargetImage(image_size=target_size, detections=target),
                 history=tuple(visited),
+                **({} if classes is None else {"object_classes": classes}),
             )
             t0 = time.perf_counter()
             try:
@@ -411,10 +476,21 @@ class SearchRunner:
                 next_pose=answer.next,
                 done=answer.done,
                 reason=answer.reason,
+                match=answer.match,
             )
             history.append(iteration)
-            if answer.done:  # recorded and published with the result: followers wake once
-                result = _result_of(iteration, renders)
+            view_models.append(view)
+            if answer.done or answer.stuck:  # recorded and published with the result
+                result = (
+                    _result_of(iteration, renders)
+                    if answer.done
+                    else _best_visited(
+                        history,
+                        renders,
+                        f"the {search.strategy} strategy kept coming back to the same poses "
+                        f"after {len(history)} views",
+                    )
+                )
                 writes.flush()
                 self.store.add_iteration(
                     sid,
@@ -425,18 +501,10 @@ class SearchRunner:
                 )
                 return result
             writes.hold(iteration, new_target)
-            if answer.stuck:
-                raise _failure(
-                    "search-stuck",
-                    "Search stuck",
-                    f"the {search.strategy} strategy keeps coming back to the same poses: "
-                    f"{answer.reason}",
-                    status=422,
-                )
             current = answer.next
-        raise _failure(
-            "not-converged",
-            "No match",
-            f"no view matched the target within {search.max_iterations} iterations",
-            status=422,
+        result = _best_visited(
+            history, renders, f"no view matched the target within {search.max_iterations} views"
         )
+        writes.flush()
+        self.store.update(sid, status="succeeded", result=result)
+        return result

@@ -135,7 +135,8 @@ def estimate_layout(
         return _failed("no object of the current view could be mapped")
     thetas, radial = _candidates(target, camera, grid, calibration)
     world_radial = np.linalg.norm(positions, axis=-1)  # (M,)
-    looks = appearance_cost(target.labels, target.colors, ref.labels, ref.colors)
+    mismatch = max(target.mismatch_cost, ref.mismatch_cost)
+    looks = appearance_cost(target.labels, target.colors, ref.labels, ref.colors, mismatch)
     sigma = _PROFILE_SIGMA * camera.radius
     fixed = _unique_pairs(looks)
     ambiguous = fixed is None

@@ -1,7 +1,8 @@
 """Correspondence between detections: gated Hungarian assignment and view-to-view comparison.
 
-Correspondence never uses ground truth: pairs must share a class, colours must be alike
-(:mod:`.observations`), and geometry (box positions) decides among the rest. The assignment
+Correspondence never uses ground truth: pairs must look alike — colour, and class: equal object
+classes with a scene's own detector, shape classes as a soft cost with the general one
+(:mod:`.observations`) — and geometry (box positions) decides among the rest. The assignment
 minimises ``Σ min(c_ij, g)`` over one-to-one pairs (``g`` the gate), which is the Hungarian
 problem with every detection free to stay unmatched at cost ``g``; pairs at or over the gate are
 then dropped.
@@ -9,6 +10,7 @@ then dropped.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Final
 
@@ -33,8 +35,8 @@ PAIR_GATE_PX: Final = 16.0
 """Boxes further apart than this (RMS of the edges, pixels) are never paired between views."""
 
 COLOUR_GATE: Final = 3.0
-"""Colour cost (in units of :data:`~.observations.COLOUR_SCALE`) above which two detections of
-one class are taken to be different objects."""
+"""Appearance cost (colour in units of :data:`~.observations.COLOUR_SCALE`, plus any class
+mismatch cost) above which two detections are taken to be different objects."""
 
 
 _LOWEST: Final = float(np.finfo(np.float64).min)
@@ -87,40 +89,75 @@ class ViewComparison:
         RMS edge difference over the matched boxes (inf when nothing matched).
     unmatched_a, unmatched_b : int
         Detections of each image without a partner.
+    unpaired_a, unpaired_b : float
+        Their summed confidence: a doubtful detection without a partner is weak evidence that
+        the views differ.
+    noise_px : float
+        Expected RMS edge difference of the pairs from detection noise alone,
+        ``√(mean_j (σ_aj² + σ_bj²))`` (:func:`~.observations.edge_sigma`; 0 without pairs).
+    paired_weight : float
+        Share of the two images' summed confidence that is paired, in [0, 1].
     """
 
     pairs: Assignment
     rms_px: float
     unmatched_a: int
     unmatched_b: int
+    unpaired_a: float = 0.0
+    unpaired_b: float = 0.0
+    noise_px: float = 0.0
+    paired_weight: float = 0.0
 
-    def within(self, rms_px: float, max_unmatched: int) -> bool:
-        """Whether the views match: RMS within ``rms_px`` and few unpaired detections."""
-        return (
-            len(self.pairs) > 0
-            and self.rms_px <= rms_px
-            and self.unmatched_a <= max_unmatched
-            and self.unmatched_b <= max_unmatched
-        )
+    def tolerance(self, rms_px: float, sigmas: float) -> float:
+        """``√(rms_px² + (sigmas · noise_px)²)``: a tolerance grown by the pairs' noise."""
+        return math.hypot(rms_px, sigmas * self.noise_px)
+
+    def paired(self, max_unmatched: float) -> bool:
+        """Whether each image's unpaired detections weigh at most ``max_unmatched``."""
+        return self.unpaired_a <= max_unmatched and self.unpaired_b <= max_unmatched
+
+    def within(self, rms_px: float, max_unmatched: float) -> bool:
+        """Whether the views match: RMS within ``rms_px`` and unpaired detections weighing at
+        most ``max_unmatched`` (summed confidence) in each image."""
+        return len(self.pairs) > 0 and self.rms_px <= rms_px and self.paired(max_unmatched)
+
+    def score(self, tolerance_px: float) -> float:
+        """How well the views match, in [0, 1]: the paired share of confidence times
+        ``exp(−½ (rms / tolerance_px)²)`` (1 for identical views)."""
+        if len(self.pairs) == 0:
+            return 0.0
+        return float(self.paired_weight * math.exp(-0.5 * (self.rms_px / tolerance_px) ** 2))
 
 
 def compare_views(a: Observation, b: Observation, gate_px: float = PAIR_GATE_PX) -> ViewComparison:
     """Match two images' detections by class, colour and box position.
 
-    Pair cost is ``rms/g + colour cost`` (g = ``gate_px``); pairs of different classes, unlike
-    colours (cost ≥ :data:`COLOUR_GATE`) or boxes more than ``g`` apart (RMS) are never made.
+    Pair cost is ``rms/g + appearance cost`` (g = ``gate_px``); pairs whose appearance cost
+    reaches :data:`COLOUR_GATE` (unlike colours, other object classes) or whose boxes are more
+    than ``g`` apart (RMS) are never made.
     """
     distance = box_rms(a.boxes, b.boxes)
-    looks = appearance_cost(a.labels, a.colors, b.labels, b.colors)
+    mismatch = max(a.mismatch_cost, b.mismatch_cost)
+    looks = appearance_cost(a.labels, a.colors, b.labels, b.colors, mismatch)
     cost = distance / gate_px + looks
     gate = 1.0 + COLOUR_GATE
     cost = np.where((looks < COLOUR_GATE) & (distance <= gate_px), cost, np.inf)
     pairs = assign(cost, gate)
     matched = distance[pairs.rows, pairs.cols]
     rms = float(np.sqrt(np.mean(matched**2))) if len(matched) else float("inf")
+    noise = 0.0
+    if len(matched):
+        variance = a.edge_sigma[pairs.rows] ** 2 + b.edge_sigma[pairs.cols] ** 2
+        noise = float(np.sqrt(np.mean(variance)))
+    total = float(a.confidence.sum() + b.confidence.sum())
+    paired = float(a.confidence[pairs.rows].sum() + b.confidence[pairs.cols].sum())
     return ViewComparison(
         pairs=pairs,
         rms_px=rms,
         unmatched_a=len(a) - len(pairs),
         unmatched_b=len(b) - len(pairs),
+        unpaired_a=float(a.confidence.sum()) - float(a.confidence[pairs.rows].sum()),
+        unpaired_b=float(b.confidence.sum()) - float(b.confidence[pairs.cols].sum()),
+        noise_px=noise,
+        paired_weight=paired / total if total > 0.0 else 0.0,
     )

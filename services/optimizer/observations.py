@@ -4,18 +4,58 @@ Boxes arrive in the pixels of whatever image the detector saw; the optimizer wor
 of the scene's camera (:class:`~services.common.scene.Camera`), so every box is scaled by
 ``(W_cam / W_img, H_cam / H_img)`` once, here.
 
+Classes
+-------
+A label means one of two things. With the general detector it is a *shape class* (sphere, cube,
+cylinder, cone, mesh), which the detector gets wrong on unseen objects (a dome called a sphere,
+a tapered tower a cylinder): a class is then evidence, not proof, and pairing detections of
+different classes costs :data:`CLASS_MISMATCH_COST` on top of the colour cost. With a scene's own
+detector (*identity mode*, :attr:`Observation.classes` given) a label is an object class of the
+scene (:class:`~services.common.scene_models.ObjectClass`): the class is the object, so pairs
+need equal labels (:data:`FORBIDDEN` otherwise) and the proxy kind comes from the class's shape.
+
+:data:`CLASS_MISMATCH_COST` is ``COLOUR_GATE − ALIKE_COST`` = 3 − 1 = 2 colour units: added to
+the colour cost, a mislabelled pair stays under the colour gate (3, :mod:`.matching`) only when
+its colours look alike (colour cost below :data:`ALIKE_COST`), and it costs as much as a colour
+difference twice the look-alike threshold, so a same-class partner that looks alike always
+wins.
+
 Appearance
 ----------
-Two detections can be the same object only with the same class label. Colours (mean sRGB of the
-object's pixels) vary with shading from view to view, so they are compared by chromaticity
-``(R, G, B) / (R + G + B)``, which a change of brightness leaves alone; the cost is the
-chromaticity distance over :data:`COLOUR_SCALE`, 0 when either colour is unknown.
+Colours (mean sRGB of the object's pixels) vary with shading from view to view, so they are
+compared by chromaticity ``(R, G, B) / (R + G + B)``, which a change of brightness leaves
+alone; the cost is the chromaticity distance over :data:`COLOUR_SCALE`, 0 when either colour is
+unknown.
+
+Two boxes on one object
+-----------------------
+A general detector unsure of an object's shape may put two boxes of different classes on it (a
+tower as both cylinder and cone). :func:`merge_duplicates` takes two detections of different
+classes to be one object when their boxes overlap heavily — IoU ≥ :data:`DUPLICATE_IOU`, or the
+smaller box lies at least :data:`DUPLICATE_INSIDE` inside the larger and has at least
+:data:`DUPLICATE_AREA_RATIO` of its area — and keeps the more confident one. Two distinct
+objects rarely do that: one standing in front of the other hides most of it, so the one behind
+shows a smaller box. Same-class duplicates are the detector's non-maximum suppression's job.
+
+Edge noise
+----------
+A detection's box edges are off by the detector's localisation error and by the quantisation of
+the image it saw. Each edge gets the standard deviation (camera pixels)
+
+.. math:: σ_e^2 = \\Bigl(\\frac{p}{\\sqrt{12}}\\Bigr)^2 + (κ s)^2,
+
+``p`` the camera pixels per image pixel (:attr:`Observation.pixel_px`: a pixel's position is
+uniform within it), ``s = √(w h)`` the box's size and κ = :data:`EDGE_NOISE_FRACTION` the
+localisation error of a box regressor as a fraction of the box (YOLO-style heads regress edges
+in units of the object's size, so their error grows with it; JPEG blocking and a photo's blur
+move edges by a similar fraction). The done test (:mod:`.strategies`) uses it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Final
 
 import numpy as np
@@ -24,15 +64,23 @@ from numpy.typing import ArrayLike, NDArray
 from services.common.models import Detection
 from services.common.scene import Camera
 from services.optimizer.geometry import FloatArray
-from services.optimizer.proxies import kind_of
+from services.optimizer.proxies import ProxyKind, kind_of
 
 __all__ = [
     "ALIKE_COST",
+    "CLASS_MISMATCH_COST",
     "COLOUR_SCALE",
+    "DUPLICATE_AREA_RATIO",
+    "DUPLICATE_INSIDE",
+    "DUPLICATE_IOU",
+    "EDGE_NOISE_FRACTION",
     "FORBIDDEN",
     "Observation",
     "appearance_cost",
+    "box_sizes",
     "chromaticity",
+    "edge_sigma",
+    "merge_duplicates",
 ]
 
 COLOUR_SCALE: Final = 0.06
@@ -42,7 +90,18 @@ ALIKE_COST: Final = 1.0
 """Detections of one class whose colour cost is below this look alike."""
 
 FORBIDDEN: Final = 1e9
-"""Cost of pairing detections of different classes."""
+"""Cost of pairing detections of different object classes (identity mode)."""
+
+CLASS_MISMATCH_COST: Final = 2.0
+"""Cost of pairing detections of different shape classes (general detector): the colour gate
+(3) minus :data:`ALIKE_COST` (module docstring)."""
+
+DUPLICATE_IOU: Final = 0.6
+DUPLICATE_INSIDE: Final = 0.8
+DUPLICATE_AREA_RATIO: Final = 0.5
+
+EDGE_NOISE_FRACTION: Final = 0.02
+"""κ: standard deviation of a detected box edge as a fraction of the box's size."""
 
 
 def chromaticity(colors: ArrayLike) -> FloatArray:
@@ -70,20 +129,46 @@ class Observation:
         Mean sRGB colour (0–255), NaN rows when unknown.
     confidence : ndarray, shape (n,)
         Detector confidence.
+    classes : mapping of str to ProxyKind, optional
+        Identity mode: the proxy kind of every object class (module docstring); None when
+        labels are shape classes.
+    pixel_px : float
+        Camera pixels per pixel of the image the detector saw (its quantisation step).
     """
 
     labels: tuple[str, ...]
     boxes: FloatArray
     colors: FloatArray
     confidence: FloatArray
+    classes: Mapping[str, ProxyKind] | None = field(default=None, repr=False)
+    pixel_px: float = 1.0
 
     def __len__(self) -> int:
         return len(self.labels)
 
     @property
+    def identity(self) -> bool:
+        """Whether labels are object classes (pairs need equal labels)."""
+        return self.classes is not None
+
+    @property
     def kinds(self) -> NDArray[np.int_]:
-        """:class:`~.proxies.ProxyKind` per detection."""
+        """:class:`~.proxies.ProxyKind` per detection: the class's shape in identity mode,
+        else the shape the label names."""
+        if self.classes is not None:
+            classes = self.classes
+            return np.array([classes[label] for label in self.labels], dtype=np.int_)
         return np.array([kind_of(label) for label in self.labels], dtype=np.int_)
+
+    @property
+    def mismatch_cost(self) -> float:
+        """Cost of pairing two of this observation's labels that differ (module docstring)."""
+        return FORBIDDEN if self.identity else CLASS_MISMATCH_COST
+
+    @property
+    def edge_sigma(self) -> FloatArray:
+        """``(n,)`` standard deviation of each box edge, camera pixels (module docstring)."""
+        return edge_sigma(self.boxes, self.pixel_px)
 
     @property
     def centres(self) -> FloatArray:
@@ -101,6 +186,7 @@ class Observation:
         boxes: ArrayLike,
         colors: ArrayLike | None = None,
         confidence: ArrayLike | None = None,
+        classes: Mapping[str, ProxyKind] | None = None,
     ) -> Observation:
         """An observation from camera-pixel boxes ``(n, 4)`` and optional colours/confidences."""
         b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
@@ -109,13 +195,18 @@ class Observation:
             raise ValueError(f"{len(labels)} labels for {n} boxes")
         c = np.full((n, 3), np.nan) if colors is None else np.asarray(colors, dtype=np.float64)
         p = np.ones(n) if confidence is None else np.asarray(confidence, dtype=np.float64)
-        return cls(tuple(labels), b, c.reshape(n, 3), p.reshape(n))
+        return cls(tuple(labels), b, c.reshape(n, 3), p.reshape(n), classes)
 
     @classmethod
     def from_detections(
-        cls, detections: Sequence[Detection], image_size: tuple[int, int], camera: Camera
+        cls,
+        detections: Sequence[Detection],
+        image_size: tuple[int, int],
+        camera: Camera,
+        classes: Mapping[str, ProxyKind] | None = None,
     ) -> Observation:
-        """Scale detections of an image of ``image_size`` (width, height) to camera pixels."""
+        """Scale detections of an image of ``image_size`` (width, height) to camera pixels;
+        ``classes`` as the attribute (every label must be one of them)."""
         sx = camera.width / image_size[0]
         sy = camera.height / image_size[1]
         boxes = np.array([d.box for d in detections], dtype=np.float64).reshape(-1, 4)
@@ -129,6 +220,8 @@ class Observation:
             boxes=boxes,
             colors=colors,
             confidence=np.array([d.confidence for d in detections], dtype=np.float64),
+            classes=classes,
+            pixel_px=max(sx, sy),
         )
 
     def subset(self, keep: ArrayLike) -> Observation:
@@ -139,6 +232,8 @@ class Observation:
             boxes=self.boxes[idx],
             colors=self.colors[idx],
             confidence=self.confidence[idx],
+            classes=self.classes,
+            pixel_px=self.pixel_px,
         )
 
 
@@ -147,13 +242,83 @@ def appearance_cost(
     colors_a: ArrayLike,
     labels_b: Sequence[str],
     colors_b: ArrayLike,
+    mismatch: float = CLASS_MISMATCH_COST,
 ) -> FloatArray:
-    """``(n, m)`` cost of pairing detections: :data:`FORBIDDEN` across classes, else the
-    chromaticity distance over :data:`COLOUR_SCALE` (0 when a colour is unknown)."""
+    """``(n, m)`` cost of pairing detections: the chromaticity distance over
+    :data:`COLOUR_SCALE` (0 when a colour is unknown), plus ``mismatch`` across classes
+    (:data:`CLASS_MISMATCH_COST` for shape classes, :data:`FORBIDDEN` for object classes)."""
     la = np.asarray(labels_a, dtype=object).reshape(-1, 1)
     lb = np.asarray(labels_b, dtype=object).reshape(1, -1)
     same = la == lb
     ca = chromaticity(np.asarray(colors_a, dtype=np.float64).reshape(-1, 3))[:, np.newaxis, :]
     cb = chromaticity(np.asarray(colors_b, dtype=np.float64).reshape(-1, 3))[np.newaxis, :, :]
     distance = np.sqrt(np.sum((ca - cb) ** 2, axis=-1)) / COLOUR_SCALE
-    return np.where(same, np.where(np.isnan(distance), 0.0, distance), FORBIDDEN)
+    colour = np.where(np.isnan(distance), 0.0, distance)
+    if mismatch >= FORBIDDEN:
+        return np.where(same, colour, FORBIDDEN)
+    return np.where(same, colour, colour + mismatch)
+
+
+def box_sizes(boxes: ArrayLike) -> FloatArray:
+    """``(...)`` size ``√(w h)`` of boxes ``(..., 4)``, pixels."""
+    b = np.asarray(boxes, dtype=np.float64)
+    area = np.maximum(b[..., 2] - b[..., 0], 0.0) * np.maximum(b[..., 3] - b[..., 1], 0.0)
+    sizes: FloatArray = np.sqrt(area)
+    return sizes
+
+
+def edge_sigma(boxes: ArrayLike, pixel_px: float = 1.0) -> FloatArray:
+    """``(...)`` standard deviation of a detected box's edges, camera pixels: quantisation of
+    pixels ``pixel_px`` wide and :data:`EDGE_NOISE_FRACTION` of the box's size, in quadrature
+    (module docstring)."""
+    quantisation = pixel_px / math.sqrt(12.0)
+    sigma: FloatArray = np.hypot(quantisation, EDGE_NOISE_FRACTION * box_sizes(boxes))
+    return sigma
+
+
+def _overlaps(boxes: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(n, n)`` IoU, intersection over the smaller box's area, and smaller over larger area."""
+    lo = np.maximum(boxes[:, np.newaxis, :2], boxes[np.newaxis, :, :2])
+    hi = np.minimum(boxes[:, np.newaxis, 2:], boxes[np.newaxis, :, 2:])
+    inter = np.prod(np.maximum(hi - lo, 0.0), axis=-1)
+    area = np.prod(np.maximum(boxes[:, 2:] - boxes[:, :2], 0.0), axis=-1)
+    small = np.minimum(area[:, np.newaxis], area[np.newaxis, :])
+    large = np.maximum(area[:, np.newaxis], area[np.newaxis, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iou = np.nan_to_num(inter / (area[:, np.newaxis] + area[np.newaxis, :] - inter))
+        inside = np.nan_to_num(inter / small)
+        ratio = np.nan_to_num(small / large)
+    return iou, inside, ratio
+
+
+def merge_duplicates(observation: Observation) -> tuple[Observation, tuple[str, ...]]:
+    """Drop detections that are a second box of another class on a more confident detection's
+    object (module docstring); returns the kept detections and one note per dropped one.
+
+    Detections are taken most confident first; each is dropped when it overlaps an already
+    kept detection of another class that much.
+    """
+    n = len(observation)
+    if n < 2:
+        return observation, ()
+    iou, inside, ratio = _overlaps(observation.boxes)
+    same_object = (iou >= DUPLICATE_IOU) | (
+        (inside >= DUPLICATE_INSIDE) & (ratio >= DUPLICATE_AREA_RATIO)
+    )
+    labels = observation.labels
+    kept: list[int] = []
+    notes: list[str] = []
+    for i in np.argsort(-observation.confidence, kind="stable").tolist():
+        over = [k for k in kept if labels[k] != labels[i] and same_object[i, k]]
+        if not over:
+            kept.append(i)
+            continue
+        k = over[0]
+        notes.append(
+            f"{labels[i]} ({observation.confidence[i]:.2f}) taken as a second box on "
+            f"{labels[k]} ({observation.confidence[k]:.2f}): IoU {iou[i, k]:.2f}, "
+            f"{inside[i, k]:.0%} of the smaller box inside the larger"
+        )
+    if len(kept) == n:
+        return observation, ()
+    return observation.subset(np.sort(np.array(kept, dtype=np.intp))), tuple(notes)

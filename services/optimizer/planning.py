@@ -4,14 +4,19 @@ Checks everything a request can get wrong that its schema cannot say, naming the
 that does not exist, a camera or grid missing or disagreeing with the named scene, a grid larger
 than the service allows, boxes outside their image, an image whose aspect ratio is not the
 camera's, visited poses that are not poses of the grid, a history holding more detections than
-the service maps per request, a strategy that needs paper coefficients this camera has none of.
+the service maps per request, a strategy that needs paper coefficients this camera has none of,
+a label that is none of the request's object classes.
+
+With the general detector's shape classes, a second box of another class on one object is
+dropped before planning (:func:`~.observations.merge_duplicates`) and the answer's reason says
+so.
 """
 
 from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -32,13 +37,21 @@ from services.common.optimization import (
     NextPoseResponse,
     PoseEstimate,
     StrategyName,
+    ViewMatch,
 )
 from services.common.scene import Camera
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.mapping import map_exact, map_paper
-from services.optimizer.observations import Observation
+from services.optimizer.matching import ViewComparison, compare_views
+from services.optimizer.observations import Observation, merge_duplicates
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
-from services.optimizer.strategies import STRATEGIES, CalibrationMissingError
+from services.optimizer.proxies import ProxyKind, kind_of
+from services.optimizer.strategies import (
+    LOOSE_FACTOR,
+    NOISE_SIGMAS,
+    STRATEGIES,
+    CalibrationMissingError,
+)
 from services.optimizer.view_cache import ViewMappings
 
 __all__ = ["STUCK_VISITS", "OptimizerContext", "map_detections", "next_pose"]
@@ -123,8 +136,45 @@ def _check_box(detection: Detection, width: int, height: int, field: str) -> Non
         )
 
 
+Classes = Mapping[str, ProxyKind] | None
+
+
+def _classes(request: NextPoseRequest) -> Classes:
+    """Identity mode's proxy kind per object class, from the class's shape (not its label)."""
+    if request.object_classes is None:
+        return None
+    return {c.label: kind_of(c.shape) for c in request.object_classes}
+
+
+def _observe(image: ImageDetections, camera: Camera, classes: Classes, where: str) -> Observation:
+    """The image's detections in camera pixels; in identity mode every label must be a class."""
+    if classes is not None:
+        for i, detection in enumerate(image.detections):
+            if detection.label not in classes:
+                raise _invalid(
+                    f"label {detection.label!r} is none of the object_classes",
+                    f"{where}.detections[{i}].label",
+                    "unknown-label",
+                )
+    return Observation.from_detections(image.detections, image.image_size, camera, classes)
+
+
+def _deduplicated(observation: Observation, notes: list[str], what: str) -> Observation:
+    """Shape-class observations without second boxes on one object; notes say what went."""
+    if observation.identity:
+        return observation  # one class per object: overlapping classes are distinct objects
+    kept, merged = merge_duplicates(observation)
+    notes.extend(f"{what}: {note}" for note in merged)
+    return kept
+
+
 def _visits(
-    request: NextPoseRequest, camera: Camera, grid: HemisphereGrid, limit: int
+    request: NextPoseRequest,
+    camera: Camera,
+    grid: HemisphereGrid,
+    limit: int,
+    classes: Classes = None,
+    notes: list[str] | None = None,
 ) -> tuple[Visit, ...]:
     total = sum(len(view.detections) for view in request.history)
     if total > limit:
@@ -155,7 +205,11 @@ def _visits(
                     f"{exc}; visited poses must be grid poses", f"{where}.pose", "pose-outside-grid"
                 ) from exc
         flat = grid.flat(index)
-        observation = Observation.from_detections(view.detections, view.image_size, camera)
+        observation = _observe(view, camera, classes, where)
+        if k == len(request.history) - 1:  # earlier views' merges were told in earlier answers
+            observation = _deduplicated(observation, [] if notes is None else notes, "current view")
+        else:
+            observation = _deduplicated(observation, [], where)
         visits.append(
             Visit(flat, float(grid.theta_deg[flat]), float(grid.phi_deg[flat]), observation)
         )
@@ -183,12 +237,36 @@ def _estimate(grid: HemisphereGrid, estimate: Estimate | None) -> PoseEstimate |
     )
 
 
+def _match(comparison: ViewComparison | None, tolerance_px: float) -> ViewMatch | None:
+    """The match of the current view, scored against the loose done test's tolerance: a view
+    at its bound scores ``e^{-1/2}`` ≈ 0.61 of its paired share of confidence."""
+    if comparison is None:
+        return None
+    loose = comparison.tolerance(LOOSE_FACTOR * tolerance_px, NOISE_SIGMAS)
+    rms = comparison.rms_px if math.isfinite(comparison.rms_px) else None
+    return ViewMatch(
+        rms_px=rms,
+        noise_px=comparison.noise_px,
+        pairs=len(comparison.pairs),
+        unpaired_current=max(comparison.unpaired_a, 0.0),
+        unpaired_target=max(comparison.unpaired_b, 0.0),
+        score=float(np.clip(comparison.score(loose), 0.0, 1.0)),
+    )
+
+
 def _answer(
-    strategy: StrategyName, grid: HemisphereGrid, plan: Plan, visits: Sequence[Visit]
+    strategy: StrategyName,
+    grid: HemisphereGrid,
+    plan: Plan,
+    visits: Sequence[Visit],
+    match: ViewMatch | None = None,
+    notes: Sequence[str] = (),
 ) -> NextPoseResponse:
     counts = Counter(v.flat for v in visits)
     stuck = not plan.done and counts[plan.next_flat] >= STUCK_VISITS
     reason = plan.reason
+    if notes:
+        reason += "; one object, two boxes: " + "; ".join(notes)
     if stuck:
         reason += (
             f"; stuck: the proposed pose was visited {counts[plan.next_flat]} times already, "
@@ -208,6 +286,7 @@ def _answer(
             if math.isfinite(score)
         ),
         reason=reason,
+        match=match,
     )
 
 
@@ -224,10 +303,10 @@ def next_pose(request: NextPoseRequest, context: OptimizerContext) -> NextPoseRe
     strategy: StrategyName = request.strategy or context.default_strategy
     camera, grid = _setup(request, context)
     _check_image(request.target, camera, "target")
-    visits = _visits(request, camera, grid, context.max_history_detections)
-    target = Observation.from_detections(
-        request.target.detections, request.target.image_size, camera
-    )
+    classes = _classes(request)
+    notes: list[str] = []
+    target = _deduplicated(_observe(request.target, camera, classes, "target"), notes, "target")
+    visits = _visits(request, camera, grid, context.max_history_detections, classes, notes)
     problem = SearchProblem(
         grid=grid,
         camera=camera,
@@ -243,7 +322,10 @@ def next_pose(request: NextPoseRequest, context: OptimizerContext) -> NextPoseRe
         plan = STRATEGIES[strategy].plan(problem)
     except CalibrationMissingError as exc:
         raise _invalid(str(exc), "camera", "no-paper-calibration") from exc
-    return _answer(strategy, grid, plan, visits)
+    # The strategies compared these views too; one more small assignment keeps Plan lean.
+    comparison = compare_views(visits[-1].observation, target) if visits else None
+    match = _match(comparison, problem.tolerance_px)
+    return _answer(strategy, grid, plan, visits, match, notes)
 
 
 def _maybe(value: float) -> float | None:

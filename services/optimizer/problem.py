@@ -41,7 +41,7 @@ class SearchProblem:
     tolerance_px : float
         RMS box-edge difference under which two views match (camera pixels).
     max_unmatched : int
-        Detections per image allowed to go unpaired in a match.
+        Summed confidence of the detections per image allowed to go unpaired in a match.
     ambiguity_ratio : float
         Candidates scoring within this factor of the best (plus a small margin) look alike.
     calibration : PaperCalibration or None

@@ -14,11 +14,12 @@ map's predicted *change* matters, which is far more accurate than its absolute b
 Score of a pose
 ---------------
 Entries whose box is at least 30 % inside the image and 2 px a side are *expected*. A target
-detection ``j`` and an entry ``k`` with a box in the image may pair when they share a class and
-look alike (colour cost below the gate); their cost is
+detection ``j`` and an entry ``k`` with a box in the image may pair when they look alike
+(appearance cost — colour, and class as :func:`~.observations.appearance_cost` has it — below
+the colour gate); their cost is
 
 .. math:: c_{jk} = t_k \\Bigl(\\frac{\\operatorname{rms}(B_j − \\hat B_k)}{s}\\Bigr)^2
-                   + \\text{colour cost}_{jk},
+                   + \\text{appearance cost}_{jk},
 
 ``rms`` the root mean square of the four box-edge differences in pixels, ``s`` =
 :data:`SCALE_PX` and ``t_k`` the entry's trust (:attr:`.world_map.WorldMap.trust`: low for
@@ -211,7 +212,8 @@ def _pair_costs(world: WorldMap, target: Observation, prediction: Prediction) ->
     predicted = np.ascontiguousarray(prediction.boxes.T)[:, np.newaxis]  # (edge, 1, K, N)
     diff = target.boxes.T[:, :, np.newaxis, np.newaxis] - predicted
     squared = np.sum(diff * diff, axis=0) / (4.0 * SCALE_PX**2)
-    looks = appearance_cost(target.labels, target.colors, world.labels, world.colors)
+    mismatch = max(target.mismatch_cost, world.mismatch_cost)
+    looks = appearance_cost(target.labels, target.colors, world.labels, world.colors, mismatch)
     cost = squared * world.trust[:, np.newaxis] + looks[:, :, np.newaxis]
     # Any entry with a box in the image may pair, even one mostly outside it (a target can see
     # a sliver of an object); only the penalty for missing entries is limited to expected ones.

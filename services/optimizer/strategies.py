@@ -6,20 +6,41 @@ the target's detections and the visited poses with theirs — to a :class:`~.pro
 When is the search done?
 ------------------------
 Only the images decide, never the true pose. The current view's detections are matched to the
-target's (:func:`~.matching.compare_views`: pairs of one class and alike colour, RMS box-edge
-difference over the pairs, at most ``max_unmatched`` detections per image unpaired). The search
-is done when
+target's (:func:`~.matching.compare_views`: pairs of alike class and colour, RMS box-edge
+difference over the pairs). A match allows unpaired detections in each image up to a summed
+*confidence* of ``max_unmatched``: a target detection at confidence 0.3 without a partner (a
+doubtful box the search view, rendered at few samples per pixel, does not reproduce) weighs a
+third of a sure one. The search is done when
 
 1. the views match *strictly*: RMS within ``tolerance_px``; or
 2. the strategy's own estimate puts the target at the current grid pose and the views match
-   *loosely*: RMS within ``3 × tolerance_px`` — or, for the map-based strategies, the map's
-   prediction at the refined continuous estimate matches the target that closely (a target
-   between grid poses).
+   *loosely*: RMS within the loose tolerance ``T`` below — or, for the map-based strategies,
+   the map's prediction at the refined continuous estimate matches the target that closely (a
+   target between grid poses).
 
 The strict test alone needs a tolerance below the smallest difference between adjacent grid
 views, which can be tiny: near the zenith one 7.5° step in θ moves the demo balls by only
 ≈ 2 px RMS, less than a real detector's noise. The loose test lets noisy detections and targets
 between grid poses finish, but only where the estimate agrees.
+
+The loose tolerance grows with the noise expected of the pairs' box edges. Each edge of pair
+``j`` differs between the views by the geometric change ``δ`` plus the two detections' errors,
+of standard deviations ``σ_aj``, ``σ_bj`` (:func:`~.observations.edge_sigma`: pixel quantisation
+and a fraction of the box size), so the mean squared RMS over the pairs is
+
+.. math:: E[\\mathrm{rms}^2] = δ^2 + N^2, \\qquad
+          N^2 = \\frac{1}{P} \\sum_j (σ_{aj}^2 + σ_{bj}^2)
+
+(:attr:`~.matching.ViewComparison.noise_px`), and the test is
+
+.. math:: \\mathrm{rms} \\le T = \\sqrt{(3 \\, t)^2 + (z N)^2}, \\qquad z = 2
+
+(``t`` = ``tolerance_px``, z = :data:`NOISE_SIGMAS`). At the true pose (δ = 0) ``rms²/N²``
+is a mean of ``4P`` squared standard normals, whose 99th percentile is below z² = 4 already for
+two pairs, so a photo or JPEG target of the true pose passes; a neighbouring pose passes only
+with ``δ² < 9 t² + 3 N²`` *and* the estimate at that pose, which the estimate rules out where
+neighbouring views differ that little. The strict test is not grown: it has no estimate to rule
+out a neighbour.
 
 Strategies
 ----------
@@ -45,7 +66,12 @@ continuous estimate.
 ``reprojection`` (ours, the default) — a world map fused from every visited view
 (:mod:`.world_map`, exact mapping); every grid pose is scored by projecting the map into it and
 matching the target's detections (:mod:`.reprojection`); the camera jumps to the best pose not
-yet visited. At the best pose the continuous (θ, φ) is refined by least-squares reprojection.
+yet visited. At the best pose the continuous (θ, φ) is refined by least-squares reprojection —
+also when the best pose is another visited one than the current: a target between grid poses may
+look more like a farther grid pose's view than its nearest one's (near the zenith a change of φ
+turns the whole image), and the refined pose then says the current pose is the nearest; the
+map's prediction there must then pair the target's detections (unpaired confidence within
+``max_unmatched``), as the current view must otherwise.
 
 Ambiguity
 ---------
@@ -95,6 +121,8 @@ from services.optimizer.world_map import MappedView, WorldMap, build_map
 
 __all__ = [
     "DEFAULT_STRATEGY",
+    "LOOSE_FACTOR",
+    "NOISE_SIGMAS",
     "STRATEGIES",
     "CalibrationMissingError",
     "StrategyName",
@@ -108,7 +136,10 @@ __all__ = [
 StrategyName = Literal["simple", "paper", "reprojection"]
 DEFAULT_STRATEGY: Final[StrategyName] = "reprojection"
 
-_LOOSE_FACTOR: Final = 3.0
+LOOSE_FACTOR: Final = 3.0
+"""The loose done test's tolerance before noise, in strict tolerances (module docstring)."""
+NOISE_SIGMAS: Final = 2.0
+"""z: standard deviations of edge noise the loose done test allows (module docstring)."""
 _AMBIGUITY_MARGIN: Final = 1.0  # score units: one object off by SCALE_PX pixels
 _MAX_ALTERNATIVES: Final = 5
 _CACHED_GRID_POSES: Final = 2_000  # larger grids: predictions too heavy to keep 512 of
@@ -204,10 +235,14 @@ def _start(problem: SearchProblem) -> Plan:
 def _matched_text(comparison: ViewComparison) -> str:
     if math.isinf(comparison.rms_px):
         return "no detection pairs with the target"
-    return (
-        f"RMS {comparison.rms_px:.2f} px over {len(comparison.pairs)} pairs, "
+    text = (
+        f"RMS {comparison.rms_px:.2f} px over {len(comparison.pairs)} pairs "
+        f"(edge noise {comparison.noise_px:.2f} px), "
         f"{comparison.unmatched_a} current / {comparison.unmatched_b} target unpaired"
     )
+    if comparison.unmatched_a or comparison.unmatched_b:
+        text += f" (confidence {comparison.unpaired_a:.2f} / {comparison.unpaired_b:.2f})"
+    return text
 
 
 def _done(
@@ -216,14 +251,14 @@ def _done(
     comparison: ViewComparison,
     est: Estimate | None,
     here: bool,
-    refined_px: float | None = None,
+    refined: _Refined | None = None,
     ambiguous: bool = False,
     alternatives: tuple[tuple[int, float], ...] = (),
 ) -> Plan | None:
     """The done test shared by every strategy (module docstring), or None to keep searching.
 
-    ``refined_px`` is the reprojection residual of a map-based strategy's refined continuous
-    estimate: the target compared with the map's prediction at the estimated off-grid pose."""
+    ``refined`` is a map-based strategy's refined continuous estimate nearest the current
+    pose: its residual compares the target with the map's prediction at the off-grid pose."""
     tol = problem.tolerance_px
     if comparison.within(tol, problem.max_unmatched):
         if est is None or est.flat != current.flat:
@@ -242,16 +277,23 @@ def _done(
         )  # fmt: skip
     if not here:
         return None
-    loose = _LOOSE_FACTOR * tol
+    loose = comparison.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
     if comparison.within(loose, problem.max_unmatched):
         return Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
             f"the estimate puts the target at this grid pose and the views agree within "
-            f"{loose:g} px ({_matched_text(comparison)})",
+            f"{loose:.2f} px ({_matched_text(comparison)})",
         )  # fmt: skip
-    paired = comparison.unmatched_a <= problem.max_unmatched
-    paired = paired and comparison.unmatched_b <= problem.max_unmatched
-    if refined_px is not None and refined_px <= loose and paired:
+    if refined is None or refined.residual_px > loose:
+        return None
+    # Refined at another view, the prediction pairs the target, not this view (which may look
+    # less like the target than that one does).
+    if refined.elsewhere:
+        paired = refined.unpaired_target <= problem.max_unmatched
+    else:
+        paired = comparison.paired(problem.max_unmatched)
+    refined_px = refined.residual_px
+    if paired:
         assert est is not None  # a refined residual comes with its estimate
         return Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
@@ -396,14 +438,45 @@ def _theta_bounds(grid: HemisphereGrid) -> tuple[float, float]:
     )
 
 
+@dataclass(frozen=True)
+class _Refined:
+    """A refined continuous estimate that puts the target nearest the current grid pose.
+
+    ``residual_px`` is its reprojection residual; ``elsewhere`` is set when it was refined at
+    another visited pose (the best-scoring one, anchored to its own view), and then
+    ``unpaired_target`` is the summed confidence of target detections the map left unpaired
+    there."""
+
+    residual_px: float
+    elsewhere: bool = False
+    unpaired_target: float = 0.0
+
+
+def _anchored_visit(problem: SearchProblem, found: _MapEstimate, flat: int) -> Visit | None:
+    """The latest visit of grid pose ``flat`` whose own view anchors the map's prediction
+    there (at least two of its detections joined the map, or all of one), else None."""
+    for visit in reversed(problem.history):
+        if visit.flat != flat:
+            continue
+        for a in found.anchors:
+            if a.observation is visit.observation:
+                if int(np.sum(a.link >= 0)) >= min(2, len(a.link)):
+                    return visit
+        return None
+    return None
+
+
 def _map_plan_estimate(
     problem: SearchProblem, current: Visit, found: _MapEstimate
-) -> tuple[Estimate, float | None]:
-    """The estimate of a map-based strategy and, when the best grid pose is the current one,
-    the reprojection residual of the refined continuous pose (else None).
+) -> tuple[Estimate, _Refined | None]:
+    """The estimate of a map-based strategy and, when its refined continuous pose lies nearest
+    the current grid pose, that refinement (else None).
 
-    The estimate's ``flat`` is the grid pose nearest the refined pose, which may be a
-    neighbour of the best grid pose."""
+    The pose is refined at the best grid pose when a view of it anchors the map's prediction
+    there: the current pose, or another visited pose. The latter is a target between grid
+    poses whose nearest grid pose looks less like it than a farther one does (near the zenith
+    a change of φ turns the whole image), which would otherwise send the search back and forth
+    between the two. The estimate's ``flat`` is the grid pose nearest the refined pose."""
     grid = problem.grid
     coverage = len(found.pairs) / max(len(problem.target), 1)
 
@@ -414,33 +487,33 @@ def _map_plan_estimate(
         flat = int(grid.nearest_flat(theta, phi))
         return Estimate(flat, theta, phi, residual, float(np.clip(confidence, 0.0, 1.0)))
 
-    if found.best != current.flat:
+    # The refined pose speaks for a grid pose only where the prediction there is anchored to
+    # that pose's own view; a map seen from elsewhere is not accurate enough to say that the
+    # target lies between grid poses, nor worth refining.
+    start = _anchored_visit(problem, found, found.best)
+    if start is None or (found.best == current.flat and start is not current):
         residual = SCALE_PX * math.sqrt(float(found.scores.exact[0]) / max(len(found.pairs), 1))
         best = found.best
         return estimate(float(grid.theta_deg[best]), float(grid.phi_deg[best]), residual), None
-    # The refined pose speaks for the current pose only where the prediction there is anchored
-    # to the current view itself; a map seen from elsewhere is not accurate enough to say that
-    # the target lies between grid poses, nor worth refining.
-    anchored = any(
-        a.observation is current.observation and int(np.sum(a.link >= 0)) >= min(2, len(a.link))
-        for a in found.anchors
-    )
-    if not anchored:
-        residual = SCALE_PX * math.sqrt(float(found.scores.exact[0]) / max(len(found.pairs), 1))
-        return estimate(current.theta_deg, current.phi_deg, residual), None
     refined = refine_pose(
         found.world,
         problem.target,
         found.pairs,
-        current.theta_deg,
-        current.phi_deg,
+        start.theta_deg,
+        start.phi_deg,
         problem.camera,
         found.anchoring,
         grid,
         _theta_bounds(grid),
     )
     est = estimate(refined.theta_deg, refined.phi_deg, refined.residual_px)
-    return est, refined.residual_px if math.isfinite(refined.residual_px) else None
+    if est.flat != current.flat or not math.isfinite(refined.residual_px):
+        return est, None
+    if start is current:
+        return est, _Refined(refined.residual_px)
+    target = problem.target.confidence
+    unpaired = float(target.sum() - target[found.pairs.rows].sum())
+    return est, _Refined(refined.residual_px, elsewhere=True, unpaired_target=unpaired)
 
 
 # -- simple ------------------------------------------------------------------------------------
@@ -503,10 +576,10 @@ def plan_simple(problem: SearchProblem) -> Plan:
         found = _scored_cached(mapped, problem.target, grid, problem.ambiguity_ratio)
     if found is None:  # cannot happen: the reference view maps at least one object
         return _explore(problem, current, "no object could be mapped")
-    est, refined_px = _map_plan_estimate(problem, current, found)
+    est, refined = _map_plan_estimate(problem, current, found)
     here = est.flat == current.flat
     done = _done(
-        problem, current, comparison, est, here, refined_px, found.ambiguous, found.alternatives
+        problem, current, comparison, est, here, refined, found.ambiguous, found.alternatives
     )
     if done is not None:
         return replace(done, reason=done.reason + found.note)
@@ -623,10 +696,10 @@ def plan_reprojection(problem: SearchProblem) -> Plan:
     if found is None:
         done = _done(problem, current, comparison, None, False)
         return done or _explore(problem, current, "no object could be mapped from the views")
-    est, refined_px = _map_plan_estimate(problem, current, found)
+    est, refined = _map_plan_estimate(problem, current, found)
     here = est.flat == current.flat
     done = _done(
-        problem, current, comparison, est, here, refined_px, found.ambiguous, found.alternatives
+        problem, current, comparison, est, here, refined, found.ambiguous, found.alternatives
     )
     if done is not None:
         return replace(done, reason=done.reason + found.note)

@@ -52,7 +52,9 @@ class ViewMappings:
     ) -> MappedObjects:
         """The exact mapping of ``observation`` seen from (θ, φ) in degrees, cached."""
         boxes = np.ascontiguousarray(observation.boxes, dtype=np.float64)
-        key = (observation.labels, boxes.tobytes(), float(theta_deg), float(phi_deg), camera)
+        # Kinds too: in identity mode they come from the classes, not the labels.
+        kinds = observation.kinds.tobytes()
+        key = (observation.labels, kinds, boxes.tobytes(), float(theta_deg), float(phi_deg), camera)
         with self._lock:
             found = self._entries.get(key)
             if found is not None:

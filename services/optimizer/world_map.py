@@ -2,18 +2,19 @@
 
 Each visited view's detections are mapped to proxies with the exact method (:mod:`.mapping`),
 once per view content (:mod:`.view_cache`: a search sends its earlier views with every request).
-Views are folded in one at a time: a mapped object joins the map entry it matches (same class,
-alike colour, footprints closer than the gate) by a gated Hungarian assignment, else it starts a
-new entry. An entry's parameters ``(x, y, ρ, H)`` are the inverse-variance weighted mean of its
-observations (weights ``1/σ²`` from the mapping's positional σ, floored at 1 % of the hemisphere
-radius so one lucky view cannot dominate). Unreliable mappings (near-horizon views, boxes cut at
-the bottom) only start entries when nothing reliable saw the object, with a large σ, and
-mappings whose σ exceeds the hemisphere radius (views from the horizon) are left out.
+Views are folded in one at a time: a mapped object joins the map entry it matches (alike class
+and colour as :func:`~.observations.appearance_cost` has it, footprints closer than the gate)
+by a gated Hungarian assignment, else it starts a new entry. An entry's parameters
+``(x, y, ρ, H)`` are the inverse-variance weighted mean of its observations (weights ``1/σ²``
+from the mapping's positional σ, floored at 1 % of the hemisphere radius so one lucky view
+cannot dominate); its proxy kind is that of the detection that started it. Unreliable mappings
+(near-horizon views, boxes cut at the bottom) only start entries when nothing reliable saw the
+object, with a large σ, and mappings whose σ exceeds the hemisphere radius (views from the
+horizon) are left out.
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Final
@@ -24,8 +25,8 @@ from numpy.typing import NDArray
 from services.common.scene import Camera
 from services.optimizer.geometry import Cameras, FloatArray
 from services.optimizer.matching import COLOUR_GATE, assign
-from services.optimizer.observations import Observation, appearance_cost
-from services.optimizer.proxies import clip_boxes, kind_of, proxy_boxes
+from services.optimizer.observations import CLASS_MISMATCH_COST, Observation, appearance_cost
+from services.optimizer.proxies import clip_boxes, proxy_boxes
 from services.optimizer.view_cache import SHARED_MAPPINGS, ViewMappings
 
 __all__ = ["MappedView", "WorldMap", "build_map"]
@@ -57,6 +58,8 @@ class WorldMap:
     ----------
     labels : tuple of str
         Class per entry.
+    kinds : ndarray of int, shape (K,)
+        :class:`~.proxies.ProxyKind` per entry (that of the detection that started it).
     colors : ndarray, shape (K, 3)
         Mean sRGB colour, NaN when never measured.
     params : ndarray, shape (K, 4)
@@ -67,22 +70,21 @@ class WorldMap:
         Views that saw the entry (compared and hashed by identity: it holds arrays).
     sigma_floor : float
         The smallest σ an observation is given (1 % of the hemisphere radius).
+    mismatch_cost : float
+        Cost of pairing different labels (:func:`~.observations.appearance_cost`).
     """
 
     labels: tuple[str, ...]
+    kinds: NDArray[np.int_]
     colors: FloatArray
     params: FloatArray
     sigma: FloatArray
     support: NDArray[np.int_]
     sigma_floor: float = 0.0
+    mismatch_cost: float = CLASS_MISMATCH_COST
 
     def __len__(self) -> int:
         return len(self.labels)
-
-    @functools.cached_property
-    def kinds(self) -> NDArray[np.int_]:
-        """:class:`~.proxies.ProxyKind` per entry (computed once: predictions ask often)."""
-        return np.array([kind_of(label) for label in self.labels], dtype=np.int_)
 
     @property
     def trust(self) -> FloatArray:
@@ -98,11 +100,13 @@ class WorldMap:
         """The map of the entries ``entries`` alone, in that order."""
         return WorldMap(
             labels=tuple(self.labels[int(i)] for i in entries),
+            kinds=self.kinds[entries],
             colors=self.colors[entries],
             params=self.params[entries],
             sigma=self.sigma[entries],
             support=self.support[entries],
             sigma_floor=self.sigma_floor,
+            mismatch_cost=self.mismatch_cost,
         )
 
     def boxes(self, cameras: Cameras) -> tuple[FloatArray, FloatArray]:
@@ -115,6 +119,7 @@ class WorldMap:
 @dataclass
 class _Entry:
     label: str
+    kind: int
     colours: list[FloatArray]
     params: list[FloatArray]
     weights: list[float]
@@ -142,12 +147,14 @@ def build_map(
     entries: list[_Entry] = []
     links: Links = []
     floor = _SIGMA_FLOOR * camera.radius
+    mismatch = max((v.observation.mismatch_cost for v in views), default=CLASS_MISMATCH_COST)
     for view in views:
         obs = view.observation
         link = np.full(len(obs), -1, dtype=np.intp)
         links.append(link)
         if len(obs) == 0:
             continue
+        kinds = obs.kinds
         mapped = cache.get(obs, view.theta_deg, view.phi_deg, camera)
         params = np.column_stack([mapped.position, mapped.radius, mapped.height])
         # A σ beyond the hemisphere radius carries no information (horizon views).
@@ -160,7 +167,7 @@ def build_map(
             labels = [e.label for e in entries]
             colours = np.array([c for _, c, _ in current])
             fused = np.array([p for p, _, _ in current])
-            looks = appearance_cost(obs.labels, obs.colors, labels, colours)
+            looks = appearance_cost(obs.labels, obs.colors, labels, colours, mismatch)
             apart = np.linalg.norm(params[:, np.newaxis, :2] - fused[np.newaxis, :, :2], axis=-1)
             sizes = params[:, np.newaxis, 2] + fused[np.newaxis, :, 2]
             gate_distance = _GATE_SIZES * sizes
@@ -184,19 +191,29 @@ def build_map(
                 entry.weights.append(weight)
             else:
                 link[i] = len(entries)
-                entries.append(_Entry(obs.labels[i], [obs.colors[i]], [params[i]], [weight]))
+                entry = _Entry(obs.labels[i], int(kinds[i]), [obs.colors[i]], [params[i]], [weight])
+                entries.append(entry)
     if not entries:
         empty = WorldMap(
-            (), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), np.zeros(0, int), floor
+            (),
+            np.zeros(0, dtype=np.int_),
+            np.zeros((0, 3)),
+            np.zeros((0, 4)),
+            np.zeros(0),
+            np.zeros(0, int),
+            floor,
+            mismatch,
         )
         return empty, links
     fused_all = [e.fused() for e in entries]
     world = WorldMap(
         labels=tuple(e.label for e in entries),
+        kinds=np.array([e.kind for e in entries], dtype=np.int_),
         colors=np.array([c for _, c, _ in fused_all]),
         params=np.array([p for p, _, _ in fused_all]),
         sigma=np.array([s for _, _, s in fused_all]),
         support=np.array([len(e.weights) for e in entries], dtype=np.int_),
         sigma_floor=floor,
+        mismatch_cost=mismatch,
     )
     return world, links
