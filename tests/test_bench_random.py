@@ -157,7 +157,17 @@ def _search(status="failed", result=None, error=None):
         "target_detections": [_det("cube"), _det("sphere", 40), _det("mesh", 70)],
         "iterations": [
             _iteration(0, 0, 0, [_det("cube")], "moving towards the estimate"),
-            _iteration(1, 3, 2, [_det("cube"), _det("sphere", 40)], "no match: RMS 4.1 px"),
+            {
+                **_iteration(1, 3, 2, [_det("cube"), _det("sphere", 40)], "no match: RMS 4.1 px"),
+                "match": {
+                    "rms_px": 4.1,
+                    "noise_px": 1.5,
+                    "pairs": 2,
+                    "unpaired_current": 0.0,
+                    "unpaired_target": 0.9,
+                    "score": 0.31,
+                },
+            },
             _iteration(2, 4, 1, [_det("cube")], "stuck: going round in circles"),
         ],
         "result": result,
@@ -173,6 +183,7 @@ def test_a_trace_says_where_the_truth_was_visited_and_why_it_was_rejected():
     assert trace.truth_visited
     assert trace.visit_iteration == 2
     assert trace.visit_reason == "no match: RMS 4.1 px"
+    assert trace.visit_match["score"] == 0.31
     assert (trace.visit_detections, trace.target_detections) == (2, 3)
     assert trace.visit_labels == ("cube", "sphere")
     assert trace.target_labels == ("cube", "mesh", "sphere")
@@ -291,7 +302,10 @@ def test_the_random_section_lists_scenes_models_table_goals_and_traces():
     assert "## Random scenes" in text
     assert "| r | 320x240 | 40.0 | 8.00 | 7.5 | star, cube |" in text
     assert "**Goals**" in text
-    assert "yes, at 2: no match: RMS 4.1 px" in text
+    assert (
+        "yes, at 2 (match score 0.31: RMS 4.10 px, noise 1.50 px, 2 pairs): no match: RMS 4.1 px"
+        in text
+    )
     assert "onboarding skipped" in text
 
 

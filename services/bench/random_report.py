@@ -198,6 +198,18 @@ def goal_checks(cells: Sequence[BandCell]) -> list[str]:
     return lines
 
 
+def _match_text(match: Any) -> str:
+    """The optimizer's match of a view (``ViewMatch`` JSON), briefly; empty when not given."""
+    if not isinstance(match, Mapping) or "score" not in match:
+        return ""
+    rms = match.get("rms_px")
+    boxes = f"RMS {rms:.2f} px" if isinstance(rms, int | float) else "no pairs"
+    return (
+        f" (match score {match['score']:.2f}: {boxes}, noise {match.get('noise_px', 0):.2f} px, "
+        f"{match.get('pairs', 0)} pairs)"
+    )
+
+
 def failure_rows(records: Sequence[SearchRecord], limit: int = 40) -> list[list[str]]:
     """The traced searches (misses and unconfirmed answers), up to ``limit``."""
     rows = []
@@ -206,7 +218,9 @@ def failure_rows(records: Sequence[SearchRecord], limit: int = 40) -> list[list[
         if t is None:
             continue
         visited = (
-            f"yes, at {t.visit_iteration}: {t.visit_reason or '—'}" if t.truth_visited else "no"
+            f"yes, at {t.visit_iteration}{_match_text(t.visit_match)}: {t.visit_reason or '—'}"
+            if t.truth_visited
+            else "no"
         )
         dets = (
             f"{t.visit_detections} vs {t.target_detections}"
