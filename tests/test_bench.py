@@ -177,6 +177,17 @@ def test_summaries_and_eq9():
     assert "| demo | reprojection | 3 | 66.7% |" in markdown_tables(list(summaries.values()))
 
 
+def test_unconfirmed_answers_are_counted_apart_in_the_summaries():
+    records = [
+        _record("reprojection", 2, number=0),
+        _record("reprojection", 3, number=1).model_copy(update={"confirmed": False}),
+    ]
+    (summary,) = summarize(records)
+    assert summary.success_rate == 1.0
+    assert summary.unconfirmed_succeeded == 1
+    assert "| demo | reprojection | 2 | 100.0% (1 unconfirmed) |" in markdown_tables([summary])
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_a_ci_sized_bench_through_the_real_stack(tmp_path, capsys):

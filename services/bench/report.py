@@ -4,7 +4,9 @@ tables, the JSON report, the plots (matplotlib, Agg) and ``docs/RESULTS.md``.
 Definitions used in every table
 -------------------------------
 success
-    The search succeeded and its grid pose is the grid pose nearest the true pose.
+    The search succeeded and its grid pose is the grid pose nearest the true pose, confirmed or
+    not; the success column says how many of those answers were unconfirmed (``confirmed:
+    false``, the best visited pose after no view matched).
 renders
     Distinct views rendered by the search, the start view included (``result.renders``).
 steps (moves)
@@ -84,6 +86,7 @@ class Summary:
     n: int
     succeeded: int
     errors: int
+    unconfirmed_succeeded: int
     renders_mean: float
     renders_p50: float
     renders_p95: float
@@ -128,6 +131,7 @@ def summarize(records: Iterable[SearchRecord]) -> list[Summary]:
                 n=len(group),
                 succeeded=sum(r.success for r in group),
                 errors=len(group) - len(ran),
+                unconfirmed_succeeded=sum(r.success and r.confirmed is False for r in group),
                 renders_mean=_mean(renders),
                 renders_p50=percentile(renders, 50),
                 renders_p95=percentile(renders, 95),
@@ -228,11 +232,12 @@ def _f(value: float, digits: int = 0) -> str:
 
 def _cells(s: Summary) -> list[str]:
     errors = f" ({s.errors} errors)" if s.errors else ""
+    unconfirmed = f" ({s.unconfirmed_succeeded} unconfirmed)" if s.unconfirmed_succeeded else ""
     return [
         s.scene,
         s.strategy,
         str(s.n),
-        f"{100 * s.success_rate:.1f}%{errors}",
+        f"{100 * s.success_rate:.1f}%{unconfirmed}{errors}",
         f"{_f(s.renders_mean, 2)} / {_f(s.renders_p50)} / {_f(s.renders_p95)} / "
         f"{_f(s.renders_max)}",
         f"{_f(s.moves_mean, 2)} / {_f(s.moves_max)}",
