@@ -217,7 +217,9 @@ def test_a_trace_reads_an_unconfirmed_answer():
 # -- the θ-band table -----------------------------------------------------------------------
 
 
-def _record(theta, variant="clean", arm="general", found=True, confirmed=True, renders=2):
+def _record(
+    theta, variant="clean", arm="general", found=True, confirmed=True, renders=2, wrong=False
+):
     truth = GridIndex(lat=3, lon=0)
     return SearchRecord(
         scene="r",
@@ -225,17 +227,17 @@ def _record(theta, variant="clean", arm="general", found=True, confirmed=True, r
         variant=variant,
         number=0,
         search_id="x",
-        status="succeeded" if found else "failed",
+        status="succeeded" if found or wrong else "failed",
         true_theta_deg=theta,
         true_phi_deg=0.0,
         truth=truth,
         start=GridIndex(lat=0, lon=0),
-        found=truth if found else None,
+        found=truth if found else (GridIndex(lat=4, lon=0) if wrong else None),
         success=found,
         renders=renders,
         iterations=renders,
         arm=arm,
-        confirmed=confirmed if found else None,
+        confirmed=confirmed if found or wrong else None,
     )
 
 
@@ -249,7 +251,7 @@ def test_the_band_table_counts_per_arm_variant_and_band():
     records = [
         _record(10),
         _record(45),
-        _record(75, found=False, renders=9),
+        _record(75, found=False, renders=9, wrong=True),
         _record(75, variant="photo", confirmed=False),
         _record(10, arm="scene"),
         _record(45, arm="scene"),
@@ -260,6 +262,8 @@ def test_the_band_table_counts_per_arm_variant_and_band():
     general = cells[("general", "all", "all")]
     assert (general.n, general.found, general.confirmed) == (4, 3, 2)
     assert (general.unconfirmed, general.unconfirmed_found) == (1, 1)
+    assert general.confirmed_wrong == 1
+    assert cells[("scene", "all", "all")].confirmed_wrong == 0
     high = cells[("general", "all", BANDS[2])]
     assert (high.n, high.found) == (2, 1)
     assert cells[("general", "clean", BANDS[2])].found_rate == 0.0

@@ -11,6 +11,9 @@ confirmed
 unconfirmed
     Searches answering with ``confirmed: false`` (an any-time best-visited pose), and how many of
     those answers were the true pose.
+confirmed wrong
+    Searches that confirmed a grid pose other than the true one: worse than a miss, since a
+    user is told it was found.
 θ band
     Of the target's true pose: θ < 30°, 30° ≤ θ ≤ 60°, θ > 60°.
 arm
@@ -73,6 +76,7 @@ class BandCell:
     confirmed: int
     unconfirmed: int
     unconfirmed_found: int
+    confirmed_wrong: int
     errors: int
     renders_p50: float
     renders_p95: float
@@ -99,6 +103,10 @@ def _cell(arm: str, variant: str, band: str, records: Sequence[SearchRecord]) ->
         confirmed=sum(r.success and r.confirmed is not False for r in records),
         unconfirmed=len(unconfirmed),
         unconfirmed_found=sum(r.found_truth for r in unconfirmed),
+        confirmed_wrong=sum(
+            r.status == "succeeded" and not r.found_truth and r.confirmed is not False
+            for r in records
+        ),
         errors=len(records) - len(ran),
         renders_p50=percentile(renders, 50),
         renders_p95=percentile(renders, 95),
@@ -137,6 +145,7 @@ _HEADER: Final = (
     "all",
     "confirmed (all)",
     "unconfirmed (at truth)",
+    "confirmed wrong",
     "renders p50 / p95",
 )
 
@@ -155,6 +164,7 @@ def _rows(cells: Sequence[BandCell]) -> list[list[str]]:
                 _rate(total) + errors,
                 f"{total.confirmed}/{total.n} = {100 * total.confirmed_rate:.1f}%",
                 f"{total.unconfirmed} ({total.unconfirmed_found})",
+                str(total.confirmed_wrong),
                 f"{total.renders_p50:.0f} / {total.renders_p95:.0f}",
             ]
         )
@@ -299,7 +309,8 @@ def section_of_random(data: Mapping[str, Any]) -> str:
     text.write(
         "found = the answer is the true grid pose, confirmed or not; confirmed = found and "
         "confirmed; unconfirmed = answers the controller did not confirm (of them, at the "
-        "truth). Definitions in `services/bench/random_report.py`.\n\n"
+        "truth); confirmed wrong = a confirmed answer that is not the true grid pose. "
+        "Definitions in `services/bench/random_report.py`.\n\n"
     )
     cells = band_cells(records)
     if cells:
