@@ -74,20 +74,6 @@ def test_tiny_onboarding_installs_a_model_of_the_scene_classes(onboarded):
 
 
 @pytest.mark.slow
-def test_a_second_run_resumes_and_renders_nothing(onboarded, monkeypatch):
-    path, work = onboarded
-    import training.scene_dataset as scene_dataset
-
-    def no_render(*args, **kwargs):
-        raise AssertionError("rendered a finished sample again")
-
-    monkeypatch.setattr(scene_dataset.RenderEngine, "render", no_render)
-    report = onboard_scene(path, OnboardOptions.tiny(), work_dir=work)
-    assert report.epochs == 1
-    assert report.model_path == model_dir(path) / MODEL_FILE_NAME
-
-
-@pytest.mark.slow
 def test_a_failed_export_leaves_the_installed_model_alone(onboarded, monkeypatch):
     path, work = onboarded
     folder = model_dir(path)
@@ -104,10 +90,17 @@ def test_a_failed_export_leaves_the_installed_model_alone(onboarded, monkeypatch
 
 
 @pytest.mark.slow
-def test_cli_scenes_add_prints_the_model_path_and_the_scenes_dir(onboarded, capsys):
+def test_cli_scenes_add_resumes_and_prints_the_model_path(onboarded, capsys, monkeypatch):
     path, work = onboarded
+    import training.scene_dataset as scene_dataset
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered a finished sample again")
+
+    monkeypatch.setattr(scene_dataset.RenderEngine, "render", no_render)
     assert main(["scenes", "add", str(path), "--tiny", "--work", str(work)]) == 0
     out = capsys.readouterr().out
+    assert "1 epochs" in out
     assert str(model_dir(path) / MODEL_FILE_NAME) in out
     assert "precision" in out
     assert f"COSMOS_SCENES_DIR={path.parent}" in out

@@ -55,6 +55,7 @@ __all__ = [
     "StageMinutes",
     "TorchMissingError",
     "default_work_dir",
+    "idle_cores",
     "onboard_scene",
 ]
 
@@ -81,18 +82,19 @@ class OnboardOptions:
     """How much to render and train; the defaults fit a 6-object scene in about 5–6 minutes on
     2 CPU cores (see ``benchmarks/onboard.py``)."""
 
-    train_images: int = 320
+    train_images: int = 400
     val_images: int = 100
-    epochs: int = 14
+    epochs: int = 20
     max_minutes: float = 20.0
     """Wall-time cap of the whole run: training stops early (fewer epochs) to keep to it."""
     seed: int = 1
-    threads: int = 2
+    threads: int | None = None
+    """PyTorch threads; ``None``: the cores left idle by the load (:func:`idle_cores`)."""
     batch: int = 32
     lr: float = 1e-3
 
     def __post_init__(self) -> None:
-        if min(self.train_images, self.val_images, self.epochs, self.threads, self.batch) < 1:
+        if min(self.train_images, self.val_images, self.epochs, self.threads or 1, self.batch) < 1:
             raise ValueError("images, epochs, threads and batch must be at least 1")
         if not (self.max_minutes > 0 and self.lr > 0):
             raise ValueError("max_minutes and lr must be positive")
@@ -100,7 +102,7 @@ class OnboardOptions:
     @classmethod
     def tiny(cls) -> OnboardOptions:
         """A CI-sized run (a few images, one epoch): checks the plumbing, not the accuracy."""
-        return cls(train_images=12, val_images=4, epochs=1, batch=4)
+        return cls(train_images=8, val_images=4, epochs=1, batch=4)
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,21 @@ class OnboardReport:
 def default_work_dir(scene: LoadedScene) -> Path:
     """``data/onboard/<scene id>/`` (relative to the current folder)."""
     return Path("data") / "onboard" / scene.id
+
+
+def idle_cores() -> int:
+    """The cores not busy with other work: ``cores - round(1-minute load average)``, at least 1.
+
+    On a shared machine this matters a lot: PyTorch's OpenMP threads spin while they wait for
+    each other, and with more threads than idle cores a training step took 5-8 times as long
+    (2 threads vs 1 at a load of 5 on 2 cores: 230-580 ms vs 43-70 ms per image).
+    """
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # not available on this platform
+        return cores
+    return max(1, min(cores, cores - round(load)))
 
 
 def _require_torch() -> None:
@@ -299,7 +316,8 @@ def onboard_scene(
     from training.export import onnx_model, sidecar
     from training.train import INPUT_HEIGHT, INPUT_WIDTH, evaluate
 
-    torch.set_num_threads(options.threads)
+    threads = options.threads if options.threads is not None else idle_cores()
+    torch.set_num_threads(threads)
     torch.set_flush_denormal(True)  # tiny weights and moments otherwise slow CPU math several-fold
     classes = object_classes(scene.spec)
     labels = [c.label for c in classes]
@@ -381,6 +399,7 @@ def onboard_scene(
             "export_max_abs_error": error,
             "onboarding": {
                 **asdict(options),
+                "threads": threads,
                 "train_images": train_images,
                 "val_images": options.val_images,
                 "train_seed": options.seed,
