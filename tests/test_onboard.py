@@ -178,3 +178,13 @@ def test_the_warm_start_reproduces_the_general_model():
     np.testing.assert_allclose(ours[:, :4], general[:, :4], atol=1e-3)  # boxes, input px
     # Each scene class starts as its shape's class of the general model (cube = 1, sphere = 0).
     np.testing.assert_allclose(ours[:, 4:], general[:, [4 + 1, 4 + 0, 4 + 1]], atol=1e-4)
+
+
+def test_training_uses_only_the_idle_cores(monkeypatch):
+    from training.onboard import idle_cores
+
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    monkeypatch.setattr("os.getloadavg", lambda: (5.0, 5.0, 5.0))
+    assert idle_cores() == 1
+    monkeypatch.setattr("os.getloadavg", lambda: (0.1, 0.1, 0.1))
+    assert idle_cores() == 2
