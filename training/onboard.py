@@ -84,13 +84,13 @@ class OnboardOptions:
 
     train_images: int = 400
     val_images: int = 100
-    epochs: int = 20
+    epochs: int = 24
     max_minutes: float = 20.0
     """Wall-time cap of the whole run: training stops early (fewer epochs) to keep to it."""
     seed: int = 1
     threads: int | None = None
     """PyTorch threads; ``None``: the cores left idle by the load (:func:`idle_cores`)."""
-    batch: int = 32
+    batch: int = 16
     lr: float = 1e-3
 
     def __post_init__(self) -> None:
