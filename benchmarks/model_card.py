@@ -8,6 +8,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from training.card import model_rows
+
 __all__ = ["write_card"]
 
 GOALS = "precision >= 0.97 and recall >= 0.97 overall, box-centre error <= 2 px (median)"
@@ -27,13 +29,7 @@ def write_card(card: Path, model: Path, report: dict[str, Any], table: str) -> N
         "A small anchor-free, YOLO-style detector of the scene objects' shape classes, trained by",
         "this project on images rendered by its own renderer (nothing downloaded).",
         "",
-        "| | |",
-        "| --- | --- |",
-        f"| classes | {', '.join(sidecar['classes'])} |",
-        f"| input | {sidecar['input_size'][0]}x{sidecar['input_size'][1]} RGB 0-1, centred "
-        "letterbox, grey 114 |",
-        f"| output | {sidecar.get('format', '')} |",
-        f"| parameters | {sidecar.get('parameters', '?'):,} |",
+        *model_rows(sidecar),
         f"| file | {model.stat().st_size:,} bytes, sha256 `{sidecar['sha256'][:16]}…` |",
         f"| training data | {provenance.get('train_images')} rendered images, datasets "
         f"{provenance.get('datasets')} |",

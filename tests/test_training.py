@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.common.scene import SceneSpec
-from training.data import LabelledImage, augment, letterbox, load_dataset
+from training.data import LabelledImage, augment, load_dataset
 from training.dataset import CLASSES, TEXTURES, random_scene, render_dataset, views
-from training.metrics import Evaluation, box_iou, nms
+from training.metrics import Evaluation, box_iou
 
 
 @settings(max_examples=40, deadline=None)
@@ -52,19 +52,6 @@ def test_rendered_dataset_matches_the_renderer_ground_truth(tmp_path):
             assert 0 < obj["visible_fraction"] <= 1
 
 
-def test_letterbox_maps_points_by_scale_and_padding():
-    image = np.zeros((240, 320, 3), np.uint8)
-    image[100:110, 200:220] = 255
-    canvas, scale, pad_x, pad_y = letterbox(image, 320, 256)
-    assert (scale, pad_x, pad_y) == (1.0, 0.0, 8.0)
-    ys, xs = np.nonzero(canvas[..., 0] == 255)
-    assert (xs.min(), ys.min()) == (200, 108)
-    tall = np.zeros((320, 240, 3), np.uint8)
-    _, scale, pad_x, pad_y = letterbox(tall, 320, 256)
-    assert scale == pytest.approx(0.8)
-    assert (pad_x, pad_y) == (64.0, 0.0)
-
-
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000))
 def test_augmented_boxes_stay_on_the_canvas_and_on_their_objects(seed):
@@ -86,13 +73,6 @@ def test_augmented_boxes_stay_on_the_canvas_and_on_their_objects(seed):
         assert 0 <= y1 < y2 <= 256
         inner = canvas[int(y1) + 2 : int(y2) - 2, int(x1) + 2 : int(x2) - 2].astype(int)
         assert inner.size == 0 or inner[..., 0].mean() > inner[..., 2].mean() + 60
-
-
-def test_nms_suppresses_within_a_class_only():
-    boxes = np.array([[0, 0, 10, 10], [1, 1, 11, 11], [0, 0, 10, 10], [50, 50, 60, 60]], float)
-    scores = np.array([0.9, 0.8, 0.7, 0.6])
-    classes = np.array([0, 0, 1, 0])
-    assert sorted(nms(boxes, scores, classes, 0.5).tolist()) == [0, 2, 3]
 
 
 def test_evaluation_counts_hits_misses_and_ignores_hidden_objects():

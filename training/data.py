@@ -1,4 +1,5 @@
-"""Load a rendered dataset and turn samples into letterboxed, augmented training tensors."""
+"""Load a rendered dataset and turn samples into augmented training images (randomly scaled and
+placed on the grey canvas; evaluation uses the detector service's letterbox)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["PAD_VALUE", "LabelledImage", "augment", "letterbox", "load_dataset"]
+from services.detector.letterbox import PAD_VALUE
 
-PAD_VALUE = 114
+__all__ = ["LabelledImage", "augment", "load_dataset"]
+
 IGNORE_BELOW_VISIBLE = 0.6  # evaluation counts objects at least this visible
 
 
@@ -51,24 +53,6 @@ def load_dataset(root: Path, limit: int | None = None) -> list[LabelledImage]:
             )
         )
     return samples
-
-
-def letterbox(
-    rgb: NDArray[np.uint8], width: int, height: int
-) -> tuple[NDArray[np.uint8], float, float, float]:
-    """Resize keeping the aspect ratio and pad to ``width`` x ``height`` (centred, grey 114).
-
-    Returns the canvas, the scale and the (x, y) padding: a point p of the image lands at
-    ``p * scale + pad``.
-    """
-    h, w = rgb.shape[:2]
-    scale = min(width / w, height / h)
-    new_w, new_h = round(w * scale), round(h * scale)
-    resized = cv2.resize(rgb, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
-    pad_x, pad_y = (width - new_w) // 2, (height - new_h) // 2
-    canvas = np.full((height, width, 3), PAD_VALUE, dtype=np.uint8)
-    canvas[pad_y : pad_y + new_h, pad_x : pad_x + new_w] = resized
-    return canvas, scale, float(pad_x), float(pad_y)
 
 
 def augment(

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
-from services.common.models import Pose, RenderAnnotations
+from services.common.models import ObjectAnnotation, Pose, RenderAnnotations
 from services.common.scene import LoadedScene, SceneSpec
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
@@ -38,6 +38,7 @@ from services.renderer.imaging import encode_png
 __all__ = [
     "View",
     "asset_folder",
+    "labelled_objects",
     "views",
     "CLASSES",
     "IMAGE_SIZES",
@@ -259,23 +260,30 @@ def _loaded(spec: SceneSpec, scene_id: str, folder: Path) -> LoadedScene:
     return LoadedScene(id=scene_id, path=folder / f"{scene_id}.yaml", spec=spec, assets=assets)
 
 
-def _labels(ann: RenderAnnotations) -> tuple[LabelledObject, ...]:
+def labelled_objects(ann: RenderAnnotations) -> list[ObjectAnnotation]:
+    """The objects of a view worth a label: at least :data:`MIN_LABEL_PIXELS` visible pixels
+    and a box at least 2 pixels wide and high."""
     labelled = []
     for obj in ann.objects:
         if obj.box is None or obj.visible_pixels < MIN_LABEL_PIXELS:
             continue
         x1, y1, x2, y2 = obj.box
-        if x2 - x1 < 2 or y2 - y1 < 2:
-            continue
-        labelled.append(
-            LabelledObject(
-                cls=obj.shape,
-                box=obj.box,
-                visible_pixels=obj.visible_pixels,
-                visible_fraction=round(obj.visible_fraction, 4),
-            )
+        if x2 - x1 >= 2 and y2 - y1 >= 2:
+            labelled.append(obj)
+    return labelled
+
+
+def _labels(ann: RenderAnnotations) -> tuple[LabelledObject, ...]:
+    return tuple(
+        LabelledObject(
+            cls=obj.shape,
+            box=obj.box,
+            visible_pixels=obj.visible_pixels,
+            visible_fraction=round(obj.visible_fraction, 4),
         )
-    return tuple(labelled)
+        for obj in labelled_objects(ann)
+        if obj.box is not None
+    )
 
 
 @dataclass(frozen=True)

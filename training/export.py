@@ -24,9 +24,12 @@ import onnx
 import onnxruntime as ort
 import torch
 
+from services.detector.letterbox import PAD_VALUE
 from training.model import Detector, ExportWrapper
 
-__all__ = ["export", "main"]
+__all__ = ["DESCRIPTION", "export", "main", "onnx_model", "sidecar"]
+
+DESCRIPTION = "COSMOS 3D Search shape detector (trained on renders of the project)"
 
 
 def _onnx_export(wrapper: torch.nn.Module, dummy: torch.Tensor, path: Path) -> None:
@@ -45,14 +48,11 @@ def _onnx_export(wrapper: torch.nn.Module, dummy: torch.Tensor, path: Path) -> N
     )
 
 
-def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write ``out`` (ONNX) and ``out.with_suffix('.json')`` (sidecar); return the sidecar."""
-    state = torch.load(checkpoint, weights_only=False)
-    config = state["config"]
-    classes = list(config["classes"])
-    width, height = config["input"]
-    model = Detector(len(classes), config["width"])
-    model.load_state_dict(state["ema"])
+def onnx_model(
+    model: Detector, classes: Sequence[str], height: int, width: int, description: str = DESCRIPTION
+) -> tuple[bytes, float]:
+    """The serialised ONNX graph of ``model`` (class names and input size in its metadata) and
+    its largest absolute difference from PyTorch on random input, checked with onnxruntime."""
     wrapper = ExportWrapper(model, height, width).eval()
     dummy = torch.rand(2, 3, height, width)
     with tempfile.TemporaryDirectory() as tmp:
@@ -63,13 +63,12 @@ def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> 
             warnings.simplefilter("ignore", category=DeprecationWarning)
             _onnx_export(wrapper, dummy, raw_path)
         graph = onnx.load(str(raw_path))
-    names = dict(enumerate(classes))
     metadata = {
-        "names": repr(names),
+        "names": repr(dict(enumerate(classes))),
         "imgsz": json.dumps([height, width]),
         "stride": "32",
         "task": "detect",
-        "description": "COSMOS 3D Search shape detector (trained on renders of the project)",
+        "description": description,
     }
     for key, value in metadata.items():
         entry = graph.metadata_props.add()
@@ -85,18 +84,41 @@ def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> 
     error = float(np.abs(got - expected).max())
     if error > 1e-2:
         raise RuntimeError(f"ONNX output differs from PyTorch by {error}")
+    return data, error
+
+
+def sidecar(
+    name: str, classes: Sequence[str], width: int, height: int, data: bytes, parameters: int
+) -> dict[str, Any]:
+    """The sidecar fields every model shares (``provenance`` is the caller's)."""
+    return {
+        "name": name,
+        "classes": list(classes),
+        "input_size": [width, height],
+        "format": "yolov8-onnx: output0 [N, 4 + C, anchors] = cx, cy, w, h (input px), scores",
+        "letterbox": {"pad_value": PAD_VALUE, "placement": "centred"},
+        "sha256": hashlib.sha256(data).hexdigest(),
+        "parameters": parameters,
+    }
+
+
+def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write ``out`` (ONNX) and ``out.with_suffix('.json')`` (sidecar); return the sidecar."""
+    state = torch.load(checkpoint, weights_only=False)
+    config = state["config"]
+    classes = list(config["classes"])
+    width, height = config["input"]
+    model = Detector(len(classes), config["width"])
+    model.load_state_dict(state["ema"])
+    data, error = onnx_model(model, classes, height, width)
 
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_bytes(data)
     history = state.get("history", [])
-    sidecar = {
-        "name": out.stem,
-        "classes": classes,
-        "input_size": [width, height],
-        "format": "yolov8-onnx: output0 [N, 4 + C, anchors] = cx, cy, w, h (input px), scores",
-        "letterbox": {"pad_value": 114, "placement": "centred"},
-        "sha256": hashlib.sha256(data).hexdigest(),
-        "parameters": sum(p.numel() for p in model.parameters()),
+    info = {
+        **sidecar(
+            out.stem, classes, width, height, data, sum(p.numel() for p in model.parameters())
+        ),
         "provenance": {
             "trainer": "training.train (plain PyTorch, task-aligned assignment, GIoU + BCE)",
             "torch": torch.__version__,
@@ -109,8 +131,8 @@ def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> 
             **(extra or {}),
         },
     }
-    out.with_suffix(".json").write_text(json.dumps(sidecar, indent=2) + "\n")
-    return sidecar
+    out.with_suffix(".json").write_text(json.dumps(info, indent=2) + "\n")
+    return info
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -118,9 +140,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--out", type=Path, default=Path("models/detector.onnx"))
     args = parser.parse_args(argv)
-    sidecar = export(args.checkpoint, args.out)
+    info = export(args.checkpoint, args.out)
     print(f"wrote {args.out} ({args.out.stat().st_size} bytes) and {args.out.with_suffix('.json')}")
-    print(json.dumps(sidecar["provenance"], indent=2))
+    print(json.dumps(info["provenance"], indent=2))
     return 0
 
 

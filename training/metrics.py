@@ -11,42 +11,22 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Evaluation", "box_iou", "nms"]
+from services.detector import postprocess
+
+__all__ = ["Evaluation", "box_iou"]
 
 FloatArray = NDArray[np.float64]
 
 
 def box_iou(a: NDArray[np.floating], b: NDArray[np.floating]) -> FloatArray:
-    """IoU matrix ``[M, N]`` of boxes ``a [M, 4]`` and ``b [N, 4]`` as (x1, y1, x2, y2)."""
+    """IoU matrix ``[M, N]`` of boxes ``a [M, 4]`` and ``b [N, 4]`` as (x1, y1, x2, y2): the
+    detector service's IoU (:func:`services.detector.postprocess.box_iou`), one row per box."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
     b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.clip(rb - lt, 0, None).prod(-1)
-    area_a = np.clip(a[:, 2:] - a[:, :2], 0, None).prod(-1)
-    area_b = np.clip(b[:, 2:] - b[:, :2], 0, None).prod(-1)
-    iou: FloatArray = inter / (area_a[:, None] + area_b[None, :] - inter + 1e-12)
+    iou: FloatArray = np.zeros((len(a), len(b)), dtype=np.float64)
+    for row, box in enumerate(a):
+        iou[row] = postprocess.box_iou(box, b)
     return iou
-
-
-def nms(
-    boxes: NDArray[np.floating],
-    scores: NDArray[np.floating],
-    classes: NDArray[np.integer],
-    iou: float,
-) -> NDArray[np.int64]:
-    """Indices kept by per-class greedy non-maximum suppression, best score first."""
-    order = np.argsort(-np.asarray(scores), kind="stable")
-    keep: list[int] = []
-    suppressed = np.zeros(len(order), dtype=bool)
-    overlaps = box_iou(boxes, boxes)
-    same_class = np.asarray(classes)[:, None] == np.asarray(classes)[None, :]
-    for rank, i in enumerate(order):
-        if suppressed[rank]:
-            continue
-        keep.append(int(i))
-        suppressed[rank:] |= (overlaps[i, order[rank:]] > iou) & same_class[i, order[rank:]]
-    return np.array(keep, dtype=np.int64)
 
 
 @dataclass

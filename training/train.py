@@ -13,26 +13,43 @@ import json
 import math
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import NDArray
 
-from training.data import LabelledImage, augment, letterbox, load_dataset
+from services.detector.detect import DetectOptions, detections_from_output
+from services.detector.letterbox import letterbox
+from training.data import LabelledImage, augment, load_dataset
 from training.dataset import CLASSES
 from training.loss import detection_loss
-from training.metrics import Evaluation, nms
+from training.metrics import Evaluation
 from training.model import Detector, anchor_points
 
-__all__ = ["INPUT_HEIGHT", "INPUT_WIDTH", "main", "predict", "predict_batch"]
+__all__ = [
+    "INPUT_HEIGHT",
+    "INPUT_WIDTH",
+    "evaluate",
+    "main",
+    "make_batch",
+    "predict",
+    "predict_batch",
+    "save_checkpoint",
+    "train_step",
+    "update_ema",
+]
 
 INPUT_WIDTH, INPUT_HEIGHT = 320, 256
 
 
-def _batch(
+def make_batch(
     samples: Sequence[LabelledImage], rng: np.random.Generator
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Augmented images ``[B, 3, H, W]`` in [0, 1], and padded ground truth: boxes
+    ``[B, M, 4]`` (input pixels), classes ``[B, M]`` (-1 for padding) and the mask of real ones."""
     images, boxes, classes = [], [], []
     for sample in samples:
         image, b, c = augment(sample, INPUT_WIDTH, INPUT_HEIGHT, rng)
@@ -49,64 +66,99 @@ def _batch(
     return batch, gt_boxes, gt_classes, gt_classes >= 0
 
 
-def _postprocess(
-    out: np.ndarray,
-    scale: float,
-    pad_x: float,
-    pad_y: float,
-    size: tuple[int, int],
-    conf: float,
-    iou: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One image's decoded predictions ``[N, 4 + C]`` to boxes in its pixels, scores, classes."""
-    scores = out[:, 4:].max(1)
-    classes = out[:, 4:].argmax(1)
-    keep = scores >= conf
-    cxcy, wh, scores, classes = out[keep, :2], out[keep, 2:4], scores[keep], classes[keep]
-    boxes = np.concatenate([cxcy - wh / 2, cxcy + wh / 2], axis=1)
-    boxes = (boxes - [pad_x, pad_y, pad_x, pad_y]) / scale
-    w, h = size
-    boxes = np.clip(boxes, 0, [w, h, w, h])
-    kept = nms(boxes, scores, classes, iou)
-    return boxes[kept], scores[kept], classes[kept]
+def update_ema(ema: torch.nn.Module, model: torch.nn.Module, step: int) -> None:
+    """Move the exponential moving average of the weights towards ``model``'s; the decay
+    ``0.9995 (1 - exp(-step / 300))`` lets early steps count fully."""
+    decay = 0.9995 * (1 - math.exp(-step / 300))
+    with torch.no_grad():
+        for e, p in zip(ema.state_dict().values(), model.state_dict().values(), strict=True):
+            if e.dtype.is_floating_point:
+                e.mul_(decay).add_(p.detach(), alpha=1 - decay)
+            else:
+                e.copy_(p)
+
+
+def train_step(
+    model: Detector,
+    ema: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
+    anchors: tuple[torch.Tensor, torch.Tensor],
+    lr: float,
+    step: int,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """One optimiser step at learning rate ``lr`` on a :func:`make_batch` batch (gradient norm
+    clipped to 10), then the EMA update for step ``step + 1``; returns the loss and its parts."""
+    images, gt_boxes, gt_classes, gt_mask = batch
+    points, strides = anchors
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    raw = Detector.flatten(model(images))
+    loss, parts = detection_loss(raw, points, strides, gt_boxes, gt_classes, gt_mask)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()  # type: ignore[no-untyped-call]
+    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+    optimizer.step()
+    update_ema(ema, model, step + 1)
+    return loss.detach(), parts
+
+
+# Serving's post-processing defaults; colours are not needed to score boxes.
+_SERVING = DetectOptions(colour=False)
 
 
 @torch.no_grad()
 def predict_batch(
-    model: Detector, images: Sequence[np.ndarray], conf: float = 0.25, iou: float = 0.6
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Boxes (image pixels), scores and classes for RGB images (centred letterbox, NMS), run
-    through the network as one batch."""
-    boxes = [letterbox(rgb, INPUT_WIDTH, INPUT_HEIGHT) for rgb in images]
-    x = torch.from_numpy(np.stack([b[0] for b in boxes])).permute(0, 3, 1, 2).float() / 255.0
-    out = model.decode(model(x), INPUT_HEIGHT, INPUT_WIDTH).transpose(1, 2).numpy()
-    return [
-        _postprocess(o, scale, pad_x, pad_y, (rgb.shape[1], rgb.shape[0]), conf, iou)
-        for o, (_, scale, pad_x, pad_y), rgb in zip(out, boxes, images, strict=True)
-    ]
+    model: Detector, images: Sequence[NDArray[np.uint8]], conf: float = _SERVING.conf
+) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]]:
+    """Boxes (image pixels), scores and classes for RGB images, run through the network as one
+    batch and through the detector service's own letterbox and post-processing (decode,
+    threshold, per-class NMS), so that what is measured here is what is served."""
+    prepared = [letterbox(rgb, (INPUT_WIDTH, INPUT_HEIGHT)) for rgb in images]
+    x = torch.from_numpy(np.stack([tensor for tensor, _ in prepared]))
+    out = model.decode(model(x), INPUT_HEIGHT, INPUT_WIDTH).numpy()
+    options = replace(_SERVING, conf=conf)
+    names = [str(k) for k in range(model.num_classes)]
+    results = []
+    for output, (_, box) in zip(out, prepared, strict=True):
+        found = detections_from_output(output, box, names, None, options)
+        results.append(
+            (
+                np.array([d.box for d in found], dtype=np.float64).reshape(-1, 4),
+                np.array([d.confidence for d in found], dtype=np.float64),
+                np.array([d.class_id for d in found], dtype=np.int64),
+            )
+        )
+    return results
 
 
 def predict(
-    model: Detector, rgb: np.ndarray, conf: float = 0.25, iou: float = 0.6
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    model: Detector, rgb: NDArray[np.uint8], conf: float = _SERVING.conf
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
     """:func:`predict_batch` of one image."""
-    return predict_batch(model, [rgb], conf, iou)[0]
+    return predict_batch(model, [rgb], conf)[0]
 
 
-def evaluate(model: Detector, samples: Sequence[LabelledImage], batch: int = 32) -> dict[str, Any]:
-    """P/R/mAP50 at IoU 0.5 over objects at least 60 % visible."""
+def evaluate(
+    model: Detector,
+    samples: Sequence[LabelledImage],
+    classes: Sequence[str] = CLASSES,
+    batch: int = 32,
+) -> dict[str, Any]:
+    """P/R/mAP50 at IoU 0.5 over objects at least 60 % visible (:class:`Evaluation`)."""
     model.eval()
-    evaluation = Evaluation(CLASSES)
+    evaluation = Evaluation(tuple(classes))
     for first in range(0, len(samples), batch):
         chunk = samples[first : first + batch]
-        for sample, (boxes, scores, classes) in zip(
+        for sample, (boxes, scores, found) in zip(
             chunk, predict_batch(model, [s.rgb for s in chunk]), strict=True
         ):
-            evaluation.add(boxes, scores, classes, sample.boxes, sample.classes, sample.visible)
+            evaluation.add(boxes, scores, found, sample.boxes, sample.classes, sample.visible)
     return evaluation.report()
 
 
-def _save(path: Path, state: dict[str, Any]) -> None:
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """``torch.save`` to a temporary file renamed over ``path``: a checkpoint is whole or old."""
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)
     tmp.replace(path)
@@ -169,28 +221,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         totals = {"loss": 0.0, "box": 0.0, "cls": 0.0}
         epoch_started = time.perf_counter()
         for first in range(0, len(order), args.batch):
-            images, gt_boxes, gt_classes, gt_mask = _batch(
-                [train[i] for i in order[first : first + args.batch]], rng
+            batch = make_batch([train[i] for i in order[first : first + args.batch]], rng)
+            loss, parts = train_step(
+                model, ema, optimizer, batch, (points, strides), lr_at(step), step
             )
-            for group in optimizer.param_groups:
-                group["lr"] = lr_at(step)
-            raw = Detector.flatten(model(images))
-            loss, parts = detection_loss(raw, points, strides, gt_boxes, gt_classes, gt_mask)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()  # type: ignore[no-untyped-call]
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            optimizer.step()
             step += 1
-            decay = 0.9995 * (1 - math.exp(-step / 300))
-            with torch.no_grad():
-                for e, p in zip(
-                    ema.state_dict().values(), model.state_dict().values(), strict=True
-                ):
-                    if e.dtype.is_floating_point:
-                        e.mul_(decay).add_(p.detach(), alpha=1 - decay)
-                    else:
-                        e.copy_(p)
-            totals["loss"] += float(loss.detach())
+            totals["loss"] += float(loss)
             totals["box"] += parts["box"]
             totals["cls"] += parts["cls"]
         metrics = evaluate(ema, val)
@@ -223,8 +259,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         }
         if record["map50"] > best:
             best = record["map50"]
-            _save(args.run / "best.pt", state)
-        _save(last, state)
+            save_checkpoint(args.run / "best.pt", state)
+        save_checkpoint(last, state)
     print(f"done: best mAP50 {best:.4f}", flush=True)
     return 0
 

@@ -1,0 +1,89 @@
+"""The model card of a scene's own detector (``<id>.detector/MODEL_CARD.md``), as Markdown."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+__all__ = ["model_rows", "scene_model_card"]
+
+
+def model_rows(sidecar: Mapping[str, Any]) -> list[str]:
+    """The card's table rows that describe any model: classes, input, output, parameters."""
+    return [
+        "| | |",
+        "| --- | --- |",
+        f"| classes | {', '.join(sidecar['classes'])} |",
+        f"| input | {sidecar['input_size'][0]}x{sidecar['input_size'][1]} RGB 0-1, centred "
+        "letterbox, grey 114 |",
+        f"| output | {sidecar.get('format', '')} |",
+        f"| parameters | {sidecar.get('parameters', '?'):,} |",
+    ]
+
+
+def _row(name: str, m: Mapping[str, Any]) -> str:
+    return (
+        f"| {name} | {int(m['objects'])} | {float(m['precision']):.3f} | "
+        f"{float(m['recall']):.3f} | {float(m.get('ap50', m.get('map50', 0.0))):.3f} |"
+    )
+
+
+def scene_model_card(
+    sidecar: Mapping[str, Any],
+    metrics: Mapping[str, Any],
+    members: Sequence[tuple[str, Sequence[str]]],
+    command: str,
+) -> str:
+    """The card: what the model detects, how it was trained and how well it does on held-out
+    renders of its scene, and the command that makes it again.
+
+    ``members`` pairs each class label with the object names it stands for.
+    """
+    onboarding = sidecar["provenance"]["onboarding"]
+    minutes = onboarding["minutes"]
+    per_class: Mapping[str, Mapping[str, Any]] = metrics["per_class"]
+    lines = [
+        f"# Model card: scene `{sidecar['scene']}` detector",
+        "",
+        f"The scene's own detector: one class per object of `{sidecar['scene']}` (objects that "
+        "look alike share a class), fine-tuned from the general shape detector "
+        "`models/detector.onnx` on renders of this scene alone (nothing downloaded). It is only "
+        "meant for this scene.",
+        "",
+        *model_rows(sidecar),
+        f"| sha256 | `{sidecar['sha256']}` |",
+        f"| training data | {onboarding['train_images']} renders (seed {onboarding['train_seed']}"
+        f"), film {onboarding['film'][0]}x{onboarding['film'][1]}, poses over "
+        f"θ {onboarding['theta_range_deg'][0]}–{onboarding['theta_range_deg'][1]}° and all φ, "
+        "lighting jittered, spp 8/16/32 |",
+        f"| training | {onboarding['epochs']} epochs from the general model, "
+        f"{minutes['train']:.1f} min on {onboarding['threads']} CPU threads, "
+        f"PyTorch {sidecar['provenance']['torch']} |",
+        f"| wall time | render {minutes['render']:.1f} min, train {minutes['train']:.1f} min, "
+        f"evaluate + export {minutes['eval']:.1f} min, total {minutes['total']:.1f} min |",
+        "",
+        "## Classes",
+        "",
+        "| class | objects |",
+        "| --- | --- |",
+        *(f"| {label} | {', '.join(names)} |" for label, names in members),
+        "",
+        f"## Accuracy on held-out renders ({onboarding['val_images']} images, seed "
+        f"{onboarding['val_seed']}, never trained on)",
+        "",
+        "Objects at least 60 % visible, a hit at IoU >= 0.5, detections through the detector "
+        "service's letterbox and post-processing (confidence 0.25, NMS 0.5).",
+        "",
+        "| class | objects | precision | recall | AP50 |",
+        "| --- | --- | --- | --- | --- |",
+        *(_row(label, per_class[label]) for label in sidecar["classes"]),
+        _row("**overall** (mAP50)", metrics),
+        "",
+        "## Reproduce",
+        "",
+        "```sh",
+        command,
+        "```",
+        "",
+    ]
+    return "\n".join(lines)
