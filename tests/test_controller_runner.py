@@ -46,7 +46,9 @@ class FakeStages:
     async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
         return f"P6 {index.lat} {index.lon}".encode()
 
-    async def detect(self, image: bytes, media_type: str, request_id: str = "") -> DetectResponse:
+    async def detect(
+        self, image: bytes, media_type: str, request_id: str = "", scene: str | None = None
+    ) -> DetectResponse:
         model = self.target_model if image == PNG else self.view_model
         label = "red" if model.scene else "sphere"
         detections = tuple(
@@ -166,6 +168,12 @@ def test_the_scene_s_own_model_sends_its_object_classes(tmp_path, detail):
     classes = stages.requests[0].object_classes
     assert classes is not None
     assert [c.label for c in classes][0] == "red"
+
+
+def test_the_models_are_recorded_so_a_resumed_search_keeps_its_classes(tmp_path, detail):
+    final = run(tmp_path, FakeStages(detail, models=(OWN, OWN)), max_iterations=2)
+    assert final.target_model == OWN
+    assert [it.detector_sha256 for it in final.iterations] == ["d", "d"]
 
 
 @pytest.mark.parametrize("models", [(GENERAL, GENERAL), (OWN, GENERAL)])

@@ -8,7 +8,7 @@ from typing import Annotated, Final, Literal
 from pydantic import ConfigDict, Field
 
 from services.common.errors import ProblemDetails
-from services.common.models import Angle, Detection, FrozenModel, Pose, ThetaDeg
+from services.common.models import Angle, Detection, FrozenModel, ModelInfo, Pose, ThetaDeg
 from services.common.optimization import GridPose, StrategyName, ViewMatch
 
 __all__ = [
@@ -83,6 +83,10 @@ class Iteration(FrozenModel):
     match: ViewMatch | None = Field(
         default=None, description="How well this view matches the target (optimizer's answer)."
     )
+    detector_sha256: str | None = Field(
+        default=None,
+        description="The detector model that found this view's detections (its sha256).",
+    )
 
 
 class SearchResult(FrozenModel):
@@ -121,6 +125,11 @@ class Search(FrozenModel):
     updated_at: datetime
     target_size: tuple[int, int] = Field(description="Target image (width, height) in pixels.")
     target_detections: tuple[Detection, ...] | None = None
+    target_model: ModelInfo | None = Field(
+        default=None,
+        description="The detector model that found the target's detections: the scene's own "
+        "(``scene`` set) or the general one.",
+    )
     iterations: tuple[Iteration, ...] = ()
     result: SearchResult | None = None
     error: ProblemDetails | None = None

@@ -13,7 +13,7 @@ Detector classes: when the target was detected by the scene's own model (``model
 the search's scene), its labels are the scene's object classes and the optimizer is told so
 (``object_classes``). That holds only while every view of the request came from the very model
 (sha256) that detected the target; if a view's model differs (a model swapped mid-search) or
-is unknown (a view recorded before a restart), the request leaves ``object_classes`` out and
+is unknown (a view recorded by an earlier version), the request leaves ``object_classes`` out and
 the optimizer treats labels as mere evidence (different labels pair at a cost) rather than
 re-detecting the target. The target's detection overlaps the start view's render,
 which a search submitted to an idle runner had started before its submission was even stored
@@ -34,6 +34,7 @@ import contextlib
 import logging
 import time
 from dataclasses import dataclass
+from typing import Unpack
 
 from pydantic import ValidationError
 
@@ -53,7 +54,7 @@ from services.common.search import TERMINAL_STATUSES, Iteration, Search, SearchR
 from services.controller.broker import BrokerError
 from services.controller.events import Notifier
 from services.controller.stages import StageError, Stages
-from services.controller.store import SearchStore
+from services.controller.store import SearchChanges, SearchStore
 
 __all__ = ["SearchRunner"]
 
@@ -133,6 +134,16 @@ def _best_visited(history: list[Iteration], renders: int, why: str) -> SearchRes
     )
 
 
+def _target_changes(
+    target: DetectResponse | None, **changes: Unpack[SearchChanges]
+) -> SearchChanges:
+    """``changes``, and the target's detections and model when ``target`` is given."""
+    if target is not None:
+        changes["target_detections"] = target.detections
+        changes["target_model"] = target.model
+    return changes
+
+
 def _classes_for(
     search: Search,
     scene: SceneDetail,
@@ -157,11 +168,12 @@ class _Writes:
         self.notifier = notifier
         self.sid = search.id
         self._running = search.status == "running"
-        self._iteration: tuple[Iteration, tuple[Detection, ...] | None] | None = None
+        self._iteration: tuple[Iteration, DetectResponse | None] | None = None
 
-    def hold(self, iteration: Iteration, target_detections: tuple[Detection, ...] | None) -> None:
-        """Record ``iteration`` (with the target's detections, when new) at the next flush."""
-        self._iteration = (iteration, target_detections)
+    def hold(self, iteration: Iteration, target: DetectResponse | None) -> None:
+        """Record ``iteration`` (with the target's detections and model, when new) at the next
+        flush."""
+        self._iteration = (iteration, target)
 
     def flush(self) -> None:
         """Write what waits, and wake the search's followers."""
@@ -171,8 +183,8 @@ class _Writes:
             self.store.update(self.sid, status="running")
             self._running = True
         if self._iteration is not None:
-            iteration, target_detections = self._iteration
-            self.store.add_iteration(self.sid, iteration, target_detections=target_detections)
+            iteration, target = self._iteration
+            self.store.add_iteration(self.sid, iteration, **_target_changes(target))
             self._iteration = None
         self.notifier.publish(self.sid)
 
@@ -379,7 +391,9 @@ class SearchRunner:
             ) from exc
         history = list(search.iterations)
         views = {
-            (it.pose.index.lat, it.pose.index.lon): _View(it.image_size, it.detections)
+            (it.pose.index.lat, it.pose.index.lon): _View(
+                it.image_size, it.detections, it.detector_sha256
+            )
             for it in history
         }
         if history and history[-1].done:  # recorded by an older controller without its result
@@ -389,18 +403,19 @@ class SearchRunner:
         current = history[-1].next_pose if history else search.start
         target = search.target_detections
         target_size = search.target_size
-        target_model: ModelInfo | None = None  # unknown for a target recorded by an earlier run
+        target_model = search.target_model  # None for a target recorded by an earlier version
+        unrecorded: DetectResponse | None = None  # the target's detections, once, with a view
         if target is None and history:  # resumed between the first iteration and this one
-            target_seen = await self._detect(image, media_type_of(image), sid, search.scene)
-            target, target_size = target_seen.detections, target_seen.image_size
-            target_model = target_seen.model
+            unrecorded = await self._detect(image, media_type_of(image), sid, search.scene)
+            target, target_size = unrecorded.detections, unrecorded.image_size
+            target_model = unrecorded.model
         renders = len(views)
         view_models = [views[(it.pose.index.lat, it.pose.index.lon)] for it in history]
         while current is not None and len(history) < search.max_iterations:
             key = (current.index.lat, current.index.lon)
             started = time.perf_counter()
             render_ms = detect_ms = 0.0
-            new_target: tuple[Detection, ...] | None = None
+            new_target, unrecorded = unrecorded, None
             if key in views:
                 view = views[key]
                 writes.flush()
@@ -411,7 +426,7 @@ class SearchRunner:
                 if seen is not None:  # recorded with this iteration, below
                     target, target_size = seen.detections, seen.image_size
                     target_model = seen.model
-                    new_target = target
+                    new_target = seen
                 views[key] = view
                 renders += 1
             if not target:
@@ -459,6 +474,7 @@ class SearchRunner:
                 pose=current,
                 image_size=view.image_size,
                 detections=view.detections,
+                detector_sha256=view.model,
                 timings=StageTimings(
                     render_ms=render_ms,
                     detect_ms=detect_ms,
@@ -495,9 +511,7 @@ class SearchRunner:
                 self.store.add_iteration(
                     sid,
                     iteration,
-                    target_detections=new_target,
-                    status="succeeded",
-                    result=result,
+                    **_target_changes(new_target, status="succeeded", result=result),
                 )
                 return result
             writes.hold(iteration, new_target)

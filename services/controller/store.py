@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, TypedDict, Unpack
 
 from services.common.errors import ProblemDetails
-from services.common.models import Detection
+from services.common.models import Detection, ModelInfo
 from services.common.search import Iteration, Search, SearchResult, SearchStatus
 from services.controller.checkpoint import Checkpointer
 
@@ -54,6 +54,7 @@ class SearchChanges(TypedDict, total=False):
     result: SearchResult | None
     error: ProblemDetails | None
     target_detections: tuple[Detection, ...] | None
+    target_model: ModelInfo | None
 
 
 def utcnow() -> datetime:
