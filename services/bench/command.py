@@ -50,7 +50,18 @@ from services.common.catalog import SceneCatalog
 from services.common.optimization import StrategyName
 from services.common.scene import LoadedScene
 
-__all__ = ["BenchConfig", "run"]
+__all__ = [
+    "BenchConfig",
+    "Endpoints",
+    "load_at_end",
+    "open_endpoints",
+    "progress_printer",
+    "run",
+    "say",
+    "search_all",
+    "services_info",
+    "write_report",
+]
 
 
 @dataclass(frozen=True)
@@ -89,12 +100,12 @@ class BenchConfig:
     command: str = field(default_factory=lambda: "cosmos " + shlex.join(sys.argv[1:]))
 
 
-def _say(message: str) -> None:
+def say(message: str) -> None:
     print(message, flush=True)  # noqa: T201 - the command's own output
 
 
 @dataclass(frozen=True)
-class _Endpoints:
+class Endpoints:
     controller: str
     renderer: str
     renderers: tuple[str, ...] = ()
@@ -137,7 +148,7 @@ class _Endpoints:
 
 
 @contextmanager
-def _endpoints(
+def open_endpoints(
     config: BenchConfig,
     *,
     spp: int | None,
@@ -145,11 +156,11 @@ def _endpoints(
     renderers: int = 1,
     detectors: int = 1,
     scene_dirs: Sequence[Path] = (),
-) -> Iterator[_Endpoints]:
+) -> Iterator[Endpoints]:
     if config.url is not None:
         if config.renderer_url is None:
             raise ValueError("--url needs --renderer-url too (the targets are rendered there)")
-        yield _Endpoints(config.url.rstrip("/"), config.renderer_url.rstrip("/"))
+        yield Endpoints(config.url.rstrip("/"), config.renderer_url.rstrip("/"))
         return
     with tempfile.TemporaryDirectory(prefix="cosmos-bench-") as tmp:
         started = time.perf_counter()
@@ -165,13 +176,13 @@ def _endpoints(
             max_concurrent_searches=config.max_concurrent_searches,
             scene_dirs=dirs,
         ) as stack:
-            _say(
+            say(
                 f"stack up in {time.perf_counter() - started:.1f} s: controller "
                 f"{stack.controller}, {renderers} renderer(s), {detectors} detector(s)"
                 + (f", search views at {spp} spp" if spp is not None else "")
                 + (f", {width} px wide" if width is not None else "")
             )
-            yield _Endpoints(
+            yield Endpoints(
                 stack.controller,
                 stack.renderers[0],
                 stack.renderers,
@@ -181,7 +192,7 @@ def _endpoints(
             )
 
 
-def _services(endpoints: _Endpoints, spp: int | None, width: int | None) -> dict[str, Any]:
+def services_info(endpoints: Endpoints, spp: int | None, width: int | None) -> dict[str, Any]:
     """What the running services say about themselves (variant, model), for the report."""
     info: dict[str, Any] = {}
     with httpx.Client(timeout=10.0) as http:
@@ -207,7 +218,7 @@ def _services(endpoints: _Endpoints, spp: int | None, width: int | None) -> dict
     return info
 
 
-def _load_at_end() -> dict[str, float]:
+def load_at_end() -> dict[str, float]:
     """The 1-minute load average as the run ends (other work on the machine skews timings)."""
     return (
         {"load_average_1m_at_end": round(os.getloadavg()[0], 2)}
@@ -216,14 +227,14 @@ def _load_at_end() -> dict[str, float]:
     )
 
 
-def _progress(total: int, verbose: bool) -> Any:
+def progress_printer(total: int, verbose: bool) -> Any:
     started = time.perf_counter()
     step = max(1, total // 20)
 
     def report(done: int, record: SearchRecord) -> None:
         if verbose or record.status == "error":
             mark = "ok " if record.success else "MISS"
-            _say(
+            say(
                 f"  [{done:>4}/{total}] {mark} {record.scene} {record.variant:<8} "
                 f"{record.strategy:<12} #{record.number:<3} {record.renders:>2} renders "
                 f"{record.wall_ms:7.0f} ms {record.status}"
@@ -231,7 +242,7 @@ def _progress(total: int, verbose: bool) -> Any:
             )
         elif done % step == 0 or done == total:
             elapsed = time.perf_counter() - started
-            _say(
+            say(
                 f"  {done}/{total} searches, {elapsed:.0f} s, "
                 f"~{elapsed / done * (total - done):.0f} s left"
             )
@@ -239,9 +250,9 @@ def _progress(total: int, verbose: bool) -> Any:
     return report
 
 
-def _search_all(
+def search_all(
     config: BenchConfig,
-    endpoints: _Endpoints,
+    endpoints: Endpoints,
     variants: Sequence[Variant],
     strategies: Sequence[StrategyName],
 ) -> tuple[list[Target], list[SearchRecord]]:
@@ -251,7 +262,7 @@ def _search_all(
         variants,
         config.n,
         config.seed,
-        progress=_say,
+        progress=say,
         scene_of=endpoints.scene_of,
         altered_dir=endpoints.altered_dir,
     )
@@ -263,13 +274,13 @@ def _search_all(
         max_iterations=config.max_iterations,
     )
     jobs = [(t, s) for t in targets for s in strategies]
-    _say(f"{len(jobs)} searches, {config.concurrency} in flight")
+    say(f"{len(jobs)} searches, {config.concurrency} in flight")
     records = run_searches(
         endpoints.controller,
         jobs,
         concurrency=config.concurrency,
         max_iterations=config.max_iterations,
-        progress=_progress(len(jobs), config.verbose),
+        progress=progress_printer(len(jobs), config.verbose),
     )
     return targets, records
 
@@ -284,41 +295,41 @@ def _rounded(value: Any) -> Any:
     return value
 
 
-def _write(config: BenchConfig, name: str, report: dict[str, Any]) -> None:
+def write_report(config: BenchConfig, name: str, report: dict[str, Any]) -> None:
     config.out.mkdir(parents=True, exist_ok=True)
     path = config.out / name
     # Compact, floats to 4 decimals (0.1 µs, 0.0001°): a 1440-search report stays ~1.5 MB.
     path.write_text(json.dumps(_rounded(report), separators=(",", ":"), default=str) + "\n")
-    _say(f"wrote {path}")
+    say(f"wrote {path}")
     if config.results_md is not None:
         write_results_md(config.results_md, config.out)
-        _say(f"wrote {config.results_md}")
+        say(f"wrote {config.results_md}")
 
 
 def run_main(config: BenchConfig) -> int:
     """The bench: searches, tables, plots, and the profile when asked."""
     started = time.perf_counter()
-    with _endpoints(config, spp=config.spp, width=config.width) as endpoints:
-        machine = machine_info(_services(endpoints, config.spp, config.width))
-        targets, records = _search_all(config, endpoints, config.variants, config.strategies)
+    with open_endpoints(config, spp=config.spp, width=config.width) as endpoints:
+        machine = machine_info(services_info(endpoints, config.spp, config.width))
+        targets, records = search_all(config, endpoints, config.variants, config.strategies)
         summaries = summarize(records)
-        _say("")
-        _say(text_tables(summaries))
+        say("")
+        say(text_tables(summaries))
         profile = None
         if config.profile:
             sample = _profile_sample(targets, config)
-            _say(f"\nprofile: {len(sample)} clean on-grid targets, reprojection")
+            say(f"\nprofile: {len(sample)} clean on-grid targets, reprojection")
             samples = profile_searches(
                 endpoints.controller,
                 sample,
                 render_spp=config.spp,
                 render_width=config.width,
                 max_iterations=config.max_iterations,
-                progress=_say if config.verbose else None,
+                progress=say if config.verbose else None,
             )
             profile = profile_summary(samples)
             for row in profile["rows"]:
-                _say(
+                say(
                     f"  {row['scene']:<8} n={row['n']:<3} wall p50 {row['wall_p50_ms']:.0f} ms, "
                     f"floor p50 {row['floor_p50_ms']:.0f} ms, one process p50 "
                     f"{row['pipeline_p50_ms']:.0f} ms; median wall/floor "
@@ -328,7 +339,7 @@ def run_main(config: BenchConfig) -> int:
     duration = time.perf_counter() - started
     report: dict[str, Any] = {
         "command": config.command,
-        "machine": machine | _load_at_end(),
+        "machine": machine | load_at_end(),
         "duration_s": duration,
         "config": {
             "n": config.n,
@@ -348,8 +359,8 @@ def run_main(config: BenchConfig) -> int:
     }
     config.out.mkdir(parents=True, exist_ok=True)
     for path in write_plots(records, config.out):
-        _say(f"wrote {path}")
-    _write(config, "bench.json", report)
+        say(f"wrote {path}")
+    write_report(config, "bench.json", report)
     errors = sum(r.status == "error" for r in records)
     return 1 if errors else 0
 
@@ -371,19 +382,19 @@ def run_sweep(config: BenchConfig) -> int:
     from services.bench.settings_sweep import detection_sweep
 
     started = time.perf_counter()
-    _say(f"detection against ground truth: {config.sweep_poses} poses per scene")
+    say(f"detection against ground truth: {config.sweep_poses} poses per scene")
     detection = detection_sweep(
-        config.scenes, spps=config.sweep, poses=config.sweep_poses, seed=config.seed, say=_say
+        config.scenes, spps=config.sweep, poses=config.sweep_poses, seed=config.seed, say=say
     )
     searches = []
     machine: dict[str, Any] = {}
     for width in config.sweep_widths or (None,):
         for spp in config.sweep:
-            with _endpoints(config, spp=spp, width=width) as endpoints:
-                machine = machine or machine_info(_services(endpoints, None, None))
-                _, records = _search_all(config, endpoints, config.variants, config.strategies)
-            _say(f"\nsearch views at {spp} spp, {width or 'the scene'}'s width")
-            _say(text_tables(summarize(records)))
+            with open_endpoints(config, spp=spp, width=width) as endpoints:
+                machine = machine or machine_info(services_info(endpoints, None, None))
+                _, records = search_all(config, endpoints, config.variants, config.strategies)
+            say(f"\nsearch views at {spp} spp, {width or 'the scene'}'s width")
+            say(text_tables(summarize(records)))
             searches.append(
                 {
                     "spp": spp,
@@ -393,12 +404,12 @@ def run_sweep(config: BenchConfig) -> int:
             )
     report = {
         "command": config.command,
-        "machine": machine | _load_at_end() | {"duration_s": round(time.perf_counter() - started)},
+        "machine": machine | load_at_end() | {"duration_s": round(time.perf_counter() - started)},
         "notes": list(config.notes),
         "detection": detection,
         "searches": searches,
     }
-    _write(config, "sweep.json", report)
+    write_report(config, "sweep.json", report)
     return 0
 
 
@@ -412,14 +423,14 @@ def run_throughput(config: BenchConfig) -> int:
     machine: dict[str, Any] = {}
     failures = 0
     for renderers, detectors in ((1, 1), (config.renderers, config.detectors)):
-        with _endpoints(
+        with open_endpoints(
             config,
             spp=config.spp,
             width=config.width,
             renderers=renderers,
             detectors=detectors,
         ) as ep:
-            machine = machine or machine_info(_services(ep, config.spp, config.width))
+            machine = machine or machine_info(services_info(ep, config.spp, config.width))
             scenes = config.scenes
             per_scene = -(-config.throughput_searches // len(scenes))
             targets = make_targets(ep.renderer, scenes, ("clean",), per_scene, config.seed)
@@ -452,18 +463,18 @@ def run_throughput(config: BenchConfig) -> int:
             "wall_p95_ms": percentile(walls, 95),
         }
         rows.append(row)
-        _say(
+        say(
             f"{renderers} renderer(s), {detectors} detector(s): {len(records)} searches at once in "
             f"{elapsed:.1f} s = {row['per_minute']:.1f} searches/min, {errors} errors, "
             f"{row['found']} found the target"
         )
     report = {
         "command": config.command,
-        "machine": machine | _load_at_end() | {"duration_s": round(time.perf_counter() - started)},
+        "machine": machine | load_at_end() | {"duration_s": round(time.perf_counter() - started)},
         "notes": list(config.notes),
         "rows": rows,
     }
-    _write(config, "throughput.json", report)
+    write_report(config, "throughput.json", report)
     return 1 if failures else 0
 
 
@@ -473,7 +484,7 @@ def run(config: BenchConfig) -> int:
         if config.results_md is None:
             raise ValueError("--regenerate needs --results-md")
         write_results_md(config.results_md, config.out)
-        _say(f"wrote {config.results_md} from the reports in {config.out}")
+        say(f"wrote {config.results_md} from the reports in {config.out}")
         return 0
     if config.n < 1:
         raise ValueError("--n must be at least 1")

@@ -30,14 +30,14 @@ import numpy as np
 
 from services.bench.command import (
     BenchConfig,
-    _Endpoints,
-    _endpoints,
-    _load_at_end,
-    _progress,
-    _say,
-    _search_all,
-    _services,
-    _write,
+    Endpoints,
+    load_at_end,
+    open_endpoints,
+    progress_printer,
+    say,
+    search_all,
+    services_info,
+    write_report,
 )
 from services.bench.random_report import GOALS, band_cells, band_table, goal_checks
 from services.bench.report import machine_info
@@ -118,7 +118,7 @@ def _onboarding_summary(report: Any) -> str:
     return ", ".join(parts) or str(report)
 
 
-def _wait_for_model(endpoints: _Endpoints, scene: str, image: bytes) -> dict[str, Any]:
+def _wait_for_model(endpoints: Endpoints, scene: str, image: bytes) -> dict[str, Any]:
     """Ask every detector until each serves ``scene``'s own model (or :data:`MODEL_WAIT_S`
     passes); what the first one served last."""
     deadline = time.monotonic() + MODEL_WAIT_S
@@ -131,7 +131,7 @@ def _wait_for_model(endpoints: _Endpoints, scene: str, image: bytes) -> dict[str
 
 def _scene_arm(
     config: BenchConfig,
-    endpoints: _Endpoints,
+    endpoints: Endpoints,
     targets: Sequence[Target],
     scene_dir: Path,
     work_root: Path,
@@ -141,20 +141,20 @@ def _scene_arm(
     """Onboard each scene, check its model serves, search its targets again with it."""
     ready = []
     for scene in config.scenes:
-        _say(f"onboarding {scene} ({config.onboard})")
+        say(f"onboarding {scene} ({config.onboard})")
         started = time.perf_counter()
         try:
             report = onboard(scene_dir / f"{scene}.yaml", work_root / scene)
         except (ImportError, OSError, RuntimeError, ValueError) as exc:
             # One scene's failed training must not cost the run its general arm's figures.
             failure = f"failed: {type(exc).__name__}: {exc}"
-            _say(f"  onboarding {scene} {failure}")
+            say(f"  onboarding {scene} {failure}")
             models.append({"scene": scene, "arm": "scene", "served": "—", "onboarding": failure})
             if isinstance(exc, ImportError):  # torch missing: no other scene will do better
                 break
             continue
         summary = _onboarding_summary(report)
-        _say(f"  onboarded {scene} in {time.perf_counter() - started:.0f} s: {summary}")
+        say(f"  onboarded {scene} in {time.perf_counter() - started:.0f} s: {summary}")
         image = next(t.image for t in targets if t.scene == scene)
         model = _wait_for_model(endpoints, scene, image)
         models.append(
@@ -165,7 +165,7 @@ def _scene_arm(
         else:
             status = model_status(endpoints.detectors[0], scene)
             models[-1]["served"] += f"; the scene's own model: {status}"
-            _say(f"  the detector does not serve {scene}'s own model ({status})")
+            say(f"  the detector does not serve {scene}'s own model ({status})")
     jobs = [(t, s) for t in targets if t.scene in ready for s in config.strategies]
     if not jobs:
         return []
@@ -176,13 +176,13 @@ def _scene_arm(
         max_iterations=config.max_iterations,
         arm="scene",
     )
-    _say(f"{len(jobs)} searches with the scenes' own models")
+    say(f"{len(jobs)} searches with the scenes' own models")
     return run_searches(
         endpoints.controller,
         jobs,
         concurrency=config.concurrency,
         max_iterations=config.max_iterations,
-        progress=_progress(len(jobs), config.verbose),
+        progress=progress_printer(len(jobs), config.verbose),
         arm="scene",
     )
 
@@ -195,13 +195,13 @@ def _run(config: BenchConfig, root: Path) -> int:
     for i, scene in enumerate(ids):
         path = generate_scene(np.random.default_rng([config.seed, i]), scene_dir, scene)
         scenes.append(scene_summary(load_scene(path)))
-        _say(f"generated {path}: {scenes[-1]['objects']} objects, {', '.join(scenes[-1]['kinds'])}")
+        say(f"generated {path}: {scenes[-1]['objects']} objects, {', '.join(scenes[-1]['kinds'])}")
     config = replace(config, scenes=ids)
     notes = list(config.notes)
     models: list[dict[str, Any]] = []
-    with _endpoints(config, spp=config.spp, width=config.width, scene_dirs=(scene_dir,)) as ep:
-        machine = machine_info(_services(ep, config.spp, config.width))
-        targets, records = _search_all(config, ep, config.variants, config.strategies)
+    with open_endpoints(config, spp=config.spp, width=config.width, scene_dirs=(scene_dir,)) as ep:
+        machine = machine_info(services_info(ep, config.spp, config.width))
+        targets, records = search_all(config, ep, config.variants, config.strategies)
         for scene in ids:
             image = next(t.image for t in targets if t.scene == scene)
             served = served_model(ep.detectors[0], scene, image) if ep.detectors else {}
@@ -211,18 +211,18 @@ def _run(config: BenchConfig, root: Path) -> int:
             onboard, why_not = _onboarder(config.onboard)
         if onboard is None:
             notes.append(why_not)
-            _say(why_not)
+            say(why_not)
         else:
             records += _scene_arm(config, ep, targets, scene_dir, root / "onboard", onboard, models)
     cells = band_cells(records)
-    _say("")
-    _say(band_table(cells))
-    _say(f"\ngoals: {GOALS}")
+    say("")
+    say(band_table(cells))
+    say(f"\ngoals: {GOALS}")
     for line in goal_checks(cells):
-        _say(f"  {line}")
+        say(f"  {line}")
     report: dict[str, Any] = {
         "command": config.command,
-        "machine": machine | _load_at_end(),
+        "machine": machine | load_at_end(),
         "duration_s": time.perf_counter() - started,
         "config": {
             "random_scenes": config.random_scenes,
@@ -240,7 +240,7 @@ def _run(config: BenchConfig, root: Path) -> int:
         "models": models,
         "records": [r.model_dump(mode="json") for r in records],
     }
-    _write(config, "random.json", report)
+    write_report(config, "random.json", report)
     return 1 if any(r.status == "error" for r in records) else 0
 
 
