@@ -400,7 +400,7 @@ def test_the_onboard_preset_reaches_onboard_scene(monkeypatch, tmp_path):
 
 def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, tmp_path):
     from services.bench import random_run
-    from services.bench.command import BenchConfig, _Endpoints
+    from services.bench.command import BenchConfig, Endpoints
     from services.bench.runner import Target
     from services.common.models import Pose
 
@@ -435,7 +435,7 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
     monkeypatch.setattr(random_run, "model_status", lambda url, scene: "refused: wrong classes")
     models: list = []
     config = BenchConfig(scenes=("a", "b", "c"), strategies=("reprojection",), onboard="tiny")
-    endpoints = _Endpoints("http://c", "http://r", detectors=("http://d",))
+    endpoints = Endpoints("http://c", "http://r", detectors=("http://d",))
     records = random_run._scene_arm(
         config, endpoints, targets, tmp_path, tmp_path / "work", onboard, models
     )
