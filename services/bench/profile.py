@@ -36,11 +36,11 @@ from services.common.catalog import SceneCatalog, scene_grid
 from services.common.images import decode_image
 from services.common.models import Detection, GridIndex, PoseQuery
 from services.common.optimization import (
-    GridSpec,
     NextPoseRequest,
     StrategyName,
     TargetImage,
     VisitedView,
+    search_grid,
 )
 from services.common.scene import LoadedScene
 
@@ -203,11 +203,7 @@ class InProcess:
 
         scene = self.catalog.get(record.scene)
         spec = scene.spec
-        grid = GridSpec(
-            angle_step_deg=spec.search.angle_step_deg,
-            min_theta_deg=spec.search.min_theta_deg,
-            max_theta_deg=spec.search.max_theta_deg,
-        )
+        grid = search_grid(spec.search)
         started = time.perf_counter()
         pending = self._pool.submit(self.detect_bytes, image)
         target: View | None = None

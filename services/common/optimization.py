@@ -9,11 +9,11 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from services.common.grid import HemisphereGrid, grid_for
 from services.common.models import Detection, FrozenModel, GridIndex, Pose, PoseQuery
-from services.common.scene import SCENE_ID_PATTERN, Camera
+from services.common.scene import SCENE_ID_PATTERN, Camera, SearchSettings
 from services.common.scene_models import ObjectClass
 
 __all__ = [
@@ -36,8 +36,10 @@ __all__ = [
     "StrategyInfo",
     "StrategyName",
     "TargetImage",
+    "UnsupportedGridError",
     "ViewMatch",
     "VisitedView",
+    "search_grid",
 ]
 
 MAX_DETECTIONS = 64
@@ -76,6 +78,35 @@ class GridSpec(FrozenModel):
     def grid(self) -> HemisphereGrid:
         """The shared :class:`~services.common.grid.HemisphereGrid` of these settings."""
         return grid_for(self.angle_step_deg, self.min_theta_deg, self.max_theta_deg)
+
+
+class UnsupportedGridError(ValueError):
+    """A scene's grid that the scene format allows but the optimizer cannot search.
+
+    ``field`` names the offending setting of the scene's ``search`` section.
+    """
+
+    def __init__(self, message: str, field: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+def search_grid(settings: SearchSettings) -> GridSpec:
+    """The optimizer's grid of a scene's ``search`` settings.
+
+    Raises :class:`UnsupportedGridError` when the optimizer cannot search it (a step under 1°):
+    the scene file is valid, so this is the caller's 422, not a bug.
+    """
+    try:
+        return GridSpec(
+            angle_step_deg=settings.angle_step_deg,
+            min_theta_deg=settings.min_theta_deg,
+            max_theta_deg=settings.max_theta_deg,
+        )
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        field = ".".join(str(part) for part in ("search", *error["loc"]))
+        raise UnsupportedGridError(f"{field}: {error['msg']}", field) from exc
 
 
 class ImageDetections(FrozenModel):

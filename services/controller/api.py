@@ -13,7 +13,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
 from services.common.http import app_state, problem_responses
 from services.common.models import SceneSummary
-from services.common.optimization import GridSpec
+from services.common.optimization import GridSpec, UnsupportedGridError, search_grid
 from services.common.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
 from services.common.upload import read_upload
 from services.controller.broker import Broker, BrokerError
@@ -194,18 +194,21 @@ async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
         scene = await state.stages.scene(search.scene)
     except (StageError, BrokerError) as exc:
         raise _unavailable(BrokerError("renderer", "scene", [str(exc)])) from exc
-    settings = scene.spec.search
-    return GridSpec(
-        angle_step_deg=settings.angle_step_deg,
-        min_theta_deg=settings.min_theta_deg,
-        max_theta_deg=settings.max_theta_deg,
-    )
+    try:
+        return search_grid(scene.spec.search)
+    except UnsupportedGridError as exc:  # the scene file changed since the search was taken
+        raise UnprocessableError(
+            f"scene {search.scene!r}'s grid cannot be drawn: {exc}",
+            field=exc.field,
+            slug="unsupported-grid",
+            title="Grid not supported",
+        ) from exc
 
 
 @router.get(
     "/searches/{search_id}/trajectory.png",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}}}, **problem_responses(404, 503)},
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(404, 422, 503)},
 )
 async def trajectory(search_id: str, state: State) -> Response:
     """The camera's path on the hemisphere (like the paper's Fig. 6)."""

@@ -20,6 +20,7 @@ from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
+from services.controller.transport import Transport
 
 __all__ = ["app", "create_app"]
 
@@ -32,8 +33,14 @@ async def _discover(broker: Broker, settings: ControllerSettings) -> None:
         await asyncio.sleep(settings.discovery_interval_s)
 
 
-def create_app(settings: ControllerSettings | None = None) -> FastAPI:
-    """A controller app; reads ``COSMOS_*`` settings from the environment unless given."""
+def create_app(
+    settings: ControllerSettings | None = None, *, transport: Transport | None = None
+) -> FastAPI:
+    """A controller app; reads ``COSMOS_*`` settings from the environment unless given.
+
+    ``transport`` carries the calls to the stages (HTTP/1.1 over the network unless given; tests
+    hand requests to in-process apps).
+    """
     settings = settings or ControllerSettings()
 
     @asynccontextmanager
@@ -44,6 +51,7 @@ def create_app(settings: ControllerSettings | None = None) -> FastAPI:
             heuristic=settings.broker_heuristic,
             timeouts_s=settings.timeouts(),
             connect_timeout_s=settings.connect_timeout_s,
+            transport=transport,
         )
         stages = Stages(broker, render_spp=settings.render_spp, render_width=settings.render_width)
         notifier = Notifier()

@@ -43,10 +43,11 @@ from services.common.images import media_type_of
 from services.common.models import Detection, DetectResponse, ModelInfo, Pose, PoseQuery
 from services.common.optimization import (
     GridPose,
-    GridSpec,
     NextPoseRequest,
     TargetImage,
+    UnsupportedGridError,
     VisitedView,
+    search_grid,
 )
 from services.common.scene import SceneDetail
 from services.common.scene_models import ObjectClass, object_classes
@@ -377,16 +378,12 @@ class SearchRunner:
             raise _stage_failure(exc) from exc
         camera = scene.spec.camera
         try:
-            grid = GridSpec(
-                angle_step_deg=scene.spec.search.angle_step_deg,
-                min_theta_deg=scene.spec.search.min_theta_deg,
-                max_theta_deg=scene.spec.search.max_theta_deg,
-            )
-        except ValidationError as exc:
+            grid = search_grid(scene.spec.search)
+        except UnsupportedGridError as exc:  # the scene file changed since the search was taken
             raise _failure(
                 "unsupported-grid",
                 "Grid not supported",
-                f"scene {search.scene}'s grid cannot be searched: {exc.errors()[0]['msg']}",
+                f"scene {search.scene}'s grid cannot be searched: {exc}",
                 status=422,
             ) from exc
         history = list(search.iterations)

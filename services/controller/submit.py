@@ -10,7 +10,7 @@ import uuid
 from services.common.errors import NotFoundError, UnprocessableError
 from services.common.images import checked_header, decode_image
 from services.common.models import Pose
-from services.common.optimization import GridPose, GridSpec, StrategyName
+from services.common.optimization import GridPose, StrategyName, UnsupportedGridError, search_grid
 from services.common.scene import SCENE_ID_PATTERN
 from services.common.search import MAX_ITERATIONS, Search
 from services.controller.stages import StageError, Stages
@@ -72,12 +72,15 @@ async def create_search(
         raise UnprocessableError(
             f"scene {scene_id!r}: {exc.problem.detail}", field="scene"
         ) from exc
-    search = scene.spec.search
-    grid = GridSpec(
-        angle_step_deg=search.angle_step_deg,
-        min_theta_deg=search.min_theta_deg,
-        max_theta_deg=search.max_theta_deg,
-    ).grid()
+    try:
+        grid = search_grid(scene.spec.search).grid()
+    except UnsupportedGridError as exc:
+        raise UnprocessableError(
+            f"scene {scene_id!r}'s grid cannot be searched: {exc}",
+            field=exc.field,
+            slug="unsupported-grid",
+            title="Grid not supported",
+        ) from exc
     seed = seed if seed is not None else random.SystemRandom().randrange(2**31)
     if start_theta_deg is not None and start_phi_deg is not None:
         try:

@@ -1,0 +1,100 @@
+"""The controller app in process over an in-process renderer: a scene whose grid the optimizer
+cannot search is refused at submission with a 422 naming the field, and followers of a search's
+events leave nothing behind in the notifier."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+from asgi_lifespan import LifespanManager
+from fastapi import FastAPI
+from starlette.types import ASGIApp
+
+from services.common.catalog import BUILTIN_SCENES_DIR
+from services.controller.app import create_app as create_controller
+from services.controller.settings import ControllerSettings
+from services.controller.transport import StageAnswer, StageRequest
+from services.renderer.app import create_app as create_renderer
+from services.renderer.settings import RendererSettings
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture(scope="module")
+def anyio_backend() -> str:
+    return "asyncio"
+
+
+class RendererOnly:
+    """A transport that hands renderer calls to an in-process app; other stages are down."""
+
+    def __init__(self, renderer: ASGIApp) -> None:
+        self.client = httpx.AsyncClient(
+            transport=httpx.ASGITransport(app=renderer), base_url="http://renderer"
+        )
+
+    async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer:
+        if urlsplit(base_url).hostname != "renderer":
+            return StageAnswer(503, b"", {})
+        response = await self.client.request(
+            request.method, request.path, content=request.body, headers=dict(request.headers)
+        )
+        return StageAnswer(response.status_code, response.content, dict(response.headers))
+
+    async def close(self) -> None:
+        await self.client.aclose()
+
+
+@pytest.fixture
+async def controller(tmp_path: Path) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
+    """A controller whose renderer knows ``demo`` and ``fine``: the demo scene at a 0.5° step,
+    which the scene format allows and the optimizer does not search."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    demo = (BUILTIN_SCENES_DIR / "demo.yaml").read_text()
+    fine = demo.replace("angle_step_deg: 7.5", "angle_step_deg: 0.5")
+    assert fine != demo
+    (scenes / "fine.yaml").write_text(fine)
+    settings = ControllerSettings(
+        renderer_urls="http://renderer",
+        detector_urls="http://detector",
+        optimizer_urls="http://optimizer",
+        database_url=f"sqlite:///{tmp_path / 'controller.sqlite3'}",
+    )
+    async with LifespanManager(create_renderer(RendererSettings(scenes_dir=str(scenes)))) as r:
+        app = create_controller(settings, transport=RendererOnly(r.app))
+        async with (
+            LifespanManager(app) as c,
+            httpx.AsyncClient(
+                transport=httpx.ASGITransport(app=c.app), base_url="http://controller"
+            ) as client,
+        ):
+            yield app, client
+
+
+def png_bytes() -> bytes:
+    ok, buffer = cv2.imencode(".png", np.zeros((24, 32, 3), np.uint8))
+    assert ok
+    return bytes(buffer)
+
+
+async def test_a_grid_the_optimizer_cannot_search_is_refused_at_submission(controller):
+    _, client = controller
+    response = await client.post(
+        "/searches", files={"image": ("t.png", png_bytes(), "image/png")}, data={"scene": "fine"}
+    )
+    assert response.status_code == 422, response.text
+    assert response.headers["content-type"].startswith("application/problem+json")
+    problem = response.json()
+    assert problem["type"] == "urn:cosmos:problem:unsupported-grid"
+    assert problem["field"] == "search.angle_step_deg"
+    assert "fine" in problem["detail"]
+    listed = await client.get("/searches")
+    assert listed.status_code == 200
+    assert listed.json()["total"] == 0  # nothing was recorded
