@@ -4,6 +4,7 @@ events leave nothing behind in the notifier."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -17,8 +18,13 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp
 
 from services.common.catalog import BUILTIN_SCENES_DIR
+from services.common.models import GridIndex
+from services.common.optimization import GridPose
+from services.common.search import Search, SearchStatus
 from services.controller.app import create_app as create_controller
+from services.controller.events import Notifier
 from services.controller.settings import ControllerSettings
+from services.controller.store import SearchStore, utcnow
 from services.controller.transport import StageAnswer, StageRequest
 from services.renderer.app import create_app as create_renderer
 from services.renderer.settings import RendererSettings
@@ -98,3 +104,50 @@ async def test_a_grid_the_optimizer_cannot_search_is_refused_at_submission(contr
     listed = await client.get("/searches")
     assert listed.status_code == 200
     assert listed.json()["total"] == 0  # nothing was recorded
+
+
+def record(store: SearchStore, search_id: str, status: SearchStatus) -> None:
+    """Store a search as if submitted (the runner is not told, so it stays as stored)."""
+    now = utcnow()
+    search = Search(
+        id=search_id,
+        status=status,
+        scene="demo",
+        strategy="reprojection",
+        start=GridPose(index=GridIndex(lat=3, lon=0), theta_deg=30.0, phi_deg=0.0),
+        seed=1,
+        max_iterations=5,
+        created_at=now,
+        updated_at=now,
+        target_size=(32, 24),
+    )
+    store.create(search, png_bytes())
+
+
+async def test_followers_that_come_and_go_leave_nothing_in_the_notifier(controller):
+    """Followers of a finished search, and followers of a running one that disconnect (their
+    request is cancelled while they wait), leave no event behind."""
+    app, client = controller
+    state = app.state.controller
+    record(state.store, "finished", "cancelled")
+    record(state.store, "running", "running")
+    for _ in range(5):
+        response = await client.get("/searches/finished/events")
+        assert response.status_code == 200
+        assert response.text.startswith("event: end")
+    for _ in range(5):
+        with pytest.raises(TimeoutError):  # the client gives up; the app's stream is cancelled
+            await asyncio.wait_for(client.get("/searches/running/events"), timeout=0.05)
+    assert state.notifier._events == {}
+    assert state.notifier.followed() == 0
+
+
+async def test_a_follower_wakes_on_a_change_and_then_lets_go():
+    notifier = Notifier()
+    with notifier.following("s"):
+        changed = notifier.current("s")
+        assert notifier.followed() == 1
+        notifier.publish("s")
+        assert changed.is_set()
+        assert notifier.current("s") is not changed  # the next change sets a fresh event
+    assert notifier.followed() == 0

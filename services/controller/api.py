@@ -167,22 +167,24 @@ async def search_events(search_id: str, state: State) -> StreamingResponse:
 
     async def stream() -> AsyncIterator[bytes]:
         sent = 0
-        while True:
-            changed = state.notifier.current(search_id)
-            status_doc = state.store.status_doc(search_id)  # before the iterations: a search
-            docs = state.store.iteration_docs(search_id, start=sent)  # ends after its last one
-            for doc in docs:
-                yield _sse("iteration", doc)
-            sent += len(docs)
-            if status_doc is None:  # searches are never deleted; stop rather than spin
-                return
-            if status_doc[0] in TERMINAL_STATUSES:
-                yield _sse("end", status_doc[1])
-                return
-            try:
-                await asyncio.wait_for(changed.wait(), timeout=15.0)
-            except TimeoutError:
-                yield b": keep-alive\n\n"
+        with state.notifier.following(search_id):  # a client that goes away stops following
+            while True:
+                changed = state.notifier.current(search_id)
+                # The status before the iterations: a search ends after its last one.
+                status_doc = state.store.status_doc(search_id)
+                docs = state.store.iteration_docs(search_id, start=sent)
+                for doc in docs:
+                    yield _sse("iteration", doc)
+                sent += len(docs)
+                if status_doc is None:  # searches are never deleted; stop rather than spin
+                    return
+                if status_doc[0] in TERMINAL_STATUSES:
+                    yield _sse("end", status_doc[1])
+                    return
+                try:
+                    await asyncio.wait_for(changed.wait(), timeout=15.0)
+                except TimeoutError:
+                    yield b": keep-alive\n\n"
 
     return StreamingResponse(
         stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
