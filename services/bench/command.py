@@ -209,7 +209,11 @@ def services_info(endpoints: Endpoints, spp: int | None, width: int | None) -> d
     from services.controller.settings import ControllerSettings
 
     defaults = ControllerSettings()  # what a local stack's controller reads too
-    default_spp = defaults.render_spp if defaults.render_spp is not None else "renderer default"
+    default_spp = (
+        defaults.controller_view_spp
+        if defaults.controller_view_spp is not None
+        else "renderer default"
+    )
     default_width = defaults.render_width if defaults.render_width is not None else "scene's own"
     info["search_view_spp"] = spp if spp is not None else f"{default_spp} (controller default)"
     info["search_view_width"] = (

@@ -109,7 +109,7 @@ class InProcess:
         controller = ControllerSettings()
         self.catalog = SceneCatalog(renderer.scene_directories())
         # What the controller asks the renderer for (its settings, else the renderer's default).
-        self.spp = render_spp or controller.render_spp or renderer.render_spp
+        self.spp = render_spp or controller.controller_view_spp or renderer.renderer_default_spp
         self.width = render_width or controller.render_width
         self.engine = RenderEngine(renderer.mitsuba_variant)
         self.engine.start()

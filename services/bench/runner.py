@@ -441,15 +441,15 @@ def local_stack(
 ) -> Iterator[Stack]:
     """The four services as local processes on free loopback ports, a fresh SQLite database in
     ``workdir``. ``render_spp`` and ``render_width`` set the controller's samples per pixel and
-    film width for search views (``COSMOS_RENDER_SPP``, ``COSMOS_RENDER_WIDTH``; targets always
-    ask for :data:`TARGET_SPP` at the scene's film explicitly); ``scene_dirs`` come before any
-    ``COSMOS_SCENES_DIR`` of this process."""
+    film width for search views (``COSMOS_CONTROLLER_VIEW_SPP``, ``COSMOS_RENDER_WIDTH``;
+    targets always ask for :data:`TARGET_SPP` at the scene's film explicitly); ``scene_dirs``
+    come before any ``COSMOS_SCENES_DIR`` of this process."""
     env: dict[str, str] = {}
     if scene_dirs:
         inherited = [os.environ["COSMOS_SCENES_DIR"]] if os.environ.get("COSMOS_SCENES_DIR") else []
         env["COSMOS_SCENES_DIR"] = os.pathsep.join([*(str(d) for d in scene_dirs), *inherited])
     if render_spp is not None:
-        env["COSMOS_RENDER_SPP"] = str(render_spp)
+        env["COSMOS_CONTROLLER_VIEW_SPP"] = str(render_spp)
     if render_width is not None:
         env["COSMOS_RENDER_WIDTH"] = str(render_width)
     if max_concurrent_searches is not None:

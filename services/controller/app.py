@@ -53,7 +53,9 @@ def create_app(
             connect_timeout_s=settings.connect_timeout_s,
             transport=transport,
         )
-        stages = Stages(broker, render_spp=settings.render_spp, render_width=settings.render_width)
+        stages = Stages(
+            broker, render_spp=settings.controller_view_spp, render_width=settings.render_width
+        )
         notifier = Notifier()
         runner = SearchRunner(store, stages, notifier, settings.max_concurrent_searches)
         await broker.start()

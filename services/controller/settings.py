@@ -5,9 +5,8 @@ from __future__ import annotations
 from typing import Annotated
 
 from pydantic import Field, field_validator
-from pydantic_settings import BaseSettings
 
-from services.common.settings import settings_config
+from services.common.settings import ServiceSettings
 from services.controller.broker import Heuristic
 
 __all__ = ["ControllerSettings"]
@@ -17,14 +16,17 @@ def _urls(value: str) -> list[str]:
     return [part.strip().rstrip("/") for part in value.split(",") if part.strip()]
 
 
-class ControllerSettings(BaseSettings):
+class ControllerSettings(ServiceSettings):
     """Replica URLs per stage (comma-separated), the database, and limits.
 
     ``COSMOS_RENDERER_URLS``, ``COSMOS_DETECTOR_URLS``, ``COSMOS_OPTIMIZER_URLS``;
     ``COSMOS_DATABASE_URL`` (``sqlite:///path``).
+
+    ``COSMOS_RENDER_SPP``, which the renderer reads too, is read as
+    ``COSMOS_CONTROLLER_VIEW_SPP`` for one more release, with a warning.
     """
 
-    model_config = settings_config()
+    renamed = {"COSMOS_RENDER_SPP": "controller_view_spp"}
 
     renderer_urls: str = "http://127.0.0.1:8001"
     detector_urls: str = "http://127.0.0.1:8002"
@@ -35,7 +37,7 @@ class ControllerSettings(BaseSettings):
     discovery_interval_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
     max_concurrent_searches: Annotated[int, Field(ge=1, le=1000)] = 4
     default_max_iterations: Annotated[int, Field(ge=1, le=500)] = 40
-    render_spp: Annotated[int, Field(ge=1, le=1024)] | None = 8
+    controller_view_spp: Annotated[int, Field(ge=1, le=1024)] | None = 8
     """Samples per pixel of the search views (None: the renderer's default). 8 is the cheapest
     setting at which detection and search success did not drop (docs/RESULTS.md, ``--sweep``)."""
     render_width: Annotated[int, Field(ge=8, le=8192)] | None = None

@@ -45,7 +45,7 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
         "Maps detections to the ground and proposes the next camera pose of a search.",
         lifespan,
         router,
-        settings.max_body_bytes,
+        settings.optimizer_max_body_bytes,
     )
 
 

@@ -6,30 +6,32 @@ from pathlib import Path
 from typing import Annotated
 
 from pydantic import Field
-from pydantic_settings import BaseSettings
 
 from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.optimization import StrategyName
-from services.common.settings import settings_config, split_paths
+from services.common.settings import ServiceSettings, split_paths
 from services.optimizer.calibration import DEFAULT_CALIBRATION_FILE
 
 __all__ = ["OptimizerSettings"]
 
 
-class OptimizerSettings(BaseSettings):
+class OptimizerSettings(ServiceSettings):
     """``COSMOS_DEFAULT_STRATEGY`` picks the strategy of requests that name none;
     ``COSMOS_PAPER_CALIBRATION`` is the JSON file of the paper mapping's coefficients;
     ``COSMOS_SCENES_DIR`` adds scene directories for requests that name a ``scene``
-    (as for the renderer); the rest bound what one request may ask for."""
+    (as for the renderer); the rest bound what one request may ask for.
 
-    model_config = settings_config()
+    ``COSMOS_MAX_BODY_BYTES``, which the renderer reads too, is read as
+    ``COSMOS_OPTIMIZER_MAX_BODY_BYTES`` for one more release, with a warning."""
+
+    renamed = {"COSMOS_MAX_BODY_BYTES": "optimizer_max_body_bytes"}
 
     default_strategy: StrategyName = "reprojection"
     paper_calibration: Path = DEFAULT_CALIBRATION_FILE
     scenes_dir: str = ""
     max_grid_poses: Annotated[int, Field(ge=1, le=100_000)] = 25_000
     max_history_detections: Annotated[int, Field(ge=1, le=1_000_000)] = 4_000
-    max_body_bytes: Annotated[int, Field(ge=1024)] = 2 * 1024 * 1024
+    optimizer_max_body_bytes: Annotated[int, Field(ge=1024)] = 2 * 1024 * 1024
 
     def scene_directories(self) -> list[Path]:
         """The directories searched for scene files, in order."""

@@ -42,7 +42,7 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
         "Renders views of known scenes with Mitsuba 3, with exact ground truth.",
         lifespan,
         router,
-        settings.max_body_bytes,
+        settings.renderer_max_body_bytes,
     )
 
 

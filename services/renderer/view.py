@@ -98,7 +98,7 @@ def resolve_view(catalog: SceneCatalog, settings: RendererSettings, request: Ren
     scene = catalog.get(request.scene)
     pose, index = resolve_pose(scene, request.pose)
     width, height = _film(scene, request, settings)
-    spp = request.spp if request.spp is not None else settings.render_spp
+    spp = request.spp if request.spp is not None else settings.renderer_default_spp
     if spp > settings.render_max_spp:
         raise UnprocessableError(
             f"spp {spp} exceeds the limit of {settings.render_max_spp}",
