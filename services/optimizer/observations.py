@@ -53,6 +53,8 @@ move edges by a similar fraction). The done test (:mod:`.strategies`) uses it.
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -117,7 +119,8 @@ def chromaticity(colors: ArrayLike) -> FloatArray:
 class Observation:
     """The detections of one image, in the camera's pixels.
 
-    Compared and hashed by identity, so derived quantities can be cached per observation.
+    Compared and hashed by identity, so derived quantities can be cached per observation;
+    :attr:`digest` keys caches by content instead (across requests, which build new objects).
 
     Attributes
     ----------
@@ -145,6 +148,18 @@ class Observation:
 
     def __len__(self) -> int:
         return len(self.labels)
+
+    @functools.cached_property
+    def digest(self) -> bytes:
+        """A 16-byte digest of everything the observation holds (equal content, equal digest)."""
+        h = hashlib.blake2b(digest_size=16)
+        classes = None if self.classes is None else sorted(self.classes.items())
+        h.update(repr((self.labels, classes, self.pixel_px)).encode())
+        for values in (self.boxes, self.colors, self.confidence):
+            array = np.ascontiguousarray(values, dtype=np.float64)
+            h.update(repr(array.shape).encode())
+            h.update(array.tobytes())
+        return h.digest()
 
     @property
     def identity(self) -> bool:

@@ -142,7 +142,13 @@ NOISE_SIGMAS: Final = 2.0
 """z: standard deviations of edge noise the loose done test allows (module docstring)."""
 _AMBIGUITY_MARGIN: Final = 1.0  # score units: one object off by SCALE_PX pixels
 _MAX_ALTERNATIVES: Final = 5
-_CACHED_GRID_POSES: Final = 2_000  # larger grids: predictions too heavy to keep 512 of
+_CACHED_GRID_POSES: Final = 2_000  # larger grids: predictions too heavy to keep many of
+_MAPPED_VIEWS: Final = 512
+"""Views kept mapped into every pose (keyed by content and pose, so searches of one scene share
+them): all of a 341-pose grid's, which the offline simulator revisits for every target (64 made
+it 40 % slower). One weighs ~60 kB on 341 poses, in proportion to the grid's size."""
+_SCORED_VIEWS: Final = 64
+"""Maps kept scored against a target: a simple search reuses one at a time."""
 
 
 class CalibrationMissingError(ValueError):
@@ -364,17 +370,32 @@ def _mapped_single(
     camera: Camera,
     mappings: ViewMappings | None = None,
 ) -> _Mapped:
-    """One view alone, mapped and predicted into every grid pose; cached per view (observations
-    compare by identity, so only a caller that reuses them — a simulator — ever hits) unless the
-    grid is so large that the cached predictions would weigh too much."""
+    """One view alone, mapped and predicted into every grid pose; cached per view by content
+    (a search's requests resend its reference view as new objects) unless the grid is so large
+    that the cached predictions would weigh too much."""
     if grid.size > _CACHED_GRID_POSES:
         return _mapped([Visit(flat, theta_deg, phi_deg, observation)], grid, camera, mappings)
-    return _mapped_single_cached(observation, flat, theta_deg, phi_deg, grid, camera, mappings)
+    return _mapped_single_cached(
+        _ByContent(observation), flat, theta_deg, phi_deg, grid, camera, mappings
+    )
 
 
-@functools.lru_cache(maxsize=512)
+@dataclass(frozen=True, eq=False)
+class _ByContent:
+    """An observation as a cache key: equal when the contents are (:attr:`Observation.digest`)."""
+
+    observation: Observation
+
+    def __hash__(self) -> int:
+        return hash(self.observation.digest)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _ByContent) and other.observation.digest == self.observation.digest
+
+
+@functools.lru_cache(maxsize=_MAPPED_VIEWS)
 def _mapped_single_cached(
-    observation: Observation,
+    view: _ByContent,
     flat: int,
     theta_deg: float,
     phi_deg: float,
@@ -382,7 +403,7 @@ def _mapped_single_cached(
     camera: Camera,
     mappings: ViewMappings | None,
 ) -> _Mapped:
-    return _mapped([Visit(flat, theta_deg, phi_deg, observation)], grid, camera, mappings)
+    return _mapped([Visit(flat, theta_deg, phi_deg, view.observation)], grid, camera, mappings)
 
 
 def _map_estimate(problem: SearchProblem, mapped: _Mapped) -> _MapEstimate | None:
@@ -390,13 +411,13 @@ def _map_estimate(problem: SearchProblem, mapped: _Mapped) -> _MapEstimate | Non
     return _scored(mapped, problem.target, problem.grid, problem.ambiguity_ratio)
 
 
-@functools.lru_cache(maxsize=1024)
+@functools.lru_cache(maxsize=_SCORED_VIEWS)
 def _scored_cached(
-    mapped: _Mapped, target: Observation, grid: HemisphereGrid, ambiguity_ratio: float
+    mapped: _Mapped, target: _ByContent, grid: HemisphereGrid, ambiguity_ratio: float
 ) -> _MapEstimate | None:
     """:func:`_scored`, cached per (map, target): the simple search asks it again at every step
-    that keeps its reference view (all its map and target parts compare by identity)."""
-    return _scored(mapped, target, grid, ambiguity_ratio)
+    that keeps its reference view (the map is the cached one of that view, so the same object)."""
+    return _scored(mapped, target.observation, grid, ambiguity_ratio)
 
 
 def _scored(
@@ -573,7 +594,7 @@ def plan_simple(problem: SearchProblem) -> Plan:
     if grid.size > _CACHED_GRID_POSES:
         found = _scored(mapped, problem.target, grid, problem.ambiguity_ratio)
     else:
-        found = _scored_cached(mapped, problem.target, grid, problem.ambiguity_ratio)
+        found = _scored_cached(mapped, _ByContent(problem.target), grid, problem.ambiguity_ratio)
     if found is None:  # cannot happen: the reference view maps at least one object
         return _explore(problem, current, "no object could be mapped")
     est, refined = _map_plan_estimate(problem, current, found)
