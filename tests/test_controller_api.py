@@ -106,13 +106,13 @@ async def test_a_grid_the_optimizer_cannot_search_is_refused_at_submission(contr
     assert listed.json()["total"] == 0  # nothing was recorded
 
 
-def record(store: SearchStore, search_id: str, status: SearchStatus) -> None:
+def record(store: SearchStore, search_id: str, status: SearchStatus, scene: str = "demo") -> None:
     """Store a search as if submitted (the runner is not told, so it stays as stored)."""
     now = utcnow()
     search = Search(
         id=search_id,
         status=status,
-        scene="demo",
+        scene=scene,
         strategy="reprojection",
         start=GridPose(index=GridIndex(lat=3, lon=0), theta_deg=30.0, phi_deg=0.0),
         seed=1,
@@ -122,6 +122,15 @@ def record(store: SearchStore, search_id: str, status: SearchStatus) -> None:
         target_size=(32, 24),
     )
     store.create(search, png_bytes())
+
+
+async def test_the_trajectory_of_a_search_whose_grid_became_unsearchable_is_a_422(controller):
+    """A search taken before its scene file changed to a grid the optimizer cannot search."""
+    app, client = controller
+    record(app.state.controller.store, "old", "cancelled", scene="fine")
+    response = await client.get("/searches/old/trajectory.png")
+    assert response.status_code == 422, response.text
+    assert response.json()["field"] == "search.angle_step_deg"
 
 
 async def test_followers_that_come_and_go_leave_nothing_in_the_notifier(controller):
