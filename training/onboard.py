@@ -62,8 +62,8 @@ __all__ = [
 GENERAL_MODEL = DEFAULT_MODEL
 VAL_SEED_OFFSET = 1000
 TORCH_HINT = (
-    'onboarding trains a model and needs PyTorch: pip install -e ".[train]" (torch==2.13.0; '
-    "the CPU wheel: pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu)"
+    'onboarding trains a model and needs PyTorch: pip install -e ".[train]" (torch==2.13.0, '
+    "its CPU build: a plain torch requirement pulls a multi-GB CUDA one)"
 )
 # Rough costs on 2 CPU cores, only to weigh the stages in the progress fraction.
 _RENDER_S_PER_IMAGE = 0.3
