@@ -121,10 +121,12 @@ class Counting:
 
 async def test_a_detection_names_the_search_scene_so_its_own_model_answers(apps, tmp_path):
     """The scene travels as ``?scene=``; a scene with its own model (``field``, the demo with its
-    balls as classes) is detected with it, one without (the demo) with the general model."""
+    balls as classes) is detected with it, one without (``plain``, another copy) with the
+    general model."""
     renderer, _ = apps
     add_scene(tmp_path, "field")
     onboard(tmp_path, "field")
+    add_scene(tmp_path, "plain")
     settings = DetectorSettings(scenes_dir=str(tmp_path), detector_threads=1)
     async with LifespanManager(create_detector(settings)) as detector:
         counting = Counting(detector.app)
@@ -132,10 +134,10 @@ async def test_a_detection_names_the_search_scene_so_its_own_model_answers(apps,
         try:
             view = await stages.render("demo", GridIndex(lat=3, lon=5))
             own = await stages.detect(view, media_type_of(view), "search-1", scene="field")
-            general = await stages.detect(view, media_type_of(view), "search-1", scene="demo")
+            general = await stages.detect(view, media_type_of(view), "search-1", scene="plain")
         finally:
             await stages.broker.close()
-    assert counting.queries == ["scene=field", "scene=demo"]
+    assert counting.queries == ["scene=field", "scene=plain"]
     assert own.model.scene == "field"
     assert {d.label for d in own.detections} <= set(BALLS)
     assert len(own.detections) >= 3

@@ -20,7 +20,8 @@ import pytest
 from asgi_lifespan import LifespanManager
 from fastapi import FastAPI
 
-from services.common.scene_models import MODEL_FILE_NAME
+from services.common.catalog import BUILTIN_SCENES_DIR
+from services.common.scene_models import MODEL_DIR_SUFFIX, MODEL_FILE_NAME
 from services.detector import registry as registry_module
 from services.detector.app import create_app
 from services.detector.registry import ModelRegistry
@@ -37,6 +38,12 @@ from tests.scene_model_support import (
 
 pytestmark = pytest.mark.anyio
 
+BUILTIN_MODELS = sorted(
+    path.name.removesuffix(MODEL_DIR_SUFFIX)
+    for path in BUILTIN_SCENES_DIR.glob(f"*{MODEL_DIR_SUFFIX}")
+    if (path / MODEL_FILE_NAME).is_file()
+)
+
 
 @pytest.fixture(scope="module")
 def anyio_backend() -> str:
@@ -48,11 +55,13 @@ IMAGE = balls_png()
 
 @pytest.fixture
 def scenes(tmp_path) -> Path:
-    """A scenes directory with ``field`` (a demo copy) and its model onboarded."""
+    """A scenes directory with ``field`` (a demo copy) and its model onboarded, and ``plain``
+    (another demo copy) without a model."""
     directory = tmp_path / "scenes"
     directory.mkdir()
     add_scene(directory, "field")
     onboard(directory, "field")
+    add_scene(directory, "plain")
     return directory
 
 
@@ -109,7 +118,7 @@ async def test_a_scene_with_its_own_model_is_detected_with_it(scenes):
 
 
 @pytest.mark.parametrize(
-    "scene", [None, "demo", "no-such-scene"], ids=["none", "no-model", "unknown"]
+    "scene", [None, "plain", "no-such-scene"], ids=["none", "no-model", "unknown"]
 )
 async def test_otherwise_the_general_model_answers(scenes, scene):
     async with serving(scenes) as (client, _):
@@ -138,19 +147,21 @@ async def test_models_health_and_model_list_what_serves(scenes):
         assert body["general"] == (await client.get("/model")).json()
         assert body["general"]["scene"] is None
         by_scene = {s["scene"]: s for s in body["scenes"]}
-        assert set(by_scene) == {"demo", "garden", "field"}
+        assert set(by_scene) == {"plain", "field", *BUILTIN_MODELS}
         field = by_scene["field"]
         assert (field["state"], field["error"], field["classes"]) == ("serving", None, 5)
         assert field["model"]["scene"] == "field"
-        assert by_scene["demo"] == {
-            "scene": "demo",
+        assert by_scene["plain"] == {
+            "scene": "plain",
             "state": "none",
             "model": None,
             "error": None,
             "classes": 5,
         }
         health = (await client.get("/health")).json()
-        assert health["scene_models"] == 1
+        assert health["scene_models"] == 1 + len(BUILTIN_MODELS)
+        for built_in in BUILTIN_MODELS:  # the built-in scenes ship their own models
+            assert by_scene[built_in]["state"] == "serving"
 
 
 # -- picked up without a restart ---------------------------------------------------------------
@@ -185,7 +196,7 @@ async def test_a_new_scene_and_its_model_are_picked_up(scenes):
 
 async def test_a_new_model_is_found_by_the_listing_too(scenes):
     async with serving(scenes) as (client, _):
-        assert (await scene_status(client, "demo"))["state"] == "none"
+        assert (await scene_status(client, "plain"))["state"] == "none"
         add_scene(scenes, "meadow")
         onboard(scenes, "meadow")
         status = await scene_status(client, "meadow")
@@ -300,7 +311,7 @@ async def test_a_refused_model_leaves_the_previous_one_serving(scenes, tmp_path,
         assert status["model"] == before["model"]  # the previous model still serves
         assert expected in caplog.text  # logged, with what serves instead
         assert "its previous model" in caplog.text
-        assert (await client.get("/health")).json()["scene_models"] == 1
+        assert (await client.get("/health")).json()["scene_models"] == 1 + len(BUILTIN_MODELS)
 
 
 async def test_a_scene_edited_after_onboarding_falls_back_to_the_general_model(

@@ -142,3 +142,14 @@ def test_export_writes_the_yolo_layout_with_class_names(tmp_path):
     anchors = (64 // 8) * (96 // 8) + (64 // 16) * (96 // 16) + (64 // 32) * (96 // 32)
     assert out.shape == (3, 4 + len(CLASSES), anchors)
     assert ((out[:, 4:] >= 0) & (out[:, 4:] <= 1)).all()
+
+
+def test_training_leaves_subnormal_floats_as_it_found_them():
+    """Flush-to-zero is process-wide: left on, later float code (and hypothesis) breaks."""
+    pytest.importorskip("torch")
+    from training.train import torch_cpu
+
+    tiny = np.float64(1e-310)  # a subnormal
+    with torch_cpu(1):
+        pass
+    assert tiny * np.float64(1.0) > 0

@@ -314,11 +314,9 @@ def onboard_scene(
     from training.card import scene_model_card
     from training.data import load_dataset
     from training.export import onnx_model, sidecar
-    from training.train import INPUT_HEIGHT, INPUT_WIDTH, evaluate
+    from training.train import INPUT_HEIGHT, INPUT_WIDTH, evaluate, torch_cpu
 
     threads = options.threads if options.threads is not None else idle_cores()
-    torch.set_num_threads(threads)
-    torch.set_flush_denormal(True)  # tiny weights and moments otherwise slow CPU math several-fold
     classes = object_classes(scene.spec)
     labels = [c.label for c in classes]
     work = work_dir if work_dir is not None else default_work_dir(scene)
@@ -361,18 +359,19 @@ def onboard_scene(
         engine.close()
     rendered = time.monotonic()
 
-    model, epochs, train_images = _train(scene, train_dir, run_dir, options, deadline, clock)
-    trained = time.monotonic()
+    with torch_cpu(threads):
+        model, epochs, train_images = _train(scene, train_dir, run_dir, options, deadline, clock)
+        trained = time.monotonic()
 
-    clock("evaluate", 0.0)
-    metrics = evaluate(model, load_dataset(val_dir), labels)
-    onnx_bytes, error = onnx_model(
-        model,
-        labels,
-        INPUT_HEIGHT,
-        INPUT_WIDTH,
-        description=f"COSMOS 3D Search detector of scene {scene.id} (one class per object)",
-    )
+        clock("evaluate", 0.0)
+        metrics = evaluate(model, load_dataset(val_dir), labels)
+        onnx_bytes, error = onnx_model(
+            model,
+            labels,
+            INPUT_HEIGHT,
+            INPUT_WIDTH,
+            description=f"COSMOS 3D Search detector of scene {scene.id} (one class per object)",
+        )
     finished = time.monotonic()
     minutes = StageMinutes(
         render=round((rendered - started) / 60, 2),

@@ -12,7 +12,8 @@ import copy
 import json
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ __all__ = [
     "INPUT_HEIGHT",
     "INPUT_WIDTH",
     "evaluate",
+    "torch_cpu",
     "main",
     "make_batch",
     "predict",
@@ -164,6 +166,24 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     tmp.replace(path)
 
 
+@contextmanager
+def torch_cpu(threads: int) -> Iterator[None]:
+    """PyTorch on ``threads`` CPU threads with subnormals flushed to zero, both restored after.
+
+    Flushing matters for speed (tiny weights and moments otherwise slow CPU math several-fold),
+    but it is processor state of the whole process: left on, every later float computation in
+    it loses IEEE subnormals (hypothesis refuses to run then).
+    """
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
+        torch.set_num_threads(before)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, action="append", required=True)
@@ -177,8 +197,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--val-limit", type=int, default=300)
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    torch.set_flush_denormal(True)  # tiny weights and moments otherwise slow CPU math several-fold
+    with torch_cpu(args.threads):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     args.run.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
 
