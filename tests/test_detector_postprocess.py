@@ -79,6 +79,26 @@ def test_nms_suppresses_within_a_class_only():
     assert got.class_ids.tolist() == [0, 1]
 
 
+def test_nms_across_classes_drops_only_a_near_copy_of_another_classs_box():
+    a = [0, 0, 10, 10]
+    copy = [1, 0, 11, 10]  # IoU 0.82 with a: one object labelled twice
+    behind = [2, 0, 12, 6]  # IoU 0.38: another object, partly hidden
+    boxes, scores, classes = [a, copy, behind], [0.9, 0.8, 0.7], [0, 1, 2]
+    got = nms(candidates(boxes, scores, classes), 0.5, 100, cross_class_iou=0.7)
+    assert got.class_ids.tolist() == [0, 2]
+    assert len(nms(candidates(boxes, scores, classes), 0.5, 100)) == 3  # off by default
+
+
+def test_a_scene_model_is_served_with_suppression_across_classes():
+    from services.detector.detect import SCENE_CROSS_CLASS_IOU
+    from services.detector.settings import DetectorSettings
+
+    settings = DetectorSettings()
+    assert DetectOptions.from_settings(settings).cross_class_iou is None
+    scene = DetectOptions.from_settings(settings, scene_model=True)
+    assert scene.cross_class_iou == SCENE_CROSS_CLASS_IOU
+
+
 def test_nms_keeps_boxes_at_exactly_the_threshold_and_caps_the_count():
     a, b = [0, 0, 10, 10], [5, 0, 15, 10]  # IoU 1/3
     assert len(nms(candidates([a, b], [0.9, 0.8], [0, 0]), 1 / 3, 100)) == 2

@@ -24,6 +24,7 @@ from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.scene_models import MODEL_DIR_SUFFIX, MODEL_FILE_NAME
 from services.detector import registry as registry_module
 from services.detector.app import create_app
+from services.detector.detect import SCENE_CROSS_CLASS_IOU
 from services.detector.registry import ModelRegistry
 from services.detector.settings import DEFAULT_MODEL, DetectorSettings
 from tests.scene_model_support import (
@@ -108,8 +109,12 @@ async def scene_status(client: httpx.AsyncClient, scene_id: str) -> dict:
 
 
 async def test_a_scene_with_its_own_model_is_detected_with_it(scenes):
-    async with serving(scenes) as (client, _):
+    async with serving(scenes) as (client, app):
         body = await detect(client, "field")
+        # one class per object: two classes on one box are one object (detect.py)
+        own = registry_of(app)._entries["field"].detector
+        assert own is not None
+        assert own.options.cross_class_iou == SCENE_CROSS_CLASS_IOU
         assert body["model"]["scene"] == "field"
         assert body["model"]["classes"] == BALLS
         assert body["model"]["sha256"] == sha256(DEFAULT_MODEL)

@@ -44,6 +44,7 @@ from services.common.scene_models import (
     model_dir,
     object_classes,
 )
+from services.detector.detect import SCENE_CROSS_CLASS_IOU
 from services.detector.settings import DEFAULT_MODEL
 from training.scene_dataset import render_scene_dataset
 
@@ -364,7 +365,9 @@ def onboard_scene(
         trained = time.monotonic()
 
         clock("evaluate", 0.0)
-        metrics = evaluate(model, load_dataset(val_dir), labels)
+        metrics = evaluate(
+            model, load_dataset(val_dir), labels, cross_class_iou=SCENE_CROSS_CLASS_IOU
+        )
         onnx_bytes, error = onnx_model(
             model,
             labels,

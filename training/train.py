@@ -111,7 +111,10 @@ _SERVING = DetectOptions(colour=False)
 
 @torch.no_grad()
 def predict_batch(
-    model: Detector, images: Sequence[NDArray[np.uint8]], conf: float = _SERVING.conf
+    model: Detector,
+    images: Sequence[NDArray[np.uint8]],
+    conf: float = _SERVING.conf,
+    cross_class_iou: float | None = None,
 ) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]]:
     """Boxes (image pixels), scores and classes for RGB images, run through the network as one
     batch and through the detector service's own letterbox and post-processing (decode,
@@ -119,7 +122,7 @@ def predict_batch(
     prepared = [letterbox(rgb, (INPUT_WIDTH, INPUT_HEIGHT)) for rgb in images]
     x = torch.from_numpy(np.stack([tensor for tensor, _ in prepared]))
     out = model.decode(model(x), INPUT_HEIGHT, INPUT_WIDTH).numpy()
-    options = replace(_SERVING, conf=conf)
+    options = replace(_SERVING, conf=conf, cross_class_iou=cross_class_iou)
     names = [str(k) for k in range(model.num_classes)]
     results = []
     for output, (_, box) in zip(out, prepared, strict=True):
@@ -146,14 +149,18 @@ def evaluate(
     samples: Sequence[LabelledImage],
     classes: Sequence[str] = CLASSES,
     batch: int = 32,
+    cross_class_iou: float | None = None,
 ) -> dict[str, Any]:
-    """P/R/mAP50 at IoU 0.5 over objects at least 60 % visible (:class:`Evaluation`)."""
+    """P/R/mAP50 at IoU 0.5 over objects at least 60 % visible (:class:`Evaluation`), with the
+    serving post-processing (``cross_class_iou`` as a scene's own model is served with)."""
     model.eval()
     evaluation = Evaluation(tuple(classes))
     for first in range(0, len(samples), batch):
         chunk = samples[first : first + batch]
         for sample, (boxes, scores, found) in zip(
-            chunk, predict_batch(model, [s.rgb for s in chunk]), strict=True
+            chunk,
+            predict_batch(model, [s.rgb for s in chunk], cross_class_iou=cross_class_iou),
+            strict=True,
         ):
             evaluation.add(boxes, scores, found, sample.boxes, sample.classes, sample.visible)
     return evaluation.report()

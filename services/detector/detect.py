@@ -11,7 +11,8 @@ from __future__ import annotations
 import asyncio
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,20 @@ from services.detector.model import DetectorModel
 from services.detector.postprocess import Candidates, decode_output, nms
 from services.detector.settings import DetectorSettings
 
-__all__ = ["Admission", "DetectOptions", "Detector", "detections_from_output"]
+__all__ = [
+    "SCENE_CROSS_CLASS_IOU",
+    "Admission",
+    "DetectOptions",
+    "Detector",
+    "detections_from_output",
+]
+
+
+SCENE_CROSS_CLASS_IOU: Final = 0.7
+"""A scene's own model has one class per object, so two of its classes on nearly the same box
+(IoU above this) are one object labelled twice, not two objects: a real object hidden behind
+another has a visible box far smaller than its occluder's. The general model's shape classes
+keep per-class NMS only: there the optimizer explains such pairs (one object, two shapes)."""
 
 
 @dataclass(frozen=True)
@@ -38,15 +52,23 @@ class DetectOptions:
     max_detections: int = 100
     max_candidates: int = 5000
     colour: bool = True
+    cross_class_iou: float | None = None
+    """Boxes of different classes overlapping more than this are one object: the less
+    confident goes (None: classes never suppress each other)."""
 
     @classmethod
-    def from_settings(cls, settings: DetectorSettings) -> DetectOptions:
+    def from_settings(
+        cls, settings: DetectorSettings, *, scene_model: bool = False
+    ) -> DetectOptions:
+        """The settings' knobs; a scene's own model also suppresses across classes
+        (:data:`SCENE_CROSS_CLASS_IOU`)."""
         return cls(
             conf=settings.detector_conf,
             iou=settings.detector_iou,
             max_detections=settings.detector_max_detections,
             max_candidates=settings.detector_max_candidates,
             colour=settings.detector_colour,
+            cross_class_iou=SCENE_CROSS_CLASS_IOU if scene_model else None,
         )
 
 
@@ -60,8 +82,9 @@ def detections_from_output(
     """The detections in one image from the model's output ``(4 + C, N)`` for it.
 
     Candidates at or over ``options.conf`` are mapped back to image pixels and clipped to the
-    image (boxes left empty, i.e. lying in the padding, are dropped), then per-class NMS keeps
-    at most ``options.max_detections``, best first. ``rgb`` (the image) is needed for colours.
+    image (boxes left empty, i.e. lying in the padding, are dropped), then NMS (per class, and
+    across classes with ``options.cross_class_iou``) keeps at most ``options.max_detections``,
+    best first. ``rgb`` (the image) is needed for colours.
     """
     candidates = decode_output(output, options.conf, options.max_candidates)
     boxes = box.to_image(candidates.boxes)
@@ -70,6 +93,7 @@ def detections_from_output(
         Candidates(boxes[valid], candidates.scores[valid], candidates.class_ids[valid]),
         options.iou,
         options.max_detections,
+        options.cross_class_iou,
     )
     detections = []
     for xyxy, score, class_id in zip(kept.boxes, kept.scores, kept.class_ids, strict=True):
@@ -128,7 +152,9 @@ class Detector:
     ) -> None:
         self.model = model
         self.settings = settings
-        self.options = DetectOptions.from_settings(settings)
+        self.options = DetectOptions.from_settings(
+            settings, scene_model=model.info.scene is not None
+        )
         fixed = model.max_batch
         self.batcher = MicroBatcher(
             model.run,
@@ -185,12 +211,10 @@ class Detector:
                 if media_type_of(data) == PPM_MEDIA_TYPE
                 else await asyncio.to_thread(self._prepare, data)
             )
-            options = DetectOptions(
+            options = replace(
+                self.options,
                 conf=self.options.conf if conf is None else conf,
-                iou=self.options.iou,
                 max_detections=max_detections or self.options.max_detections,
-                max_candidates=self.options.max_candidates,
-                colour=self.options.colour,
             )
             classes = self.model.classes
             detections, run_ms = await self.batcher.submit(

@@ -80,12 +80,18 @@ def box_iou(box: NDArray[np.float64], boxes: NDArray[np.float64]) -> NDArray[np.
     return out
 
 
-def nms(candidates: Candidates, iou_threshold: float, max_detections: int) -> Candidates:
-    """Greedy non-maximum suppression within each class.
+def nms(
+    candidates: Candidates,
+    iou_threshold: float,
+    max_detections: int,
+    cross_class_iou: float | None = None,
+) -> Candidates:
+    """Greedy non-maximum suppression within each class, and optionally across classes.
 
     Best score first, a box is kept and every box of the *same class* overlapping it by
-    IoU > ``iou_threshold`` is dropped; boxes of different classes never suppress each other.
-    Stops after ``max_detections`` boxes. Ties in score keep their input order.
+    IoU > ``iou_threshold`` is dropped; a box of *another* class is dropped only when it
+    overlaps by IoU > ``cross_class_iou`` (None: never). Stops after ``max_detections`` boxes.
+    Ties in score keep their input order.
     """
     order = np.argsort(-candidates.scores, kind="stable")
     boxes, class_ids = candidates.boxes, candidates.class_ids
@@ -94,6 +100,9 @@ def nms(candidates: Candidates, iou_threshold: float, max_detections: int) -> Ca
         best, rest = int(order[0]), order[1:]
         kept.append(best)
         same = class_ids[rest] == class_ids[best]
-        overlap = box_iou(boxes[best], boxes[rest]) > iou_threshold
-        order = rest[~(same & overlap)]
+        iou = box_iou(boxes[best], boxes[rest])
+        dropped = same & (iou > iou_threshold)
+        if cross_class_iou is not None:
+            dropped |= iou > cross_class_iou
+        order = rest[~dropped]
     return candidates.take(np.asarray(kept, dtype=np.intp))
