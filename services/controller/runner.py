@@ -15,10 +15,12 @@ the search's scene), its labels are the scene's object classes and the optimizer
 (sha256) that detected the target; if a view's model differs (a model swapped mid-search) or
 is unknown (a view recorded by an earlier version), the request leaves ``object_classes`` out and
 the optimizer treats labels as mere evidence (different labels pair at a cost) rather than
-re-detecting the target. The target's detection overlaps the start view's render,
-which a search submitted to an idle runner had started before its submission was even stored
-(:meth:`Stages.render_early`: its first render time is then the part the search waited for). A
-pose already rendered in this search is never rendered again: its detections are reused.
+re-detecting the target.
+
+The target's detection overlaps the start view's render, which a search submitted to an idle
+runner had started before its submission was even stored (:meth:`Stages.render_early`: its first
+render time is then the part the search waited for). A pose already rendered in this search is
+never rendered again: its detections are reused.
 
 Every iteration is recorded as soon as the next view's render is on its way (the write overlaps
 the render), and before the search ends, fails or is cancelled; a search interrupted by a restart
@@ -79,7 +81,7 @@ def _failure(slug: str, title: str, detail: str, status: int = 502) -> SearchFai
 @dataclass(frozen=True)
 class _View:
     """A rendered pose's detections, reused if the search comes back to it, and the sha256 of
-    the model that detected them (None when recorded by an earlier run)."""
+    the model that detected them (None when recorded by an earlier version)."""
 
     image_size: tuple[int, int]
     detections: tuple[Detection, ...]
