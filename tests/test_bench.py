@@ -16,16 +16,10 @@ import cv2
 import numpy as np
 import pytest
 
-from services.bench.report import (
-    choose_setting,
-    eq9_rows,
-    markdown_tables,
-    percentile,
-    summarize,
-    text_tables,
-)
+from services.bench.report import choose_setting, markdown_tables, text_tables
 from services.bench.runner import IterationRecord, SearchRecord
 from services.bench.settings_sweep import _match
+from services.bench.stats import eq9_rows, percentile, summarize
 from services.bench.variants import (
     JPEG_QUALITY,
     NOISE_SIGMA,

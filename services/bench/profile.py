@@ -30,8 +30,8 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from services.bench.report import percentile
 from services.bench.runner import SearchRecord, Target, run_searches
+from services.bench.stats import percentile
 from services.common.catalog import SceneCatalog, scene_grid
 from services.common.images import decode_image
 from services.common.models import Detection, GridIndex, PoseQuery

@@ -24,12 +24,13 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from services.bench.report import md_table, percentile, plain_table, section_head
+from services.bench.report import md_table, plain_table, section_head
 from services.bench.runner import SearchRecord
+from services.bench.stats import percentile, ranked
 from services.bench.variants import SCENE_VARIANTS, VARIANTS
 
 __all__ = [
@@ -113,17 +114,13 @@ def _cell(arm: str, variant: str, band: str, records: Sequence[SearchRecord]) ->
     )
 
 
-def _rank(values: Iterable[str], order: Sequence[str]) -> list[str]:
-    return sorted(set(values), key=lambda v: (order.index(v) if v in order else len(order), v))
-
-
 def band_cells(records: Sequence[SearchRecord]) -> list[BandCell]:
     """Every (arm, variant, band) cell with searches, plus each arm's and variant's totals
     (``band`` = all) and each arm's band totals (``variant`` = all)."""
     cells = []
-    for arm in _rank((r.arm for r in records), ARM_ORDER):
+    for arm in ranked((r.arm for r in records), ARM_ORDER):
         mine = [r for r in records if r.arm == arm]
-        for variant in [*_rank((r.variant for r in mine), VARIANTS), ALL]:
+        for variant in [*ranked((r.variant for r in mine), VARIANTS), ALL]:
             group = [r for r in mine if variant in (ALL, r.variant)]
             for band in (*BANDS, ALL):
                 subset = [r for r in group if band in (ALL, theta_band(r.true_theta_deg))]

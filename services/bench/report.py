@@ -1,24 +1,5 @@
-"""The bench's figures: per-(scene, strategy, variant) summaries, paper eq. 9, text and Markdown
-tables, the JSON report, the plots (matplotlib, Agg) and ``docs/RESULTS.md``.
-
-Definitions used in every table
--------------------------------
-success
-    The search succeeded and its grid pose is the grid pose nearest the true pose, confirmed or
-    not; the success column says how many of those answers were unconfirmed (``confirmed:
-    false``, the best visited pose after no view matched).
-renders
-    Distinct views rendered by the search, the start view included (``result.renders``).
-steps (moves)
-    Views visited after the start view: iterations − 1. The paper's "steps".
-wall
-    From sending ``POST /searches`` to receiving the search's ``end`` event.
-render / detect / optimize
-    Sums over a search's iterations of the controller's stage timings (``timings.*_ms``).
-HTTP+queue
-    Wall time minus those three sums: the submission, queueing, the target's detection where it
-    did not overlap the start render, storing iterations, the events stream.
-Percentiles are the sample's own values (inverted CDF), never interpolated between searches.
+"""The bench's text and Markdown tables, the machine that ran it, the plots (matplotlib, Agg) and
+``docs/RESULTS.md``; the statistics they show are :mod:`.stats`.
 """
 
 from __future__ import annotations
@@ -30,7 +11,7 @@ import os
 import platform
 import statistics
 import subprocess
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -39,174 +20,30 @@ from typing import Any, Final
 import numpy as np
 
 from services.bench.runner import SearchRecord
+from services.bench.stats import (
+    PAPER_EQ9,
+    PAPER_OPTIMISED_STEPS,
+    PAPER_SIMPLE_STEPS,
+    STRATEGY_ORDER,
+    Eq9Row,
+    Summary,
+    eq9_rows,
+    ranked,
+    summarize,
+)
 from services.bench.variants import VARIANTS
 
 __all__ = [
-    "PAPER_OPTIMISED_STEPS",
-    "PAPER_SIMPLE_STEPS",
-    "Summary",
     "choose_setting",
-    "eq9_rows",
     "machine_info",
     "markdown_tables",
     "md_table",
-    "percentile",
     "plain_table",
     "section_head",
-    "summarize",
     "text_tables",
     "write_plots",
     "write_results_md",
 ]
-
-PAPER_SIMPLE_STEPS: Final = 36
-PAPER_OPTIMISED_STEPS: Final = 2
-PAPER_EQ9: Final = (PAPER_OPTIMISED_STEPS - PAPER_SIMPLE_STEPS) / PAPER_SIMPLE_STEPS
-STRATEGY_ORDER: Final = ("simple", "paper", "reprojection")
-
-
-def percentile(values: Sequence[float], q: float) -> float:
-    """The ``q``-th percentile of ``values`` as one of its own values (NaN when empty)."""
-    if not values:
-        return math.nan
-    return float(np.percentile(np.asarray(values, dtype=np.float64), q, method="inverted_cdf"))
-
-
-def _mean(values: Sequence[float]) -> float:
-    return float(np.mean(values)) if values else math.nan
-
-
-@dataclass(frozen=True)
-class Summary:
-    """One (scene, strategy, variant) cell of the bench."""
-
-    scene: str
-    strategy: str
-    variant: str
-    n: int
-    succeeded: int
-    errors: int
-    unconfirmed_succeeded: int
-    renders_mean: float
-    renders_p50: float
-    renders_p95: float
-    renders_max: float
-    moves_mean: float
-    moves_max: float
-    wall_p50_ms: float
-    wall_p95_ms: float
-    render_ms: float
-    detect_ms: float
-    optimize_ms: float
-    other_ms: float
-    refined_p50_deg: float
-    refined_p95_deg: float
-
-    @property
-    def success_rate(self) -> float:
-        return self.succeeded / self.n if self.n else math.nan
-
-
-def _order(strategy: str) -> int:
-    return STRATEGY_ORDER.index(strategy) if strategy in STRATEGY_ORDER else len(STRATEGY_ORDER)
-
-
-def summarize(records: Iterable[SearchRecord]) -> list[Summary]:
-    """One summary per (scene, strategy, variant), ordered by variant, scene, strategy."""
-    groups: dict[tuple[str, str, str], list[SearchRecord]] = {}
-    for record in records:
-        groups.setdefault((record.scene, record.strategy, record.variant), []).append(record)
-    out = []
-    for (scene, strategy, variant), group in groups.items():
-        ran = [r for r in group if r.status != "error"]
-        renders = [float(r.renders) for r in ran]
-        moves = [float(r.moves) for r in ran]
-        walls = [r.wall_ms for r in ran]
-        refined = [r.refined_error_deg for r in ran if r.refined_error_deg is not None]
-        out.append(
-            Summary(
-                scene=scene,
-                strategy=strategy,
-                variant=variant,
-                n=len(group),
-                succeeded=sum(r.success for r in group),
-                errors=len(group) - len(ran),
-                unconfirmed_succeeded=sum(r.success and r.confirmed is False for r in group),
-                renders_mean=_mean(renders),
-                renders_p50=percentile(renders, 50),
-                renders_p95=percentile(renders, 95),
-                renders_max=max(renders, default=math.nan),
-                moves_mean=_mean(moves),
-                moves_max=max(moves, default=math.nan),
-                wall_p50_ms=percentile(walls, 50),
-                wall_p95_ms=percentile(walls, 95),
-                render_ms=_mean([r.render_ms for r in ran]),
-                detect_ms=_mean([r.detect_ms for r in ran]),
-                optimize_ms=_mean([r.optimize_ms for r in ran]),
-                other_ms=_mean([r.other_ms for r in ran]),
-                refined_p50_deg=percentile(refined, 50),
-                refined_p95_deg=percentile(refined, 95),
-            )
-        )
-    variant_rank: dict[str, int] = {v: i for i, v in enumerate(VARIANTS)}
-    out.sort(key=lambda s: (variant_rank.get(s.variant, 99), s.scene, _order(s.strategy)))
-    return out
-
-
-@dataclass(frozen=True)
-class Eq9Row:
-    """Paper eq. 9, improvement = (optimised − step-by-step) / step-by-step, measured."""
-
-    scene: str
-    variant: str
-    strategy: str
-    moves_mean: float
-    simple_moves_mean: float
-    moves_max: float
-    simple_moves_max: float
-    renders_mean: float
-    simple_renders_mean: float
-
-    @staticmethod
-    def _change(new: float, old: float) -> float:
-        return (new - old) / old if old else math.nan
-
-    @property
-    def mean_change(self) -> float:
-        return self._change(self.moves_mean, self.simple_moves_mean)
-
-    @property
-    def worst_change(self) -> float:
-        return self._change(self.moves_max, self.simple_moves_max)
-
-    @property
-    def renders_change(self) -> float:
-        return self._change(self.renders_mean, self.simple_renders_mean)
-
-
-def eq9_rows(summaries: Sequence[Summary]) -> list[Eq9Row]:
-    """paper and reprojection against simple, per scene and variant (where simple ran)."""
-    by = {(s.scene, s.variant, s.strategy): s for s in summaries}
-    rows = []
-    for s in summaries:
-        simple = by.get((s.scene, s.variant, "simple"))
-        if s.strategy == "simple" or simple is None:
-            continue
-        rows.append(
-            Eq9Row(
-                scene=s.scene,
-                variant=s.variant,
-                strategy=s.strategy,
-                moves_mean=s.moves_mean,
-                simple_moves_mean=simple.moves_mean,
-                moves_max=s.moves_max,
-                simple_moves_max=simple.moves_max,
-                renders_mean=s.renders_mean,
-                simple_renders_mean=simple.renders_mean,
-            )
-        )
-    return rows
-
 
 # -- tables ---------------------------------------------------------------------------------
 
@@ -393,10 +230,6 @@ def machine_info(services: Mapping[str, Any] | None = None) -> dict[str, Any]:
 # -- plots ----------------------------------------------------------------------------------
 
 
-def _strategies(records: Sequence[SearchRecord]) -> list[str]:
-    return sorted({r.strategy for r in records}, key=_order)
-
-
 def write_plots(records: Sequence[SearchRecord], out: Path) -> list[Path]:
     """``renders_hist.png`` (renders per search, per strategy and variant) and
     ``distance.png`` (angle from the camera to the true pose per iteration, clean on-grid
@@ -407,7 +240,7 @@ def write_plots(records: Sequence[SearchRecord], out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     out.mkdir(parents=True, exist_ok=True)
-    strategies = _strategies(records)
+    strategies = ranked((r.strategy for r in records), STRATEGY_ORDER)
     written: list[Path] = []
     if not strategies:
         return written
