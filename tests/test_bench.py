@@ -16,10 +16,11 @@ import cv2
 import numpy as np
 import pytest
 
-from services.bench.report import choose_setting, markdown_tables, text_tables
+from services.bench.report import choose_setting
 from services.bench.runner import IterationRecord, SearchRecord
 from services.bench.settings_sweep import _match
 from services.bench.stats import eq9_rows, percentile, summarize
+from services.bench.tables import markdown_tables, text_tables
 from services.bench.variants import (
     JPEG_QUALITY,
     NOISE_SIGMA,

@@ -28,9 +28,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from services.bench.report import md_table, plain_table, section_head
+from services.bench.report import section_head
 from services.bench.runner import SearchRecord
 from services.bench.stats import percentile, ranked
+from services.bench.tables import md_table, plain_table
 from services.bench.variants import SCENE_VARIANTS, VARIANTS
 
 __all__ = [
