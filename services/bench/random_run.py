@@ -39,8 +39,8 @@ from services.bench.command import (
     services_info,
     write_report,
 )
+from services.bench.machine import machine_info
 from services.bench.random_report import GOALS, band_cells, band_table, goal_checks
-from services.bench.report import machine_info
 from services.bench.runner import SearchRecord, Target, run_searches
 from services.bench.scenes import generate_scene, scene_summary
 from services.common.scene import load_scene

@@ -1,19 +1,15 @@
-"""The machine that ran the bench, its plots (matplotlib, Agg) and ``docs/RESULTS.md``; the
-statistics are :mod:`.stats`, the tables :mod:`.tables`.
+"""The bench's plots (matplotlib, Agg) and ``docs/RESULTS.md``; the statistics are
+:mod:`.stats`, the tables :mod:`.tables`, the machine :mod:`.machine`.
 """
 
 from __future__ import annotations
 
 import io
 import json
-import math
 import os
-import platform
 import statistics
-import subprocess
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Final
 
@@ -26,60 +22,10 @@ from services.bench.variants import VARIANTS
 
 __all__ = [
     "choose_setting",
-    "machine_info",
     "section_head",
     "write_plots",
     "write_results_md",
 ]
-
-# -- machine --------------------------------------------------------------------------------
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _git(*args: str) -> str:
-    """The output of ``git <args>`` in this checkout."""
-    return subprocess.run(
-        ["git", *args],
-        cwd=Path(__file__).resolve().parents[2],
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=10,
-    ).stdout.strip()
-
-
-def _git_commit() -> str:
-    try:
-        head = _git("rev-parse", "--short", "HEAD")
-        dirty = _git("status", "--porcelain", "--untracked-files=no")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return head + (" (with uncommitted changes)" if dirty else "")
-
-
-def machine_info(services: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """What ran the bench: CPU, cores, load, Python, the commit, and what the services report."""
-    load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
-    return {
-        "date_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        "cpu": _cpu_model(),
-        "cores": os.cpu_count(),
-        "load_average_1m_at_start": round(load[0], 2),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "commit": _git_commit(),
-        **dict(services or {}),
-    }
-
 
 # -- plots ----------------------------------------------------------------------------------
 
