@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.bench.report import choose_setting
 from services.bench.runner import IterationRecord, SearchRecord
+from services.bench.settings_choice import choose_setting
 from services.bench.settings_sweep import _match
 from services.bench.stats import eq9_rows, percentile, summarize
 from services.bench.tables import markdown_tables, text_tables

@@ -1,5 +1,5 @@
-"""The bench's ``docs/RESULTS.md`` and its render-setting choice; the statistics are
-:mod:`.stats`, the tables :mod:`.tables`, the machine :mod:`.machine`, the plots :mod:`.plots`.
+"""The bench's ``docs/RESULTS.md``; the statistics are :mod:`.stats`, the tables :mod:`.tables`,
+the machine :mod:`.machine`, the plots :mod:`.plots`, the sweep's choice :mod:`.settings_choice`.
 """
 
 from __future__ import annotations
@@ -7,90 +7,19 @@ from __future__ import annotations
 import io
 import json
 import os
-import statistics
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Final
-
-import numpy as np
+from typing import Any
 
 from services.bench.runner import SearchRecord
+from services.bench.settings_choice import CHOICE_RULE, choose_setting
 from services.bench.stats import summarize
 from services.bench.tables import SUMMARY_COLUMNS, markdown_tables, md_table, summary_cells
 
 __all__ = [
-    "choose_setting",
     "section_head",
     "write_results_md",
 ]
-
-# -- render settings -----------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _Setting:
-    """One sweep run's outcome: the film and spp, successes per (scene, variant), costs."""
-
-    width: int | None
-    spp: int
-    cells: Mapping[tuple[str, str], int]
-    success: float
-    renders: float
-    wall_ms: float
-
-    @property
-    def name(self) -> str:
-        return f"{self.width or 'scene'} px wide at {self.spp} spp"
-
-
-CHOICE_RULE: Final = (
-    "the cheapest setting by median search wall time whose searches lose nothing against the "
-    "largest film at the most spp: as many successes in all, no (scene, variant) cell more than "
-    "one search down, renders per search within 5 % + 0.05"
-)
-
-
-def choose_setting(searches: Sequence[Mapping[str, Any]]) -> str:
-    """The cheapest render setting (median search wall time) whose searches lose nothing against
-    the reference, the most expensive setting (largest film, then most spp): as many searches
-    succeed in all, no (scene, variant) cell has more than one fewer, and renders per search stay
-    within 5 % + 0.05 of the reference's."""
-    settings = []
-    for run in searches:
-        records = [SearchRecord.model_validate(r) for r in run["records"]]
-        if not records:
-            continue
-        cells: dict[tuple[str, str], int] = {}
-        for r in records:
-            cells[(r.scene, r.variant)] = cells.get((r.scene, r.variant), 0) + int(r.success)
-        settings.append(
-            _Setting(
-                width=run["width"],
-                spp=run["spp"],
-                cells=cells,
-                success=float(np.mean([r.success for r in records])),
-                renders=float(np.mean([r.renders for r in records])),
-                wall_ms=statistics.median(r.wall_ms for r in records),
-            )
-        )
-    if not settings:
-        return ""
-    ref = max(settings, key=lambda s: (s.width or 1 << 30, s.spp))
-    good = [
-        s
-        for s in settings
-        if sum(s.cells.values()) >= sum(ref.cells.values())
-        and all(s.cells.get(k, 0) >= n - 1 for k, n in ref.cells.items())
-        and s.renders <= ref.renders * 1.05 + 0.05
-    ]
-    best = min(good, key=lambda s: s.wall_ms)
-    return (
-        f"{best.name}: success {best.success:.1%} and {best.renders:.2f} renders per search, "
-        f"median wall {best.wall_ms:.0f} ms, against {ref.success:.1%}, {ref.renders:.2f} and "
-        f"{ref.wall_ms:.0f} ms at {ref.name}"
-    )
-
 
 # -- RESULTS.md -----------------------------------------------------------------------------
 
