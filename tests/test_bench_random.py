@@ -17,9 +17,9 @@ from services.bench.random_report import (
     band_cells,
     band_table,
     goal_checks,
-    section_of_random,
     theta_band,
 )
+from services.bench.results_md import section_of_random
 from services.bench.runner import SearchRecord
 from services.bench.scenes import generate_scene
 from services.bench.traces import failure_trace

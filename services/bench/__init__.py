@@ -2,11 +2,13 @@
 
 :mod:`.variants` makes the target images (:mod:`.altered` the modified scene copies that
 ``photo`` and ``changed`` targets are rendered from), :mod:`.runner` runs searches over HTTP and
-records them (:mod:`.traces` explains the misses), :mod:`.report` turns records into tables,
-plots and ``docs/RESULTS.md``, :mod:`.profile` measures a search's floor in one process,
-:mod:`.settings_sweep` the render settings, :mod:`.scenes` generates random scenes that
-:mod:`.random_run` searches with the general and the per-scene detector
-(:mod:`.random_report` its tables), and :mod:`.command` ties them into the command's modes.
+records them (:mod:`.traces` explains the misses). :mod:`.stats` summarises the records (paper
+eq. 9 too), :mod:`.tables` lays them out, :mod:`.plots` draws them, :mod:`.machine` says what ran
+them and :mod:`.results_md` writes ``docs/RESULTS.md`` from the JSON reports. :mod:`.profile`
+measures a search's floor in one process, :mod:`.settings_sweep` the render settings
+(:mod:`.settings_choice` picks one), :mod:`.scenes` generates random scenes that
+:mod:`.random_run` searches with the general and the per-scene detector (:mod:`.random_report`
+its figures), and :mod:`.command` ties them into the command's modes.
 """
 
 from services.bench.command import BenchConfig, run

@@ -38,7 +38,7 @@ import httpx
 from services.bench.machine import machine_info
 from services.bench.plots import write_plots
 from services.bench.profile import profile_searches, profile_summary
-from services.bench.report import write_results_md
+from services.bench.results_md import write_results_md
 from services.bench.runner import SearchRecord, Target, local_stack, make_targets, run_searches
 from services.bench.stats import percentile, summarize
 from services.bench.tables import text_tables

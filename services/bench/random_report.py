@@ -1,5 +1,5 @@
 """The random-scene bench's figures: success per θ band × target variant × detector arm, the
-goals, the failures' traces, and its section of ``docs/RESULTS.md``.
+goals and the failures' traces (its section of ``docs/RESULTS.md`` is :mod:`.results_md`).
 
 Definitions
 -----------
@@ -22,13 +22,11 @@ arm
 
 from __future__ import annotations
 
-import io
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from services.bench.report import section_head
 from services.bench.runner import SearchRecord
 from services.bench.stats import percentile, ranked
 from services.bench.tables import md_table, plain_table
@@ -37,12 +35,13 @@ from services.bench.variants import SCENE_VARIANTS, VARIANTS
 __all__ = [
     "ALL",
     "BANDS",
+    "FAILURE_HEADER",
     "GOALS",
     "BandCell",
     "band_cells",
     "band_table",
+    "failure_rows",
     "goal_checks",
-    "section_of_random",
     "theta_band",
 ]
 
@@ -255,7 +254,7 @@ def failure_rows(records: Sequence[SearchRecord], limit: int = 40) -> list[list[
     return rows
 
 
-_FAILURE_HEADER: Final = (
+FAILURE_HEADER: Final = (
     "scene",
     "arm",
     "variant",
@@ -267,60 +266,3 @@ _FAILURE_HEADER: Final = (
     "end",
     "scene change",
 )
-
-
-def _escape(text: str) -> str:
-    return text.replace("|", "\\|").replace("\n", " ")
-
-
-def section_of_random(data: Mapping[str, Any]) -> str:
-    """The random-scene run's section of ``docs/RESULTS.md``."""
-    records = [SearchRecord.model_validate(r) for r in data.get("records", [])]
-    text = io.StringIO()
-    text.write(section_head("Random scenes, general and per-scene detector", data, duration=True))
-    scenes = data.get("scenes", [])
-    if scenes:
-        text.write("### Scenes\n\n")
-        scene_header = ("scene", "film", "fov °", "radius", "grid step °", "objects")
-        rows = [
-            [
-                s["id"],
-                s["film"],
-                f"{s['fov_deg']:.1f}",
-                f"{s['radius']:.2f}",
-                f"{s['angle_step_deg']:g}",
-                ", ".join(s["kinds"]),
-            ]
-            for s in scenes
-        ]
-        text.write(md_table(scene_header, rows) + "\n\n")
-    models = data.get("models", [])
-    if models:
-        text.write("### Detector per scene and arm\n\n")
-        header = ("scene", "arm", "model served", "onboarding")
-        rows = [
-            [m["scene"], m["arm"], _escape(m["served"]), _escape(m.get("onboarding", "—"))]
-            for m in models
-        ]
-        text.write(md_table(header, rows) + "\n\n")
-    text.write("### Found per θ band, variant and arm\n\n")
-    text.write(
-        "found = the answer is the true grid pose, confirmed or not; confirmed = found and "
-        "confirmed; unconfirmed = answers the controller did not confirm (of them, at the "
-        "truth); confirmed wrong = a confirmed answer that is not the true grid pose. "
-        "Definitions in `services/bench/random_report.py`.\n\n"
-    )
-    cells = band_cells(records)
-    if cells:
-        text.write(band_table(cells, markdown=True) + "\n\n")
-        text.write(f"**Goals** ({GOALS}):\n\n")
-        text.write("".join(f"- {line}\n" for line in goal_checks(cells)) + "\n")
-    failures = failure_rows(records)
-    if failures:
-        traced = sum(r.trace is not None for r in records)
-        text.write(f"### Traces of misses and unconfirmed answers ({traced}")
-        text.write(f", first {len(failures)})\n\n" if traced > len(failures) else ")\n\n")
-        text.write(
-            md_table(_FAILURE_HEADER, [[_escape(c) for c in row] for row in failures]) + "\n\n"
-        )
-    return text.getvalue()

@@ -12,7 +12,7 @@
 4. The same targets, from the same starts, are searched again with the scene's own model.
 
 Report: ``random.json`` (records labelled by ``arm``: general / scene), and its section of
-``docs/RESULTS.md`` (:mod:`services.bench.random_report`).
+``docs/RESULTS.md`` (:mod:`services.bench.random_report`, :mod:`services.bench.results_md`).
 """
 
 from __future__ import annotations

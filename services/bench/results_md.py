@@ -1,5 +1,5 @@
-"""The bench's ``docs/RESULTS.md``; the statistics are :mod:`.stats`, the tables :mod:`.tables`,
-the machine :mod:`.machine`, the plots :mod:`.plots`, the sweep's choice :mod:`.settings_choice`.
+"""``docs/RESULTS.md`` from the bench's JSON reports: one section per report (bench and profile,
+sweep, throughput, random scenes), each headed by its command, machine and notes.
 """
 
 from __future__ import annotations
@@ -11,21 +11,37 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from services.bench.random_report import (
+    FAILURE_HEADER,
+    GOALS,
+    band_cells,
+    band_table,
+    failure_rows,
+    goal_checks,
+)
 from services.bench.runner import SearchRecord
 from services.bench.settings_choice import CHOICE_RULE, choose_setting
 from services.bench.stats import summarize
 from services.bench.tables import SUMMARY_COLUMNS, markdown_tables, md_table, summary_cells
 
 __all__ = [
-    "section_head",
+    "section_of_bench",
+    "section_of_profile",
+    "section_of_random",
+    "section_of_sweep",
+    "section_of_throughput",
     "write_results_md",
 ]
 
-# -- RESULTS.md -----------------------------------------------------------------------------
-
 
 def _machine_md(machine: Mapping[str, Any]) -> str:
+    """The machine as a Markdown list, one ``- key: value`` a line."""
     return "\n".join(f"- {key.replace('_', ' ')}: {value}" for key, value in machine.items())
+
+
+def _escape(text: str) -> str:
+    """``text`` as one Markdown table cell: pipes escaped, line breaks as spaces."""
+    return text.replace("|", "\\|").replace("\n", " ")
 
 
 def write_results_md(path: Path, out: Path) -> None:
@@ -51,8 +67,6 @@ def write_results_md(path: Path, out: Path) -> None:
         text.write(section_of_throughput(json.loads(throughput.read_text())))
     random = out / "random.json"
     if random.exists():
-        from services.bench.random_report import section_of_random  # it builds on this module
-
         text.write(section_of_random(json.loads(random.read_text())))
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text.getvalue())
@@ -62,7 +76,7 @@ def _records(data: Mapping[str, Any]) -> list[SearchRecord]:
     return [SearchRecord.model_validate(r) for r in data.get("records", [])]
 
 
-def section_head(title: str, data: Mapping[str, Any], *, duration: bool = False) -> str:
+def _section_head(title: str, data: Mapping[str, Any], *, duration: bool = False) -> str:
     """A report section's title, command, machine (and duration) and notes."""
     machine = _machine_md(data["machine"]) + "\n"
     if duration:
@@ -72,8 +86,9 @@ def section_head(title: str, data: Mapping[str, Any], *, duration: bool = False)
 
 
 def section_of_bench(data: Mapping[str, Any], plots: Path) -> str:
+    """The bench's section: its tables, eq. 9, the plots (linked from ``plots``), its profile."""
     text = io.StringIO()
-    text.write(section_head("Searches through the local stack", data, duration=True))
+    text.write(_section_head("Searches through the local stack", data, duration=True))
     text.write(markdown_tables(summarize(_records(data))))
     text.write(
         f"\n![renders per search]({(plots / 'renders_hist.png').as_posix()})\n\n"
@@ -86,6 +101,7 @@ def section_of_bench(data: Mapping[str, Any], plots: Path) -> str:
 
 
 def section_of_profile(profile: Mapping[str, Any]) -> str:
+    """The ``--profile`` part of the bench's section: wall time against the floor, per scene."""
     text = io.StringIO()
     text.write("### Profile: a search against the work it cannot avoid (`--profile`)\n\n")
     text.write(profile["definition"] + "\n\n")
@@ -123,8 +139,9 @@ def section_of_profile(profile: Mapping[str, Any]) -> str:
 
 
 def section_of_sweep(data: Mapping[str, Any]) -> str:
+    """The ``--sweep`` section: detection per (film, spp), searches per setting, the choice."""
     text = io.StringIO()
-    text.write(section_head("Render settings by measurement (`--sweep`)", data))
+    text.write(_section_head("Render settings by measurement (`--sweep`)", data))
     detection = data.get("detection")
     if detection:
         text.write("### Detection against the renderer's ground truth, in one process\n\n")
@@ -173,8 +190,9 @@ def section_of_sweep(data: Mapping[str, Any]) -> str:
 
 
 def section_of_throughput(data: Mapping[str, Any]) -> str:
+    """The ``--throughput`` section: searches per minute at each replica count."""
     text = io.StringIO()
-    text.write(section_head("Throughput (`--throughput`)", data))
+    text.write(_section_head("Throughput (`--throughput`)", data))
     header = (
         "renderers",
         "detectors",
@@ -203,4 +221,57 @@ def section_of_throughput(data: Mapping[str, Any]) -> str:
         for r in data["rows"]
     ]
     text.write(md_table(header, rows) + "\n\n")
+    return text.getvalue()
+
+
+def section_of_random(data: Mapping[str, Any]) -> str:
+    """The random-scene run's section of ``docs/RESULTS.md``."""
+    records = _records(data)
+    text = io.StringIO()
+    text.write(_section_head("Random scenes, general and per-scene detector", data, duration=True))
+    scenes = data.get("scenes", [])
+    if scenes:
+        text.write("### Scenes\n\n")
+        scene_header = ("scene", "film", "fov °", "radius", "grid step °", "objects")
+        rows = [
+            [
+                s["id"],
+                s["film"],
+                f"{s['fov_deg']:.1f}",
+                f"{s['radius']:.2f}",
+                f"{s['angle_step_deg']:g}",
+                ", ".join(s["kinds"]),
+            ]
+            for s in scenes
+        ]
+        text.write(md_table(scene_header, rows) + "\n\n")
+    models = data.get("models", [])
+    if models:
+        text.write("### Detector per scene and arm\n\n")
+        header = ("scene", "arm", "model served", "onboarding")
+        rows = [
+            [m["scene"], m["arm"], _escape(m["served"]), _escape(m.get("onboarding", "—"))]
+            for m in models
+        ]
+        text.write(md_table(header, rows) + "\n\n")
+    text.write("### Found per θ band, variant and arm\n\n")
+    text.write(
+        "found = the answer is the true grid pose, confirmed or not; confirmed = found and "
+        "confirmed; unconfirmed = answers the controller did not confirm (of them, at the "
+        "truth); confirmed wrong = a confirmed answer that is not the true grid pose. "
+        "Definitions in `services/bench/random_report.py`.\n\n"
+    )
+    cells = band_cells(records)
+    if cells:
+        text.write(band_table(cells, markdown=True) + "\n\n")
+        text.write(f"**Goals** ({GOALS}):\n\n")
+        text.write("".join(f"- {line}\n" for line in goal_checks(cells)) + "\n")
+    failures = failure_rows(records)
+    if failures:
+        traced = sum(r.trace is not None for r in records)
+        text.write(f"### Traces of misses and unconfirmed answers ({traced}")
+        text.write(f", first {len(failures)})\n\n" if traced > len(failures) else ")\n\n")
+        text.write(
+            md_table(FAILURE_HEADER, [[_escape(c) for c in row] for row in failures]) + "\n\n"
+        )
     return text.getvalue()
