@@ -21,7 +21,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.optimizer.calibration import CalibrationStore, PaperCalibration
 from services.optimizer.mapping import map_exact, map_paper
 from services.optimizer.proxies import kind_of
@@ -36,7 +36,7 @@ def _errors(
     """Position errors per (class, wholly visible) and method, and the number of views."""
     catalog = SceneCatalog([BUILTIN_SCENES_DIR])
     scene = catalog.get(scene_id)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     camera = scene.spec.camera
     literal = dataclasses.replace(calibration, reference_height=0.0)
     errors: dict[tuple[str, bool], dict[str, list[float]]] = defaultdict(

@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from services.common.camera import mitsuba_to_world
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
-from services.common.models import Pose
+from services.common.geometry.camera import mitsuba_to_world
+from services.common.geometry.pose import Pose
 from services.renderer.engine import RenderEngine
 from services.renderer.scene_builder import build_scene
 

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
-from services.common.grid import HemisphereGrid, grid_for, pose_to_cartesian
-from services.common.scene import LoadedScene
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
+from services.common.geometry.grid import HemisphereGrid, grid_for, pose_to_cartesian
+from services.common.geometry.scene import LoadedScene
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.problem import Plan
 from services.optimizer.simulator import NoiseModel, SceneSimulator, SearchOutcome, run_search
@@ -224,7 +224,7 @@ def main() -> None:
     print(HEADER, flush=True)
     for scene_id in scenes:
         scene = catalog.get(scene_id)
-        own = scene_grid(scene)
+        own = scene.spec.search.grid()
         grids = [(f"{own.angle_step_deg:g}° {own.theta_deg[0]:g}–{own.theta_deg[-1]:g}", own)]
         grids.append(("π/24 0–90", grid_for(7.5, 0.0, 90.0)))
         for grid_name, grid in grids:
@@ -244,7 +244,7 @@ def main() -> None:
         )
         print(HEADER, flush=True)
         for scene_id in scenes:
-            grid = scene_grid(catalog.get(scene_id))
+            grid = catalog.get(scene_id).spec.search.grid()
             for strategy in STRATEGIES:
                 row = run_row(
                     pool, scene_id, "scene grid", grid, strategy, args.noise_starts, noise, 1.5,

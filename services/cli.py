@@ -26,10 +26,11 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
+from services.common.contracts.render import RenderAnnotations, RenderRequest
+from services.common.contracts.search import Iteration, Search
 from services.common.errors import ServiceError
-from services.common.models import PoseQuery, RenderAnnotations, RenderRequest
-from services.common.search import Iteration, Search
+from services.common.geometry.pose import PoseQuery
 from services.controller.client import ControllerClient, ControllerError
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
@@ -57,7 +58,7 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
         scene = catalog.get(scene_id)
         print(
             f"{scene_id:<16} {len(scene.spec.objects):>3} objects  "
-            f"{scene_grid(scene).size:>5} poses  {scene.path}"
+            f"{scene.spec.search.grid().size:>5} poses  {scene.path}"
         )
     for scene_id, error in catalog.invalid().items():
         print(f"{scene_id:<16} INVALID: {error}")
@@ -101,7 +102,7 @@ class _ProgressBar:
 
 
 def _cmd_onboard(args: argparse.Namespace) -> int:
-    from services.common.scene import SceneFileError
+    from services.common.geometry.scene import SceneFileError
 
     try:
         from training.onboard import OnboardOptions, TorchMissingError, onboard_scene
@@ -307,7 +308,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = SceneCatalog([BUILTIN_SCENES_DIR]).get("demo")
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     rng = random.Random(args.seed)
     index = grid.unflat(rng.randrange(grid.size))
     pose = grid.pose(index)

@@ -29,8 +29,10 @@ from services.bench.variants import (
     draw_pose,
 )
 from services.cli import main
-from services.common.grid import angular_distance_deg, grid_for
-from services.common.models import Detection, GridIndex, ObjectAnnotation
+from services.common.contracts.detect import Detection
+from services.common.contracts.render import ObjectAnnotation
+from services.common.geometry.grid import angular_distance_deg, grid_for
+from services.common.geometry.pose import GridIndex
 from services.detector.letterbox import fit
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "detector.onnx"

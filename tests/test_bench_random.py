@@ -26,9 +26,9 @@ from services.bench.traces import failure_trace
 from services.bench.variants import degrade, photo_finish
 from services.cli import main
 from services.common.catalog import BUILTIN_SCENES_DIR
-from services.common.models import GridIndex
-from services.common.scene import load_scene
-from services.common.search import Search
+from services.common.contracts.search import Search
+from services.common.geometry.pose import GridIndex
+from services.common.geometry.scene import load_scene
 
 # -- photo and changed ----------------------------------------------------------------------
 
@@ -402,7 +402,7 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
     from services.bench import random_run
     from services.bench.command import BenchConfig, Endpoints
     from services.bench.runner import Target
-    from services.common.models import Pose
+    from services.common.geometry.pose import Pose
 
     pose = Pose(theta_deg=30.0, phi_deg=0.0)
     index = GridIndex(lat=1, lon=0)

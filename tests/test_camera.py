@@ -11,16 +11,16 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from services.common.camera import (
+from services.common.geometry.camera import (
     camera_axes,
-    camera_model,
     focal_length_px,
     mitsuba_to_world,
+    pinhole_camera,
     pixel_rays,
     project,
 )
-from services.common.grid import pose_to_cartesian
-from services.common.models import Pose
+from services.common.geometry.grid import pose_to_cartesian
+from services.common.geometry.pose import Pose
 
 thetas = st.floats(0.0, 90.0)
 phis = st.floats(-720.0, 720.0)
@@ -76,7 +76,7 @@ def test_forward_points_from_the_camera_at_the_origin(theta, phi, radius):
     position = pose_to_cartesian(theta, phi, radius)
     _, _, forward = camera_axes(theta, phi)
     np.testing.assert_allclose(forward, -position / radius, atol=1e-12)
-    camera = camera_model(Pose(theta_deg=theta, phi_deg=phi), radius, 45.0, 320, 240)
+    camera = pinhole_camera(Pose(theta_deg=theta, phi_deg=phi), radius, 45.0, 320, 240)
     np.testing.assert_allclose(camera.position, position, atol=1e-9 * radius)
 
 
@@ -161,7 +161,7 @@ def test_focal_length_of_a_horizontal_field_of_view(fov, width, focal):
 @settings(max_examples=50, deadline=None)
 @given(pose=poses, radius=radii, fov=fovs, width=sizes, height=sizes)
 def test_camera_model_intrinsics(pose, radius, fov, width, height):
-    camera = camera_model(pose, radius, fov, width, height)
+    camera = pinhole_camera(pose, radius, fov, width, height)
     assert (camera.width, camera.height, camera.fov_deg) == (width, height, fov)
     assert camera.fx == camera.fy == focal_length_px(fov, width)
     assert (camera.cx, camera.cy) == (width / 2.0, height / 2.0)
@@ -173,7 +173,7 @@ def test_camera_model_intrinsics(pose, radius, fov, width, height):
 @settings(max_examples=50, deadline=None)
 @given(pose=poses, radius=radii)
 def test_extrinsics_map_the_camera_centre_to_zero(pose, radius):
-    camera = camera_model(pose, radius, 45.0, 320, 240)
+    camera = pinhole_camera(pose, radius, 45.0, 320, 240)
     rotation = np.asarray(camera.rotation)
     np.testing.assert_allclose(rotation, axes_matrix(pose.theta_deg, pose.phi_deg), atol=1e-15)
     cam = rotation @ np.asarray(camera.position) + np.asarray(camera.translation)
@@ -186,7 +186,7 @@ def test_extrinsics_map_the_camera_centre_to_zero(pose, radius):
 @settings(max_examples=100, deadline=None)
 @given(pose=poses, radius=radii, fov=fovs, width=sizes, height=sizes)
 def test_origin_projects_to_the_principal_point(pose, radius, fov, width, height):
-    camera = camera_model(pose, radius, fov, width, height)
+    camera = pinhole_camera(pose, radius, fov, width, height)
     pixels, depth = project([0.0, 0.0, 0.0], camera)
     np.testing.assert_allclose(pixels, [width / 2.0, height / 2.0], atol=1e-9 * width)
     assert depth == pytest.approx(radius)
@@ -194,7 +194,7 @@ def test_origin_projects_to_the_principal_point(pose, radius, fov, width, height
 
 def test_side_view_projection_by_hand():
     # Camera at (8, 0, 0) looking at the origin, fx = fy = 160 (fov 90°, 320 wide).
-    camera = camera_model(Pose(theta_deg=90.0, phi_deg=0.0), 8.0, 90.0, 320, 240)
+    camera = pinhole_camera(Pose(theta_deg=90.0, phi_deg=0.0), 8.0, 90.0, 320, 240)
     pixels, depth = project([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [4.0, -1.0, -0.5]], camera)
     np.testing.assert_allclose(depth, [8.0, 8.0, 4.0], atol=1e-12)
     np.testing.assert_allclose(
@@ -206,7 +206,7 @@ def test_side_view_projection_by_hand():
 
 def test_points_behind_or_beside_the_camera_get_nan():
     pose = Pose(theta_deg=40.0, phi_deg=75.0)
-    camera = camera_model(pose, 8.0, 45.0, 320, 240)
+    camera = pinhole_camera(pose, 8.0, 45.0, 320, 240)
     position = np.asarray(camera.position)
     right, _, forward = camera_axes(pose.theta_deg, pose.phi_deg)
     world = np.stack(
@@ -229,7 +229,7 @@ def test_points_behind_or_beside_the_camera_get_nan():
 @given(pose=poses, radius=st.floats(12.0, 50.0), fov=fovs, world=points)
 def test_pixel_rays_invert_project(pose, radius, fov, world):
     # Every point of the box lies in front of a camera at least 12 units away.
-    camera = camera_model(pose, radius, fov, 640, 480)
+    camera = pinhole_camera(pose, radius, fov, 640, 480)
     pixels, depth = project(world, camera)
     assert (depth > 0).all()
     rays = pixel_rays(pixels, camera)
@@ -248,7 +248,7 @@ def test_pixel_rays_invert_project(pose, radius, fov, world):
     distance=st.floats(0.1, 100.0),
 )
 def test_project_inverts_pixel_rays(pose, radius, fov, pixels, distance):
-    camera = camera_model(pose, radius, fov, 640, 480)
+    camera = pinhole_camera(pose, radius, fov, 640, 480)
     rays = pixel_rays(pixels, camera)
     world = np.asarray(camera.position) + distance * rays
     back, depth = project(world, camera)
@@ -257,7 +257,7 @@ def test_project_inverts_pixel_rays(pose, radius, fov, pixels, distance):
 
 
 def test_project_and_pixel_rays_keep_leading_shapes():
-    camera = camera_model(Pose(theta_deg=30.0, phi_deg=10.0), 8.0, 45.0, 320, 240)
+    camera = pinhole_camera(Pose(theta_deg=30.0, phi_deg=10.0), 8.0, 45.0, 320, 240)
     pixels, depth = project(np.zeros((2, 5, 3)), camera)
     assert (pixels.shape, depth.shape) == ((2, 5, 2), (2, 5))
     assert pixel_rays(np.zeros((4, 3, 2)), camera).shape == (4, 3, 3)
@@ -266,8 +266,8 @@ def test_project_and_pixel_rays_keep_leading_shapes():
 @settings(max_examples=100, deadline=None)
 @given(theta=thetas, phi=phis, alpha=st.floats(-360.0, 360.0), world=points, fov=fovs)
 def test_rotating_the_world_and_the_camera_about_z_keeps_the_pixels(theta, phi, alpha, world, fov):
-    camera = camera_model(Pose(theta_deg=theta, phi_deg=phi), 20.0, fov, 320, 240)
-    turned = camera_model(Pose(theta_deg=theta, phi_deg=phi + alpha), 20.0, fov, 320, 240)
+    camera = pinhole_camera(Pose(theta_deg=theta, phi_deg=phi), 20.0, fov, 320, 240)
+    turned = pinhole_camera(Pose(theta_deg=theta, phi_deg=phi + alpha), 20.0, fov, 320, 240)
     pixels, depth = project(world, camera)
     turned_pixels, turned_depth = project(rotate_z(world, alpha), turned)
     np.testing.assert_allclose(turned_depth, depth, atol=1e-9)
@@ -280,7 +280,7 @@ def test_rotating_only_the_world_moves_the_pixels(theta, phi, alpha, world):
     # The counterpart of the metamorphic test above: without turning the camera the image
     # changes, so that test is not passing because projection ignores φ.
     assume(np.hypot(world[:, 0], world[:, 1]).max() > 1.0)
-    camera = camera_model(Pose(theta_deg=theta, phi_deg=phi), 20.0, 45.0, 320, 240)
+    camera = pinhole_camera(Pose(theta_deg=theta, phi_deg=phi), 20.0, 45.0, 320, 240)
     pixels, _ = project(world, camera)
     moved, _ = project(rotate_z(world, alpha), camera)
     assert np.abs(moved - pixels).max() > 1e-3
@@ -309,7 +309,7 @@ def test_mitsuba_to_world_columns(pose, radius):
 @settings(max_examples=50, deadline=None)
 @given(pose=poses, radius=radii)
 def test_mitsuba_to_world_inverts_the_opencv_extrinsics(pose, radius):
-    camera = camera_model(pose, radius, 45.0, 320, 240)
+    camera = pinhole_camera(pose, radius, 45.0, 320, 240)
     world_to_cv = np.eye(4)
     world_to_cv[:3, :3] = np.asarray(camera.rotation)
     world_to_cv[:3, 3] = camera.translation

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog, scene_grid
+from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.errors import NotFoundError, UnprocessableError
 from services.renderer.settings import RendererSettings
 
@@ -60,7 +60,7 @@ def test_builtin_catalog_holds_demo_and_garden():
     demo = catalog.get("demo")
     assert demo.id == "demo"
     assert demo.path == BUILTIN_SCENES_DIR / "demo.yaml"
-    assert scene_grid(demo).size == 341  # Δ = 7.5° over θ ∈ [7.5°, 82.5°]
+    assert demo.spec.search.grid().size == 341  # Δ = 7.5° over θ ∈ [7.5°, 82.5°]
     garden = catalog.get("garden")
     assert set(garden.assets) == {
         "ground.texture",

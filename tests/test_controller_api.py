@@ -18,9 +18,9 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp
 
 from services.common.catalog import BUILTIN_SCENES_DIR
-from services.common.models import GridIndex
-from services.common.optimization import GridPose
-from services.common.search import Search, SearchStatus
+from services.common.contracts.optimize import GridPose
+from services.common.contracts.search import Search, SearchStatus
+from services.common.geometry.pose import GridIndex
 from services.controller.app import create_app as create_controller
 from services.controller.events import Notifier
 from services.controller.settings import ControllerSettings

@@ -7,16 +7,16 @@ import asyncio
 
 import pytest
 
-from services.common.catalog import scene_grid
-from services.common.models import Detection, DetectResponse, GridIndex, ModelInfo
-from services.common.optimization import (
+from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
+from services.common.contracts.optimize import (
     GridPose,
     NextPoseRequest,
     NextPoseResponse,
     ViewMatch,
 )
-from services.common.scene import SceneDetail
-from services.common.search import Search
+from services.common.contracts.render import SceneDetail
+from services.common.contracts.search import Search
+from services.common.geometry.pose import GridIndex
 from services.controller.events import Notifier
 from services.controller.runner import SearchRunner
 from services.controller.store import SearchStore, utcnow
@@ -93,7 +93,7 @@ class FakeStages:
 
 
 def scene_grid_of(detail: SceneDetail):
-    from services.common.grid import grid_for
+    from services.common.geometry.grid import grid_for
 
     g = detail.grid
     return grid_for(g.angle_step_deg, g.min_theta_deg, g.max_theta_deg)
@@ -102,7 +102,7 @@ def scene_grid_of(detail: SceneDetail):
 @pytest.fixture
 def detail(catalog) -> SceneDetail:
     scene = catalog.get("demo")
-    return SceneDetail(id="demo", spec=scene.spec, grid=scene_grid(scene).info())
+    return SceneDetail(id="demo", spec=scene.spec, grid=scene.spec.search)
 
 
 def run(tmp_path, stages: FakeStages, max_iterations: int = 6) -> Search:

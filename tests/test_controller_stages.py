@@ -15,10 +15,10 @@ import pytest
 from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from services.common.contracts.search import Search
 from services.common.errors import UnprocessableError
+from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE, media_type_of
-from services.common.models import GridIndex
-from services.common.search import Search
 from services.controller.broker import Broker
 from services.controller.stages import Stages
 from services.controller.store import SearchStore

@@ -8,10 +8,11 @@ from datetime import timedelta
 
 import pytest
 
+from services.common.contracts.detect import Detection
+from services.common.contracts.optimize import GridPose
+from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
 from services.common.errors import ProblemDetails
-from services.common.models import Detection, GridIndex, Pose
-from services.common.optimization import GridPose
-from services.common.search import Iteration, Search, SearchResult, StageTimings
+from services.common.geometry.pose import GridIndex, Pose
 from services.controller.checkpoint import Checkpointer
 from services.controller.store import SearchStore, database_path, utcnow
 

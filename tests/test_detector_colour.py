@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.common.models import Pose
+from services.common.geometry.pose import Pose
 from services.detector.colour import _far_from, _hue_consistent, _lab, _median, measure_colour
 from tests.support import ROOT
 

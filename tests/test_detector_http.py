@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import schemathesis
 
-from services.common.grid import grid_for
+from services.common.geometry.grid import grid_for
 from services.detector.client import DetectorClient, DetectorError
 from services.detector.postprocess import box_iou
 from services.detector.synthetic import constant_model

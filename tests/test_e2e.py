@@ -18,10 +18,11 @@ import httpx
 import numpy as np
 import pytest
 
+from services.common.contracts.render import RenderRequest
+from services.common.contracts.search import Search
+from services.common.geometry.pose import PoseQuery
 from services.common.images import encode_ppm
 from services.common.launch import free_port, spawn_service, stop_service, wait_healthy
-from services.common.models import PoseQuery, RenderRequest
-from services.common.search import Search
 from services.controller.client import ControllerClient
 from services.renderer.client import RendererClient
 from services.stack import Stack, local_stack, plan_stack, running_stack
@@ -54,7 +55,7 @@ def run_search(stack: Stack, image: bytes, scene: str, **options):
 
 
 def grid_of(stack: Stack, scene: str):
-    from services.common.grid import grid_for
+    from services.common.geometry.grid import grid_for
 
     detail = httpx.get(f"{stack.renderers[0]}/scenes/{scene}").json()["spec"]["search"]
     return grid_for(detail["angle_step_deg"], detail["min_theta_deg"], detail["max_theta_deg"])

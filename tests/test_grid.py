@@ -10,16 +10,17 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from services.common.grid import (
+from services.common.geometry.grid import (
     MAX_GRID_SIZE,
     GridError,
+    GridSpec,
     HemisphereGrid,
     angular_distance_deg,
     cartesian_to_pose,
     grid_for,
     pose_to_cartesian,
 )
-from services.common.models import GridIndex, GridInfo, Pose
+from services.common.geometry.pose import GridIndex, Pose
 
 DEMO = (7.5, 7.5, 82.5)
 GRID_PARAMS = [
@@ -170,14 +171,13 @@ def test_grids_are_cached_hashable_and_compared_by_parameters():
     assert len({HemisphereGrid(7.5), HemisphereGrid(7.5), grid_for(*DEMO)}) == 2
 
 
-def test_info_describes_the_grid_and_round_trips():
+def test_the_spec_describes_the_grid_and_round_trips():
     grid = grid_for(*DEMO)
-    info = grid.info()
-    assert (info.angle_step_deg, info.min_theta_deg, info.max_theta_deg) == DEMO
-    assert info.rings == grid.rings
-    assert info.size == grid.size
-    again = GridInfo.model_validate_json(info.model_dump_json())
-    assert HemisphereGrid.from_info(again) is grid
+    spec = grid.spec()
+    assert (spec.angle_step_deg, spec.min_theta_deg, spec.max_theta_deg) == DEMO
+    again = GridSpec.model_validate_json(spec.model_dump_json())
+    assert again == spec
+    assert again.grid() is grid
 
 
 # -- conversions -------------------------------------------------------------------------------

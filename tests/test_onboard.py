@@ -13,7 +13,7 @@ import pytest
 
 from services.cli import main
 from services.common.catalog import BUILTIN_SCENES_DIR
-from services.common.scene import SceneFileError, load_scene
+from services.common.geometry.scene import SceneFileError, load_scene
 from services.common.scene_models import (
     MODEL_CARD_NAME,
     MODEL_FILE_NAME,

@@ -10,8 +10,9 @@ import pytest
 
 from services.bench.runner import local_stack
 from services.bench.scenes import generate_scene
-from services.common.models import PoseQuery, RenderRequest
-from services.common.scene import load_scene
+from services.common.contracts.render import RenderRequest
+from services.common.geometry.pose import PoseQuery
+from services.common.geometry.scene import load_scene
 from services.common.scene_models import SIDECAR_NAME, model_dir, object_classes
 from services.controller.client import ControllerClient
 from services.detector.client import DetectorClient

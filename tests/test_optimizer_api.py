@@ -9,9 +9,8 @@ import httpx
 import pytest
 from asgi_lifespan import LifespanManager
 
-from services.common.catalog import scene_grid
-from services.common.grid import grid_for
-from services.common.models import GridIndex
+from services.common.geometry.grid import grid_for
+from services.common.geometry.pose import GridIndex
 from services.optimizer.app import create_app
 from services.optimizer.settings import OptimizerSettings
 from services.optimizer.simulator import SceneSimulator
@@ -40,7 +39,7 @@ async def client() -> AsyncIterator[httpx.AsyncClient]:
 def demo(catalog):
     scene = catalog.get("demo")
     simulator = SceneSimulator.from_scene(scene)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     views = simulator.grid_views(grid)
 
     def detections(flat: int, scale: float = 1.0) -> list[dict]:

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from services.common.scene import Camera
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import (
     CalibrationSamples,
     CalibrationStore,
@@ -17,7 +17,7 @@ from services.optimizer.calibration import (
 )
 from tools.fit_paper_mapping import calibration_thetas, collect_samples, fit_calibration
 
-CAMERA = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
+CAMERA = CameraSpec(fov_deg=45.0, width=320, height=240, radius=8.0)
 
 
 @pytest.fixture(scope="module")
@@ -78,11 +78,11 @@ def test_store_round_trip_and_lookup(tmp_path, stored):
     assert again is not None
     np.testing.assert_allclose(again.coefficients, stored.coefficients)
     # Same fov and aspect at another resolution: usable through the paper's scale s.
-    double = Camera(fov_deg=45.0, width=640, height=480, radius=8.0)
+    double = CameraSpec(fov_deg=45.0, width=640, height=480, radius=8.0)
     assert loaded.find(double) is again
     assert again.scale(double) == 0.5
-    assert loaded.find(Camera(fov_deg=60.0, width=320, height=240, radius=8.0)) is None
-    assert loaded.find(Camera(fov_deg=45.0, width=320, height=320, radius=8.0)) is None
+    assert loaded.find(CameraSpec(fov_deg=60.0, width=320, height=240, radius=8.0)) is None
+    assert loaded.find(CameraSpec(fov_deg=45.0, width=320, height=320, radius=8.0)) is None
     assert CalibrationStore.load(tmp_path / "missing.json").find(CAMERA) is None
 
 

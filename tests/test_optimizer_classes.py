@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.common.contracts.detect import Detection
+from services.common.contracts.optimize import NextPoseRequest
 from services.common.errors import UnprocessableError
-from services.common.models import Detection
-from services.common.optimization import NextPoseRequest
 from services.common.scene_models import ObjectClass
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.matching import COLOUR_GATE, compare_views

@@ -10,9 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.common.catalog import scene_grid
-from services.common.models import GridIndex
-from services.common.optimization import NextPoseRequest
+from services.common.contracts.optimize import NextPoseRequest
+from services.common.geometry.pose import GridIndex
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.matching import compare_views
 from services.optimizer.observations import EDGE_NOISE_FRACTION, Observation, box_sizes
@@ -56,7 +55,7 @@ def test_the_match_score_falls_with_distance_and_unpaired_confidence():
 def demo(catalog):
     scene = catalog.get("demo")
     simulator = SceneSimulator.from_scene(scene)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     return simulator, grid, simulator.grid_views(grid)
 
 

@@ -8,12 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from services.common.camera import camera_axes, camera_model, project
-from services.common.grid import pose_to_cartesian
-from services.common.models import Pose
-from services.common.scene import Camera
+from services.common.geometry.camera import camera_axes, pinhole_camera, project
+from services.common.geometry.grid import pose_to_cartesian
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import CameraSpec
 from services.optimizer import proxies
-from services.optimizer.geometry import Cameras
+from services.optimizer.geometry import PinholeCameras
 from services.optimizer.proxies import (
     RIM_POINTS,
     ProxyKind,
@@ -23,7 +23,7 @@ from services.optimizer.proxies import (
     sphere_boxes,
 )
 
-CAMERA = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
+CAMERA = CameraSpec(fov_deg=45.0, width=320, height=240, radius=8.0)
 thetas = st.floats(0.0, 90.0)
 phis = st.floats(0.0, 360.0)
 points = hnp.arrays(np.float64, (6, 3), elements=st.floats(-3.0, 3.0))
@@ -32,8 +32,8 @@ points = hnp.arrays(np.float64, (6, 3), elements=st.floats(-3.0, 3.0))
 @settings(max_examples=80, deadline=None)
 @given(theta=thetas, phi=phis, pts=points)
 def test_cameras_project_like_the_shared_camera_model(theta, phi, pts):
-    mine, depth = Cameras.at(theta, phi, CAMERA).project(pts)
-    model = camera_model(Pose(theta_deg=theta, phi_deg=phi), 8.0, 45.0, 320, 240)
+    mine, depth = PinholeCameras.at(theta, phi, CAMERA).project(pts)
+    model = pinhole_camera(Pose(theta_deg=theta, phi_deg=phi), 8.0, 45.0, 320, 240)
     theirs, their_depth = project(pts, model)
     np.testing.assert_allclose(mine[0], theirs, atol=1e-9)
     np.testing.assert_allclose(depth[0], their_depth, atol=1e-12)
@@ -45,27 +45,29 @@ def test_cameras_project_like_the_shared_camera_model(theta, phi, pts):
     phi=hnp.arrays(np.float64, st.integers(1, 9), elements=phis),
 )
 def test_cameras_have_the_axes_of_the_shared_camera_model_to_the_last_bit(theta, phi):
-    """Cameras.at writes camera_axes out for speed; refinement results depend on the bits."""
+    """PinholeCameras.at writes camera_axes out for speed; refinement results depend on the bits."""
     count = min(len(theta), len(phi))
     theta, phi = theta[:count], phi[:count]
-    cams = Cameras.at(theta, phi, CAMERA)
+    cams = PinholeCameras.at(theta, phi, CAMERA)
     right, down, forward = camera_axes(theta, phi)
     np.testing.assert_array_equal(cams.rotation, np.stack([right, down, forward], axis=-2))
     np.testing.assert_array_equal(cams.position, -forward * CAMERA.radius)
     np.testing.assert_array_equal(cams.unit_positions, pose_to_cartesian(theta, phi))
-    np.testing.assert_array_equal(Cameras.at(theta[0], phi[0], CAMERA).rotation, cams.rotation[:1])
+    np.testing.assert_array_equal(
+        PinholeCameras.at(theta[0], phi[0], CAMERA).rotation, cams.rotation[:1]
+    )
 
 
 @settings(max_examples=60, deadline=None)
 @given(theta=thetas, phi=phis, pts=points)
 def test_directions_invert_projection(theta, phi, pts):
-    cams = Cameras.at(theta, phi, CAMERA)
+    cams = PinholeCameras.at(theta, phi, CAMERA)
     pixels, depth = cams.project(pts)
     rays = cams.directions(cams.normalised(pixels))[0]
     np.testing.assert_allclose(cams.position[0] + depth[0][:, None] * rays, pts, atol=1e-9)
 
 
-def sampled_box(cams: Cameras, surface: np.ndarray) -> np.ndarray:
+def sampled_box(cams: PinholeCameras, surface: np.ndarray) -> np.ndarray:
     pixels, _ = cams.project(surface)
     return np.concatenate([pixels.min(axis=1), pixels.max(axis=1)], axis=-1)
 
@@ -78,7 +80,7 @@ def sphere_surface(centre: np.ndarray, radius: float, count: int = 200_000) -> n
 
 @pytest.mark.parametrize(("theta", "phi"), [(0.0, 0.0), (30.0, 45.0), (60.0, 200.0), (85.0, 10.0)])
 def test_sphere_boxes_are_the_exact_silhouette_bounds(theta, phi):
-    cams = Cameras.at(theta, phi, CAMERA)
+    cams = PinholeCameras.at(theta, phi, CAMERA)
     centre = np.array([2.0, -1.5, 0.5])
     exact = sphere_boxes(cams, centre[None], [0.5])[0, 0]
     sampled = sampled_box(cams, sphere_surface(centre, 0.5))[0]
@@ -90,7 +92,7 @@ def test_sphere_boxes_are_the_exact_silhouette_bounds(theta, phi):
 
 def test_the_sphere_box_centre_is_the_projected_centre_pushed_outwards():
     """(a₁ + a₂)/2 = a_c / (1 − k²): the perspective shift the exact mapping removes."""
-    cams = Cameras.at(60.0, 30.0, CAMERA)
+    cams = PinholeCameras.at(60.0, 30.0, CAMERA)
     centre = np.array([[2.5, 1.0, 0.45]])
     box = sphere_boxes(cams, centre, [0.45])[0, 0]
     projected, depth = cams.project(centre)
@@ -103,7 +105,7 @@ def test_the_sphere_box_centre_is_the_projected_centre_pushed_outwards():
 
 @pytest.mark.parametrize("kind", [ProxyKind.PRISM, ProxyKind.CONE])
 def test_prism_and_cone_boxes_bound_the_solid(kind):
-    cams = Cameras.at(50.0, 120.0, CAMERA)
+    cams = PinholeCameras.at(50.0, 120.0, CAMERA)
     x, y, rho, height = 1.0, 0.5, 0.3, 0.8
     box = proxy_boxes(cams, [kind], [[x, y, rho, height]])[0, 0]
     rng = np.random.default_rng(1)
@@ -115,7 +117,9 @@ def test_prism_and_cone_boxes_bound_the_solid(kind):
     assert np.all(np.abs(box - sampled) < 0.5)
 
 
-def rim_sample_boxes(cams: Cameras, kind: int, x: float, y: float, rho: float, height: float):
+def rim_sample_boxes(
+    cams: PinholeCameras, kind: int, x: float, y: float, rho: float, height: float
+):
     """The definition of a prism or cone box: bounds of the projected rim samples (and apex),
     NaN when any sample is not in front of the camera."""
     a = np.linspace(0.0, 2.0 * np.pi, RIM_POINTS, endpoint=False)
@@ -148,7 +152,9 @@ solids = hnp.arrays(
 def test_prism_and_cone_boxes_are_the_bounds_of_their_rim_samples(theta, phi, params, kinds):
     """The per-camera ring and the bounds taken before scaling to pixels give the boxes of the
     plain definition, to rounding, including NaN for solids reaching behind a camera."""
-    cams = Cameras.at(theta, phi, Camera(fov_deg=60.0, width=320, height=240, radius=3.0))
+    cams = PinholeCameras.at(
+        theta, phi, CameraSpec(fov_deg=60.0, width=320, height=240, radius=3.0)
+    )
     boxes = proxy_boxes(cams, kinds, params)
     for m, (kind, row) in enumerate(zip(kinds, params, strict=True)):
         expected = rim_sample_boxes(cams, int(kind), *row)
@@ -165,7 +171,7 @@ def test_prism_and_cone_boxes_are_the_bounds_of_their_rim_samples(theta, phi, pa
 )
 def test_an_objects_box_does_not_depend_on_the_others(theta, phi, params, kinds):
     """Bit for bit: the Gauss-Newton mapping batches its finite differences with the residuals."""
-    cams = Cameras.at(theta, phi, CAMERA)
+    cams = PinholeCameras.at(theta, phi, CAMERA)
     together = proxy_boxes(cams, kinds, params)
     for m in range(len(kinds)):
         alone = proxy_boxes(cams, kinds[m : m + 1], params[m : m + 1])[:, 0]
@@ -181,7 +187,7 @@ def test_an_objects_box_does_not_depend_on_the_others(theta, phi, params, kinds)
 )
 def test_boxes_do_not_depend_on_how_the_cameras_are_chunked(theta, phi, params, kinds):
     """Bit for bit: grids larger than one pass of rim samples are split into passes."""
-    cams = Cameras.at(theta, phi, CAMERA)
+    cams = PinholeCameras.at(theta, phi, CAMERA)
     whole = proxy_boxes(cams, kinds, params)
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(proxies, "_CHUNK_SAMPLES", 7 * 2 * 5 * RIM_POINTS)  # passes of 7 cameras
@@ -192,7 +198,7 @@ def test_boxes_do_not_depend_on_how_the_cameras_are_chunked(theta, phi, params, 
 @settings(max_examples=40, deadline=None)
 @given(theta=thetas, phi=phis, pts=points)
 def test_the_camera_frame_transforms_like_to_camera(theta, phi, pts):
-    cams = Cameras.at([theta, 90.0 - theta], [phi, phi + 90.0], CAMERA)
+    cams = PinholeCameras.at([theta, 90.0 - theta], [phi, phi + 90.0], CAMERA)
     origin, axes = cams.frame
     mine = origin[:, :, None] + np.einsum("cjn,pj->cnp", axes, pts)
     np.testing.assert_allclose(mine.transpose(1, 2, 0), cams.to_camera(pts), atol=1e-12)

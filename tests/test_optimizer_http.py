@@ -12,9 +12,8 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import positive_data_acceptance
 
-from services.common.catalog import scene_grid
+from services.common.geometry.pose import GridIndex
 from services.common.launch import ServiceProcess, running_service
-from services.common.models import GridIndex
 from services.optimizer.simulator import SceneSimulator
 
 pytestmark = pytest.mark.slow
@@ -32,7 +31,7 @@ def optimizer_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Serv
 def test_a_search_over_real_http(optimizer_process, catalog):
     scene = catalog.get("garden")
     simulator = SceneSimulator.from_scene(scene)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     views = simulator.grid_views(grid)
 
     def detections(flat: int) -> list[dict]:

@@ -8,9 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.common.catalog import scene_grid
-from services.common.models import Pose
-from services.common.scene import Camera
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.mapping import clipped_sides, hidden_behind, map_exact, map_paper
 from services.optimizer.proxies import kind_of
@@ -20,7 +19,7 @@ def annotated_errors(engine, catalog, scene_id: str, step: int):
     """Per class: exact and paper position errors of wholly visible objects over every
     ``step``-th grid pose."""
     scene = catalog.get(scene_id)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     camera = scene.spec.camera
     calibration = CalibrationStore.load().find(camera)
     errors: dict[str, dict[str, list[float]]] = {}
@@ -118,7 +117,7 @@ def test_the_literal_eq4_misplaces_raised_objects(engine, catalog):
 
 def test_rotating_the_pose_rotates_the_map():
     """Metamorphic: the same boxes seen from φ + ψ map to positions turned by ψ."""
-    camera = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
+    camera = CameraSpec(fov_deg=45.0, width=320, height=240, radius=8.0)
     boxes = np.array([[100.0, 80.0, 140.0, 120.0], [200.0, 150.0, 230.0, 200.0]])
     kinds = [kind_of("sphere"), kind_of("cylinder")]
     base = map_exact(boxes, kinds, camera, 40.0, 10.0)
@@ -154,7 +153,7 @@ def test_error_grows_smoothly_with_pixel_noise(engine, catalog):
 def test_the_horizon_maps_nothing():
     """From θ = 90° the camera is in the ground plane: scaling the scene about it changes
     nothing in the image, so no distance can be recovered."""
-    camera = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
+    camera = CameraSpec(fov_deg=45.0, width=320, height=240, radius=8.0)
     mapped = map_exact([[100.0, 100.0, 130.0, 130.0]], [kind_of("sphere")], camera, 90.0, 0.0)
     assert not mapped.reliable.any()
     assert np.isnan(mapped.position).all()

@@ -7,21 +7,22 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from services.common.errors import ServiceError
-from services.common.models import Detection, Pose, PoseQuery
-from services.common.optimization import (
-    GridSpec,
+from services.common.contracts.detect import Detection
+from services.common.contracts.optimize import (
     ImageDetections,
     MapRequest,
     NextPoseRequest,
     TargetImage,
     VisitedView,
 )
-from services.common.scene import Camera
+from services.common.errors import ServiceError
+from services.common.geometry.grid import GridSpec
+from services.common.geometry.pose import Pose, PoseQuery
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
 
-CAMERA = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
+CAMERA = CameraSpec(fov_deg=45.0, width=320, height=240, radius=8.0)
 GRID = GridSpec(angle_step_deg=7.5, min_theta_deg=0.0, max_theta_deg=90.0)
 CONTEXT = OptimizerContext(calibrations=CalibrationStore.load(), catalog=None)
 LABELS = ["sphere", "cube", "cylinder", "cone", "mesh", "teapot"]

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from services.common.catalog import scene_grid
 from services.optimizer.simulator import NoiseModel, SceneSimulator, read_ply_vertices, srgb8
 
 
@@ -24,7 +23,7 @@ def test_simulated_boxes_match_the_renderer(engine, catalog, scene_id):
     """Unoccluded objects: IoU ≥ 0.9 with the renderer's exact silhouette boxes (median ≈ 1);
     objects the renderer shows partly hidden still overlap their simulated box well."""
     scene = catalog.get(scene_id)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     simulator = SceneSimulator.from_scene(scene)
     views = simulator.grid_views(grid)
     whole, partly, missed = [], [], 0

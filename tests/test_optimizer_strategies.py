@@ -8,11 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.common.catalog import scene_grid
-from services.common.grid import angular_distance_deg, grid_for
-from services.common.models import GridIndex, PoseQuery
-from services.common.optimization import NextPoseRequest, TargetImage, VisitedView, search_grid
-from services.common.scene import LoadedScene, SceneSpec
+from services.common.contracts.optimize import (
+    NextPoseRequest,
+    TargetImage,
+    VisitedView,
+    searchable_grid,
+)
+from services.common.geometry.grid import angular_distance_deg, grid_for
+from services.common.geometry.pose import GridIndex, PoseQuery
+from services.common.geometry.scene import LoadedScene, SceneSpec
 from services.optimizer import strategies
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.observations import Observation
@@ -54,7 +58,7 @@ COUNTS = {"reprojection": 40, "paper": 60, "simple": 25}
 def test_each_strategy_converges_on_the_built_in_scenes(
     catalog, sims, calibration, scene_id, strategy
 ):
-    grid = scene_grid(catalog.get(scene_id))
+    grid = catalog.get(scene_id).spec.search.grid()
     outcomes = [
         run_search(strategy, sims[scene_id], grid, int(t), int(s), calibration=calibration)
         for t, s in sample_pairs(grid.size, COUNTS[strategy], seed=11)
@@ -93,7 +97,7 @@ def test_the_paper_search_jumps(sims, calibration):
 
 
 def test_reprojection_survives_noisy_detections(catalog, sims):
-    grid = scene_grid(catalog.get("demo"))
+    grid = catalog.get("demo").spec.search.grid()
     noise = NoiseModel(pixel_sigma=1.0, miss_rate=0.05, spurious_rate=0.05, colour_sigma=4.0)
     rng = np.random.default_rng(3)
     outcomes = [
@@ -124,7 +128,7 @@ def search(problem_for, first: int, max_moves: int = 10):
 
 def test_an_off_grid_target_gets_an_accurate_continuous_estimate(catalog, sims):
     scene = catalog.get("demo")
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     simulator = sims["demo"]
     views = simulator.grid_views(grid)
     theta, phi = 33.7, 47.9  # between grid poses
@@ -163,7 +167,7 @@ def spec(objects: list[dict]) -> LoadedScene:
 
 def first_plan(scene: LoadedScene, target_flat: int, start_flat: int):
     simulator = SceneSimulator.from_scene(scene)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     views = simulator.grid_views(grid)
     visit = Visit(
         start_flat,
@@ -211,7 +215,7 @@ def test_a_single_object_is_too_little_to_pin_the_pose():
 
 
 def test_an_asymmetric_layout_is_not_ambiguous(catalog, sims):
-    grid = scene_grid(catalog.get("demo"))
+    grid = catalog.get("demo").spec.search.grid()
     views = sims["demo"].grid_views(grid)
     visit = Visit(
         40, float(grid.theta_deg[40]), float(grid.phi_deg[40]), sims["demo"].observe(views, 40)
@@ -229,7 +233,7 @@ def test_an_asymmetric_layout_is_not_ambiguous(catalog, sims):
 def test_done_is_decided_from_the_detections(catalog, sims, calibration, strategy):
     """The same detections as the current view: done. The truth never enters: a target image
     identical to the current view is 'found' even if we call it another pose."""
-    grid = scene_grid(catalog.get("demo"))
+    grid = catalog.get("demo").spec.search.grid()
     views = sims["demo"].grid_views(grid)
     here = sims["demo"].observe(views, 77)
     visit = Visit(77, float(grid.theta_deg[77]), float(grid.phi_deg[77]), here)
@@ -248,7 +252,7 @@ def test_done_is_decided_from_the_detections(catalog, sims, calibration, strateg
 
 @pytest.mark.parametrize("strategy", sorted(STRATEGIES))
 def test_an_empty_history_asks_for_a_start_view(catalog, sims, calibration, strategy):
-    grid = scene_grid(catalog.get("demo"))
+    grid = catalog.get("demo").spec.search.grid()
     target = sims["demo"].observe(sims["demo"].grid_views(grid), 5)
     problem = SearchProblem(
         grid, catalog.get("demo").spec.camera, target, (), calibration=calibration
@@ -264,7 +268,7 @@ def test_reprojection_finds_targets_from_rendered_boxes(engine, catalog, sims, s
     """Not the simulator's boxes: the renderer's exact silhouette boxes (a perfect detector),
     with hidden objects and all, for every view of the search."""
     scene = catalog.get(scene_id)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     colours = sims[scene_id].colours
     seen: dict[int, Observation] = {}
 
@@ -300,7 +304,7 @@ def test_the_simple_searchs_caches_hit_across_requests(catalog, sims):
     and its scores against the target are still found again (keyed by content), and the caches
     stay bounded."""
     scene = catalog.get("demo")
-    spec = search_grid(scene.spec.search)
+    spec = searchable_grid(scene.spec.search)
     grid, camera = spec.grid(), scene.spec.camera
     sim = sims["demo"]
     views = sim.grid_views(grid)

@@ -8,10 +8,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from services.common.catalog import scene_grid
-from services.common.models import PoseQuery
-from services.common.optimization import NextPoseRequest, TargetImage, VisitedView
-from services.common.scene import Camera
+from services.common.contracts.optimize import NextPoseRequest, TargetImage, VisitedView
+from services.common.geometry.pose import PoseQuery
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.mapping import map_exact
 from services.optimizer.observations import Observation
@@ -19,7 +18,7 @@ from services.optimizer.planning import OptimizerContext, next_pose
 from services.optimizer.simulator import NoiseModel, SceneSimulator
 from services.optimizer.view_cache import ViewMappings
 
-CAMERA = Camera(fov_deg=45.0, width=320, height=240, radius=8.0)
+CAMERA = CameraSpec(fov_deg=45.0, width=320, height=240, radius=8.0)
 
 
 def view(shift: float = 0.0) -> Observation:
@@ -99,7 +98,7 @@ def test_threads_share_the_cache_safely():
 def search_requests(catalog) -> list[NextPoseRequest]:
     """A search's requests as the controller sends them: each carries the whole history."""
     scene = catalog.get("garden")
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     simulator = SceneSimulator.from_scene(scene)
     views = simulator.grid_views(grid)
     size = (scene.spec.camera.width, scene.spec.camera.height)

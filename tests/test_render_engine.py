@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.common.camera import camera_model
-from services.common.catalog import SceneCatalog, scene_grid
-from services.common.models import Pose
+from services.common.catalog import SceneCatalog
+from services.common.geometry.camera import pinhole_camera
+from services.common.geometry.pose import Pose
 from services.renderer.engine import RenderEngine
 from services.renderer.pool import WORKER_NICE
 from services.renderer.variant import SCALAR_VARIANT
@@ -43,14 +43,14 @@ def test_sphere_boxes_are_centred_on_the_projected_centres(engine, catalog, pose
 @pytest.mark.parametrize("scene_id", ["demo", "garden"])
 def test_annotations_are_consistent(engine, catalog, scene_id):
     scene = catalog.get(scene_id)
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     rng = np.random.default_rng(7)
     for flat in rng.choice(grid.size, size=6, replace=False):
         index = grid.unflat(int(flat))
         pose = grid.pose(index)
         ann = engine.annotate(scene, pose, 320, 240, index)
         assert ann.grid_index == index
-        assert ann.camera == camera_model(pose, scene.spec.camera.radius, 45.0, 320, 240)
+        assert ann.camera == pinhole_camera(pose, scene.spec.camera.radius, 45.0, 320, 240)
         assert [o.name for o in ann.objects] == [o.name for o in scene.spec.objects]
         for obj in ann.objects:
             assert obj.visible_pixels <= obj.full_pixels
@@ -167,7 +167,7 @@ def test_the_scalar_variant_gives_the_same_ground_truth(engine, catalog):
     """A separate process on ``scalar_rgb`` must see the same silhouettes as this one."""
     script = (
         "import json\n"
-        "from services.common.models import Pose\n"
+        "from services.common.geometry.pose import Pose\n"
         "from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog\n"
         "from services.renderer.engine import RenderEngine\n"
         "e = RenderEngine('scalar_rgb'); e.start()\n"

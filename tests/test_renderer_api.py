@@ -9,7 +9,9 @@ import httpx
 import numpy as np
 import pytest
 from asgi_lifespan import LifespanManager
+from pydantic import ValidationError
 
+from services.common.contracts.render import SceneDetail
 from services.common.images import decode_image
 from services.renderer.app import create_app
 from services.renderer.settings import RendererSettings
@@ -59,6 +61,19 @@ async def test_scene_detail_has_spec_and_grid(client):
     assert rings[0]["theta_deg"] == 7.5
     assert rings[-1]["theta_deg"] == 82.5
     assert body["grid"]["size"] == sum(r["count"] for r in rings)
+    detail = SceneDetail.model_validate(body)  # what a client reads back
+    assert detail.grid == detail.spec.search
+    assert detail.model_dump(mode="json") == body
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("size", 3), ("rings", [{"lat": 0, "theta_deg": 7.5, "count": 1}])]
+)
+async def test_a_scene_detail_read_back_must_agree_with_its_grid(client, key, value):
+    body = (await client.get("/scenes/demo")).json()
+    body["grid"][key] = value
+    with pytest.raises(ValidationError, match=f"{key} does not follow from the step"):
+        SceneDetail.model_validate(body)
 
 
 async def test_scene_schema_is_published(client):

@@ -8,7 +8,7 @@ import httpx
 import numpy as np
 import pytest
 
-from services.common.grid import grid_for
+from services.common.geometry.grid import grid_for
 from tests.support import fuzz_service
 
 pytestmark = pytest.mark.slow

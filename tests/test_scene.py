@@ -17,15 +17,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from services.common.grid import HemisphereGrid
-from services.common.scene import (
+from services.common.geometry.grid import GridSpec, HemisphereGrid
+from services.common.geometry.scene import (
     ConeObject,
     CubeObject,
     CylinderObject,
     MeshObject,
     SceneFileError,
     SceneSpec,
-    SearchSettings,
     SphereObject,
     load_scene,
     parse_scene,
@@ -191,7 +190,7 @@ def test_omitted_optional_fields_take_their_defaults():
     del data["objects"][3]["yaw_deg"]
     spec = parse(data)
     assert spec.lighting.ambient == 0.0
-    assert spec.search == SearchSettings(angle_step_deg=7.5, min_theta_deg=0.0, max_theta_deg=90.0)
+    assert spec.search == GridSpec(angle_step_deg=7.5, min_theta_deg=0.0, max_theta_deg=90.0)
     assert spec.objects[1].yaw_deg == 0.0  # type: ignore[union-attr]
     assert spec.objects[3].scale == 1.0  # type: ignore[union-attr]
     assert spec.objects[3].yaw_deg == 0.0  # type: ignore[union-attr]
@@ -458,7 +457,7 @@ def test_theta_range_holding_exactly_one_ring_is_accepted(step, lo, hi):
 
 def _settings_ok(step: float, lo: float, hi: float) -> bool:
     try:
-        SearchSettings(angle_step_deg=step, min_theta_deg=lo, max_theta_deg=hi)
+        GridSpec(angle_step_deg=step, min_theta_deg=lo, max_theta_deg=hi)
     except ValidationError:
         return False
     return True
@@ -919,7 +918,7 @@ def test_export_schema_writes_pretty_sorted_json_and_checks_it(tmp_path, capsys)
     assert json.loads(text) == scene_json_schema()
     assert text == json.dumps(json.loads(text), indent=2, sort_keys=True, ensure_ascii=False) + "\n"
     assert main(["--check", "--out", str(out)]) == 0
-    out.write_text(text.replace('"Camera"', '"Kamera"'), encoding="utf-8")
+    out.write_text(text.replace('"CameraSpec"', '"Kamera"'), encoding="utf-8")
     assert main(["--check", "--out", str(out)]) == 1
     assert "out of date" in capsys.readouterr().err
     out.write_text(text.rstrip("\n"), encoding="utf-8")  # the trailing newline counts too

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
-from services.common.scene import SceneSpec
+from services.common.geometry.scene import SceneSpec
 from services.common.scene_models import class_label, model_dir, object_classes
 
 

@@ -10,8 +10,8 @@ import pytest
 from plyfile import PlyData
 
 from services.bench.scenes import MESH_KINDS, footprint, generate_scene, make_mesh, mesh_extent
-from services.common.models import Pose
-from services.common.scene import MeshObject, load_scene
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import MeshObject, load_scene
 from services.common.scene_models import model_dir, object_classes
 
 SEEDS = range(40)

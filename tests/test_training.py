@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.common.scene import SceneSpec
+from services.common.geometry.scene import SceneSpec
 from training.data import LabelledImage, augment, load_dataset
 from training.dataset import CLASSES, TEXTURES, random_scene, render_dataset, views
 from training.metrics import Evaluation, box_iou

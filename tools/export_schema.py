@@ -1,7 +1,8 @@
 """Write the scene format's JSON Schema to ``docs/scene.schema.json``, or check that it is current.
 
 Run ``python -m tools.export_schema [--check] [--out PATH]``. The file is
-:func:`services.common.scene.scene_json_schema` as JSON with two-space indents, sorted keys and a
+:func:`services.common.geometry.scene.scene_json_schema` as JSON with two-space indents, sorted
+keys and a
 trailing newline, so regenerating it gives the same bytes and a diff shows only real changes.
 ``--check`` writes nothing and exits with status 1 when the file is missing or out of date (for CI).
 """
@@ -14,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.common.scene import scene_json_schema
+from services.common.geometry.scene import scene_json_schema
 
 __all__ = ["SCHEMA_PATH", "main", "render_schema"]
 

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from services.common.camera import focal_length_px
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
-from services.common.models import Pose
-from services.common.scene import Camera, LoadedScene
+from services.common.geometry.camera import focal_length_px
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import CameraSpec, LoadedScene
 from services.optimizer.calibration import (
     DEFAULT_CALIBRATION_FILE,
     CalibrationSamples,
@@ -81,7 +81,7 @@ def collect_samples(
 
 
 def fit_calibration(
-    samples: dict[float, CalibrationSamples], camera: Camera, scenes: Sequence[str]
+    samples: dict[float, CalibrationSamples], camera: CameraSpec, scenes: Sequence[str]
 ) -> PaperCalibration:
     """One least-squares fit of eq. 5–6 per θ (θ with fewer than 4 samples are skipped)."""
     thetas, coefficients, rms, counts = [], [], [], []

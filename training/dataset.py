@@ -30,8 +30,9 @@ import cv2
 import numpy as np
 
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
-from services.common.models import ObjectAnnotation, Pose, RenderAnnotations
-from services.common.scene import LoadedScene, SceneSpec
+from services.common.contracts.render import ObjectAnnotation, RenderAnnotations
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import LoadedScene, SceneSpec
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 

@@ -2,7 +2,8 @@
 
 :func:`onboard_scene` runs four stages, each resumable:
 
-1. *validate* the scene file (:func:`~services.common.scene.load_scene`: named-field errors,
+1. *validate* the scene file (:func:`~services.common.geometry.scene.load_scene`: named-field
+errors,
    meshes and textures inside the scene's folder) before anything is rendered;
 2. *render* an auto-labelled dataset of the scene (:mod:`training.scene_dataset`) for training
    (seed ``s``) and a held-out one (seed ``s + 1000``, never trained on) into the work folder;
@@ -36,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from services.common.scene import LoadedScene, load_scene
+from services.common.geometry.scene import LoadedScene, load_scene
 from services.common.scene_models import (
     MODEL_CARD_NAME,
     MODEL_FILE_NAME,
@@ -303,7 +304,8 @@ def onboard_scene(
     """Train, evaluate and install the detector of the scene file ``scene_path``.
 
     ``progress(stage, fraction)`` hears the stage (``render``, ``train``, ``evaluate``) and the
-    fraction of the whole run done. Raises :class:`~services.common.scene.SceneFileError` for an
+    fraction of the whole run done. Raises :class:`~services.common.geometry.scene.SceneFileError`
+    for an
     unusable scene (before rendering anything) and :class:`TorchMissingError` without PyTorch.
     """
     started = time.monotonic()

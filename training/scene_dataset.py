@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from services.common.catalog import scene_grid
-from services.common.models import Pose, RenderAnnotations
-from services.common.scene import Lighting, LoadedScene, PointLight
+from services.common.contracts.render import RenderAnnotations
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import Lighting, LoadedScene, PointLight
 from services.common.scene_models import object_classes
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
@@ -102,7 +102,7 @@ def scene_views(
 ) -> Iterator[SceneView]:
     """The views ``0 .. count-1`` of dataset ``seed`` of ``scene`` (those ``skip`` rejects are
     left out), a lighting group at a time."""
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     search = scene.spec.search
     lo, hi = math.radians(search.min_theta_deg), math.radians(search.max_theta_deg)
     for first in range(0, count, VIEWS_PER_LIGHTING):

@@ -25,7 +25,7 @@ from pydantic import ValidationError
 
 from services.bench.scenes import GAP, footprint, write_scene_yaml
 from services.bench.variants import Variant
-from services.common.scene import LoadedScene, SceneSpec
+from services.common.geometry.scene import LoadedScene, SceneSpec
 
 __all__ = ["LEAVE_OUT_SHARE", "MOVE_RANGE", "AlteredScene", "alter_scene", "changed", "photo"]
 

@@ -44,8 +44,8 @@ from services.bench.stats import percentile, summarize
 from services.bench.tables import text_tables
 from services.bench.variants import Variant
 from services.common.catalog import SceneCatalog
-from services.common.optimization import StrategyName
-from services.common.scene import LoadedScene
+from services.common.contracts.optimize import StrategyName
+from services.common.geometry.scene import LoadedScene
 
 __all__ = [
     "BenchConfig",
@@ -128,7 +128,8 @@ class Endpoints:
     def warm(self, scenes: Sequence[str]) -> None:
         """Render every scene on every renderer and detect it on every detector once, so that
         no replica pays a first-call cost (scene load, kernel compile) inside a measurement."""
-        from services.common.models import PoseQuery, RenderRequest
+        from services.common.contracts.render import RenderRequest
+        from services.common.geometry.pose import PoseQuery
         from services.renderer.client import RendererClient
 
         for url in self.renderers:

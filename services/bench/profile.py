@@ -30,19 +30,21 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from services.bench.report import percentile
 from services.bench.runner import SearchRecord, Target, run_searches
 from services.bench.stats import percentile
-from services.common.catalog import SceneCatalog, scene_grid
-from services.common.images import decode_image
-from services.common.models import Detection, GridIndex, PoseQuery
-from services.common.optimization import (
+from services.common.catalog import SceneCatalog
+from services.common.contracts.detect import Detection
+from services.common.contracts.optimize import (
     NextPoseRequest,
     StrategyName,
     TargetImage,
     VisitedView,
-    search_grid,
+    searchable_grid,
 )
-from services.common.scene import LoadedScene
+from services.common.geometry.pose import GridIndex, PoseQuery
+from services.common.geometry.scene import LoadedScene
+from services.common.images import decode_image
 
 __all__ = ["DEFINITION", "InProcess", "ProfileSample", "profile_searches", "profile_summary"]
 
@@ -139,7 +141,7 @@ class InProcess:
         width, height = camera.width, camera.height
         if self.width is not None:
             width, height = self.width, max(8, round(self.width / (camera.width / camera.height)))
-        pose = scene_grid(scene).pose(index)
+        pose = scene.spec.search.grid().pose(index)
         return self.engine.render(scene, pose, width, height, self.spp, 0).rgb
 
     def detect_rgb(self, rgb: NDArray[np.uint8]) -> View:
@@ -203,7 +205,7 @@ class InProcess:
 
         scene = self.catalog.get(record.scene)
         spec = scene.spec
-        grid = search_grid(spec.search)
+        grid = searchable_grid(spec.search)
         started = time.perf_counter()
         pending = self._pool.submit(self.detect_bytes, image)
         target: View | None = None

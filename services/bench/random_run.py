@@ -43,7 +43,7 @@ from services.bench.machine import machine_info
 from services.bench.random_report import GOALS, band_cells, band_table, goal_checks
 from services.bench.runner import SearchRecord, Target, run_searches
 from services.bench.scenes import generate_scene, scene_summary
-from services.common.scene import load_scene
+from services.common.geometry.scene import load_scene
 
 __all__ = ["MODEL_WAIT_S", "model_status", "run_random", "served_model"]
 

@@ -36,12 +36,14 @@ from pydantic import Field
 from services.bench.altered import AlteredScene, alter_scene
 from services.bench.traces import FailureTrace, confirmed_of, failure_trace
 from services.bench.variants import SCENE_VARIANTS, VARIANTS, Variant, degrade, draw_pose
-from services.common.grid import HemisphereGrid, angular_distance_deg
+from services.common.contracts.base import FrozenModel
+from services.common.contracts.optimize import StrategyName
+from services.common.contracts.render import RenderRequest
+from services.common.contracts.search import Search
+from services.common.geometry.grid import angular_distance_deg
+from services.common.geometry.pose import GridIndex, Pose, PoseQuery
+from services.common.geometry.scene import LoadedScene
 from services.common.images import media_type_of
-from services.common.models import FrozenModel, GridIndex, Pose, PoseQuery, RenderRequest
-from services.common.optimization import StrategyName
-from services.common.scene import LoadedScene
-from services.common.search import Search
 from services.renderer.client import RendererClient
 from services.stack import Stack
 from services.stack import local_stack as services_stack
@@ -190,7 +192,7 @@ def make_targets(
     targets: list[Target] = []
     with RendererClient(renderer_url) as renderer:
         for scene in scenes:
-            grid = HemisphereGrid.from_info(renderer.scene(scene).grid)
+            grid = renderer.scene(scene).grid.grid()
             for variant in variants:
                 rng = _rng(seed, scene, variant)
                 for number in range(n):

@@ -34,7 +34,7 @@ import yaml
 from numpy.typing import NDArray
 from plyfile import PlyData, PlyElement
 
-from services.common.scene import (
+from services.common.geometry.scene import (
     ConeObject,
     CubeObject,
     CylinderObject,

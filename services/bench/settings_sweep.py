@@ -19,8 +19,8 @@ from typing import Any, Final
 import numpy as np
 
 from services.bench.profile import InProcess
-from services.common.catalog import scene_grid
-from services.common.models import Detection, ObjectAnnotation
+from services.common.contracts.detect import Detection
+from services.common.contracts.render import ObjectAnnotation
 from services.detector.letterbox import Letterbox, fit
 from services.detector.postprocess import box_iou
 
@@ -92,7 +92,7 @@ def detection_sweep(
         rng = np.random.default_rng(seed)
         for scene_id in scenes:
             scene = local.catalog.get(scene_id)
-            grid = scene_grid(scene)
+            grid = scene.spec.search.grid()
             camera = scene.spec.camera
             scene_film = (camera.width, camera.height)
             films = [

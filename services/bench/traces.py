@@ -13,7 +13,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from services.common.models import FrozenModel, GridIndex
+from services.common.contracts.base import FrozenModel
+from services.common.geometry.pose import GridIndex
 
 __all__ = ["FailureTrace", "confirmed_of", "failure_trace"]
 

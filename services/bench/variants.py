@@ -36,8 +36,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.grid import HemisphereGrid
-from services.common.models import GridIndex, Pose
+from services.common.geometry.grid import HemisphereGrid
+from services.common.geometry.pose import GridIndex, Pose
 
 __all__ = [
     "JPEG_QUALITY",

@@ -14,20 +14,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from services.common.errors import NotFoundError, UnprocessableError
-from services.common.grid import HemisphereGrid, grid_for
-from services.common.scene import SCENE_ID_PATTERN, LoadedScene, SceneFileError, load_scene
+from services.common.geometry.scene import SCENE_ID_PATTERN, LoadedScene, SceneFileError, load_scene
 
-__all__ = ["BUILTIN_SCENES_DIR", "SceneCatalog", "scene_grid"]
+__all__ = ["BUILTIN_SCENES_DIR", "SceneCatalog"]
 
 BUILTIN_SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
 _SUFFIXES = (".yaml", ".yml")
 _log = logging.getLogger("cosmos.renderer")
-
-
-def scene_grid(scene: LoadedScene) -> HemisphereGrid:
-    """The hemisphere grid of a scene's search settings."""
-    search = scene.spec.search
-    return grid_for(search.angle_step_deg, search.min_theta_deg, search.max_theta_deg)
 
 
 class SceneCatalog:

@@ -25,8 +25,8 @@ from typing import Annotated, Final, Literal
 
 from pydantic import Field
 
-from services.common.models import FrozenModel
-from services.common.scene import (
+from services.common.contracts.base import FrozenModel
+from services.common.geometry.scene import (
     ConeObject,
     CubeObject,
     CylinderObject,

@@ -10,11 +10,12 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
+from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
+from services.common.contracts.render import SceneSummary
+from services.common.contracts.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
 from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
+from services.common.geometry.grid import GridSpec
 from services.common.http import app_state, problem_responses
-from services.common.models import SceneSummary
-from services.common.optimization import GridSpec, UnsupportedGridError, search_grid
-from services.common.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
 from services.common.upload import read_upload
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
@@ -197,7 +198,7 @@ async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
     except (StageError, BrokerError) as exc:
         raise _unavailable(BrokerError("renderer", "scene", [str(exc)])) from exc
     try:
-        return search_grid(scene.spec.search)
+        return searchable_grid(scene.spec.search)
     except UnsupportedGridError as exc:  # the scene file changed since the search was taken
         raise UnprocessableError(
             f"scene {search.scene!r}'s grid cannot be drawn: {exc}",

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-from services.common.search import ReplicaHealth
+from services.common.contracts.search import ReplicaHealth
 from services.controller.http1 import Http1Transport
 from services.controller.transport import (
     StageAnswer,

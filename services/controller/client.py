@@ -9,8 +9,8 @@ from typing import Any
 import httpx
 
 from services.common.client import ServiceCallError, ServiceClient
+from services.common.contracts.search import Iteration, Search
 from services.common.images import media_type_of
-from services.common.search import Iteration, Search
 
 __all__ = ["ControllerClient", "ControllerError"]
 
@@ -27,7 +27,7 @@ class ControllerClient(ServiceClient):
 
     def submit(self, image: bytes, scene: str, **options: Any) -> Search:
         """``POST /searches`` with the image as the body; ``options`` are the optional
-        :class:`~services.common.search.SearchOptions` (None values left out)."""
+        :class:`~services.common.contracts.search.SearchOptions` (None values left out)."""
         query = {k: str(v) for k, v in options.items() if v is not None}
         response = self._http.post(
             "/searches",

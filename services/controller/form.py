@@ -1,7 +1,7 @@
 """What ``POST /searches`` was given besides the image, and how its OpenAPI schema says so.
 
-The options (:class:`~services.common.search.SearchOptions`) come as the form's text fields
-beside the file ``image``, or as query parameters beside a raw image body (what the bench and
+The options (:class:`~services.common.contracts.search.SearchOptions`) come as the form's text
+fields beside the file ``image``, or as query parameters beside a raw image body (what the bench and
 :class:`~services.controller.client.ControllerClient` send: no multipart to write or parse, and
 a search's start view begins rendering ~2 ms sooner). Invalid options answer 422 like any
 FastAPI parameter would, naming the field.
@@ -15,7 +15,7 @@ from typing import Any, Final
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from services.common.search import SearchOptions
+from services.common.contracts.search import SearchOptions
 from services.common.upload import request_body
 
 __all__ = ["OPENAPI", "search_options"]

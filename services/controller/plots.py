@@ -19,8 +19,8 @@ import matplotlib.pyplot as plt  # noqa: E402 - after choosing the off-screen ba
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from services.common.grid import HemisphereGrid, angular_distance_deg  # noqa: E402
-from services.common.search import Search  # noqa: E402
+from services.common.contracts.search import Search  # noqa: E402
+from services.common.geometry.grid import HemisphereGrid, angular_distance_deg  # noqa: E402
 
 __all__ = ["distance_png", "trajectory_png"]
 

@@ -40,20 +40,27 @@ from typing import Unpack
 
 from pydantic import ValidationError
 
-from services.common.errors import ProblemDetails, problem_type
-from services.common.images import media_type_of
-from services.common.models import Detection, DetectResponse, ModelInfo, Pose, PoseQuery
-from services.common.optimization import (
+from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
+from services.common.contracts.optimize import (
     GridPose,
     NextPoseRequest,
     TargetImage,
     UnsupportedGridError,
     VisitedView,
-    search_grid,
+    searchable_grid,
 )
-from services.common.scene import SceneDetail
+from services.common.contracts.render import SceneDetail
+from services.common.contracts.search import (
+    TERMINAL_STATUSES,
+    Iteration,
+    Search,
+    SearchResult,
+    StageTimings,
+)
+from services.common.errors import ProblemDetails, problem_type
+from services.common.geometry.pose import Pose, PoseQuery
+from services.common.images import media_type_of
 from services.common.scene_models import ObjectClass, object_classes
-from services.common.search import TERMINAL_STATUSES, Iteration, Search, SearchResult, StageTimings
 from services.controller.broker import BrokerError
 from services.controller.events import Notifier
 from services.controller.stages import StageError, Stages
@@ -380,7 +387,7 @@ class SearchRunner:
             raise _stage_failure(exc) from exc
         camera = scene.spec.camera
         try:
-            grid = search_grid(scene.spec.search)
+            grid = searchable_grid(scene.spec.search)
         except UnsupportedGridError as exc:  # the scene file changed since the search was taken
             raise _failure(
                 "unsupported-grid",

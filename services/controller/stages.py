@@ -12,11 +12,12 @@ import json
 from typing import Any
 from urllib.parse import urlencode
 
+from services.common.contracts.detect import DetectResponse
+from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
+from services.common.contracts.render import SceneDetail
 from services.common.errors import ProblemDetails
+from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE
-from services.common.models import DetectResponse, GridIndex
-from services.common.optimization import NextPoseRequest, NextPoseResponse
-from services.common.scene import SceneDetail
 from services.controller.broker import Broker
 from services.controller.transport import StageAnswer, StageRequest
 

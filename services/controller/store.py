@@ -19,9 +19,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypedDict, Unpack
 
+from services.common.contracts.detect import Detection, ModelInfo
+from services.common.contracts.search import Iteration, Search, SearchResult, SearchStatus
 from services.common.errors import ProblemDetails
-from services.common.models import Detection, ModelInfo
-from services.common.search import Iteration, Search, SearchResult, SearchStatus
 from services.controller.checkpoint import Checkpointer
 
 __all__ = ["SearchStore", "database_path", "utcnow"]

@@ -7,12 +7,17 @@ import random
 import re
 import uuid
 
+from services.common.contracts.optimize import (
+    GridPose,
+    StrategyName,
+    UnsupportedGridError,
+    searchable_grid,
+)
+from services.common.contracts.search import MAX_ITERATIONS, Search
 from services.common.errors import NotFoundError, UnprocessableError
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import SCENE_ID_PATTERN
 from services.common.images import checked_header, decode_image
-from services.common.models import Pose
-from services.common.optimization import GridPose, StrategyName, UnsupportedGridError, search_grid
-from services.common.scene import SCENE_ID_PATTERN
-from services.common.search import MAX_ITERATIONS, Search
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore, utcnow
 
@@ -73,7 +78,7 @@ async def create_search(
             f"scene {scene_id!r}: {exc.problem.detail}", field="scene"
         ) from exc
     try:
-        grid = search_grid(scene.spec.search).grid()
+        grid = searchable_grid(scene.spec.search).grid()
     except UnsupportedGridError as exc:
         raise UnprocessableError(
             f"scene {scene_id!r}'s grid cannot be searched: {exc}",

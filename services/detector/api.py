@@ -7,9 +7,14 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 
+from services.common.contracts.detect import (
+    DetectorHealth,
+    DetectorModels,
+    DetectResponse,
+    ModelInfo,
+)
+from services.common.geometry.scene import SCENE_ID_PATTERN
 from services.common.http import app_state, problem_responses
-from services.common.models import DetectorHealth, DetectorModels, DetectResponse, ModelInfo
-from services.common.scene import SCENE_ID_PATTERN
 from services.common.upload import read_upload, request_body
 from services.detector.registry import ModelRegistry
 from services.detector.settings import DetectorSettings

@@ -9,8 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.client import ServiceCallError, ServiceClient
+from services.common.contracts.detect import DetectorModels, DetectResponse, ModelInfo
 from services.common.images import media_type_of
-from services.common.models import DetectorModels, DetectResponse, ModelInfo
 
 __all__ = ["DetectorClient", "DetectorError"]
 

@@ -17,9 +17,9 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.errors import ServiceUnavailableError
 from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
-from services.common.models import Detection, DetectResponse, ModelInfo
 from services.detector.batching import MicroBatcher
 from services.detector.colour import measure_colour
 from services.detector.letterbox import Letterbox, letterbox

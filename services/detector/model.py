@@ -28,7 +28,7 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
-from services.common.models import ModelInfo
+from services.common.contracts.detect import ModelInfo
 
 __all__ = ["DetectorModel", "ModelError", "ModelLayout", "parse_names"]
 

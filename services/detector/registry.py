@@ -26,14 +26,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from services.common.catalog import SceneCatalog
-from services.common.errors import ServiceError
-from services.common.models import (
+from services.common.contracts.detect import (
     DetectorModels,
     DetectResponse,
     SceneModelState,
     SceneModelStatus,
 )
-from services.common.scene import LoadedScene
+from services.common.errors import ServiceError
+from services.common.geometry.scene import LoadedScene
 from services.common.scene_models import MODEL_FILE_NAME, SIDECAR_NAME, model_dir, object_classes
 from services.detector.detect import Detector
 from services.detector.model import DetectorModel, ModelError

@@ -7,8 +7,7 @@ from typing import Annotated, get_args
 
 from fastapi import APIRouter, Depends, Response
 
-from services.common.http import app_state, problem_responses
-from services.common.optimization import (
+from services.common.contracts.optimize import (
     MapRequest,
     MapResponse,
     NextPoseRequest,
@@ -17,6 +16,7 @@ from services.common.optimization import (
     StrategyInfo,
     StrategyName,
 )
+from services.common.http import app_state, problem_responses
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
 from services.optimizer.strategies import STRATEGIES
 

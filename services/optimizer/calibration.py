@@ -32,7 +32,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import ArrayLike
 
-from services.common.scene import Camera
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.geometry import FloatArray
 
 __all__ = [
@@ -157,7 +157,7 @@ class PaperCalibration:
     samples: np.ndarray[Any, np.dtype[np.int64]]
     scenes: tuple[str, ...]
 
-    def matches(self, camera: Camera) -> bool:
+    def matches(self, camera: CameraSpec) -> bool:
         """Whether ``camera`` has this configuration (same fov, radius and aspect ratio)."""
         return (
             math.isclose(camera.fov_deg, self.fov_deg, abs_tol=_MATCH_TOL)
@@ -165,7 +165,7 @@ class PaperCalibration:
             and camera.width * self.height == camera.height * self.width
         )
 
-    def scale(self, camera: Camera) -> float:
+    def scale(self, camera: CameraSpec) -> float:
         """The paper's scale ``s``: calibration pixels per pixel of ``camera``."""
         return self.width / camera.width
 
@@ -230,7 +230,7 @@ class CalibrationStore:
 
     calibrations: tuple[PaperCalibration, ...] = ()
 
-    def find(self, camera: Camera) -> PaperCalibration | None:
+    def find(self, camera: CameraSpec) -> PaperCalibration | None:
         """The calibration of ``camera``'s configuration, or None."""
         for calibration in self.calibrations:
             if calibration.matches(camera):

@@ -1,10 +1,11 @@
 """Vectorised hemisphere cameras and the camera-relative ground frame (paper eq. 7).
 
-The camera model is the project's one pinhole model (:mod:`services.common.camera`): axes from
-:func:`~services.common.camera.camera_axes`, square pixels with focal length
+The camera model is the project's one pinhole model (:mod:`services.common.geometry.camera`): axes
+from
+:func:`~services.common.geometry.camera.camera_axes`, square pixels with focal length
 ``f = (W/2) / tan(fov/2)``, principal point at the image centre, pixel (0, 0) the top-left corner
-of the top-left pixel. :class:`Cameras` holds it for many poses at once so strategies can project
-a whole map into every grid pose with one ``einsum``.
+of the top-left pixel. :class:`PinholeCameras` holds it for many poses at once so strategies can
+project a whole map into every grid pose with one ``einsum``.
 
 Camera-relative ground frame
 ----------------------------
@@ -13,7 +14,8 @@ For a camera at azimuth φ the ground plane gets two axes through the scene cent
 .. math:: \\mathbf{e}_1 = (\\cos φ, \\sin φ), \\qquad \\mathbf{e}_2 = (-\\sin φ, \\cos φ),
 
 ``e1`` pointing from the centre towards the camera's foot and ``e2`` along the image's right
-axis (the camera's right vector is horizontal, :func:`~services.common.camera.camera_axes`). A
+axis (the camera's right vector is horizontal,
+:func:`~services.common.geometry.camera.camera_axes`). A
 ground point with camera-relative offsets ``q = (q1, q2)`` sits at
 
 .. math:: \\mathbf{p} = q_1 \\mathbf{e}_1 + q_2 \\mathbf{e}_2 = R(φ)\\,\\mathbf{q}
@@ -32,11 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.common.camera import camera_axes, focal_length_px
-from services.common.scene import Camera
+from services.common.geometry.camera import camera_axes, focal_length_px
+from services.common.geometry.scene import CameraSpec
 
 __all__ = [
-    "Cameras",
+    "PinholeCameras",
     "FloatArray",
     "ground_offsets",
     "rotate2d",
@@ -66,7 +68,7 @@ def ground_offsets(points: ArrayLike, phi_deg: ArrayLike) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class Cameras:
+class PinholeCameras:
     """The hemisphere camera at ``N`` poses: world-to-camera rotations and camera centres.
 
     Attributes
@@ -90,8 +92,8 @@ class Cameras:
     height: int
 
     @classmethod
-    def at(cls, theta_deg: ArrayLike, phi_deg: ArrayLike, camera: Camera) -> Cameras:
-        """Cameras at poses (θ, φ) in degrees (flattened, broadcast) looking at the origin."""
+    def at(cls, theta_deg: ArrayLike, phi_deg: ArrayLike, camera: CameraSpec) -> PinholeCameras:
+        """The cameras at poses (θ, φ) in degrees (flattened, broadcast) looking at the origin."""
         theta, phi = np.broadcast_arrays(
             np.asarray(theta_deg, dtype=np.float64).ravel(),
             np.asarray(phi_deg, dtype=np.float64).ravel(),
@@ -113,7 +115,8 @@ class Cameras:
     @property
     def unit_positions(self) -> FloatArray:
         """Camera centres ``(N, 3)`` on the unit sphere, ``(sinθ cosφ, sinθ sinφ, cosθ)``: minus
-        the forward axes (to the last bit :func:`services.common.grid.pose_to_cartesian`)."""
+        the forward axes (to the last bit
+        :func:`services.common.geometry.grid.pose_to_cartesian`)."""
         units: FloatArray = -self.rotation[:, 2]
         return units
 
@@ -145,7 +148,7 @@ class Cameras:
         """Pixels ``(N, P, 2)`` and depths ``(N, P)`` of world points in every camera.
 
         ``u = f x_c / z_c + c_x``, ``v = f y_c / z_c + c_y``; points at or behind the camera get
-        NaN pixels, as in :func:`services.common.camera.project`.
+        NaN pixels, as in :func:`services.common.geometry.camera.project`.
         """
         cam = self.to_camera(points)
         depth = cam[..., 2]

@@ -30,8 +30,8 @@ from typing import Final
 
 import numpy as np
 
-from services.common.grid import HemisphereGrid
-from services.common.scene import Camera
+from services.common.geometry.grid import HemisphereGrid
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import PaperCalibration
 from services.optimizer.geometry import FloatArray
 from services.optimizer.longitude import solve_rotation
@@ -95,7 +95,7 @@ def _unique_pairs(looks: FloatArray) -> Assignment | None:
 
 @functools.lru_cache(maxsize=1024)
 def _candidates(
-    target: Observation, camera: Camera, grid: HemisphereGrid, calibration: PaperCalibration
+    target: Observation, camera: CameraSpec, grid: HemisphereGrid, calibration: PaperCalibration
 ) -> tuple[FloatArray, FloatArray]:
     """Candidate θ ``(T,)`` and the target's distances to the centre ``|q_j(θ)|`` ``(T, n)``;
     cached per target observation (the search asks about one target many times)."""
@@ -112,7 +112,7 @@ def _mapped(
     current: Observation,
     theta_deg: float,
     phi_deg: float,
-    camera: Camera,
+    camera: CameraSpec,
     calibration: PaperCalibration,
 ) -> tuple[Observation, FloatArray]:
     """The current view's usable detections and their paper-mapped world positions."""
@@ -125,7 +125,7 @@ def estimate_layout(
     current: Observation,
     theta_deg: float,
     phi_deg: float,
-    camera: Camera,
+    camera: CameraSpec,
     grid: HemisphereGrid,
     calibration: PaperCalibration,
 ) -> LayoutEstimate:

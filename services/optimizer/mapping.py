@@ -85,9 +85,14 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.common.scene import Camera
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import PaperCalibration
-from services.optimizer.geometry import Cameras, FloatArray, ground_offsets, world_from_offsets
+from services.optimizer.geometry import (
+    FloatArray,
+    PinholeCameras,
+    ground_offsets,
+    world_from_offsets,
+)
 from services.optimizer.proxies import ProxyKind, proxy_boxes
 
 __all__ = [
@@ -170,7 +175,7 @@ def hidden_behind(boxes: ArrayLike) -> NDArray[np.bool_]:
 # -- exact -------------------------------------------------------------------------------------
 
 
-def _sphere_guess(cam: Cameras, boxes: FloatArray, valid: NDArray[np.bool_]) -> FloatArray:
+def _sphere_guess(cam: PinholeCameras, boxes: FloatArray, valid: NDArray[np.bool_]) -> FloatArray:
     """Closed-form ``(x, y, ρ)`` of balls from their boxes (module docstring)."""
     a1, b1 = cam.normalised(boxes[:, 0:2]).T
     a2, b2 = cam.normalised(boxes[:, 2:4]).T
@@ -208,7 +213,7 @@ def _sphere_guess(cam: Cameras, boxes: FloatArray, valid: NDArray[np.bool_]) -> 
 
 
 def _solid_guess(
-    cam: Cameras, boxes: FloatArray, kinds: NDArray[np.int_], valid: NDArray[np.bool_]
+    cam: PinholeCameras, boxes: FloatArray, kinds: NDArray[np.int_], valid: NDArray[np.bool_]
 ) -> FloatArray:
     """Closed-form ``(x, y, ρ, H)`` of upright solids from their boxes (module docstring)."""
     u_mid = (boxes[:, 0] + boxes[:, 2]) / 2.0
@@ -236,7 +241,7 @@ def _solid_guess(
 
 
 def _edges(
-    cam: Cameras, kinds: NDArray[np.int_], spheres: NDArray[np.bool_], params: FloatArray
+    cam: PinholeCameras, kinds: NDArray[np.int_], spheres: NDArray[np.bool_], params: FloatArray
 ) -> FloatArray:
     """Forward model: boxes ``(m, 4)`` of proxies with ``params = (x, y, log ρ, log H)``
     (``spheres`` flags the balls, whose height is their diameter)."""
@@ -249,7 +254,7 @@ def _edges(
 
 
 def _refine(
-    cam: Cameras,
+    cam: PinholeCameras,
     kinds: NDArray[np.int_],
     boxes: FloatArray,
     valid: NDArray[np.bool_],
@@ -316,7 +321,7 @@ def _refine(
 
 
 def map_exact(
-    boxes: ArrayLike, kinds: ArrayLike, camera: Camera, theta_deg: float, phi_deg: float
+    boxes: ArrayLike, kinds: ArrayLike, camera: CameraSpec, theta_deg: float, phi_deg: float
 ) -> MappedObjects:
     """Exact back-projection of boxes seen from pose (θ, φ) (module docstring).
 
@@ -326,7 +331,7 @@ def map_exact(
         ``[x1, y1, x2, y2]`` in the camera's pixels (pixel edges).
     kinds : array_like of int, shape (n,)
         :class:`~.proxies.ProxyKind` per box.
-    camera : Camera
+    camera : CameraSpec
         Field of view, film size and hemisphere radius.
     theta_deg, phi_deg : float
         The pose the boxes were seen from.
@@ -334,7 +339,7 @@ def map_exact(
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     kind = np.asarray(kinds, dtype=np.int_).reshape(-1)
     n = len(b)
-    cam = Cameras.at(theta_deg, phi_deg, camera)
+    cam = PinholeCameras.at(theta_deg, phi_deg, camera)
     cut = clipped_sides(b, camera.width, camera.height)
     if cam.position[0, 2] <= _HORIZON * camera.radius:
         nan = np.full(n, np.nan)
@@ -385,7 +390,7 @@ def map_exact(
 
 
 def paper_offsets(
-    boxes: ArrayLike, camera: Camera, theta_deg: ArrayLike, calibration: PaperCalibration
+    boxes: ArrayLike, camera: CameraSpec, theta_deg: ArrayLike, calibration: PaperCalibration
 ) -> FloatArray:
     """Camera-relative offsets ``q = (−Δx, Δy)`` ``(T, n, 2)`` of box centres by eq. 2–6, for
     every candidate polar angle in ``theta_deg`` ``(T,)`` (the camera height y_c = r cos θ and
@@ -414,7 +419,7 @@ def paper_offsets(
 
 def map_paper(
     boxes: ArrayLike,
-    camera: Camera,
+    camera: CameraSpec,
     theta_deg: float,
     phi_deg: float,
     calibration: PaperCalibration,

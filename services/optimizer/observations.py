@@ -1,8 +1,8 @@
 """Detections as arrays in the camera's pixels, and how alike two detections look.
 
 Boxes arrive in the pixels of whatever image the detector saw; the optimizer works in the pixels
-of the scene's camera (:class:`~services.common.scene.Camera`), so every box is scaled by
-``(W_cam / W_img, H_cam / H_img)`` once, here.
+of the scene's camera (:class:`~services.common.geometry.scene.CameraSpec`), so every box is scaled
+by ``(W_cam / W_img, H_cam / H_img)`` once, here.
 
 Classes
 -------
@@ -63,8 +63,8 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.common.models import Detection
-from services.common.scene import Camera
+from services.common.contracts.detect import Detection
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.geometry import FloatArray
 from services.optimizer.proxies import ProxyKind, kind_of
 
@@ -217,7 +217,7 @@ class Observation:
         cls,
         detections: Sequence[Detection],
         image_size: tuple[int, int],
-        camera: Camera,
+        camera: CameraSpec,
         classes: Mapping[str, ProxyKind] | None = None,
     ) -> Observation:
         """Scale detections of an image of ``image_size`` (width, height) to camera pixels;

@@ -22,11 +22,9 @@ from typing import Final
 
 import numpy as np
 
-from services.common.catalog import SceneCatalog, scene_grid
-from services.common.errors import UnprocessableError
-from services.common.grid import GridError, HemisphereGrid
-from services.common.models import Detection
-from services.common.optimization import (
+from services.common.catalog import SceneCatalog
+from services.common.contracts.detect import Detection
+from services.common.contracts.optimize import (
     CandidatePose,
     GridPose,
     ImageDetections,
@@ -39,7 +37,9 @@ from services.common.optimization import (
     StrategyName,
     ViewMatch,
 )
-from services.common.scene import Camera
+from services.common.errors import UnprocessableError
+from services.common.geometry.grid import GridError, HemisphereGrid
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.mapping import map_exact, map_paper
 from services.optimizer.matching import ViewComparison, compare_views
@@ -79,7 +79,9 @@ def _invalid(detail: str, field: str, slug: str = "invalid-request") -> Unproces
     return UnprocessableError(detail, field=field, slug=slug)
 
 
-def _setup(request: NextPoseRequest, context: OptimizerContext) -> tuple[Camera, HemisphereGrid]:
+def _setup(
+    request: NextPoseRequest, context: OptimizerContext
+) -> tuple[CameraSpec, HemisphereGrid]:
     camera, spec = request.camera, request.grid
     if request.scene is not None:
         if context.catalog is None:
@@ -87,10 +89,10 @@ def _setup(request: NextPoseRequest, context: OptimizerContext) -> tuple[Camera,
         scene = context.catalog.get(request.scene)  # NotFoundError (404) names the field
         if camera is not None and camera != scene.spec.camera:
             raise _invalid(f"camera does not match scene {request.scene!r}", "camera")
-        if spec is not None and spec.grid() != scene_grid(scene):
+        if spec is not None and spec.grid() != scene.spec.search.grid():
             raise _invalid(f"grid does not match scene {request.scene!r}", "grid")
         camera = scene.spec.camera
-        grid = scene_grid(scene)
+        grid = scene.spec.search.grid()
     else:
         if camera is None:
             raise _invalid("give the camera (or a scene whose camera to use)", "camera")
@@ -107,7 +109,7 @@ def _setup(request: NextPoseRequest, context: OptimizerContext) -> tuple[Camera,
     return camera, grid
 
 
-def _check_image(image: ImageDetections, camera: Camera, where: str) -> None:
+def _check_image(image: ImageDetections, camera: CameraSpec, where: str) -> None:
     width, height = image.image_size
     # The image may be scaled, but not reshaped: allow one pixel of rounding.
     if abs(height - width * camera.height / camera.width) > 1.0:
@@ -146,7 +148,9 @@ def _classes(request: NextPoseRequest) -> Classes:
     return {c.label: kind_of(c.shape) for c in request.object_classes}
 
 
-def _observe(image: ImageDetections, camera: Camera, classes: Classes, where: str) -> Observation:
+def _observe(
+    image: ImageDetections, camera: CameraSpec, classes: Classes, where: str
+) -> Observation:
     """The image's detections in camera pixels; in identity mode every label must be a class."""
     if classes is not None:
         for i, detection in enumerate(image.detections):
@@ -170,7 +174,7 @@ def _deduplicated(observation: Observation, notes: list[str], what: str) -> Obse
 
 def _visits(
     request: NextPoseRequest,
-    camera: Camera,
+    camera: CameraSpec,
     grid: HemisphereGrid,
     limit: int,
     classes: Classes = None,

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from services.common.grid import HemisphereGrid
-from services.common.scene import Camera
+from services.common.geometry.grid import HemisphereGrid
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import PaperCalibration
 from services.optimizer.observations import Observation
 from services.optimizer.view_cache import ViewMappings
@@ -51,7 +51,7 @@ class SearchProblem:
     """
 
     grid: HemisphereGrid
-    camera: Camera
+    camera: CameraSpec
     target: Observation
     history: tuple[Visit, ...]
     tolerance_px: float = 1.0

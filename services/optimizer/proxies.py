@@ -27,7 +27,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.optimizer.geometry import Cameras, FloatArray
+from services.optimizer.geometry import FloatArray, PinholeCameras
 
 __all__ = [
     "RIM_POINTS",
@@ -84,11 +84,11 @@ def _tangent_bounds(lateral: FloatArray, depth: FloatArray, radius: FloatArray) 
     return out
 
 
-def _camera_frame(cameras: Cameras, points: FloatArray) -> FloatArray:
+def _camera_frame(cameras: PinholeCameras, points: FloatArray) -> FloatArray:
     """Camera coordinates ``(3, P, N)`` of world points ``(P, 3)``, ``o + Σ_j p_j e_j``
-    (:attr:`.geometry.Cameras.frame`). Elementwise, so a point's coordinates do not depend on
+    (:attr:`.geometry.PinholeCameras.frame`). Elementwise, so a point's coordinates do not depend on
     the other points (the Gauss–Newton solve of :mod:`.mapping` batches its finite
-    differences). Cameras last: the grid's are many, the points few."""
+    differences). PinholeCameras last: the grid's are many, the points few."""
     origin, axes = cameras.frame
     cam: FloatArray = (
         origin[:, np.newaxis, :]
@@ -99,7 +99,7 @@ def _camera_frame(cameras: Cameras, points: FloatArray) -> FloatArray:
     return cam
 
 
-def _to_pixels(cameras: Cameras, bounds: FloatArray) -> FloatArray:
+def _to_pixels(cameras: PinholeCameras, bounds: FloatArray) -> FloatArray:
     """Boxes ``(N, M, 4)`` from the bounds ``(4, M, N)`` ``(x_lo, y_lo, x_hi, y_hi)`` of
     normalised coordinates (NaN stays NaN)."""
     centre = np.array([cameras.cx, cameras.cy, cameras.cx, cameras.cy])
@@ -107,14 +107,14 @@ def _to_pixels(cameras: Cameras, bounds: FloatArray) -> FloatArray:
     return boxes
 
 
-def _sphere_bounds(cameras: Cameras, centres: FloatArray, radii: FloatArray) -> FloatArray:
+def _sphere_bounds(cameras: PinholeCameras, centres: FloatArray, radii: FloatArray) -> FloatArray:
     """Normalised bounds ``(4, M, N)`` (:func:`_to_pixels`) of spheres ``(M, 3)`` / ``(M,)``."""
     cam = _camera_frame(cameras, centres)
     bounds = _tangent_bounds(cam[:2], cam[2], radii[:, np.newaxis])  # (lo/hi, x/y, M, N)
     return bounds.reshape((4,) + bounds.shape[2:])
 
 
-def sphere_boxes(cameras: Cameras, centres: ArrayLike, radii: ArrayLike) -> FloatArray:
+def sphere_boxes(cameras: PinholeCameras, centres: ArrayLike, radii: ArrayLike) -> FloatArray:
     """Exact image boxes ``(N, M, 4)`` of spheres ``(M, 3)`` / ``(M,)`` in every camera.
 
     Uses :func:`_tangent_bounds` on the camera-frame centre for the horizontal (x) and vertical
@@ -137,7 +137,9 @@ _SPHERE: Final = ProxyKind.SPHERE.value  # plain ints: comparing arrays with enu
 _CONE: Final = ProxyKind.CONE.value
 
 
-def _solid_bounds(cameras: Cameras, kinds: NDArray[np.int_], params: FloatArray) -> FloatArray:
+def _solid_bounds(
+    cameras: PinholeCameras, kinds: NDArray[np.int_], params: FloatArray
+) -> FloatArray:
     """Normalised bounds ``(4, M, N)`` (:func:`_to_pixels`) of prisms and cones: bounds of their
     projected rim samples, NaN unless every sample lies in front of the camera.
 
@@ -179,12 +181,12 @@ def _solid_bounds(cameras: Cameras, kinds: NDArray[np.int_], params: FloatArray)
     return bounds.reshape(4, m, n)
 
 
-def proxy_boxes(cameras: Cameras, kinds: ArrayLike, params: ArrayLike) -> FloatArray:
+def proxy_boxes(cameras: PinholeCameras, kinds: ArrayLike, params: ArrayLike) -> FloatArray:
     """Unclipped image boxes ``(N, M, 4)`` ``[x1, y1, x2, y2]`` of proxies in every camera.
 
     Parameters
     ----------
-    cameras : Cameras
+    cameras : PinholeCameras
         N cameras.
     kinds : array_like of int, shape (M,)
         :class:`ProxyKind` of each object.

@@ -53,9 +53,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from services.common.grid import HemisphereGrid, pose_to_cartesian
-from services.common.scene import Camera
-from services.optimizer.geometry import Cameras, FloatArray
+from services.common.geometry.grid import HemisphereGrid, pose_to_cartesian
+from services.common.geometry.scene import CameraSpec
+from services.optimizer.geometry import FloatArray, PinholeCameras
 from services.optimizer.matching import COLOUR_GATE, Assignment, assign
 from services.optimizer.observations import Observation, appearance_cost
 from services.optimizer.proxies import clip_boxes
@@ -144,7 +144,7 @@ def _weights(step_deg: float, angle_deg: FloatArray) -> FloatArray:
 
 
 def anchor(
-    boxes: FloatArray, cameras: Cameras, anchoring: Anchoring, step_deg: float
+    boxes: FloatArray, cameras: PinholeCameras, anchoring: Anchoring, step_deg: float
 ) -> FloatArray:
     """Predicted boxes ``(N, K, 4)`` (clipped) of a map in ``cameras``, anchored (module
     docstring) from its unanchored ones ``boxes`` (:meth:`.WorldMap.boxes`). Each entry's boxes
@@ -167,7 +167,7 @@ def anchor(
 def predict(
     boxes: FloatArray,
     inside: FloatArray,
-    cameras: Cameras,
+    cameras: PinholeCameras,
     anchoring: Anchoring,
     step_deg: float,
 ) -> Prediction:
@@ -312,7 +312,7 @@ def refine_pose(
     pairs: Assignment,
     theta_deg: float,
     phi_deg: float,
-    camera: Camera,
+    camera: CameraSpec,
     anchoring: Anchoring,
     grid: HemisphereGrid,
     theta_bounds: tuple[float, float] = (0.0, 90.0),
@@ -332,7 +332,7 @@ def refine_pose(
 
     def residuals(poses: FloatArray) -> FloatArray:
         """Residuals ``(P, 4 × pairs)`` in pixels at poses ``(P, 2)`` (degrees)."""
-        cams = Cameras.at(poses[:, 0], poses[:, 1], camera)
+        cams = PinholeCameras.at(poses[:, 0], poses[:, 1], camera)
         predicted = anchor(paired.boxes(cams)[0], cams, paired_anchoring, step)
         r = (predicted - observed).reshape(len(poses), -1)
         return np.where(np.isfinite(r), r, 50.0)

@@ -8,7 +8,7 @@ from typing import Annotated
 from pydantic import Field
 
 from services.common.catalog import BUILTIN_SCENES_DIR
-from services.common.optimization import StrategyName
+from services.common.contracts.optimize import StrategyName
 from services.common.settings import ServiceSettings, split_paths
 from services.optimizer.calibration import DEFAULT_CALIBRATION_FILE
 

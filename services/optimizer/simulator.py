@@ -26,10 +26,10 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.common.grid import HemisphereGrid
-from services.common.models import Detection
-from services.common.scene import (
-    Camera,
+from services.common.contracts.detect import Detection
+from services.common.geometry.grid import HemisphereGrid
+from services.common.geometry.scene import (
+    CameraSpec,
     ConeObject,
     CubeObject,
     CylinderObject,
@@ -39,7 +39,7 @@ from services.common.scene import (
     SphereObject,
 )
 from services.optimizer.calibration import PaperCalibration
-from services.optimizer.geometry import Cameras, FloatArray
+from services.optimizer.geometry import FloatArray, PinholeCameras
 from services.optimizer.observations import Observation
 from services.optimizer.problem import Plan, SearchProblem, Visit
 from services.optimizer.strategies import STRATEGIES
@@ -273,7 +273,7 @@ class NoiseModel:
 class SceneSimulator:
     """Synthetic detections of a scene's objects from any hemisphere pose."""
 
-    camera: Camera
+    camera: CameraSpec
     labels: tuple[str, ...]
     colours: FloatArray
     points: FloatArray
@@ -310,7 +310,7 @@ class SceneSimulator:
 
     def views(self, theta_deg: ArrayLike, phi_deg: ArrayLike) -> SimulatedViews:
         """Noise-free boxes of every object from poses (θ, φ) in degrees (flattened)."""
-        cams = Cameras.at(theta_deg, phi_deg, self.camera)
+        cams = PinholeCameras.at(theta_deg, phi_deg, self.camera)
         pixels, depth = cams.project(self.points)
         n, m = len(cams), self.object_count
         w, h = self.camera.width, self.camera.height

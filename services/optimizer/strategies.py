@@ -93,15 +93,15 @@ from typing import Final, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.grid import (
+from services.common.geometry.grid import (
     Direction,
     HemisphereGrid,
     angular_distance_deg,
     pose_to_cartesian,
 )
-from services.common.models import GridIndex
-from services.common.scene import Camera
-from services.optimizer.geometry import Cameras
+from services.common.geometry.pose import GridIndex
+from services.common.geometry.scene import CameraSpec
+from services.optimizer.geometry import PinholeCameras
 from services.optimizer.layout import LayoutEstimate, estimate_layout
 from services.optimizer.matching import Assignment, ViewComparison, compare_views
 from services.optimizer.observations import Observation
@@ -175,9 +175,9 @@ class StrategySpec:
 
 
 @functools.lru_cache(maxsize=16)
-def grid_cameras(grid: HemisphereGrid, camera: Camera) -> Cameras:
-    """Cameras at every grid pose (flat order), built once per grid and camera."""
-    return Cameras.at(grid.theta_deg, grid.phi_deg, camera)
+def grid_cameras(grid: HemisphereGrid, camera: CameraSpec) -> PinholeCameras:
+    """PinholeCameras at every grid pose (flat order), built once per grid and camera."""
+    return PinholeCameras.at(grid.theta_deg, grid.phi_deg, camera)
 
 
 @functools.lru_cache(maxsize=16)
@@ -345,7 +345,7 @@ _Mapped = tuple[WorldMap, tuple[Anchor, ...], Anchoring, Prediction]
 def _mapped(
     visits: Sequence[Visit],
     grid: HemisphereGrid,
-    camera: Camera,
+    camera: CameraSpec,
     mappings: ViewMappings | None = None,
 ) -> _Mapped:
     views = [MappedView(v.theta_deg, v.phi_deg, v.observation) for v in visits]
@@ -367,7 +367,7 @@ def _mapped_single(
     theta_deg: float,
     phi_deg: float,
     grid: HemisphereGrid,
-    camera: Camera,
+    camera: CameraSpec,
     mappings: ViewMappings | None = None,
 ) -> _Mapped:
     """One view alone, mapped and predicted into every grid pose; cached per view by content
@@ -400,7 +400,7 @@ def _mapped_single_cached(
     theta_deg: float,
     phi_deg: float,
     grid: HemisphereGrid,
-    camera: Camera,
+    camera: CameraSpec,
     mappings: ViewMappings | None,
 ) -> _Mapped:
     return _mapped([Visit(flat, theta_deg, phi_deg, view.observation)], grid, camera, mappings)
@@ -656,7 +656,7 @@ def _layout(problem: SearchProblem, current: Visit) -> LayoutEstimate:
 def _layout_estimate(problem: SearchProblem, est: LayoutEstimate) -> Estimate:
     flat = int(problem.grid.nearest_flat(est.theta_deg, est.phi_deg))
     # The rotation fit's ground residual in pixels at the scene centre's scale f / r.
-    scale = Cameras.at(0.0, 0.0, problem.camera).focal_px / problem.camera.radius
+    scale = PinholeCameras.at(0.0, 0.0, problem.camera).focal_px / problem.camera.radius
     residual_px = est.residual * scale
     coverage = est.matched / max(len(problem.target), 1)
     tol = max(problem.tolerance_px, 2.0)

@@ -17,7 +17,7 @@ from typing import Final
 
 import numpy as np
 
-from services.common.scene import Camera
+from services.common.geometry.scene import CameraSpec
 from services.optimizer.mapping import MappedObjects, map_exact
 from services.optimizer.observations import Observation
 
@@ -48,7 +48,7 @@ class ViewMappings:
         return len(self._entries)
 
     def get(
-        self, observation: Observation, theta_deg: float, phi_deg: float, camera: Camera
+        self, observation: Observation, theta_deg: float, phi_deg: float, camera: CameraSpec
     ) -> MappedObjects:
         """The exact mapping of ``observation`` seen from (θ, φ) in degrees, cached."""
         boxes = np.ascontiguousarray(observation.boxes, dtype=np.float64)

@@ -22,8 +22,8 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.scene import Camera
-from services.optimizer.geometry import Cameras, FloatArray
+from services.common.geometry.scene import CameraSpec
+from services.optimizer.geometry import FloatArray, PinholeCameras
 from services.optimizer.matching import COLOUR_GATE, assign
 from services.optimizer.observations import CLASS_MISMATCH_COST, Observation, appearance_cost
 from services.optimizer.proxies import clip_boxes, proxy_boxes
@@ -109,7 +109,7 @@ class WorldMap:
             mismatch_cost=self.mismatch_cost,
         )
 
-    def boxes(self, cameras: Cameras) -> tuple[FloatArray, FloatArray]:
+    def boxes(self, cameras: PinholeCameras) -> tuple[FloatArray, FloatArray]:
         """Predicted boxes ``(N, K, 4)`` clipped to the image, and the fraction of each
         unclipped box inside it ``(N, K)``, in every camera."""
         full = proxy_boxes(cameras, self.kinds, self.params)
@@ -136,7 +136,7 @@ class _Entry:
 
 
 def build_map(
-    views: Sequence[MappedView], camera: Camera, mappings: ViewMappings | None = None
+    views: Sequence[MappedView], camera: CameraSpec, mappings: ViewMappings | None = None
 ) -> tuple[WorldMap, Links]:
     """Fuse the exact mappings of ``views`` into one map (module docstring).
 

@@ -8,11 +8,17 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Header
 from fastapi.responses import Response
 
-from services.common.catalog import SceneCatalog, scene_grid
+from services.common.catalog import SceneCatalog
+from services.common.contracts.render import (
+    RenderAnnotations,
+    RenderHealth,
+    RenderRequest,
+    SceneDetail,
+    SceneSummary,
+)
+from services.common.geometry.scene import scene_json_schema
 from services.common.http import app_state, problem_responses
 from services.common.images import PPM_MEDIA_TYPE, encode_ppm
-from services.common.models import RenderAnnotations, RenderHealth, RenderRequest, SceneSummary
-from services.common.scene import SceneDetail, scene_json_schema
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 from services.renderer.settings import RendererSettings
@@ -58,7 +64,7 @@ async def list_scenes(state: State) -> list[SceneSummary]:
             SceneSummary(
                 id=scene.id,
                 objects=len(scene.spec.objects),
-                grid_size=scene_grid(scene).size,
+                grid_size=scene.spec.search.grid().size,
                 width=scene.spec.camera.width,
                 height=scene.spec.camera.height,
             )
@@ -76,7 +82,7 @@ async def scene_schema() -> dict[str, Any]:
 async def get_scene(scene_id: str, state: State) -> SceneDetail:
     """The validated scene spec and its hemisphere grid."""
     scene = state.catalog.get(scene_id)
-    return SceneDetail(id=scene.id, spec=scene.spec, grid=scene_grid(scene).info())
+    return SceneDetail(id=scene.id, spec=scene.spec, grid=scene.spec.search)
 
 
 @router.post(

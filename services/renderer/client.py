@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from services.common.client import ServiceCallError, ServiceClient
-from services.common.models import RenderAnnotations, RenderRequest, SceneSummary
-from services.common.scene import SceneDetail
+from services.common.contracts.render import (
+    RenderAnnotations,
+    RenderRequest,
+    SceneDetail,
+    SceneSummary,
+)
 
 __all__ = ["RendererClient", "RendererError"]
 

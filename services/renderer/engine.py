@@ -23,10 +23,11 @@ from typing import Any, ParamSpec, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.camera import camera_model, mitsuba_to_world, project
+from services.common.contracts.render import ObjectAnnotation, RenderAnnotations
 from services.common.errors import ServiceUnavailableError
-from services.common.models import GridIndex, ObjectAnnotation, Pose, RenderAnnotations
-from services.common.scene import LoadedScene
+from services.common.geometry.camera import mitsuba_to_world, pinhole_camera, project
+from services.common.geometry.pose import GridIndex, Pose
+from services.common.geometry.scene import LoadedScene
 from services.renderer.annotate import silhouettes
 from services.renderer.imaging import linear_to_srgb8
 from services.renderer.pool import lower_worker_priority
@@ -321,7 +322,7 @@ class RenderEngine:
             stats = silhouettes(np.where(mask, 0, -1), 1)
             full_pixels[index] = stats.pixels[0]
             full_boxes.append(stats.box(0))
-        camera = camera_model(pose, radius, spec.camera.fov_deg, width, height)
+        camera = pinhole_camera(pose, radius, spec.camera.fov_deg, width, height)
         projected, _ = project(loaded.centroids, camera)
         objects = []
         for index, obj in enumerate(spec.objects):

@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from services.common.camera import mitsuba_to_world
-from services.common.models import Pose
-from services.common.scene import (
+from services.common.geometry.camera import mitsuba_to_world
+from services.common.geometry.pose import Pose
+from services.common.geometry.scene import (
     ConeObject,
     CubeObject,
     CylinderObject,

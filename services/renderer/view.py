@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from services.common.catalog import SceneCatalog, scene_grid
+from services.common.catalog import SceneCatalog
+from services.common.contracts.render import RenderRequest
 from services.common.errors import UnprocessableError
-from services.common.grid import GridError
-from services.common.models import GridIndex, Pose, PoseQuery, RenderRequest
-from services.common.scene import LoadedScene
+from services.common.geometry.grid import GridError
+from services.common.geometry.pose import GridIndex, Pose, PoseQuery
+from services.common.geometry.scene import LoadedScene
 from services.renderer.settings import RendererSettings
 
 __all__ = ["View", "resolve_pose", "resolve_view"]
@@ -33,7 +34,7 @@ class View:
 
 def resolve_pose(scene: LoadedScene, query: PoseQuery) -> tuple[Pose, GridIndex | None]:
     """The continuous pose of ``query`` and its grid index when it is a grid pose."""
-    grid = scene_grid(scene)
+    grid = scene.spec.search.grid()
     index = query.as_index()
     if index is not None:
         if index.lat >= grid.ring_count:

@@ -21,7 +21,8 @@ round-half-even, so a tie never depends on the parity of its neighbours; a slack
 tie that floating-point error pushed just below ½ still round up. At Δ = 7.5° the equator
 (θ = 90°) holds 48 positions and the pole one.
 
-Grid poses are addressed by :class:`~services.common.models.GridIndex` ``(lat, lon)``: ``lat``
+Grid poses are addressed by :class:`~services.common.geometry.pose.GridIndex` ``(lat, lon)``:
+``lat``
 counts rings from the lowest θ in range (0 = first ring), ``lon`` counts positions on the ring
 from φ = 0 counter-clockwise. The flat order used by the pose arrays is lat-major.
 """
@@ -30,17 +31,21 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Final, Literal, get_args
+from typing import Annotated, Final, Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from pydantic import Field, model_validator
 
-from services.common.models import GridIndex, GridInfo, GridRing, Pose
+from services.common.contracts.base import FrozenModel, NonNegInt, ThetaDeg
+from services.common.geometry.pose import GridIndex, Pose
 
 __all__ = [
     "MAX_GRID_SIZE",
     "Direction",
     "GridError",
+    "GridRing",
+    "GridSpec",
     "HemisphereGrid",
     "angular_distance_deg",
     "cartesian_to_pose",
@@ -243,14 +248,6 @@ class HemisphereGrid:
             GridRing(lat=lat, theta_deg=float(theta), count=n)
             for lat, (theta, n) in enumerate(zip(ring_theta, self._counts, strict=True))
         )
-        self._info = GridInfo(
-            angle_step_deg=step, min_theta_deg=lo, max_theta_deg=hi, rings=self._rings, size=size
-        )
-
-    @classmethod
-    def from_info(cls, info: GridInfo) -> HemisphereGrid:
-        """The grid described by ``info`` (the inverse of :meth:`info`)."""
-        return grid_for(info.angle_step_deg, info.min_theta_deg, info.max_theta_deg)
 
     def __repr__(self) -> str:
         step, lo, hi = self._key
@@ -303,11 +300,10 @@ class HemisphereGrid:
         self._validate_lat(lat)
         return self._counts[lat]
 
-    def info(self) -> GridInfo:
-        """The grid's parameters, rings and size as a shared message model."""
-        return self._info
-
-    # -- indices -----------------------------------------------------------------------------
+    def spec(self) -> GridSpec:
+        """The grid's message form (its parameters; rings and size follow from them)."""
+        step, lo, hi = self._key
+        return GridSpec(angle_step_deg=step, min_theta_deg=lo, max_theta_deg=hi)
 
     def _validate_lat(self, lat: int) -> None:
         if not 0 <= lat < self.ring_count:
@@ -468,6 +464,37 @@ class HemisphereGrid:
             if neighbour is not None:
                 found[direction] = neighbour
         return found
+
+
+class GridRing(FrozenModel):
+    """One ring of the hemisphere grid."""
+
+    lat: NonNegInt
+    theta_deg: ThetaDeg
+    count: Annotated[int, Field(ge=1)]
+
+
+class GridSpec(FrozenModel):
+    """The hemisphere grid of camera poses (eq. 1): rings every ``angle_step_deg`` in the θ range.
+
+    One type from the scene file's ``search`` section through the renderer's scene detail to the
+    optimizer's request; :meth:`grid` gives its rings, indices and neighbours.
+    """
+
+    angle_step_deg: Annotated[float, Field(gt=0.0, le=90.0, allow_inf_nan=False)] = 7.5
+    min_theta_deg: ThetaDeg = 0.0
+    max_theta_deg: ThetaDeg = 90.0
+
+    @model_validator(mode="after")
+    def _has_a_ring(self) -> GridSpec:
+        if self.min_theta_deg > self.max_theta_deg:
+            raise ValueError("min_theta_deg must not exceed max_theta_deg")
+        self.grid()  # raises GridError (a ValueError) when no ring lies in range or too many poses
+        return self
+
+    def grid(self) -> HemisphereGrid:
+        """The shared :class:`HemisphereGrid` of these parameters."""
+        return grid_for(self.angle_step_deg, self.min_theta_deg, self.max_theta_deg)
 
 
 @functools.lru_cache(maxsize=32)

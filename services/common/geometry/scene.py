@@ -19,12 +19,12 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
-from services.common.grid import grid_for
-from services.common.models import FrozenModel, GridInfo
+from services.common.contracts.base import FrozenModel
+from services.common.geometry.grid import GridSpec
 
 __all__ = [
     "SCENE_ID_PATTERN",
-    "Camera",
+    "CameraSpec",
     "ConeObject",
     "CubeObject",
     "CylinderObject",
@@ -33,11 +33,9 @@ __all__ = [
     "LoadedScene",
     "MeshObject",
     "PointLight",
-    "SceneDetail",
     "SceneFileError",
     "SceneObject",
     "SceneSpec",
-    "SearchSettings",
     "SphereObject",
     "load_scene",
     "parse_scene",
@@ -56,7 +54,7 @@ YawDeg = Annotated[float, Field(ge=-360.0, le=360.0, allow_inf_nan=False)]
 AssetPath = Annotated[str, Field(min_length=1, max_length=512)]
 
 
-class Camera(FrozenModel):
+class CameraSpec(FrozenModel):
     """The perspective camera: horizontal field of view, film size in pixels, hemisphere radius."""
 
     fov_deg: Annotated[float, Field(gt=1.0, lt=170.0, description="Horizontal field of view.")]
@@ -152,29 +150,14 @@ SceneObject = Annotated[
 ]
 
 
-class SearchSettings(FrozenModel):
-    """The hemisphere grid of camera poses: rings every ``angle_step_deg`` within the θ range."""
-
-    angle_step_deg: Annotated[float, Field(gt=0.0, le=90.0, allow_inf_nan=False)] = 7.5
-    min_theta_deg: Annotated[float, Field(ge=0.0, le=90.0, allow_inf_nan=False)] = 0.0
-    max_theta_deg: Annotated[float, Field(ge=0.0, le=90.0, allow_inf_nan=False)] = 90.0
-
-    @model_validator(mode="after")
-    def _has_a_ring(self) -> SearchSettings:
-        if self.min_theta_deg > self.max_theta_deg:
-            raise ValueError("min_theta_deg must not exceed max_theta_deg")
-        grid_for(self.angle_step_deg, self.min_theta_deg, self.max_theta_deg)  # the grid's rule
-        return self
-
-
 class SceneSpec(FrozenModel):
     """A whole scene file."""
 
-    camera: Camera
+    camera: CameraSpec
     lighting: Lighting
     ground: Ground
     objects: Annotated[list[SceneObject], Field(min_length=1, max_length=64)]
-    search: SearchSettings = SearchSettings()
+    search: GridSpec = GridSpec()
 
     @field_validator("objects")
     @classmethod
@@ -217,14 +200,6 @@ class SceneSpec(FrozenModel):
             if isinstance(obj, MeshObject):
                 assets[f"objects[{i}].file"] = obj.file
         return assets
-
-
-class SceneDetail(FrozenModel):
-    """``GET /scenes/{id}``: a validated scene spec and its hemisphere grid."""
-
-    id: str
-    spec: SceneSpec
-    grid: GridInfo
 
 
 def _layout_error(field: str, message: str) -> PydanticCustomError:

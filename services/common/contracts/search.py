@@ -7,9 +7,11 @@ from typing import Annotated, Final, Literal
 
 from pydantic import ConfigDict, Field
 
+from services.common.contracts.base import Angle, FrozenModel, ThetaDeg
+from services.common.contracts.detect import Detection, ModelInfo
+from services.common.contracts.optimize import GridPose, StrategyName, ViewMatch
 from services.common.errors import ProblemDetails
-from services.common.models import Angle, Detection, FrozenModel, ModelInfo, Pose, ThetaDeg
-from services.common.optimization import GridPose, StrategyName, ViewMatch
+from services.common.geometry.pose import Pose
 
 __all__ = [
     "MAX_ITERATIONS",

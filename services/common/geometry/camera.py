@@ -12,12 +12,15 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
 
-from services.common.models import CameraModel, Pose
+from services.common.contracts.base import FrozenModel
+from services.common.geometry.pose import Pose
 
 __all__ = [
+    "PinholeCamera",
     "camera_axes",
-    "camera_model",
+    "pinhole_camera",
     "focal_length_px",
     "mitsuba_to_world",
     "pixel_rays",
@@ -25,6 +28,28 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
+
+
+class PinholeCamera(FrozenModel):
+    """Pinhole intrinsics and world-to-camera extrinsics in the OpenCV convention.
+
+    Camera axes: x right, y down, z forward. A world point X maps to pixel coordinates
+    ``K @ (R @ X + t)`` after division by depth, with pixel (0, 0) the top-left corner of the
+    top-left pixel (so the centre of that pixel is (0.5, 0.5)).
+    """
+
+    width: int
+    height: int
+    fov_deg: float = Field(description="Horizontal field of view in degrees.")
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    rotation: tuple[tuple[float, float, float], ...] = Field(
+        description="3x3 world-to-camera rotation R, row-major."
+    )
+    translation: tuple[float, float, float] = Field(description="World-to-camera translation t.")
+    position: tuple[float, float, float] = Field(description="Camera centre in world units.")
 
 
 def camera_axes(
@@ -63,7 +88,9 @@ def focal_length_px(fov_deg: float, width: int) -> float:
     return (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
 
 
-def camera_model(pose: Pose, radius: float, fov_deg: float, width: int, height: int) -> CameraModel:
+def pinhole_camera(
+    pose: Pose, radius: float, fov_deg: float, width: int, height: int
+) -> PinholeCamera:
     """Intrinsics and world-to-camera extrinsics of the hemisphere camera at ``pose``.
 
     Square pixels (``fy = fx``) and the principal point at the image centre, as Mitsuba's
@@ -74,7 +101,7 @@ def camera_model(pose: Pose, radius: float, fov_deg: float, width: int, height: 
     position = -forward * radius
     translation = -rotation @ position
     f = focal_length_px(fov_deg, width)
-    return CameraModel(
+    return PinholeCamera(
         width=width,
         height=height,
         fov_deg=fov_deg,
@@ -88,7 +115,7 @@ def camera_model(pose: Pose, radius: float, fov_deg: float, width: int, height: 
     )
 
 
-def project(points: ArrayLike, camera: CameraModel) -> tuple[FloatArray, FloatArray]:
+def project(points: ArrayLike, camera: PinholeCamera) -> tuple[FloatArray, FloatArray]:
     """Project world points ``(..., 3)`` to pixels ``(..., 2)``; also return their depth (z_cam).
 
     ``u = fx · x_c / z_c + cx``, ``v = fy · y_c / z_c + cy`` with ``X_c = R X + t``. Points behind
@@ -106,7 +133,7 @@ def project(points: ArrayLike, camera: CameraModel) -> tuple[FloatArray, FloatAr
     return pixels, depth
 
 
-def pixel_rays(pixels: ArrayLike, camera: CameraModel) -> FloatArray:
+def pixel_rays(pixels: ArrayLike, camera: PinholeCamera) -> FloatArray:
     """Unit world directions of the rays through pixel coordinates ``(..., 2)`` (inverse of
     :func:`project` up to depth); every ray starts at ``camera.position``."""
     px = np.asarray(pixels, dtype=np.float64)

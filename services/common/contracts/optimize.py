@@ -2,26 +2,28 @@
 
 The optimizer knows no scenes: a request carries the grid and the camera (or names a scene whose
 camera and grid the service looks up), the target image's detections and the visited poses with
-theirs. Every model is frozen and rejects unknown keys (:class:`~.models.FrozenModel`).
+theirs. Every model is frozen and rejects unknown keys (:class:`~.base.FrozenModel`).
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal
 
-from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BeforeValidator, ConfigDict, Field, field_validator
 
-from services.common.grid import HemisphereGrid, grid_for
-from services.common.models import Detection, FrozenModel, GridIndex, Pose, PoseQuery
-from services.common.scene import SCENE_ID_PATTERN, Camera, SearchSettings
+from services.common.contracts.base import FrozenModel
+from services.common.contracts.detect import Detection
+from services.common.geometry.grid import GridSpec
+from services.common.geometry.pose import GridIndex, Pose, PoseQuery
+from services.common.geometry.scene import SCENE_ID_PATTERN, CameraSpec
 from services.common.scene_models import ObjectClass
 
 __all__ = [
     "MAX_DETECTIONS",
     "MAX_HISTORY",
+    "MIN_SEARCH_STEP_DEG",
     "CandidatePose",
     "GridPose",
-    "GridSpec",
     "ImageDetections",
     "MapRequest",
     "MapResponse",
@@ -32,6 +34,7 @@ __all__ = [
     "NextPoseResponse",
     "OptimizerHealth",
     "PoseEstimate",
+    "SearchableGrid",
     "SearchTolerances",
     "StrategyInfo",
     "StrategyName",
@@ -39,7 +42,7 @@ __all__ = [
     "UnsupportedGridError",
     "ViewMatch",
     "VisitedView",
-    "search_grid",
+    "searchable_grid",
 ]
 
 MAX_DETECTIONS = 64
@@ -52,32 +55,8 @@ StrategyName = Literal["simple", "paper", "reprojection"]
 MappingMethod = Literal["exact", "paper"]
 Move = Literal["start", "stay", "N", "S", "E", "W", "jump"]
 
-ThetaDeg = Annotated[float, Field(ge=0.0, le=90.0, allow_inf_nan=False)]
 ImageSide = Annotated[int, Field(ge=1, le=16384)]
 ObjectClasses = Annotated[tuple[ObjectClass, ...], Field(min_length=1, max_length=256)]
-
-
-class GridSpec(FrozenModel):
-    """The hemisphere grid (paper eq. 1): rings every ``angle_step_deg`` within the θ range.
-
-    The step is at least 1° here (about 21 000 poses for a full hemisphere), which bounds the
-    work of scoring every pose; the scene format allows finer grids.
-    """
-
-    angle_step_deg: Annotated[float, Field(ge=1.0, le=90.0, allow_inf_nan=False)] = 7.5
-    min_theta_deg: ThetaDeg = 0.0
-    max_theta_deg: ThetaDeg = 90.0
-
-    @model_validator(mode="after")
-    def _has_a_ring(self) -> GridSpec:
-        if self.min_theta_deg > self.max_theta_deg:
-            raise ValueError("min_theta_deg must not exceed max_theta_deg")
-        self.grid()  # raises GridError (a ValueError) when no ring lies in range
-        return self
-
-    def grid(self) -> HemisphereGrid:
-        """The shared :class:`~services.common.grid.HemisphereGrid` of these settings."""
-        return grid_for(self.angle_step_deg, self.min_theta_deg, self.max_theta_deg)
 
 
 class UnsupportedGridError(ValueError):
@@ -91,22 +70,42 @@ class UnsupportedGridError(ValueError):
         self.field = field
 
 
-def search_grid(settings: SearchSettings) -> GridSpec:
-    """The optimizer's grid of a scene's ``search`` settings.
+MIN_SEARCH_STEP_DEG: Final = 1.0
+"""The finest grid step the optimizer searches: a full hemisphere at 1° holds about 21 000
+poses, which bounds the work of scoring every pose. The scene format allows finer grids."""
 
-    Raises :class:`UnsupportedGridError` when the optimizer cannot search it (a step under 1°):
-    the scene file is valid, so this is the caller's 422, not a bug.
+
+class SearchableGrid(GridSpec):
+    """A :class:`GridSpec` the optimizer can search: its step is at least
+    :data:`MIN_SEARCH_STEP_DEG` (the same type, one bound tighter, so errors name the field)."""
+
+    angle_step_deg: Annotated[
+        float, Field(ge=MIN_SEARCH_STEP_DEG, le=90.0, allow_inf_nan=False)
+    ] = 7.5
+
+
+def _grid_fields(value: object) -> object:
+    """Read a :class:`GridSpec` by its fields, so the tighter bound applies and names its field."""
+    return value.model_dump() if isinstance(value, GridSpec) else value
+
+
+SearchGrid = Annotated[SearchableGrid, BeforeValidator(_grid_fields)]
+"""A request's grid: a :class:`GridSpec` (or its JSON) read as a :class:`SearchableGrid`."""
+
+
+def searchable_grid(grid: GridSpec) -> SearchableGrid:
+    """``grid`` as a :class:`SearchableGrid`, when the optimizer can search it.
+
+    Raises :class:`UnsupportedGridError` for a step under :data:`MIN_SEARCH_STEP_DEG`: a scene
+    file with such a grid is valid, so this is the caller's 422, not a bug.
     """
-    try:
-        return GridSpec(
-            angle_step_deg=settings.angle_step_deg,
-            min_theta_deg=settings.min_theta_deg,
-            max_theta_deg=settings.max_theta_deg,
+    if grid.angle_step_deg < MIN_SEARCH_STEP_DEG:
+        raise UnsupportedGridError(
+            f"search.angle_step_deg: the optimizer searches grids of at least "
+            f"{MIN_SEARCH_STEP_DEG:g}°, got {grid.angle_step_deg:g}°",
+            "search.angle_step_deg",
         )
-    except ValidationError as exc:
-        error = exc.errors()[0]
-        field = ".".join(str(part) for part in ("search", *error["loc"]))
-        raise UnsupportedGridError(f"{field}: {error['msg']}", field) from exc
+    return SearchableGrid.model_validate(grid.model_dump())
 
 
 class ImageDetections(FrozenModel):
@@ -180,8 +179,8 @@ class NextPoseRequest(FrozenModel):
 
     strategy: StrategyName | None = None
     scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)] | None = None
-    camera: Camera | None = None
-    grid: GridSpec | None = None
+    camera: CameraSpec | None = None
+    grid: SearchGrid | None = None
     target: TargetImage
     history: Annotated[tuple[VisitedView, ...], Field(max_length=MAX_HISTORY)] = ()
     tolerances: SearchTolerances = SearchTolerances()
@@ -279,7 +278,7 @@ class NextPoseResponse(FrozenModel):
 class MapRequest(FrozenModel):
     """``POST /map``: ground positions of detections seen from a known pose."""
 
-    camera: Camera
+    camera: CameraSpec
     pose: Pose
     method: MappingMethod = "exact"
     view: ImageDetections

@@ -1,0 +1,16 @@
+"""The messages between the stages, one module per stage.
+
+========================  =================================================================
+Module                    Messages
+========================  =================================================================
+:mod:`.base`              :class:`~.base.FrozenModel` and the constrained types all share
+:mod:`.render`            the renderer's: render requests, annotations, scene summaries
+:mod:`.detect`            the detector's: detections, model descriptions, health
+:mod:`.optimize`          the optimizer's: next-pose requests and answers, object mapping
+:mod:`.search`            the controller's public API: searches, iterations, results
+========================  =================================================================
+
+Poses, the grid, the pinhole camera and the scene file are geometry, shared by all stages:
+:mod:`services.common.geometry`. This package re-exports nothing, so importing one stage's
+messages never imports another's.
+"""
