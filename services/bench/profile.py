@@ -30,7 +30,6 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from services.bench.report import percentile
 from services.bench.runner import SearchRecord, Target, run_searches
 from services.bench.stats import percentile
 from services.common.catalog import SceneCatalog
