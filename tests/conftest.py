@@ -1,4 +1,5 @@
-"""Shared fixtures: an in-process render engine, the built-in catalog, a real renderer process."""
+"""Fixtures every folder shares: the anyio backend, an in-process render engine, the built-in
+catalog, a real renderer process. A service's own fixtures live in its folder's conftest."""
 
 from __future__ import annotations
 
@@ -10,6 +11,11 @@ import pytest
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.launch import ServiceProcess, running_service
 from services.renderer.engine import RenderEngine
+
+
+@pytest.fixture(scope="session")
+def anyio_backend() -> str:
+    return "asyncio"
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,7 @@ import pytest
 
 from tools.make_assets import ASSET_PATHS, write_assets
 
-SCENES = Path(__file__).resolve().parents[1] / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
 MESHES = ("duck", "arch")
 TEXTURE_SIZES = {"duck": 256, "tiles": 512, "wood": 256}
 

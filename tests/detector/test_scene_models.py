@@ -46,11 +46,6 @@ BUILTIN_MODELS = sorted(
 )
 
 
-@pytest.fixture(scope="module")
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 IMAGE = balls_png()
 
 

@@ -18,11 +18,6 @@ from services.controller.transport import StageAnswer, StageRequest, TransportEr
 pytestmark = pytest.mark.anyio
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 work = StageRequest("POST", "/work")
 Behaviour = Callable[[str, StageRequest], StageAnswer]
 
@@ -168,16 +163,24 @@ async def test_real_replicas_slow_failing_hanging_and_killed(tmp_path):
     """Four real processes: a fast one, a slow one, one answering 500, one that hangs."""
     with (
         running_service(
-            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "fast", "FAKE_DELAY_MS": "10"}
+            "tests.controller.fake_replica:app",
+            tmp_path,
+            {"FAKE_NAME": "fast", "FAKE_DELAY_MS": "10"},
         ) as fast,
         running_service(
-            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "slow", "FAKE_DELAY_MS": "150"}
+            "tests.controller.fake_replica:app",
+            tmp_path,
+            {"FAKE_NAME": "slow", "FAKE_DELAY_MS": "150"},
         ) as slow,
         running_service(
-            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "broken", "FAKE_FAIL": "500"}
+            "tests.controller.fake_replica:app",
+            tmp_path,
+            {"FAKE_NAME": "broken", "FAKE_FAIL": "500"},
         ) as broken,
         running_service(
-            "tests.fake_replica:app", tmp_path, {"FAKE_NAME": "stuck", "FAKE_FAIL": "hang"}
+            "tests.controller.fake_replica:app",
+            tmp_path,
+            {"FAKE_NAME": "stuck", "FAKE_FAIL": "hang"},
         ) as stuck,
     ):
         broker = Broker(

@@ -35,7 +35,7 @@ from services.common.geometry.grid import angular_distance_deg, grid_for
 from services.common.geometry.pose import GridIndex
 from services.detector.letterbox import fit
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "detector.onnx"
+MODEL = Path(__file__).resolve().parents[2] / "models" / "detector.onnx"
 GRID = grid_for(7.5, 7.5, 82.5)
 
 

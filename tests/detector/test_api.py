@@ -69,11 +69,6 @@ def bomb_png(width: int, height: int) -> bytes:
 
 
 @pytest.fixture(scope="module")
-def anyio_backend() -> str:
-    return "asyncio"
-
-
-@pytest.fixture(scope="module")
 def model_dir(tmp_path_factory) -> Path:
     directory = tmp_path_factory.mktemp("detector-models")
     constant_model(directory / "constant.onnx", predictions(), classes=CLASSES)

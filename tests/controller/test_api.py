@@ -32,11 +32,6 @@ from services.renderer.settings import RendererSettings
 pytestmark = pytest.mark.anyio
 
 
-@pytest.fixture(scope="module")
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 class RendererOnly:
     """A transport that hands renderer calls to an in-process app; other stages are down."""
 

@@ -33,7 +33,7 @@ from services.common.geometry.scene import (
 )
 from tools.export_schema import SCHEMA_PATH, main, render_schema
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCENES = ROOT / "scenes"
 BUILTIN = ("demo", "garden")
 PATH = Path("/srv/scenes/example.yaml")  # parse_scene only uses it in messages

@@ -32,11 +32,6 @@ from tests.scene_model_support import BALLS, add_scene, onboard
 pytestmark = pytest.mark.anyio
 
 
-@pytest.fixture(scope="module")
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 class PngOnly:
     """A renderer of an older version: ignores the Accept header."""
 

@@ -20,11 +20,6 @@ from services.controller.transport import (
 pytestmark = pytest.mark.anyio
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 def _closed_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -35,7 +30,9 @@ def _closed_port() -> int:
 async def test_answers_refusals_and_timeouts(tmp_path, kind):
     transport: Transport = kind(connect_timeout_s=2.0)
     try:
-        with running_service("tests.fake_replica:app", tmp_path, {"FAKE_NAME": "x"}) as replica:
+        with running_service(
+            "tests.controller.fake_replica:app", tmp_path, {"FAKE_NAME": "x"}
+        ) as replica:
             answer = await transport.send(replica.url, StageRequest("POST", "/work"), 5.0)
             assert answer.status_code == 200
             assert answer.json() == {"replica": "x"}
@@ -48,7 +45,9 @@ async def test_answers_refusals_and_timeouts(tmp_path, kind):
             await transport.send(
                 f"http://127.0.0.1:{_closed_port()}", StageRequest("GET", "/"), 5.0
             )
-        with running_service("tests.fake_replica:app", tmp_path, {"FAKE_FAIL": "hang"}) as stuck:
+        with running_service(
+            "tests.controller.fake_replica:app", tmp_path, {"FAKE_FAIL": "hang"}
+        ) as stuck:
             with pytest.raises(TransportError, match="timed out"):
                 await transport.send(stuck.url, StageRequest("POST", "/work", timeout_s=0.3), 60.0)
             stuck.process.kill()  # it would wait for its hanging task on a graceful stop
@@ -71,7 +70,7 @@ async def test_survives_the_replicas_keep_alive_timeout(tmp_path):
     transport._connect = counted  # type: ignore[method-assign]
     env = {"FAKE_NAME": "x", "UVICORN_TIMEOUT_KEEP_ALIVE": "1"}
     try:
-        with running_service("tests.fake_replica:app", tmp_path, env) as replica:
+        with running_service("tests.controller.fake_replica:app", tmp_path, env) as replica:
             for pause_s in (0.0, 1.5, 0.95, 1.05, 1.0):
                 await asyncio.sleep(pause_s)
                 answer = await transport.send(replica.url, StageRequest("POST", "/work"), 5.0)

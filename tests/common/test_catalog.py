@@ -13,7 +13,7 @@ from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.errors import NotFoundError, UnprocessableError
 from services.renderer.settings import RendererSettings
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def scene_text(radius: float = 8.0, name: str = "ball") -> str:

@@ -14,11 +14,6 @@ from services.detector.batching import MicroBatcher
 pytestmark = pytest.mark.anyio
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 def doubled(batch: np.ndarray) -> np.ndarray:
     return batch * 2.0
 

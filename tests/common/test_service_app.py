@@ -15,11 +15,6 @@ from services.common.http import service_app
 pytestmark = pytest.mark.anyio
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 async def test_the_start_up_heap_is_frozen_while_the_app_runs():
     built: list[object] = []
 

@@ -22,11 +22,6 @@ GRID = {"angle_step_deg": 7.5, "min_theta_deg": 7.5, "max_theta_deg": 82.5}
 
 
 @pytest.fixture(scope="module")
-def anyio_backend() -> str:
-    return "asyncio"
-
-
-@pytest.fixture(scope="module")
 async def client() -> AsyncIterator[httpx.AsyncClient]:
     app = create_app(OptimizerSettings(optimizer_max_body_bytes=200_000, max_grid_poses=5000))
     async with LifespanManager(app) as manager:
