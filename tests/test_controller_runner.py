@@ -5,10 +5,12 @@ resumption from what was recorded, and object classes sent only for the scene's 
 from __future__ import annotations
 
 import asyncio
+import json
 import re
 from collections import Counter
 
 import pytest
+from pydantic import ValidationError
 
 from services.common.catalog import scene_grid
 from services.common.errors import ProblemDetails
@@ -22,6 +24,7 @@ from services.common.optimization import (
 )
 from services.common.scene import SceneDetail
 from services.common.search import Iteration, Search, StageTimings
+from services.controller.broker import BrokerError
 from services.controller.events import Notifier
 from services.controller.runner import SearchRunner
 from services.controller.stages import StageError
@@ -334,6 +337,21 @@ def assert_failed(final: Search, slug: str, status: int, title: str, *words: str
     assert not ADDRESS.search(error.detail), error.detail
 
 
+def unavailable(stage: str, kind: str) -> BrokerError:
+    """What the broker raises when every attempt failed (its reasons name the replicas)."""
+    host, port = REPLICAS[1].removeprefix("http://").split(":")
+    return BrokerError(
+        stage,
+        kind,
+        [
+            f"{REPLICAS[0]}: HTTP 503",
+            f"{REPLICAS[1]}: ConnectionRefusedError: [Errno 111] "
+            f"Connect call failed ('{host}', {port})",
+            f"{REPLICAS[0]}: timed out (60 s)",
+        ],
+    )
+
+
 # (call, answers before it fails, stage, the broker's task kind, the stage's refusal)
 STAGE_CALLS = [
     ("scene", 0, "renderer", "scene", "scene 'demo' is not in this renderer's catalog"),
@@ -355,6 +373,48 @@ def test_a_stage_that_refuses_fails_the_search_with_its_reason(
     final = run(tmp_path, stages)
     assert_failed(final, "stage-refused", 422, f"{stage.capitalize()} refused", stage, why)
     assert len(final.iterations) == answers  # what was done before is kept
+
+
+@pytest.mark.parametrize(("call", "answers", "stage", "kind", "why"), STAGE_CALLS)
+def test_a_stage_nobody_serves_fails_the_search_naming_the_stage_not_its_replicas(
+    tmp_path, detail, caplog, call, answers, stage, kind, why
+):
+    stages = FakeStages(detail, faults={call: (answers, unavailable(stage, kind))})
+    final = run(tmp_path, stages)
+    assert_failed(
+        final, "stage-unavailable", 503, f"No {stage} available", stage, "3 attempts", "again"
+    )
+    assert len(final.iterations) == answers
+    assert REPLICAS[1] in caplog.text  # the operator still learns which replicas failed
+
+
+def test_a_stage_without_replicas_fails_the_search_saying_so(tmp_path, detail):
+    stages = FakeStages(detail, faults={"render": (0, BrokerError("renderer", "render", []))})
+    final = run(tmp_path, stages)
+    assert_failed(
+        final, "stage-unavailable", 503, "No renderer available", "no renderer replica is known"
+    )
+
+
+def test_an_optimizer_answer_the_controller_cannot_read_fails_the_search(tmp_path, detail):
+    answer = FakeStages(detail).grid_pose(GridIndex(lat=3, lon=1)).model_dump()
+    newer = (  # an optimizer of another version: ``next`` renamed
+        '{"strategy": "reprojection", "done": false, "stuck": false, "move": "E",'
+        ' "estimate": null, "ambiguous": false, "alternatives": [], "reason": "",'
+        f' "next_pose": {json.dumps(answer)}}}'
+    )
+    try:
+        NextPoseResponse.model_validate_json(newer)
+    except ValidationError as exc:
+        malformed = exc
+    stages = FakeStages(detail, faults={"optimize": (1, malformed)})
+    final = run(tmp_path, stages)
+    assert_failed(
+        final, "bad-optimizer-answer", 502, "Bad optimizer answer", "next: ", "next_pose", "version"
+    )
+    assert final.error is not None
+    assert {"field": "next", "message": "Field required"} in (final.error.errors or [])
+    assert len(final.iterations) == 1
 
 
 def test_a_scene_grid_the_optimizer_cannot_search_fails_the_search(tmp_path, detail):

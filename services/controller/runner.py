@@ -89,11 +89,47 @@ class _View:
 
 
 def _stage_failure(exc: StageError | BrokerError) -> SearchFailed:
+    """The search's failure when a stage refused its task or no replica could serve it.
+
+    The broker's reasons name replica addresses: they go to the log (:meth:`SearchRunner._run`),
+    not into the search's error, which every client reads.
+    """
     if isinstance(exc, StageError):
         problem = exc.problem
         detail = f"the {exc.stage} refused a task: {problem.detail or problem.title}"
         return _failure("stage-refused", f"{exc.stage.capitalize()} refused", detail, 422)
-    return _failure("stage-unavailable", f"No {exc.stage} available", str(exc), 503)
+    if exc.reasons:
+        why = (
+            f"no {exc.stage} replica could {exc.kind} after {len(exc.reasons)} attempts (each "
+            "timed out, refused the connection or answered with a server error)"
+        )
+    else:
+        why = f"no {exc.stage} replica is known (none configured or discovered)"
+    detail = f"{why}; the controller's /health lists them: search again once one is up"
+    return _failure("stage-unavailable", f"No {exc.stage} available", detail, 503)
+
+
+def _unreadable_answer(exc: ValidationError) -> SearchFailed:
+    """The search's failure when the optimizer's answer does not fit the contract: the fields
+    at fault, without pydantic's dump of the answer."""
+    errors = [
+        {"field": ".".join(str(part) for part in err["loc"]), "message": err["msg"]}
+        for err in exc.errors(include_url=False, include_context=False, include_input=False)
+    ]
+    named = "; ".join(f"{err['field']}: {err['message']}" for err in errors[:3])
+    more = f" (and {len(errors) - 3} more)" if len(errors) > 3 else ""
+    detail = (
+        f"the optimizer's answer does not fit this controller's contract ({named}{more}); "
+        "the optimizer and the controller are probably of different versions"
+    )
+    problem = ProblemDetails(
+        type=problem_type("bad-optimizer-answer"),
+        title="Bad optimizer answer",
+        status=502,
+        detail=detail,
+        errors=errors,
+    )
+    return SearchFailed(problem)
 
 
 def _result_of(last: Iteration, renders: int) -> SearchResult:
@@ -289,7 +325,10 @@ class SearchRunner:
                 return
             raise
         except SearchFailed as failed:
-            _log.warning("search %s failed: %s", search_id, failed.problem.detail)
+            # what the error leaves out: the broker's reasons (replica addresses), the answer
+            cause = failed.__cause__
+            why = f" ({cause})" if isinstance(cause, BrokerError | ValidationError) else ""
+            _log.warning("search %s failed: %s%s", search_id, failed.problem.detail, why)
             self.store.update(search_id, status="failed", error=failed.problem)
         except Exception:  # a bug must fail the search, not the worker
             _log.exception("search %s crashed", search_id)
@@ -466,7 +505,7 @@ class SearchRunner:
             except (StageError, BrokerError) as exc:
                 raise _stage_failure(exc) from exc
             except ValidationError as exc:
-                raise _failure("bad-optimizer-answer", "Bad optimizer answer", str(exc)) from exc
+                raise _unreadable_answer(exc) from exc
             optimize_ms = (time.perf_counter() - t0) * 1000
             iteration = Iteration(
                 index=len(history),
