@@ -388,6 +388,12 @@ def test_a_stage_nobody_serves_fails_the_search_naming_the_stage_not_its_replica
     assert REPLICAS[1] in caplog.text  # the operator still learns which replicas failed
 
 
+def test_one_failed_attempt_is_one_attempt(tmp_path, detail):
+    gone = BrokerError("optimizer", "optimize", [f"{REPLICAS[0]}: HTTP 502"])
+    final = run(tmp_path, FakeStages(detail, faults={"optimize": (0, gone)}))
+    assert_failed(final, "stage-unavailable", 503, "No optimizer available", "after 1 attempt (")
+
+
 def test_a_stage_without_replicas_fails_the_search_saying_so(tmp_path, detail):
     stages = FakeStages(detail, faults={"render": (0, BrokerError("renderer", "render", []))})
     final = run(tmp_path, stages)

@@ -102,9 +102,10 @@ def _stage_failure(exc: StageError | BrokerError) -> SearchFailed:
         detail = f"the {exc.stage} refused a task: {problem.detail or problem.title}"
         return _failure("stage-refused", f"{exc.stage.capitalize()} refused", detail, 422)
     if exc.reasons:
+        attempts = f"{len(exc.reasons)} attempt{'s' if len(exc.reasons) > 1 else ''}"
         why = (
-            f"no {exc.stage} replica could {exc.kind} after {len(exc.reasons)} attempts (each "
-            "timed out, refused the connection or answered with a server error)"
+            f"no {exc.stage} replica could {exc.kind} after {attempts} (each timed out, refused "
+            "the connection or answered with a server error)"
         )
     else:
         why = f"no {exc.stage} replica is known (none configured or discovered)"
