@@ -286,15 +286,27 @@ def recorded(stages: FakeStages, lon: int, **fields) -> Iteration:
     )
 
 
+def test_a_pose_seen_before_is_not_rendered_again(tmp_path, detail):
+    stages = FakeStages(detail)  # goes east round ring 3 (8 poses) and on
+    final = run(tmp_path, stages, max_iterations=11)
+    assert final.status == "succeeded", final.error
+    assert len(final.iterations) == 11
+    assert stages.calls["render"] == stages.calls["detect view"] == 8
+    assert final.result is not None
+    assert final.result.renders == 8
+    assert [it.timings.render_ms for it in final.iterations[8:]] == [0.0] * 3
+
+
 def test_a_search_resumed_without_its_target_detects_the_target_once(tmp_path, detail):
     stages = FakeStages(detail)
     store = stored(tmp_path, stages, max_iterations=3)
-    first = recorded(stages, 0, next_pose=stages.grid_pose(GridIndex(lat=3, lon=1)))
+    # it goes on at the pose it saw: the target is detected before, not with, a new render
+    first = recorded(stages, 0, next_pose=stages.grid_pose(GridIndex(lat=3, lon=0)))
     store.add_iteration("s1", first, status="running")
     final = run_stored(store, stages)
     assert final.status == "succeeded", final.error
     assert stages.calls["detect target"] == 1
-    assert stages.calls["render"] == 2
+    assert stages.calls["render"] == 1
     assert final.target_detections is not None
     assert len(final.target_detections) == 1
     assert final.target_model == GENERAL
