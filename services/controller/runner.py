@@ -35,6 +35,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Unpack
 
@@ -43,7 +44,9 @@ from pydantic import ValidationError
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.contracts.optimize import (
     GridPose,
+    GridSpec,
     NextPoseRequest,
+    NextPoseResponse,
     TargetImage,
     UnsupportedGridError,
     VisitedView,
@@ -96,11 +99,57 @@ class _View:
 
 
 def _stage_failure(exc: StageError | BrokerError) -> SearchFailed:
+    """The search's failure when a stage refused its task or no replica could serve it.
+
+    The broker's reasons name replica addresses: they go to the log (:meth:`SearchRunner._run`),
+    not into the search's error, which every client reads.
+    """
     if isinstance(exc, StageError):
         problem = exc.problem
         detail = f"the {exc.stage} refused a task: {problem.detail or problem.title}"
         return _failure("stage-refused", f"{exc.stage.capitalize()} refused", detail, 422)
-    return _failure("stage-unavailable", f"No {exc.stage} available", str(exc), 503)
+    if exc.reasons:
+        attempts = f"{len(exc.reasons)} attempt{'s' if len(exc.reasons) > 1 else ''}"
+        why = (
+            f"no {exc.stage} replica could {exc.kind} after {attempts} (each timed out, refused "
+            "the connection or answered with a server error)"
+        )
+    else:
+        why = f"no {exc.stage} replica is known (none configured or discovered)"
+    detail = f"{why}; the controller's /health lists them: search again once one is up"
+    return _failure("stage-unavailable", f"No {exc.stage} available", detail, 503)
+
+
+@contextlib.contextmanager
+def _stage_call() -> Iterator[None]:
+    """Inside: a stage that refuses, or that no replica serves, fails the search."""
+    try:
+        yield
+    except (StageError, BrokerError) as exc:
+        raise _stage_failure(exc) from exc
+
+
+def _unreadable_answer(exc: ValidationError) -> SearchFailed:
+    """The search's failure when the optimizer's answer does not fit the contract: the fields
+    at fault, without pydantic's dump of the answer."""
+    errors = [
+        {"field": ".".join(str(part) for part in err["loc"]), "message": err["msg"]}
+        for err in exc.errors(include_url=False, include_context=False, include_input=False)
+    ]
+    named = "; ".join(f"{err['field']}: {err['message']}" for err in errors[:3])
+    more = f" (and {len(errors) - 3} more)" if len(errors) > 3 else ""
+    detail = (
+        f"the optimizer's answer does not fit this controller's contract ({named}{more}); "
+        "the optimizer and the controller are probably of different versions"
+    )
+    problem = ProblemDetails(
+        type=problem_type("bad-optimizer-answer"),
+        title="Bad optimizer answer",
+        status=502,
+        detail=detail,
+        errors=errors,
+    )
+    return SearchFailed(problem)
 
 
 def _result_of(last: Iteration, renders: int) -> SearchResult:
@@ -158,7 +207,7 @@ def _classes_for(
     search: Search,
     scene: SceneDetail,
     target_model: ModelInfo | None,
-    views: list[_View],
+    views: Iterable[_View],
 ) -> tuple[ObjectClass, ...] | None:
     """The scene's object classes when the target and every view came from the scene's own
     model (module docstring), else None."""
@@ -169,9 +218,136 @@ def _classes_for(
     return object_classes(scene.spec)
 
 
+def _timings(render_ms: float, detect_ms: float, optimize_ms: float, t0: float) -> StageTimings:
+    """An iteration's stage times, and its total since ``t0`` (:func:`time.perf_counter`)."""
+    total_ms = (time.perf_counter() - t0) * 1000
+    return StageTimings(
+        render_ms=render_ms, detect_ms=detect_ms, optimize_ms=optimize_ms, total_ms=total_ms
+    )
+
+
+def _at(pose: GridPose) -> tuple[int, int]:
+    return (pose.index.lat, pose.index.lon)
+
+
+def _visited(
+    pose: GridPose, image_size: tuple[int, int], detections: tuple[Detection, ...]
+) -> VisitedView:
+    return VisitedView(
+        pose=PoseQuery(lat=pose.index.lat, lon=pose.index.lon),
+        image_size=image_size,
+        detections=detections,
+    )
+
+
+@dataclass
+class _Progress:
+    """What a search looks for and what it has seen: its iterations, the view at every pose it
+    rendered (a pose is rendered once: a view is reused when the search comes back to it), and
+    the target's detections, with those the store does not hold yet."""
+
+    search: Search
+    scene: SceneDetail
+    grid: GridSpec
+    history: list[Iteration]
+    views: dict[tuple[int, int], _View]
+    target: tuple[Detection, ...] | None
+    target_size: tuple[int, int]
+    target_model: ModelInfo | None  # None for a target recorded by an earlier version
+    unrecorded_target: DetectResponse | None = None  # recorded with the next iteration
+
+    @classmethod
+    def recorded(cls, search: Search, scene: SceneDetail, grid: GridSpec) -> _Progress:
+        """What ``search`` recorded: nothing for a new search, its iterations for a resumed one."""
+        history = list(search.iterations)
+        views = {
+            _at(it.pose): _View(it.image_size, it.detections, it.detector_sha256) for it in history
+        }
+        return cls(
+            search,
+            scene,
+            grid,
+            history,
+            views,
+            search.target_detections,
+            search.target_size,
+            search.target_model,
+        )
+
+    @property
+    def renders(self) -> int:
+        return len(self.views)
+
+    @property
+    def finished(self) -> bool:
+        """Whether the last recorded iteration was done."""
+        return bool(self.history) and self.history[-1].done
+
+    @property
+    def pose(self) -> GridPose | None:
+        """Where the search goes on: the start pose, or the next pose of its last iteration."""
+        return self.history[-1].next_pose if self.history else self.search.start
+
+    def saw_target(self, seen: DetectResponse) -> None:
+        """Take the target's detections, to be recorded with the next iteration."""
+        self.target = seen.detections
+        self.target_size = seen.image_size
+        self.target_model = seen.model
+        self.unrecorded_target = seen
+
+    def take_unrecorded_target(self) -> DetectResponse | None:
+        """The target's detections if the store does not hold them yet (then they are its)."""
+        seen, self.unrecorded_target = self.unrecorded_target, None
+        return seen
+
+    def request(self, target: TargetImage, pose: GridPose, view: _View) -> NextPoseRequest:
+        """The optimizer's question once it sees ``view`` at ``pose``: the target and every view
+        so far, with the scene's object classes when they apply (:func:`_classes_for`)."""
+        history = [_visited(it.pose, it.image_size, it.detections) for it in self.history]
+        history.append(_visited(pose, view.image_size, view.detections))
+        classes = _classes_for(self.search, self.scene, self.target_model, self.views.values())
+        return NextPoseRequest(
+            strategy=self.search.strategy,
+            camera=self.scene.spec.camera,
+            grid=self.grid,
+            target=target,
+            history=tuple(history),
+            **({} if classes is None else {"object_classes": classes}),
+        )
+
+    def add(
+        self, pose: GridPose, view: _View, answer: NextPoseResponse, timings: StageTimings
+    ) -> Iteration:
+        """Record, in the history, ``view`` at ``pose`` and the optimizer's ``answer`` to it."""
+        estimate = answer.estimate
+        iteration = Iteration(
+            index=len(self.history),
+            pose=pose,
+            image_size=view.image_size,
+            detections=view.detections,
+            detector_sha256=view.model,
+            timings=timings,
+            estimate=(
+                Pose(theta_deg=estimate.theta_deg, phi_deg=estimate.phi_deg)
+                if estimate is not None
+                else None
+            ),
+            estimate_grid=estimate.grid if estimate is not None else None,
+            confidence=estimate.confidence if estimate is not None else 0.0,
+            ambiguous=answer.ambiguous,
+            next_pose=answer.next,
+            done=answer.done,
+            reason=answer.reason,
+            match=answer.match,
+        )
+        self.history.append(iteration)
+        return iteration
+
+
 class _Writes:
-    """A search's writes that can wait for its next stage requests: the running status and the
-    last iteration. Done while the next view renders, they cost the search no time."""
+    """A search's writes: those that can wait for its next stage requests (the running status
+    and the last iteration: done while the next view renders, they cost the search no time),
+    and its success."""
 
     def __init__(self, store: SearchStore, notifier: Notifier, search: Search) -> None:
         self.store = store
@@ -197,6 +373,23 @@ class _Writes:
             self.store.add_iteration(self.sid, iteration, **_target_changes(target))
             self._iteration = None
         self.notifier.publish(self.sid)
+
+    def succeed(
+        self,
+        result: SearchResult,
+        final: Iteration | None = None,
+        target: DetectResponse | None = None,
+    ) -> SearchResult:
+        """Write what waits, then the search's success with ``result``: with its ``final``
+        iteration (and the target's detections, when new) if that is not recorded yet. The
+        search's followers are woken when its run ends."""
+        self.flush()
+        if final is None:
+            self.store.update(self.sid, status="succeeded", result=result)
+        else:
+            changes = _target_changes(target, status="succeeded", result=result)
+            self.store.add_iteration(self.sid, final, **changes)
+        return result
 
 
 class SearchRunner:
@@ -296,7 +489,10 @@ class SearchRunner:
                 return
             raise
         except SearchFailed as failed:
-            _log.warning("search %s failed: %s", search_id, failed.problem.detail)
+            # what the error leaves out: the broker's reasons (replica addresses), the answer
+            cause = failed.__cause__
+            why = f" ({cause})" if isinstance(cause, BrokerError | ValidationError) else ""
+            _log.warning("search %s failed: %s%s", search_id, failed.problem.detail, why)
             self.store.update(search_id, status="failed", error=failed.problem)
         except Exception:  # a bug must fail the search, not the worker
             _log.exception("search %s crashed", search_id)
@@ -315,10 +511,8 @@ class SearchRunner:
             self.notifier.publish(search_id)
 
     async def _detect(self, image: bytes, media_type: str, sid: str, scene: str) -> DetectResponse:
-        try:
+        with _stage_call():
             return await self.stages.detect(image, media_type, sid, scene=scene)
-        except (StageError, BrokerError) as exc:
-            raise _stage_failure(exc) from exc
 
     async def _observe(
         self, search: Search, pose: GridPose, target_image: bytes | None
@@ -337,10 +531,8 @@ class SearchRunner:
         )
         try:
             t0 = time.perf_counter()
-            try:
+            with _stage_call():
                 view_image = await self.stages.render(search.scene, pose.index, sid)
-            except (StageError, BrokerError) as exc:
-                raise _stage_failure(exc) from exc
             t1 = time.perf_counter()
             found = await self._detect(view_image, media_type_of(view_image), sid, search.scene)
             t2 = time.perf_counter()
@@ -380,12 +572,51 @@ class SearchRunner:
             writes.flush()  # what is done is recorded before a failure or a cancellation
 
     async def _iterate(self, search: Search, image: bytes, writes: _Writes) -> SearchResult:
-        sid = search.id
-        try:
-            scene = await self.stages.scene(search.scene, sid)
-        except (StageError, BrokerError) as exc:
-            raise _stage_failure(exc) from exc
-        camera = scene.spec.camera
+        """The search loop. From the start pose (or where a resumed search stopped):
+
+        1. render the view at the current pose (the target image's objects are detected too,
+           the first time);
+        2. detect the view's objects (a pose seen before is neither rendered nor detected again);
+        3. ask the optimizer for the next pose, given the target and every view so far;
+        4. stop when the optimizer says done (the answer is confirmed) or that the search goes
+           round in circles, or after ``max_iterations`` views (both answer the best visited
+           pose, unconfirmed); else move to the next pose and go on at 1.
+
+        Every iteration is recorded (:class:`_Writes`); raises :class:`SearchFailed`.
+        """
+        progress = await self._begin(search, image)
+        if progress.finished:  # by an older controller, which recorded no result
+            return writes.succeed(_result_of(progress.history[-1], progress.renders))
+        pose = progress.pose
+        while pose is not None and len(progress.history) < search.max_iterations:
+            started = time.perf_counter()
+            view, render_ms, detect_ms = await self._look(progress, pose, image, writes)
+            target = self._target(progress)
+            answer, optimize_ms = await self._ask_optimizer(progress, target, pose, view)
+            timings = _timings(render_ms, detect_ms, optimize_ms, started)
+            iteration = progress.add(pose, view, answer, timings)
+            new_target = progress.take_unrecorded_target()
+            if answer.done:
+                result = _result_of(iteration, progress.renders)
+                return writes.succeed(result, iteration, new_target)
+            if answer.stuck:
+                why = (
+                    f"the {search.strategy} strategy kept coming back to the same poses "
+                    f"after {len(progress.history)} views"
+                )
+                result = _best_visited(progress.history, progress.renders, why)
+                return writes.succeed(result, iteration, new_target)
+            writes.hold(iteration, new_target)
+            pose = answer.next
+        why = f"no view matched the target within {search.max_iterations} views"
+        return writes.succeed(_best_visited(progress.history, progress.renders, why))
+
+    async def _begin(self, search: Search, image: bytes) -> _Progress:
+        """The search's scene and grid, and what it recorded before (nothing when new). A search
+        resumed before its target's detections were recorded detects the target ``image`` again.
+        """
+        with _stage_call():
+            scene = await self.stages.scene(search.scene, search.id)
         try:
             grid = searchable_grid(scene.spec.search)
         except UnsupportedGridError as exc:  # the scene file changed since the search was taken
@@ -395,136 +626,53 @@ class SearchRunner:
                 f"scene {search.scene}'s grid cannot be searched: {exc}",
                 status=422,
             ) from exc
-        history = list(search.iterations)
-        views = {
-            (it.pose.index.lat, it.pose.index.lon): _View(
-                it.image_size, it.detections, it.detector_sha256
-            )
-            for it in history
-        }
-        if history and history[-1].done:  # recorded by an older controller without its result
-            result = _result_of(history[-1], len(views))
-            self.store.update(sid, status="succeeded", result=result)
-            return result
-        current = history[-1].next_pose if history else search.start
-        target = search.target_detections
-        target_size = search.target_size
-        target_model = search.target_model  # None for a target recorded by an earlier version
-        unrecorded: DetectResponse | None = None  # the target's detections, once, with a view
-        if target is None and history:  # resumed between the first iteration and this one
-            unrecorded = await self._detect(image, media_type_of(image), sid, search.scene)
-            target, target_size = unrecorded.detections, unrecorded.image_size
-            target_model = unrecorded.model
-        renders = len(views)
-        view_models = [views[(it.pose.index.lat, it.pose.index.lon)] for it in history]
-        while current is not None and len(history) < search.max_iterations:
-            key = (current.index.lat, current.index.lon)
-            started = time.perf_counter()
-            render_ms = detect_ms = 0.0
-            new_target, unrecorded = unrecorded, None
-            if key in views:
-                view = views[key]
-                writes.flush()
-            else:
-                view, seen, render_ms, detect_ms = await self._observe_while(
-                    writes, search, current, image if target is None else None
-                )
-                if seen is not None:  # recorded with this iteration, below
-                    target, target_size = seen.detections, seen.image_size
-                    target_model = seen.model
-                    new_target = seen
-                views[key] = view
-                renders += 1
-            if not target:
-                self.store.update(sid, target_detections=target)  # recorded with the failure
-                raise _failure(
-                    "no-target-objects",
-                    "Nothing to search for",
-                    "the detector found no objects in the target image",
-                    status=422,
-                )
-            visited = [
-                VisitedView(
-                    pose=PoseQuery(lat=it.pose.index.lat, lon=it.pose.index.lon),
-                    image_size=it.image_size,
-                    detections=it.detections,
-                )
-                for it in history
-            ]
-            visited.append(
-                VisitedView(
-                    pose=PoseQuery(lat=current.index.lat, lon=current.index.lon),
-                    image_size=view.image_size,
-                    detections=view.detections,
-                )
-            )
-            classes = _classes_for(search, scene, target_model, [*view_models, view])
-            request = NextPoseRequest(
-                strategy=search.strategy,
-                camera=camera,
-                grid=grid,
-                target=TargetImage(image_size=target_size, detections=target),
-                history=tuple(visited),
-                **({} if classes is None else {"object_classes": classes}),
-            )
-            t0 = time.perf_counter()
-            try:
-                answer = await self.stages.optimize(request, sid)
-            except (StageError, BrokerError) as exc:
-                raise _stage_failure(exc) from exc
-            except ValidationError as exc:
-                raise _failure("bad-optimizer-answer", "Bad optimizer answer", str(exc)) from exc
-            optimize_ms = (time.perf_counter() - t0) * 1000
-            iteration = Iteration(
-                index=len(history),
-                pose=current,
-                image_size=view.image_size,
-                detections=view.detections,
-                detector_sha256=view.model,
-                timings=StageTimings(
-                    render_ms=render_ms,
-                    detect_ms=detect_ms,
-                    optimize_ms=optimize_ms,
-                    total_ms=(time.perf_counter() - started) * 1000,
-                ),
-                estimate=(
-                    Pose(theta_deg=answer.estimate.theta_deg, phi_deg=answer.estimate.phi_deg)
-                    if answer.estimate is not None
-                    else None
-                ),
-                estimate_grid=answer.estimate.grid if answer.estimate is not None else None,
-                confidence=answer.estimate.confidence if answer.estimate is not None else 0.0,
-                ambiguous=answer.ambiguous,
-                next_pose=answer.next,
-                done=answer.done,
-                reason=answer.reason,
-                match=answer.match,
-            )
-            history.append(iteration)
-            view_models.append(view)
-            if answer.done or answer.stuck:  # recorded and published with the result
-                result = (
-                    _result_of(iteration, renders)
-                    if answer.done
-                    else _best_visited(
-                        history,
-                        renders,
-                        f"the {search.strategy} strategy kept coming back to the same poses "
-                        f"after {len(history)} views",
-                    )
-                )
-                writes.flush()
-                self.store.add_iteration(
-                    sid,
-                    iteration,
-                    **_target_changes(new_target, status="succeeded", result=result),
-                )
-                return result
-            writes.hold(iteration, new_target)
-            current = answer.next
-        result = _best_visited(
-            history, renders, f"no view matched the target within {search.max_iterations} views"
+        progress = _Progress.recorded(search, scene, grid)
+        if progress.history and not progress.finished and progress.target is None:
+            sid = search.id
+            progress.saw_target(await self._detect(image, media_type_of(image), sid, search.scene))
+        return progress
+
+    async def _look(
+        self, progress: _Progress, pose: GridPose, image: bytes, writes: _Writes
+    ) -> tuple[_View, float, float]:
+        """The view at ``pose``: rendered and detected, with the target ``image`` while its
+        detections are unknown, or the one seen there before. The waiting writes go out
+        meanwhile. Returns the view, render and detect milliseconds (0 for a view seen before)."""
+        seen_before = progress.views.get(_at(pose))
+        if seen_before is not None:
+            writes.flush()
+            return seen_before, 0.0, 0.0
+        target_image = image if progress.target is None else None
+        view, seen, render_ms, detect_ms = await self._observe_while(
+            writes, progress.search, pose, target_image
         )
-        writes.flush()
-        self.store.update(sid, status="succeeded", result=result)
-        return result
+        if seen is not None:
+            progress.saw_target(seen)
+        progress.views[_at(pose)] = view
+        return view, render_ms, detect_ms
+
+    def _target(self, progress: _Progress) -> TargetImage:
+        """What the optimizer looks for; fails the search (recording the empty detections) when
+        the detector found nothing in the target image."""
+        if not progress.target:
+            self.store.update(progress.search.id, target_detections=progress.target)
+            raise _failure(
+                "no-target-objects",
+                "Nothing to search for",
+                "the detector found no objects in the target image",
+                status=422,
+            )
+        return TargetImage(image_size=progress.target_size, detections=progress.target)
+
+    async def _ask_optimizer(
+        self, progress: _Progress, target: TargetImage, pose: GridPose, view: _View
+    ) -> tuple[NextPoseResponse, float]:
+        """The optimizer's answer once it sees ``view`` at ``pose``, and its milliseconds."""
+        request = progress.request(target, pose, view)
+        t0 = time.perf_counter()
+        try:
+            with _stage_call():
+                answer = await self.stages.optimize(request, progress.search.id)
+        except ValidationError as exc:
+            raise _unreadable_answer(exc) from exc
+        return answer, (time.perf_counter() - t0) * 1000

@@ -1,24 +1,33 @@
-"""The search loop with fake stages (no HTTP): an any-time answer when no view is confirmed,
-failures kept for real errors, and object classes sent only for the scene's own model."""
+"""The search loop with fake stages (no HTTP): a confirmed answer, an any-time answer when no view
+is confirmed, a failure a user can act on for every real error (and no replica address in it),
+resumption from what was recorded, and object classes sent only for the scene's own model."""
 
 from __future__ import annotations
 
 import asyncio
+import json
+import re
+from collections import Counter
 
 import pytest
+from pydantic import ValidationError
 
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.contracts.optimize import (
     GridPose,
     NextPoseRequest,
     NextPoseResponse,
+    PoseEstimate,
     ViewMatch,
 )
 from services.common.contracts.render import SceneDetail
-from services.common.contracts.search import Search
+from services.common.contracts.search import Iteration, Search, StageTimings
+from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
+from services.controller.broker import BrokerError
 from services.controller.events import Notifier
 from services.controller.runner import SearchRunner
+from services.controller.stages import StageError
 from services.controller.store import SearchStore, utcnow
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"target"
@@ -27,28 +36,55 @@ OWN = ModelInfo(name="demo", classes=("red",), input_size=(640, 640), sha256="d"
 
 
 class FakeStages:
-    """Renders a pose's lat/lon as bytes; the optimizer never says done and scores lon 2 best."""
+    """Renders a pose's lat/lon as bytes; the optimizer scores lon 2 best and says done only
+    after ``done_after`` views.
 
-    def __init__(self, scene: SceneDetail, *, models=(GENERAL, GENERAL), stuck_after=99, boxes=1):
+    ``faults`` scripts failures: a call (``scene``, ``render``, ``detect target``, ``detect view``,
+    ``optimize``) answers ``n`` times, then raises the error. ``calls`` counts every call.
+    """
+
+    def __init__(
+        self,
+        scene: SceneDetail,
+        *,
+        models=(GENERAL, GENERAL),
+        stuck_after=99,
+        done_after=99,
+        boxes=1,
+        faults: dict[str, tuple[int, BaseException]] | None = None,
+    ):
         self.detail = scene
         self.grid = scene_grid_of(scene)
         self.target_model, self.view_model = models
         self.stuck_after = stuck_after
+        self.done_after = done_after
         self.boxes = boxes
+        self.faults = faults or {}
+        self.calls: Counter[str] = Counter()
         self.requests: list[NextPoseRequest] = []
 
+    def _call(self, name: str) -> None:
+        self.calls[name] += 1
+        if name in self.faults:
+            answers, error = self.faults[name]
+            if self.calls[name] > answers:
+                raise error
+
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
+        self._call("scene")
         return self.detail
 
     def forget_early(self, request_id: str) -> None:
         pass
 
     async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+        self._call("render")
         return f"P6 {index.lat} {index.lon}".encode()
 
     async def detect(
         self, image: bytes, media_type: str, request_id: str = "", scene: str | None = None
     ) -> DetectResponse:
+        self._call("detect target" if image == PNG else "detect view")
         model = self.target_model if image == PNG else self.view_model
         label = "red" if model.scene else "sphere"
         detections = tuple(
@@ -58,18 +94,29 @@ class FakeStages:
         return DetectResponse(detections=detections, image_size=(320, 240), model=model)
 
     async def optimize(self, request: NextPoseRequest, request_id: str = "") -> NextPoseResponse:
+        self._call("optimize")
         self.requests.append(request)
         here = request.history[-1].pose
         lon = here.lon or 0
         nxt = GridIndex(lat=3, lon=(lon + 1) % 8)
         score = 0.8 if lon == 2 else 0.1 * lon / 8
+        done = len(request.history) >= self.done_after
+        grid_pose = self.grid_pose(GridIndex(lat=here.lat or 0, lon=lon))
         return NextPoseResponse(
             strategy="reprojection",
-            done=False,
+            done=done,
             stuck=len(request.history) >= self.stuck_after,
-            next=self.grid_pose(nxt),
-            move="E",
-            estimate=None,
+            next=grid_pose if done else self.grid_pose(nxt),
+            move="stay" if done else "E",
+            estimate=PoseEstimate(
+                grid=grid_pose,
+                theta_deg=grid_pose.theta_deg + 0.5,
+                phi_deg=grid_pose.phi_deg,
+                residual_px=1.0,
+                confidence=0.9,
+            )
+            if done
+            else None,
             ambiguous=False,
             alternatives=(),
             reason="the views differ",
@@ -105,7 +152,8 @@ def detail(catalog) -> SceneDetail:
     return SceneDetail(id="demo", spec=scene.spec, grid=scene.spec.search)
 
 
-def run(tmp_path, stages: FakeStages, max_iterations: int = 6) -> Search:
+def stored(tmp_path, stages: FakeStages, max_iterations: int = 6) -> SearchStore:
+    """A store holding search ``s1`` as submitted: queued, its target image, nothing else."""
     store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
     now = utcnow()
     search = Search(
@@ -121,6 +169,11 @@ def run(tmp_path, stages: FakeStages, max_iterations: int = 6) -> Search:
         target_size=(320, 240),
     )
     store.create(search, PNG)
+    return store
+
+
+def run_stored(store: SearchStore, stages: FakeStages) -> Search:
+    """Run search ``s1`` of ``store`` on a fresh runner (as a restarted controller would)."""
     runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
 
     async def go() -> None:
@@ -132,9 +185,14 @@ def run(tmp_path, stages: FakeStages, max_iterations: int = 6) -> Search:
     return final
 
 
+def run(tmp_path, stages: FakeStages, max_iterations: int = 6) -> Search:
+    return run_stored(stored(tmp_path, stages, max_iterations), stages)
+
+
 def test_a_search_out_of_iterations_answers_its_best_visited_pose(tmp_path, detail):
     final = run(tmp_path, FakeStages(detail))
     assert final.status == "succeeded", final.error
+    assert final.error is None
     result = final.result
     assert result is not None
     assert not result.confirmed
@@ -148,18 +206,12 @@ def test_a_search_out_of_iterations_answers_its_best_visited_pose(tmp_path, deta
 def test_a_stuck_search_answers_its_best_visited_pose(tmp_path, detail):
     final = run(tmp_path, FakeStages(detail, stuck_after=4), max_iterations=20)
     assert final.status == "succeeded"
+    assert final.error is None
     assert final.result is not None
     assert not final.result.confirmed
     assert final.result.pose.index == GridIndex(lat=3, lon=2)
     assert "kept coming back to the same poses" in final.result.reason
     assert len(final.iterations) == 4
-
-
-def test_a_target_without_objects_still_fails(tmp_path, detail):
-    final = run(tmp_path, FakeStages(detail, boxes=0))
-    assert final.status == "failed"
-    assert final.error is not None
-    assert final.error.type.endswith("no-target-objects")
 
 
 def test_the_scene_s_own_model_sends_its_object_classes(tmp_path, detail):
@@ -181,3 +233,237 @@ def test_general_or_mixed_models_send_no_object_classes(tmp_path, detail, models
     stages = FakeStages(detail, models=models)
     run(tmp_path, stages, max_iterations=2)
     assert all(r.object_classes is None for r in stages.requests)
+
+
+# -- the confirmed answer and resumption ---------------------------------------------------------
+
+
+def test_a_search_the_optimizer_calls_done_answers_its_estimate(tmp_path, detail):
+    final = run(tmp_path, FakeStages(detail, done_after=3))
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    assert result.confirmed
+    assert result.pose.index == GridIndex(lat=3, lon=2)
+    assert result.refined_pose.theta_deg == pytest.approx(result.pose.theta_deg + 0.5)
+    assert result.confidence == pytest.approx(0.9)
+    assert result.renders == 3
+    assert [it.done for it in final.iterations] == [False, False, True]
+    assert final.target_detections is not None
+    assert final.target_model == GENERAL
+
+
+def test_an_interrupted_search_resumes_from_its_recorded_iterations(tmp_path, detail):
+    first = FakeStages(detail, faults={"render": (2, asyncio.CancelledError())})
+    store = stored(tmp_path, first, max_iterations=4)
+    with pytest.raises(asyncio.CancelledError):
+        run_stored(store, first)
+    interrupted = store.get("s1")
+    assert interrupted is not None
+    assert interrupted.status == "running"
+    assert [it.index for it in interrupted.iterations] == [0, 1]
+
+    again = FakeStages(detail)
+    final = run_stored(store, again)
+    assert final.status == "succeeded", final.error
+    assert again.calls == {"scene": 1, "render": 2, "detect view": 2, "optimize": 2}
+    assert [len(r.history) for r in again.requests] == [3, 4]
+    assert final.result is not None
+    assert final.result.pose.index == GridIndex(lat=3, lon=2)
+    assert final.result.renders == 4
+
+
+def recorded(stages: FakeStages, lon: int, **fields) -> Iteration:
+    """An iteration at lat 3, ``lon`` as an earlier controller recorded it."""
+    box = Detection(label="sphere", class_id=0, confidence=0.9, box=(10, 10, 50, 50))
+    return Iteration(
+        index=0,
+        pose=stages.grid_pose(GridIndex(lat=3, lon=lon)),
+        image_size=(320, 240),
+        detections=(box,),
+        timings=StageTimings(render_ms=1.0, detect_ms=1.0, optimize_ms=1.0, total_ms=3.0),
+        **fields,
+    )
+
+
+def test_a_pose_seen_before_is_not_rendered_again(tmp_path, detail):
+    stages = FakeStages(detail)  # goes east round ring 3 (8 poses) and on
+    final = run(tmp_path, stages, max_iterations=11)
+    assert final.status == "succeeded", final.error
+    assert len(final.iterations) == 11
+    assert stages.calls["render"] == stages.calls["detect view"] == 8
+    assert final.result is not None
+    assert final.result.renders == 8
+    assert [it.timings.render_ms for it in final.iterations[8:]] == [0.0] * 3
+
+
+def test_a_search_resumed_without_its_target_detects_the_target_once(tmp_path, detail):
+    stages = FakeStages(detail)
+    store = stored(tmp_path, stages, max_iterations=3)
+    # it goes on at the pose it saw: the target is detected before, not with, a new render
+    first = recorded(stages, 0, next_pose=stages.grid_pose(GridIndex(lat=3, lon=0)))
+    store.add_iteration("s1", first, status="running")
+    final = run_stored(store, stages)
+    assert final.status == "succeeded", final.error
+    assert stages.calls["detect target"] == 1
+    assert stages.calls["render"] == 1
+    assert final.target_detections is not None
+    assert len(final.target_detections) == 1
+    assert final.target_model == GENERAL
+
+
+def test_a_search_resumed_after_its_last_view_was_done_answers_it(tmp_path, detail):
+    stages = FakeStages(detail)
+    store = stored(tmp_path, stages)
+    pose = stages.grid_pose(GridIndex(lat=3, lon=0))
+    last = recorded(stages, 0, done=True, confidence=0.7, estimate_grid=pose)
+    store.add_iteration("s1", last, status="running")
+    final = run_stored(store, stages)
+    assert final.status == "succeeded", final.error
+    assert final.result is not None
+    assert final.result.confirmed
+    assert final.result.pose == pose
+    assert final.result.renders == 1
+    assert stages.calls == {"scene": 1}
+
+
+# -- failures: what a user reads --------------------------------------------------------------
+
+REPLICAS = ("http://10.0.0.7:8001", "http://10.0.0.8:8001")
+ADDRESS = re.compile(r"https?://|\b\d{1,3}(\.\d{1,3}){3}\b|localhost|:\d{2,5}\b")
+
+
+def assert_failed(final: Search, slug: str, status: int, title: str, *words: str) -> None:
+    """``final`` failed with problem ``slug``, its ``title``, a detail saying ``words`` and
+    naming no replica or other address."""
+    assert final.status == "failed"
+    assert final.result is None
+    error = final.error
+    assert error is not None
+    assert error.type == f"urn:cosmos:problem:{slug}"
+    assert error.status == status
+    assert error.title == title
+    assert error.detail is not None
+    for word in words:
+        assert word in error.detail
+    assert not ADDRESS.search(error.detail), error.detail
+
+
+def unavailable(stage: str, kind: str) -> BrokerError:
+    """What the broker raises when every attempt failed (its reasons name the replicas)."""
+    host, port = REPLICAS[1].removeprefix("http://").split(":")
+    return BrokerError(
+        stage,
+        kind,
+        [
+            f"{REPLICAS[0]}: HTTP 503",
+            f"{REPLICAS[1]}: ConnectionRefusedError: [Errno 111] "
+            f"Connect call failed ('{host}', {port})",
+            f"{REPLICAS[0]}: timed out (60 s)",
+        ],
+    )
+
+
+# (call, answers before it fails, stage, the broker's task kind, the stage's refusal)
+STAGE_CALLS = [
+    ("scene", 0, "renderer", "scene", "scene 'demo' is not in this renderer's catalog"),
+    ("render", 1, "renderer", "render", "pose lat 3 lon 1 is not on scene demo's grid"),
+    ("detect target", 0, "detector", "detect", "the image is not a PNG, JPEG or binary PPM"),
+    ("detect view", 1, "detector", "detect", "the image has 90000000 pixels, over 40000000"),
+    ("optimize", 1, "optimizer", "optimize", "history.1.pose: lat 9 is not on the grid"),
+]
+
+
+@pytest.mark.parametrize(("call", "answers", "stage", "kind", "why"), STAGE_CALLS)
+def test_a_stage_that_refuses_fails_the_search_with_its_reason(
+    tmp_path, detail, call, answers, stage, kind, why
+):
+    problem = ProblemDetails(
+        type="urn:cosmos:problem:bad-request", title="Bad request", status=422, detail=why
+    )
+    stages = FakeStages(detail, faults={call: (answers, StageError(stage, problem))})
+    final = run(tmp_path, stages)
+    assert_failed(final, "stage-refused", 422, f"{stage.capitalize()} refused", stage, why)
+    assert len(final.iterations) == answers  # what was done before is kept
+
+
+@pytest.mark.parametrize(("call", "answers", "stage", "kind", "why"), STAGE_CALLS)
+def test_a_stage_nobody_serves_fails_the_search_naming_the_stage_not_its_replicas(
+    tmp_path, detail, caplog, call, answers, stage, kind, why
+):
+    stages = FakeStages(detail, faults={call: (answers, unavailable(stage, kind))})
+    final = run(tmp_path, stages)
+    assert_failed(
+        final, "stage-unavailable", 503, f"No {stage} available", stage, "3 attempts", "again"
+    )
+    assert len(final.iterations) == answers
+    assert REPLICAS[1] in caplog.text  # the operator still learns which replicas failed
+
+
+def test_one_failed_attempt_is_one_attempt(tmp_path, detail):
+    gone = BrokerError("optimizer", "optimize", [f"{REPLICAS[0]}: HTTP 502"])
+    final = run(tmp_path, FakeStages(detail, faults={"optimize": (0, gone)}))
+    assert_failed(final, "stage-unavailable", 503, "No optimizer available", "after 1 attempt (")
+
+
+def test_a_stage_without_replicas_fails_the_search_saying_so(tmp_path, detail):
+    stages = FakeStages(detail, faults={"render": (0, BrokerError("renderer", "render", []))})
+    final = run(tmp_path, stages)
+    assert_failed(
+        final, "stage-unavailable", 503, "No renderer available", "no renderer replica is known"
+    )
+
+
+def test_an_optimizer_answer_the_controller_cannot_read_fails_the_search(tmp_path, detail):
+    answer = FakeStages(detail).grid_pose(GridIndex(lat=3, lon=1)).model_dump()
+    newer = (  # an optimizer of another version: ``next`` renamed
+        '{"strategy": "reprojection", "done": false, "stuck": false, "move": "E",'
+        ' "estimate": null, "ambiguous": false, "alternatives": [], "reason": "",'
+        f' "next_pose": {json.dumps(answer)}}}'
+    )
+    try:
+        NextPoseResponse.model_validate_json(newer)
+    except ValidationError as exc:
+        malformed = exc
+    stages = FakeStages(detail, faults={"optimize": (1, malformed)})
+    final = run(tmp_path, stages)
+    assert_failed(
+        final, "bad-optimizer-answer", 502, "Bad optimizer answer", "next: ", "next_pose", "version"
+    )
+    assert final.error is not None
+    assert {"field": "next", "message": "Field required"} in (final.error.errors or [])
+    assert len(final.iterations) == 1
+
+
+def test_a_scene_grid_the_optimizer_cannot_search_fails_the_search(tmp_path, detail):
+    search = detail.spec.search.model_copy(update={"angle_step_deg": 0.5})
+    fine = detail.model_copy(update={"spec": detail.spec.model_copy(update={"search": search})})
+    stages = FakeStages(fine)
+    final = run(tmp_path, stages)
+    assert_failed(
+        final, "unsupported-grid", 422, "Grid not supported", "demo", "search.angle_step_deg"
+    )
+    assert stages.calls == {"scene": 1}
+
+
+def test_a_target_without_objects_fails_the_search(tmp_path, detail):
+    final = run(tmp_path, FakeStages(detail, boxes=0))
+    assert_failed(
+        final,
+        "no-target-objects",
+        422,
+        "Nothing to search for",
+        "no objects in the target image",
+    )
+    assert final.target_detections == ()
+    assert final.iterations == ()
+
+
+def test_a_bug_fails_the_search_with_an_internal_error_and_logs_it(tmp_path, detail, caplog):
+    bug = RuntimeError(f"lost the connection to {REPLICAS[0]}")
+    final = run(tmp_path, FakeStages(detail, faults={"optimize": (2, bug)}))
+    assert_failed(final, "internal-error", 500, "Internal error", "unexpectedly", "logged")
+    assert len(final.iterations) == 2
+    crash = next(r for r in caplog.records if r.name == "cosmos.controller" and r.exc_info)
+    assert crash.exc_info is not None
+    assert crash.exc_info[1] is bug
