@@ -44,7 +44,7 @@ from pydantic import ValidationError
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.contracts.optimize import (
     GridPose,
-    GridSpec,
+    SearchableGrid,
     NextPoseRequest,
     NextPoseResponse,
     TargetImage,
@@ -248,7 +248,7 @@ class _Progress:
 
     search: Search
     scene: SceneDetail
-    grid: GridSpec
+    grid: SearchableGrid
     history: list[Iteration]
     views: dict[tuple[int, int], _View]
     target: tuple[Detection, ...] | None
@@ -257,7 +257,7 @@ class _Progress:
     unrecorded_target: DetectResponse | None = None  # recorded with the next iteration
 
     @classmethod
-    def recorded(cls, search: Search, scene: SceneDetail, grid: GridSpec) -> _Progress:
+    def recorded(cls, search: Search, scene: SceneDetail, grid: SearchableGrid) -> _Progress:
         """What ``search`` recorded: nothing for a new search, its iterations for a resumed one."""
         history = list(search.iterations)
         views = {

@@ -54,7 +54,7 @@ class FakeStages:
         faults: dict[str, tuple[int, BaseException]] | None = None,
     ):
         self.detail = scene
-        self.grid = scene_grid_of(scene)
+        self.grid = scene.grid.grid()
         self.target_model, self.view_model = models
         self.stuck_after = stuck_after
         self.done_after = done_after
@@ -137,13 +137,6 @@ class FakeStages:
             theta_deg=float(self.grid.theta_deg[flat]),
             phi_deg=float(self.grid.phi_deg[flat]),
         )
-
-
-def scene_grid_of(detail: SceneDetail):
-    from services.common.geometry.grid import grid_for
-
-    g = detail.grid
-    return grid_for(g.angle_step_deg, g.min_theta_deg, g.max_theta_deg)
 
 
 @pytest.fixture
