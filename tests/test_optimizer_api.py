@@ -29,7 +29,9 @@ def anyio_backend() -> str:
 
 @pytest.fixture(scope="module")
 async def client() -> AsyncIterator[httpx.AsyncClient]:
-    app = create_app(OptimizerSettings(optimizer_max_body_bytes=200_000, max_grid_poses=5000))
+    app = create_app(
+        OptimizerSettings(optimizer_max_body_bytes=200_000, optimizer_max_grid_poses=5000)
+    )
     async with LifespanManager(app) as manager:
         transport = httpx.ASGITransport(app=manager.app)
         async with httpx.AsyncClient(transport=transport, base_url="http://optimizer") as c:

@@ -30,7 +30,7 @@ async def _discover(broker: Broker, settings: ControllerSettings) -> None:
     while True:
         for stage, urls in settings.pools().items():
             await broker.set_pool(stage, await expand_urls(urls))
-        await asyncio.sleep(settings.discovery_interval_s)
+        await asyncio.sleep(settings.controller_discovery_interval_s)
 
 
 def create_app(
@@ -45,22 +45,26 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store = await asyncio.to_thread(SearchStore, settings.database_url)
+        store = await asyncio.to_thread(SearchStore, settings.controller_database_url)
         broker = Broker(
             settings.pools(),
-            heuristic=settings.broker_heuristic,
+            heuristic=settings.controller_broker_heuristic,
             timeouts_s=settings.timeouts(),
-            connect_timeout_s=settings.connect_timeout_s,
+            connect_timeout_s=settings.controller_connect_timeout_s,
             transport=transport,
         )
         stages = Stages(
-            broker, render_spp=settings.controller_view_spp, render_width=settings.render_width
+            broker,
+            render_spp=settings.controller_view_spp,
+            render_width=settings.controller_view_width,
         )
         notifier = Notifier()
-        runner = SearchRunner(store, stages, notifier, settings.max_concurrent_searches)
+        runner = SearchRunner(store, stages, notifier, settings.controller_max_concurrent_searches)
         await broker.start()
         discovery = (
-            asyncio.create_task(_discover(broker, settings)) if settings.discover_replicas else None
+            asyncio.create_task(_discover(broker, settings))
+            if settings.controller_discover_replicas
+            else None
         )
         await runner.start()
         app.state.controller = ControllerState(settings, store, broker, stages, runner, notifier)
@@ -78,7 +82,7 @@ def create_app(
         "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
         lifespan,
         router,
-        settings.max_upload_bytes,
+        settings.controller_max_upload_bytes,
     )
 
 

@@ -27,15 +27,17 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        calibrations = await asyncio.to_thread(CalibrationStore.load, settings.paper_calibration)
+        calibrations = await asyncio.to_thread(
+            CalibrationStore.load, settings.optimizer_paper_calibration
+        )
         catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
         app.state.optimizer = OptimizerState(
             context=OptimizerContext(
                 calibrations=calibrations,
                 catalog=catalog,
-                default_strategy=settings.default_strategy,
-                max_grid_poses=settings.max_grid_poses,
-                max_history_detections=settings.max_history_detections,
+                default_strategy=settings.optimizer_default_strategy,
+                max_grid_poses=settings.optimizer_max_grid_poses,
+                max_history_detections=settings.optimizer_max_history_detections,
             )
         )
         yield

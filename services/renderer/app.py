@@ -28,7 +28,9 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
         engine = RenderEngine(
-            settings.mitsuba_variant, settings.render_scene_cache, settings.render_max_queue
+            settings.renderer_mitsuba_variant,
+            settings.renderer_scene_cache,
+            settings.renderer_max_queue,
         )
         await asyncio.to_thread(engine.start)
         app.state.renderer = RendererState(settings=settings, catalog=catalog, engine=engine)
