@@ -269,6 +269,9 @@ def _cmd_search(args: argparse.Namespace) -> int:
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
+    from services.environment import report_unknown_variables
+
+    report_unknown_variables()  # each service warns too, but into its log file
     plan = plan_stack(
         host=args.host,
         controller_port=args.port,

@@ -1,6 +1,7 @@
 """Each service reads its own ``COSMOS_<SERVICE>_`` variables (and the shared
 ``COSMOS_SCENES_DIR``); the old names still work for one release, with a warning naming the new
-one."""
+one; a ``COSMOS_`` variable that nothing reads is reported at start-up, one another service
+reads is not."""
 
 from __future__ import annotations
 
@@ -11,14 +12,20 @@ from typing import Any
 
 import pytest
 
+from services import cli
+from services.controller.app import create_app as create_controller
 from services.controller.broker import Heuristic
+from services.detector.app import create_app as create_detector
 from services.environment import (
     OLD_NAMES,
     OTHER_READERS,
     READERS,
     SERVICE_SETTINGS,
     SHARED,
+    unknown_variables,
 )
+from services.optimizer.app import create_app as create_optimizer
+from services.renderer.app import create_app as create_renderer
 from services.renderer.settings import RendererSettings
 
 SAMPLES: dict[str, tuple[str, Any]] = {
@@ -107,7 +114,14 @@ RENAMED: dict[str, tuple[str, ...]] = {
 """The names of the last release that still work for this one, and what replaced each."""
 
 RENAMES = [(old, new) for old, names in RENAMED.items() for new in names]
+APPS = {
+    "renderer": create_renderer,
+    "detector": create_detector,
+    "optimizer": create_optimizer,
+    "controller": create_controller,
+}
 SETTINGS_LOG = "services.common.settings"
+ENVIRONMENT_LOG = "services.environment"
 
 
 def field(variable: str) -> str:
@@ -189,3 +203,51 @@ def test_settings_given_in_code_win_over_the_environment(monkeypatch):
     monkeypatch.setenv("COSMOS_RENDER_SPP", "3")
     monkeypatch.setenv("COSMOS_RENDERER_DEFAULT_SPP", "5")
     assert RendererSettings(renderer_default_spp=7).renderer_default_spp == 7
+
+
+@pytest.mark.parametrize("service", APPS)
+def test_an_unknown_variable_is_reported_at_start_up(monkeypatch, caplog, service):
+    monkeypatch.setenv("COSMOS_RENDERER_DEFALT_SPP", "32")
+    monkeypatch.setenv("COSMOS_NOBODY", "1")
+    with caplog.at_level(logging.WARNING, logger=ENVIRONMENT_LOG):
+        APPS[service]()
+    assert [(r.name, r.levelno) for r in caplog.records] == [(ENVIRONMENT_LOG, logging.WARNING)] * 2
+    nobody, typo = caplog.messages
+    assert nobody.startswith("COSMOS_NOBODY is ignored: no COSMOS 3D Search service reads it.")
+    assert typo.startswith(
+        "COSMOS_RENDERER_DEFALT_SPP is ignored: no COSMOS 3D Search service reads it "
+        "(did you mean COSMOS_RENDERER_DEFAULT_SPP?)."
+    )
+
+
+@pytest.mark.parametrize("service", APPS)
+def test_another_services_variable_is_not_reported(monkeypatch, caplog, service):
+    others = {name for name, who in READERS.items() if service not in who}
+    others |= {
+        old
+        for old, names in OLD_NAMES.items()
+        if not any(service in READERS[name] for name in names)
+    }
+    assert {"COSMOS_TRAINING", "COSMOS_DATABASE_URL"} & others
+    for name in others:
+        monkeypatch.setenv(name, SAMPLES.get(name, ("1",))[0])
+    with caplog.at_level(logging.DEBUG):
+        APPS[service]()
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+
+
+def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, caplog):
+    def no_stack(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("not starting services in this test")
+
+    monkeypatch.setattr(cli, "running_stack", no_stack)
+    monkeypatch.setenv("COSMOS_NOBODY", "1")
+    with caplog.at_level(logging.WARNING, logger=ENVIRONMENT_LOG):
+        assert cli.main(["up"]) == 1
+    [message] = caplog.messages
+    assert message.startswith("COSMOS_NOBODY is ignored")
+
+
+def test_names_are_matched_as_the_settings_read_them_regardless_of_case():
+    environ = {"cosmos_detector_conf": "0.3", "cosmos_nobody": "1", "PATH": "/bin"}
+    assert unknown_variables(environ) == ["COSMOS_NOBODY"]

@@ -21,6 +21,7 @@ from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
 from services.controller.transport import Transport
+from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
 
@@ -36,12 +37,13 @@ async def _discover(broker: Broker, settings: ControllerSettings) -> None:
 def create_app(
     settings: ControllerSettings | None = None, *, transport: Transport | None = None
 ) -> FastAPI:
-    """A controller app; reads ``COSMOS_*`` settings from the environment unless given.
+    """A controller app; reads ``COSMOS_*`` settings from the environment unless given
+    (and then warns of each ``COSMOS_`` variable that no service reads).
 
     ``transport`` carries the calls to the stages (HTTP/1.1 over the network unless given; tests
     hand requests to in-process apps).
     """
-    settings = settings or ControllerSettings()
+    settings = settings or from_environment(ControllerSettings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

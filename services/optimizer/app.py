@@ -13,6 +13,7 @@ from fastapi import FastAPI
 
 from services.common.catalog import SceneCatalog
 from services.common.http import service_app
+from services.environment import from_environment
 from services.optimizer.api import OptimizerState, router
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.planning import OptimizerContext
@@ -22,8 +23,9 @@ __all__ = ["app", "create_app"]
 
 
 def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
-    """An optimizer app; reads ``COSMOS_*`` settings from the environment unless given."""
-    settings = settings or OptimizerSettings()
+    """An optimizer app; reads ``COSMOS_*`` settings from the environment unless given
+    (and then warns of each ``COSMOS_`` variable that no service reads)."""
+    settings = settings or from_environment(OptimizerSettings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
