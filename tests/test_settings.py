@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ from services.environment import (
 from services.optimizer.app import create_app as create_optimizer
 from services.renderer.app import create_app as create_renderer
 from services.renderer.settings import RendererSettings
+from services.stack import plan_stack
 
 SAMPLES: dict[str, tuple[str, Any]] = {
     "COSMOS_SCENES_DIR": ("/srv/scenes", "/srv/scenes"),
@@ -121,6 +123,7 @@ APPS = {
     "controller": create_controller,
 }
 SETTINGS_LOG = "services.common.settings"
+ROOT = Path(__file__).resolve().parents[1]
 ENVIRONMENT_LOG = "services.environment"
 
 
@@ -251,3 +254,36 @@ def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, capl
 def test_names_are_matched_as_the_settings_read_them_regardless_of_case():
     environ = {"cosmos_detector_conf": "0.3", "cosmos_nobody": "1", "PATH": "/bin"}
     assert unknown_variables(environ) == ["COSMOS_NOBODY"]
+
+
+def readme_table() -> dict[str, tuple[str, ...]]:
+    """The README's settings table: each ``COSMOS_`` variable (``_X`` after a first name is
+    that service's ``COSMOS_<SERVICE>_X``) and its "read by" column."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("### Configuration (environment)")[1].split("\n## ")[0]
+    table: dict[str, tuple[str, ...]] = {}
+    for row in section.splitlines():
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        if not row.startswith("| `COSMOS_"):
+            continue
+        first, *rest = re.findall(r"`([A-Z_]+)`", cells[0])
+        service = re.match(r"COSMOS_[A-Z]+", first)
+        assert service, first
+        readers = tuple(part.strip(" `") for part in cells[1].split(","))
+        for name in [first, *(f"{service.group()}{suffix}" for suffix in rest)]:
+            assert name not in table, f"{name} is in the README twice"
+            table[name] = readers
+    return table
+
+
+def test_the_readme_lists_every_variable_and_who_reads_it():
+    assert readme_table() == dict(READERS)
+
+
+def test_the_stack_and_the_containers_use_current_names_only():
+    plan = plan_stack(database_url="sqlite:///x.db", env={})
+    names = {name for service in plan for name in service.env}
+    for path in ("docker-compose.yml", "Dockerfile"):
+        names |= set(re.findall(r"\bCOSMOS_[A-Z_]+\b", (ROOT / path).read_text()))
+    assert "COSMOS_CONTROLLER_RENDERER_URLS" in names
+    assert names <= set(READERS), names - set(READERS)
