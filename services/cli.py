@@ -170,7 +170,7 @@ def _render_local(request: RenderRequest) -> tuple[bytes, RenderAnnotations | No
 
     settings = RendererSettings()
     view = resolve_view(SceneCatalog(settings.scene_directories()), settings, request)
-    engine = RenderEngine(settings.mitsuba_variant)
+    engine = RenderEngine(settings.renderer_mitsuba_variant)
     engine.start()
     try:
         image = engine.render(view.scene, view.pose, view.width, view.height, view.spp, view.seed)
@@ -270,6 +270,9 @@ def _cmd_search(args: argparse.Namespace) -> int:
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
+    from services.environment import report_unknown_variables
+
+    report_unknown_variables()  # each service warns too, but into its log file
     plan = plan_stack(
         host=args.host,
         controller_port=args.port,
@@ -457,7 +460,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     up.add_argument("--renderers", type=int, default=1)
     up.add_argument("--detectors", type=int, default=1)
-    up.add_argument("--database-url", help="the controller's COSMOS_DATABASE_URL")
+    up.add_argument("--database-url", help="the controller's COSMOS_CONTROLLER_DATABASE_URL")
     up.add_argument("--logs", default="logs", help="folder for the services' logs")
     up.set_defaults(run=_cmd_up)
 
@@ -519,7 +522,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--max-concurrent-searches",
         type=int,
-        help="the controller's COSMOS_MAX_CONCURRENT_SEARCHES",
+        help="the controller's COSMOS_CONTROLLER_MAX_CONCURRENT_SEARCHES",
     )
     bench.add_argument(
         "--random-scenes",

@@ -83,12 +83,12 @@ def plan_stack(
 
     controller_env = {
         **base,
-        "COSMOS_RENDERER_URLS": urls("renderer"),
-        "COSMOS_DETECTOR_URLS": urls("detector"),
-        "COSMOS_OPTIMIZER_URLS": urls("optimizer"),
+        "COSMOS_CONTROLLER_RENDERER_URLS": urls("renderer"),
+        "COSMOS_CONTROLLER_DETECTOR_URLS": urls("detector"),
+        "COSMOS_CONTROLLER_OPTIMIZER_URLS": urls("optimizer"),
     }
     if database_url is not None:
-        controller_env["COSMOS_DATABASE_URL"] = database_url
+        controller_env["COSMOS_CONTROLLER_DATABASE_URL"] = database_url
     controller = ServicePlan(
         "controller", "services.controller.app:app", controller_port, controller_env
     )

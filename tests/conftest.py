@@ -35,6 +35,6 @@ def catalog() -> SceneCatalog:
 def renderer_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
     """A real renderer (uvicorn) on loopback with small caps, so fuzzing stays fast."""
     logs: Path = tmp_path_factory.mktemp("logs")
-    env = {"COSMOS_RENDER_MAX_SIDE": "640", "COSMOS_RENDER_MAX_SAMPLES": str(640 * 480 * 16)}
+    env = {"COSMOS_RENDERER_MAX_SIDE": "640", "COSMOS_RENDERER_MAX_SAMPLES": str(640 * 480 * 16)}
     with running_service("services.renderer.app:app", logs, env) as service:
         yield service

@@ -212,7 +212,11 @@ def services_info(endpoints: Endpoints, spp: int | None, width: int | None) -> d
         if defaults.controller_view_spp is not None
         else "renderer default"
     )
-    default_width = defaults.render_width if defaults.render_width is not None else "scene's own"
+    default_width = (
+        defaults.controller_view_width
+        if defaults.controller_view_width is not None
+        else "scene's own"
+    )
     info["search_view_spp"] = spp if spp is not None else f"{default_spp} (controller default)"
     info["search_view_width"] = (
         width if width is not None else f"{default_width} (controller default)"

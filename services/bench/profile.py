@@ -111,8 +111,8 @@ class InProcess:
         self.catalog = SceneCatalog(renderer.scene_directories())
         # What the controller asks the renderer for (its settings, else the renderer's default).
         self.spp = render_spp or controller.controller_view_spp or renderer.renderer_default_spp
-        self.width = render_width or controller.render_width
-        self.engine = RenderEngine(renderer.mitsuba_variant)
+        self.width = render_width or controller.controller_view_width
+        self.engine = RenderEngine(renderer.renderer_mitsuba_variant)
         self.engine.start()
         self.detector_settings = DetectorSettings()
         self.model = DetectorModel(
@@ -121,11 +121,11 @@ class InProcess:
         self.options = DetectOptions.from_settings(self.detector_settings)
         optimizer = OptimizerSettings()
         self.context = OptimizerContext(
-            calibrations=CalibrationStore.load(optimizer.paper_calibration),
+            calibrations=CalibrationStore.load(optimizer.optimizer_paper_calibration),
             catalog=SceneCatalog(optimizer.scene_directories()),
-            default_strategy=optimizer.default_strategy,
-            max_grid_poses=optimizer.max_grid_poses,
-            max_history_detections=optimizer.max_history_detections,
+            default_strategy=optimizer.optimizer_default_strategy,
+            max_grid_poses=optimizer.optimizer_max_grid_poses,
+            max_history_detections=optimizer.optimizer_max_history_detections,
         )
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="target-detect")
 

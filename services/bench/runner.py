@@ -443,7 +443,7 @@ def local_stack(
 ) -> Iterator[Stack]:
     """The four services as local processes on free loopback ports, a fresh SQLite database in
     ``workdir``. ``render_spp`` and ``render_width`` set the controller's samples per pixel and
-    film width for search views (``COSMOS_CONTROLLER_VIEW_SPP``, ``COSMOS_RENDER_WIDTH``;
+    film width for search views (``COSMOS_CONTROLLER_VIEW_SPP``, ``COSMOS_CONTROLLER_VIEW_WIDTH``;
     targets always ask for :data:`TARGET_SPP` at the scene's film explicitly); ``scene_dirs``
     come before any ``COSMOS_SCENES_DIR`` of this process."""
     env: dict[str, str] = {}
@@ -453,8 +453,8 @@ def local_stack(
     if render_spp is not None:
         env["COSMOS_CONTROLLER_VIEW_SPP"] = str(render_spp)
     if render_width is not None:
-        env["COSMOS_RENDER_WIDTH"] = str(render_width)
+        env["COSMOS_CONTROLLER_VIEW_WIDTH"] = str(render_width)
     if max_concurrent_searches is not None:
-        env["COSMOS_MAX_CONCURRENT_SEARCHES"] = str(max_concurrent_searches)
+        env["COSMOS_CONTROLLER_MAX_CONCURRENT_SEARCHES"] = str(max_concurrent_searches)
     with services_stack(workdir, renderers=renderers, detectors=detectors, env=env) as stack:
         yield stack

@@ -48,9 +48,9 @@ class RenamedVariables(PydanticBaseSettingsSource):
                 log.warning("%s is ignored: %s is set. Unset %s.", old, new, old)
                 continue
             log.warning(
-                "%s is deprecated and will stop working in the next release: it meant "
-                "different things to different services. This service reads it as %s; "
-                "set %s instead.",
+                "%s is deprecated and will stop working in the next release: a service's "
+                "variables now start with its name. This service reads it as %s; set %s "
+                "instead.",
                 old,
                 new,
                 new,
@@ -61,7 +61,11 @@ class RenamedVariables(PydanticBaseSettingsSource):
 
 class ServiceSettings(BaseSettings):
     """A service's settings: ``COSMOS_`` variables, and ``renamed`` (old variable → field) still
-    read for one release, with a warning."""
+    read for one release, with a warning.
+
+    A field's name is its variable's without ``COSMOS_``, so it carries its service's name
+    (``renderer_max_side`` is ``COSMOS_RENDERER_MAX_SIDE``); only a variable every reader
+    takes in one meaning (``scenes_dir``) is shared."""
 
     model_config = settings_config()
 
@@ -78,6 +82,11 @@ class ServiceSettings(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         renamed = RenamedVariables(settings_cls, cls.renamed)
         return init_settings, env_settings, renamed, dotenv_settings, file_secret_settings
+
+    @classmethod
+    def variables(cls) -> frozenset[str]:
+        """The environment variables these settings read (old names in ``renamed`` aside)."""
+        return frozenset(f"{ENV_PREFIX}{name}".upper() for name in cls.model_fields)
 
 
 def split_paths(value: str) -> list[Path]:

@@ -110,9 +110,10 @@ async def submit(request: Request, state: State) -> JSONResponse:
             start_theta_deg=options.start_theta_deg,
             start_phi_deg=options.start_phi_deg,
             seed=options.seed,
-            max_iterations=options.max_iterations or state.settings.default_max_iterations,
-            max_image_pixels=state.settings.max_image_pixels,
-            max_image_side=state.settings.max_image_side,
+            max_iterations=options.max_iterations
+            or state.settings.controller_default_max_iterations,
+            max_image_pixels=state.settings.controller_max_image_pixels,
+            max_image_side=state.settings.controller_max_image_side,
             start_early=state.runner.idle,
         )
     except BrokerError as exc:

@@ -21,6 +21,7 @@ from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
 from services.controller.transport import Transport
+from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
 
@@ -30,37 +31,42 @@ async def _discover(broker: Broker, settings: ControllerSettings) -> None:
     while True:
         for stage, urls in settings.pools().items():
             await broker.set_pool(stage, await expand_urls(urls))
-        await asyncio.sleep(settings.discovery_interval_s)
+        await asyncio.sleep(settings.controller_discovery_interval_s)
 
 
 def create_app(
     settings: ControllerSettings | None = None, *, transport: Transport | None = None
 ) -> FastAPI:
-    """A controller app; reads ``COSMOS_*`` settings from the environment unless given.
+    """A controller app; reads ``COSMOS_*`` settings from the environment unless given
+    (and then warns of each ``COSMOS_`` variable that no service reads).
 
     ``transport`` carries the calls to the stages (HTTP/1.1 over the network unless given; tests
     hand requests to in-process apps).
     """
-    settings = settings or ControllerSettings()
+    settings = settings or from_environment(ControllerSettings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store = await asyncio.to_thread(SearchStore, settings.database_url)
+        store = await asyncio.to_thread(SearchStore, settings.controller_database_url)
         broker = Broker(
             settings.pools(),
-            heuristic=settings.broker_heuristic,
+            heuristic=settings.controller_broker_heuristic,
             timeouts_s=settings.timeouts(),
-            connect_timeout_s=settings.connect_timeout_s,
+            connect_timeout_s=settings.controller_connect_timeout_s,
             transport=transport,
         )
         stages = Stages(
-            broker, render_spp=settings.controller_view_spp, render_width=settings.render_width
+            broker,
+            render_spp=settings.controller_view_spp,
+            render_width=settings.controller_view_width,
         )
         notifier = Notifier()
-        runner = SearchRunner(store, stages, notifier, settings.max_concurrent_searches)
+        runner = SearchRunner(store, stages, notifier, settings.controller_max_concurrent_searches)
         await broker.start()
         discovery = (
-            asyncio.create_task(_discover(broker, settings)) if settings.discover_replicas else None
+            asyncio.create_task(_discover(broker, settings))
+            if settings.controller_discover_replicas
+            else None
         )
         await runner.start()
         app.state.controller = ControllerState(settings, store, broker, stages, runner, notifier)
@@ -78,7 +84,7 @@ def create_app(
         "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
         lifespan,
         router,
-        settings.max_upload_bytes,
+        settings.controller_max_upload_bytes,
     )
 
 

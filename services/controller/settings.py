@@ -19,39 +19,61 @@ def _urls(value: str) -> list[str]:
 class ControllerSettings(ServiceSettings):
     """Replica URLs per stage (comma-separated), the database, and limits.
 
-    ``COSMOS_RENDERER_URLS``, ``COSMOS_DETECTOR_URLS``, ``COSMOS_OPTIMIZER_URLS``;
-    ``COSMOS_DATABASE_URL`` (``sqlite:///path``).
+    ``COSMOS_CONTROLLER_RENDERER_URLS``, ``COSMOS_CONTROLLER_DETECTOR_URLS``,
+    ``COSMOS_CONTROLLER_OPTIMIZER_URLS``; ``COSMOS_CONTROLLER_DATABASE_URL`` (``sqlite:///path``).
 
-    ``COSMOS_RENDER_SPP``, which the renderer reads too, is read as
-    ``COSMOS_CONTROLLER_VIEW_SPP`` for one more release, with a warning.
+    The old names in ``renamed`` are still read for one more release, with a warning:
+    ``COSMOS_RENDER_SPP`` meant something else to the renderer too, ``COSMOS_RENDERER_URLS``
+    and its kin named a stage that does not read them, the rest had no service's name.
     """
 
-    renamed = {"COSMOS_RENDER_SPP": "controller_view_spp"}
+    renamed = {
+        "COSMOS_RENDERER_URLS": "controller_renderer_urls",
+        "COSMOS_DETECTOR_URLS": "controller_detector_urls",
+        "COSMOS_OPTIMIZER_URLS": "controller_optimizer_urls",
+        "COSMOS_DATABASE_URL": "controller_database_url",
+        "COSMOS_BROKER_HEURISTIC": "controller_broker_heuristic",
+        "COSMOS_DISCOVER_REPLICAS": "controller_discover_replicas",
+        "COSMOS_DISCOVERY_INTERVAL_S": "controller_discovery_interval_s",
+        "COSMOS_MAX_CONCURRENT_SEARCHES": "controller_max_concurrent_searches",
+        "COSMOS_DEFAULT_MAX_ITERATIONS": "controller_default_max_iterations",
+        "COSMOS_RENDER_SPP": "controller_view_spp",
+        "COSMOS_RENDER_WIDTH": "controller_view_width",
+        "COSMOS_RENDER_TIMEOUT_S": "controller_render_timeout_s",
+        "COSMOS_DETECT_TIMEOUT_S": "controller_detect_timeout_s",
+        "COSMOS_OPTIMIZE_TIMEOUT_S": "controller_optimize_timeout_s",
+        "COSMOS_CONNECT_TIMEOUT_S": "controller_connect_timeout_s",
+        "COSMOS_MAX_UPLOAD_BYTES": "controller_max_upload_bytes",
+        "COSMOS_MAX_IMAGE_PIXELS": "controller_max_image_pixels",
+        "COSMOS_MAX_IMAGE_SIDE": "controller_max_image_side",
+    }
 
-    renderer_urls: str = "http://127.0.0.1:8001"
-    detector_urls: str = "http://127.0.0.1:8002"
-    optimizer_urls: str = "http://127.0.0.1:8003"
-    database_url: str = "sqlite:///data/controller.sqlite3"
-    broker_heuristic: Heuristic = Heuristic.SHORTEST_EXPECTED
-    discover_replicas: bool = False
-    discovery_interval_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
-    max_concurrent_searches: Annotated[int, Field(ge=1, le=1000)] = 4
-    default_max_iterations: Annotated[int, Field(ge=1, le=500)] = 40
+    controller_renderer_urls: str = "http://127.0.0.1:8001"
+    controller_detector_urls: str = "http://127.0.0.1:8002"
+    controller_optimizer_urls: str = "http://127.0.0.1:8003"
+    controller_database_url: str = "sqlite:///data/controller.sqlite3"
+    controller_broker_heuristic: Heuristic = Heuristic.SHORTEST_EXPECTED
+    controller_discover_replicas: bool = False
+    controller_discovery_interval_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    controller_max_concurrent_searches: Annotated[int, Field(ge=1, le=1000)] = 4
+    controller_default_max_iterations: Annotated[int, Field(ge=1, le=500)] = 40
     controller_view_spp: Annotated[int, Field(ge=1, le=1024)] | None = 8
     """Samples per pixel of the search views (None: the renderer's default). 8 is the cheapest
     setting at which detection and search success did not drop (docs/RESULTS.md, ``--sweep``)."""
-    render_width: Annotated[int, Field(ge=8, le=8192)] | None = None
+    controller_view_width: Annotated[int, Field(ge=8, le=8192)] | None = None
     """Film width of the search views (the renderer keeps the scene's aspect); None: the
     scene's own. ``cosmos bench --sweep`` measures what detection and searches lose."""
-    render_timeout_s: Annotated[float, Field(gt=0, le=600)] = 60.0
-    detect_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
-    optimize_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
-    connect_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
-    max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
-    max_image_pixels: Annotated[int, Field(ge=64)] = 4096 * 4096
-    max_image_side: Annotated[int, Field(ge=8)] = 8192
+    controller_render_timeout_s: Annotated[float, Field(gt=0, le=600)] = 60.0
+    controller_detect_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    controller_optimize_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    controller_connect_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    controller_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
+    controller_max_image_pixels: Annotated[int, Field(ge=64)] = 4096 * 4096
+    controller_max_image_side: Annotated[int, Field(ge=8)] = 8192
 
-    @field_validator("renderer_urls", "detector_urls", "optimizer_urls")
+    @field_validator(
+        "controller_renderer_urls", "controller_detector_urls", "controller_optimizer_urls"
+    )
     @classmethod
     def _some_url(cls, value: str) -> str:
         urls = _urls(value)
@@ -65,14 +87,14 @@ class ControllerSettings(ServiceSettings):
     def pools(self) -> dict[str, list[str]]:
         """Replica URLs per stage."""
         return {
-            "renderer": _urls(self.renderer_urls),
-            "detector": _urls(self.detector_urls),
-            "optimizer": _urls(self.optimizer_urls),
+            "renderer": _urls(self.controller_renderer_urls),
+            "detector": _urls(self.controller_detector_urls),
+            "optimizer": _urls(self.controller_optimizer_urls),
         }
 
     def timeouts(self) -> dict[str, float]:
         return {
-            "renderer": self.render_timeout_s,
-            "detector": self.detect_timeout_s,
-            "optimizer": self.optimize_timeout_s,
+            "renderer": self.controller_render_timeout_s,
+            "detector": self.controller_detect_timeout_s,
+            "optimizer": self.controller_optimize_timeout_s,
         }

@@ -66,11 +66,11 @@ def database_path(url: str) -> str:
     prefix = "sqlite:///"
     if not url.startswith(prefix):
         raise ValueError(
-            f"COSMOS_DATABASE_URL must look like sqlite:///path/to/file.db, got {url!r}"
+            f"COSMOS_CONTROLLER_DATABASE_URL must look like sqlite:///path/to/file.db, got {url!r}"
         )
     path = url[len(prefix) :]
     if not path:
-        raise ValueError("COSMOS_DATABASE_URL names no file")
+        raise ValueError("COSMOS_CONTROLLER_DATABASE_URL names no file")
     if path != ":memory:":
         Path(path).expanduser().parent.mkdir(parents=True, exist_ok=True)
     return path

@@ -23,6 +23,7 @@ from services.detector.detect import Detector
 from services.detector.model import DetectorModel
 from services.detector.registry import ModelRegistry
 from services.detector.settings import DetectorSettings
+from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
 
@@ -30,8 +31,9 @@ _log = logging.getLogger("cosmos.detector")
 
 
 def create_app(settings: DetectorSettings | None = None) -> FastAPI:
-    """A detector app; reads ``COSMOS_*`` settings from the environment unless given."""
-    settings = settings or DetectorSettings()
+    """A detector app; reads ``COSMOS_*`` settings from the environment unless given
+    (and then warns of each ``COSMOS_`` variable that no service reads)."""
+    settings = settings or from_environment(DetectorSettings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -13,6 +13,7 @@ from fastapi import FastAPI
 
 from services.common.catalog import SceneCatalog
 from services.common.http import service_app
+from services.environment import from_environment
 from services.optimizer.api import OptimizerState, router
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.planning import OptimizerContext
@@ -22,20 +23,23 @@ __all__ = ["app", "create_app"]
 
 
 def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
-    """An optimizer app; reads ``COSMOS_*`` settings from the environment unless given."""
-    settings = settings or OptimizerSettings()
+    """An optimizer app; reads ``COSMOS_*`` settings from the environment unless given
+    (and then warns of each ``COSMOS_`` variable that no service reads)."""
+    settings = settings or from_environment(OptimizerSettings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        calibrations = await asyncio.to_thread(CalibrationStore.load, settings.paper_calibration)
+        calibrations = await asyncio.to_thread(
+            CalibrationStore.load, settings.optimizer_paper_calibration
+        )
         catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
         app.state.optimizer = OptimizerState(
             context=OptimizerContext(
                 calibrations=calibrations,
                 catalog=catalog,
-                default_strategy=settings.default_strategy,
-                max_grid_poses=settings.max_grid_poses,
-                max_history_detections=settings.max_history_detections,
+                default_strategy=settings.optimizer_default_strategy,
+                max_grid_poses=settings.optimizer_max_grid_poses,
+                max_history_detections=settings.optimizer_max_history_detections,
             )
         )
         yield

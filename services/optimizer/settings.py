@@ -16,21 +16,28 @@ __all__ = ["OptimizerSettings"]
 
 
 class OptimizerSettings(ServiceSettings):
-    """``COSMOS_DEFAULT_STRATEGY`` picks the strategy of requests that name none;
-    ``COSMOS_PAPER_CALIBRATION`` is the JSON file of the paper mapping's coefficients;
+    """``COSMOS_OPTIMIZER_DEFAULT_STRATEGY`` picks the strategy of requests that name none;
+    ``COSMOS_OPTIMIZER_PAPER_CALIBRATION`` is the JSON file of the paper mapping's coefficients;
     ``COSMOS_SCENES_DIR`` adds scene directories for requests that name a ``scene``
     (as for the renderer); the rest bound what one request may ask for.
 
-    ``COSMOS_MAX_BODY_BYTES``, which the renderer reads too, is read as
-    ``COSMOS_OPTIMIZER_MAX_BODY_BYTES`` for one more release, with a warning."""
+    The old names in ``renamed`` are still read for one more release, with a warning:
+    ``COSMOS_MAX_BODY_BYTES`` meant something else to the renderer too, the rest had no
+    service's name."""
 
-    renamed = {"COSMOS_MAX_BODY_BYTES": "optimizer_max_body_bytes"}
+    renamed = {
+        "COSMOS_DEFAULT_STRATEGY": "optimizer_default_strategy",
+        "COSMOS_PAPER_CALIBRATION": "optimizer_paper_calibration",
+        "COSMOS_MAX_GRID_POSES": "optimizer_max_grid_poses",
+        "COSMOS_MAX_HISTORY_DETECTIONS": "optimizer_max_history_detections",
+        "COSMOS_MAX_BODY_BYTES": "optimizer_max_body_bytes",
+    }
 
-    default_strategy: StrategyName = "reprojection"
-    paper_calibration: Path = DEFAULT_CALIBRATION_FILE
+    optimizer_default_strategy: StrategyName = "reprojection"
+    optimizer_paper_calibration: Path = DEFAULT_CALIBRATION_FILE
     scenes_dir: str = ""
-    max_grid_poses: Annotated[int, Field(ge=1, le=100_000)] = 25_000
-    max_history_detections: Annotated[int, Field(ge=1, le=1_000_000)] = 4_000
+    optimizer_max_grid_poses: Annotated[int, Field(ge=1, le=100_000)] = 25_000
+    optimizer_max_history_detections: Annotated[int, Field(ge=1, le=1_000_000)] = 4_000
     optimizer_max_body_bytes: Annotated[int, Field(ge=1024)] = 2 * 1024 * 1024
 
     def scene_directories(self) -> list[Path]:

@@ -13,6 +13,7 @@ from fastapi import FastAPI
 
 from services.common.catalog import SceneCatalog
 from services.common.http import service_app
+from services.environment import from_environment
 from services.renderer.api import RendererState, router
 from services.renderer.engine import RenderEngine
 from services.renderer.settings import RendererSettings
@@ -21,14 +22,17 @@ __all__ = ["app", "create_app"]
 
 
 def create_app(settings: RendererSettings | None = None) -> FastAPI:
-    """A renderer app; reads ``COSMOS_*`` settings from the environment unless given."""
-    settings = settings or RendererSettings()
+    """A renderer app; reads ``COSMOS_*`` settings from the environment unless given
+    (and then warns of each ``COSMOS_`` variable that no service reads)."""
+    settings = settings or from_environment(RendererSettings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
         engine = RenderEngine(
-            settings.mitsuba_variant, settings.render_scene_cache, settings.render_max_queue
+            settings.renderer_mitsuba_variant,
+            settings.renderer_scene_cache,
+            settings.renderer_max_queue,
         )
         await asyncio.to_thread(engine.start)
         app.state.renderer = RendererState(settings=settings, catalog=catalog, engine=engine)

@@ -16,27 +16,37 @@ __all__ = ["RendererSettings"]
 
 class RendererSettings(ServiceSettings):
     """``COSMOS_SCENES_DIR`` adds scene directories (os.pathsep-separated, searched before the
-    built-in ``scenes/``); the rest bound what one request may ask for.
+    built-in ``scenes/``); the rest, ``COSMOS_RENDERER_…``, pick the Mitsuba variant and bound
+    what one request may ask for.
 
-    ``COSMOS_RENDER_SPP`` and ``COSMOS_MAX_BODY_BYTES``, which other services read too, are
-    read as ``COSMOS_RENDERER_DEFAULT_SPP`` and ``COSMOS_RENDERER_MAX_BODY_BYTES`` for one more
-    release, with a warning."""
+    The old names in ``renamed`` are still read for one more release, with a warning:
+    ``COSMOS_RENDER_SPP`` and ``COSMOS_MAX_BODY_BYTES`` meant something else to other services
+    too, the rest had no service's name."""
 
     renamed = {
+        "COSMOS_MITSUBA_VARIANT": "renderer_mitsuba_variant",
         "COSMOS_RENDER_SPP": "renderer_default_spp",
+        "COSMOS_RENDER_MAX_SPP": "renderer_max_spp",
+        "COSMOS_RENDER_MAX_SIDE": "renderer_max_side",
+        "COSMOS_RENDER_MAX_PIXELS": "renderer_max_pixels",
+        "COSMOS_RENDER_MAX_SAMPLES": "renderer_max_samples",
+        "COSMOS_RENDER_MAX_QUEUE": "renderer_max_queue",
+        "COSMOS_RENDER_SCENE_CACHE": "renderer_scene_cache",
         "COSMOS_MAX_BODY_BYTES": "renderer_max_body_bytes",
     }
 
     scenes_dir: str = ""
-    mitsuba_variant: VariantRequest = "auto"
+    renderer_mitsuba_variant: VariantRequest = "auto"
     renderer_default_spp: Annotated[int, Field(ge=1, le=4096)] = 16
     """Samples per pixel of a request that gives none."""
-    render_max_spp: Annotated[int, Field(ge=1, le=4096)] = 256
-    render_max_side: Annotated[int, Field(ge=16, le=8192)] = 2048
-    render_max_pixels: Annotated[int, Field(ge=256)] = 4_194_304
-    render_max_samples: Annotated[int, Field(ge=1024)] = 2**26
-    render_max_queue: Annotated[int, Field(ge=1, le=10_000)] = 32
-    render_scene_cache: Annotated[int, Field(ge=1, le=256)] = 8
+    renderer_max_spp: Annotated[int, Field(ge=1, le=4096)] = 256
+    renderer_max_side: Annotated[int, Field(ge=16, le=8192)] = 2048
+    renderer_max_pixels: Annotated[int, Field(ge=256)] = 4_194_304
+    renderer_max_samples: Annotated[int, Field(ge=1024)] = 2**26
+    renderer_max_queue: Annotated[int, Field(ge=1, le=10_000)] = 32
+    """Renders waiting or running at once; one more gets 503."""
+    renderer_scene_cache: Annotated[int, Field(ge=1, le=256)] = 8
+    """Loaded Mitsuba scenes kept (one per scene and film size)."""
     renderer_max_body_bytes: Annotated[int, Field(ge=1024)] = 64 * 1024
 
     def scene_directories(self) -> list[Path]:

@@ -65,7 +65,8 @@ def choose_variant(requested: VariantRequest) -> VariantChoice:
         return VariantChoice(LLVM_VARIANT, library, f"libLLVM found at {library}")
     if requested == LLVM_VARIANT:
         raise RuntimeError(
-            f"COSMOS_MITSUBA_VARIANT={LLVM_VARIANT} but no libLLVM >= {MIN_LLVM_MAJOR} was found; "
+            f"COSMOS_RENDERER_MITSUBA_VARIANT={LLVM_VARIANT} but no libLLVM >= "
+            f"{MIN_LLVM_MAJOR} was found; "
             "install it (apt-get install libllvm19) or set DRJIT_LIBLLVM_PATH"
         )
     return VariantChoice(SCALAR_VARIANT, None, f"no libLLVM >= {MIN_LLVM_MAJOR} found")

@@ -77,16 +77,16 @@ def _film(
     else:
         width, height = request.width, request.height
     for name, value in (("width", width), ("height", height)):
-        if value > settings.render_max_side:
+        if value > settings.renderer_max_side:
             raise UnprocessableError(
-                f"{name} {value} exceeds the limit of {settings.render_max_side} pixels",
+                f"{name} {value} exceeds the limit of {settings.renderer_max_side} pixels",
                 field=name,
                 slug="film-too-large",
                 title="Film too large",
             )
-    if width * height > settings.render_max_pixels:
+    if width * height > settings.renderer_max_pixels:
         raise UnprocessableError(
-            f"{width}x{height} exceeds the limit of {settings.render_max_pixels} pixels",
+            f"{width}x{height} exceeds the limit of {settings.renderer_max_pixels} pixels",
             field="width",
             slug="film-too-large",
             title="Film too large",
@@ -100,17 +100,17 @@ def resolve_view(catalog: SceneCatalog, settings: RendererSettings, request: Ren
     pose, index = resolve_pose(scene, request.pose)
     width, height = _film(scene, request, settings)
     spp = request.spp if request.spp is not None else settings.renderer_default_spp
-    if spp > settings.render_max_spp:
+    if spp > settings.renderer_max_spp:
         raise UnprocessableError(
-            f"spp {spp} exceeds the limit of {settings.render_max_spp}",
+            f"spp {spp} exceeds the limit of {settings.renderer_max_spp}",
             field="spp",
             slug="too-many-samples",
             title="Too many samples",
         )
-    if width * height * spp > settings.render_max_samples:
+    if width * height * spp > settings.renderer_max_samples:
         raise UnprocessableError(
             f"{width}x{height} at {spp} spp is {width * height * spp} samples, over the limit of "
-            f"{settings.render_max_samples}",
+            f"{settings.renderer_max_samples}",
             field="spp",
             slug="too-many-samples",
             title="Too many samples",

@@ -1,84 +1,289 @@
-"""Each service reads its own variables: the renderer's default spp and body limit, the
-controller's search-view spp and the optimizer's body limit have one name each, and the old
-shared names still work for one release, with a warning naming the new one."""
+"""Each service reads its own ``COSMOS_<SERVICE>_`` variables (and the shared
+``COSMOS_SCENES_DIR``); the old names still work for one release, with a warning naming the new
+one; a ``COSMOS_`` variable that nothing reads is reported at start-up, one another service
+reads is not."""
 
 from __future__ import annotations
 
 import logging
+import os
+import re
+from pathlib import Path
+from typing import Any
 
 import pytest
 
-from services.controller.settings import ControllerSettings
-from services.optimizer.settings import OptimizerSettings
+from services import cli
+from services.controller.app import create_app as create_controller
+from services.controller.broker import Heuristic
+from services.detector.app import create_app as create_detector
+from services.environment import (
+    OLD_NAMES,
+    OTHER_READERS,
+    READERS,
+    SERVICE_SETTINGS,
+    SHARED,
+    unknown_variables,
+)
+from services.optimizer.app import create_app as create_optimizer
+from services.renderer.app import create_app as create_renderer
 from services.renderer.settings import RendererSettings
+from services.stack import plan_stack
 
-DEFAULTS = {
-    (RendererSettings, "renderer_default_spp"): 16,
-    (RendererSettings, "renderer_max_body_bytes"): 64 * 1024,
-    (ControllerSettings, "controller_view_spp"): 8,
-    (OptimizerSettings, "optimizer_max_body_bytes"): 2 * 1024 * 1024,
+SAMPLES: dict[str, tuple[str, Any]] = {
+    "COSMOS_SCENES_DIR": ("/srv/scenes", "/srv/scenes"),
+    "COSMOS_RENDERER_MITSUBA_VARIANT": ("scalar_rgb", "scalar_rgb"),
+    "COSMOS_RENDERER_DEFAULT_SPP": ("32", 32),
+    "COSMOS_RENDERER_MAX_SPP": ("128", 128),
+    "COSMOS_RENDERER_MAX_SIDE": ("1024", 1024),
+    "COSMOS_RENDERER_MAX_PIXELS": ("1000000", 1_000_000),
+    "COSMOS_RENDERER_MAX_SAMPLES": ("4096", 4096),
+    "COSMOS_RENDERER_MAX_QUEUE": ("4", 4),
+    "COSMOS_RENDERER_SCENE_CACHE": ("2", 2),
+    "COSMOS_RENDERER_MAX_BODY_BYTES": ("4096", 4096),
+    "COSMOS_DETECTOR_MODEL": ("/srv/m.onnx", Path("/srv/m.onnx")),
+    "COSMOS_DETECTOR_SCENE_CHECK_S": ("5", 5.0),
+    "COSMOS_DETECTOR_CONF": ("0.4", 0.4),
+    "COSMOS_DETECTOR_IOU": ("0.6", 0.6),
+    "COSMOS_DETECTOR_MAX_DETECTIONS": ("10", 10),
+    "COSMOS_DETECTOR_MAX_CANDIDATES": ("100", 100),
+    "COSMOS_DETECTOR_THREADS": ("1", 1),
+    "COSMOS_DETECTOR_MAX_BATCH": ("2", 2),
+    "COSMOS_DETECTOR_BATCH_WINDOW_MS": ("1.5", 1.5),
+    "COSMOS_DETECTOR_MAX_IN_FLIGHT": ("8", 8),
+    "COSMOS_DETECTOR_MAX_UPLOAD_BYTES": ("4096", 4096),
+    "COSMOS_DETECTOR_MAX_IMAGE_PIXELS": ("10000", 10_000),
+    "COSMOS_DETECTOR_MAX_IMAGE_SIDE": ("100", 100),
+    "COSMOS_DETECTOR_COLOUR": ("false", False),
+    "COSMOS_OPTIMIZER_DEFAULT_STRATEGY": ("paper", "paper"),
+    "COSMOS_OPTIMIZER_PAPER_CALIBRATION": ("/srv/c.json", Path("/srv/c.json")),
+    "COSMOS_OPTIMIZER_MAX_GRID_POSES": ("500", 500),
+    "COSMOS_OPTIMIZER_MAX_HISTORY_DETECTIONS": ("50", 50),
+    "COSMOS_OPTIMIZER_MAX_BODY_BYTES": ("4096", 4096),
+    "COSMOS_CONTROLLER_RENDERER_URLS": ("http://r:1", "http://r:1"),
+    "COSMOS_CONTROLLER_DETECTOR_URLS": ("http://d:1", "http://d:1"),
+    "COSMOS_CONTROLLER_OPTIMIZER_URLS": ("http://o:1", "http://o:1"),
+    "COSMOS_CONTROLLER_DATABASE_URL": ("sqlite:///srv/c.db", "sqlite:///srv/c.db"),
+    "COSMOS_CONTROLLER_BROKER_HEURISTIC": ("round-robin", Heuristic.ROUND_ROBIN),
+    "COSMOS_CONTROLLER_DISCOVER_REPLICAS": ("true", True),
+    "COSMOS_CONTROLLER_DISCOVERY_INTERVAL_S": ("3", 3.0),
+    "COSMOS_CONTROLLER_MAX_CONCURRENT_SEARCHES": ("2", 2),
+    "COSMOS_CONTROLLER_DEFAULT_MAX_ITERATIONS": ("20", 20),
+    "COSMOS_CONTROLLER_VIEW_SPP": ("4", 4),
+    "COSMOS_CONTROLLER_VIEW_WIDTH": ("160", 160),
+    "COSMOS_CONTROLLER_RENDER_TIMEOUT_S": ("5", 5.0),
+    "COSMOS_CONTROLLER_DETECT_TIMEOUT_S": ("6", 6.0),
+    "COSMOS_CONTROLLER_OPTIMIZE_TIMEOUT_S": ("7", 7.0),
+    "COSMOS_CONTROLLER_CONNECT_TIMEOUT_S": ("1.5", 1.5),
+    "COSMOS_CONTROLLER_MAX_UPLOAD_BYTES": ("4096", 4096),
+    "COSMOS_CONTROLLER_MAX_IMAGE_PIXELS": ("10000", 10_000),
+    "COSMOS_CONTROLLER_MAX_IMAGE_SIDE": ("100", 100),
 }
+"""A valid value of every variable a service reads, other than its default, and what it reads as."""
+
+RENAMED: dict[str, tuple[str, ...]] = {
+    "COSMOS_MITSUBA_VARIANT": ("COSMOS_RENDERER_MITSUBA_VARIANT",),
+    "COSMOS_RENDER_SPP": ("COSMOS_RENDERER_DEFAULT_SPP", "COSMOS_CONTROLLER_VIEW_SPP"),
+    "COSMOS_RENDER_MAX_SPP": ("COSMOS_RENDERER_MAX_SPP",),
+    "COSMOS_RENDER_MAX_SIDE": ("COSMOS_RENDERER_MAX_SIDE",),
+    "COSMOS_RENDER_MAX_PIXELS": ("COSMOS_RENDERER_MAX_PIXELS",),
+    "COSMOS_RENDER_MAX_SAMPLES": ("COSMOS_RENDERER_MAX_SAMPLES",),
+    "COSMOS_RENDER_MAX_QUEUE": ("COSMOS_RENDERER_MAX_QUEUE",),
+    "COSMOS_RENDER_SCENE_CACHE": ("COSMOS_RENDERER_SCENE_CACHE",),
+    "COSMOS_MAX_BODY_BYTES": ("COSMOS_RENDERER_MAX_BODY_BYTES", "COSMOS_OPTIMIZER_MAX_BODY_BYTES"),
+    "COSMOS_DEFAULT_STRATEGY": ("COSMOS_OPTIMIZER_DEFAULT_STRATEGY",),
+    "COSMOS_PAPER_CALIBRATION": ("COSMOS_OPTIMIZER_PAPER_CALIBRATION",),
+    "COSMOS_MAX_GRID_POSES": ("COSMOS_OPTIMIZER_MAX_GRID_POSES",),
+    "COSMOS_MAX_HISTORY_DETECTIONS": ("COSMOS_OPTIMIZER_MAX_HISTORY_DETECTIONS",),
+    "COSMOS_RENDERER_URLS": ("COSMOS_CONTROLLER_RENDERER_URLS",),
+    "COSMOS_DETECTOR_URLS": ("COSMOS_CONTROLLER_DETECTOR_URLS",),
+    "COSMOS_OPTIMIZER_URLS": ("COSMOS_CONTROLLER_OPTIMIZER_URLS",),
+    "COSMOS_DATABASE_URL": ("COSMOS_CONTROLLER_DATABASE_URL",),
+    "COSMOS_BROKER_HEURISTIC": ("COSMOS_CONTROLLER_BROKER_HEURISTIC",),
+    "COSMOS_DISCOVER_REPLICAS": ("COSMOS_CONTROLLER_DISCOVER_REPLICAS",),
+    "COSMOS_DISCOVERY_INTERVAL_S": ("COSMOS_CONTROLLER_DISCOVERY_INTERVAL_S",),
+    "COSMOS_MAX_CONCURRENT_SEARCHES": ("COSMOS_CONTROLLER_MAX_CONCURRENT_SEARCHES",),
+    "COSMOS_DEFAULT_MAX_ITERATIONS": ("COSMOS_CONTROLLER_DEFAULT_MAX_ITERATIONS",),
+    "COSMOS_RENDER_WIDTH": ("COSMOS_CONTROLLER_VIEW_WIDTH",),
+    "COSMOS_RENDER_TIMEOUT_S": ("COSMOS_CONTROLLER_RENDER_TIMEOUT_S",),
+    "COSMOS_DETECT_TIMEOUT_S": ("COSMOS_CONTROLLER_DETECT_TIMEOUT_S",),
+    "COSMOS_OPTIMIZE_TIMEOUT_S": ("COSMOS_CONTROLLER_OPTIMIZE_TIMEOUT_S",),
+    "COSMOS_CONNECT_TIMEOUT_S": ("COSMOS_CONTROLLER_CONNECT_TIMEOUT_S",),
+    "COSMOS_MAX_UPLOAD_BYTES": ("COSMOS_CONTROLLER_MAX_UPLOAD_BYTES",),
+    "COSMOS_MAX_IMAGE_PIXELS": ("COSMOS_CONTROLLER_MAX_IMAGE_PIXELS",),
+    "COSMOS_MAX_IMAGE_SIDE": ("COSMOS_CONTROLLER_MAX_IMAGE_SIDE",),
+}
+"""The names of the last release that still work for this one, and what replaced each."""
+
+RENAMES = [(old, new) for old, names in RENAMED.items() for new in names]
+APPS = {
+    "renderer": create_renderer,
+    "detector": create_detector,
+    "optimizer": create_optimizer,
+    "controller": create_controller,
+}
+SETTINGS_LOG = "services.common.settings"
+ROOT = Path(__file__).resolve().parents[1]
+ENVIRONMENT_LOG = "services.environment"
+
+
+def field(variable: str) -> str:
+    return variable.removeprefix("COSMOS_").lower()
+
+
+def readers(variable: str) -> list[type[Any]]:
+    return [SERVICE_SETTINGS[service] for service in READERS[variable]]
 
 
 @pytest.fixture(autouse=True)
 def clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name in (
-        "COSMOS_RENDER_SPP",
-        "COSMOS_MAX_BODY_BYTES",
-        *(f"COSMOS_{field.upper()}" for _, field in DEFAULTS),
-    ):
-        monkeypatch.delenv(name, raising=False)
+    for name in list(os.environ):
+        if name.upper().startswith("COSMOS_"):
+            monkeypatch.delenv(name)
 
 
-@pytest.mark.parametrize(("settings", "field"), list(DEFAULTS))
-def test_each_service_reads_only_its_own_variable(monkeypatch, settings, field):
-    monkeypatch.setenv(f"COSMOS_{field.upper()}", "1024")
-    for (other, other_field), default in DEFAULTS.items():
-        expected = 1024 if (other, other_field) == (settings, field) else default
-        assert getattr(other(), other_field) == expected, (other.__name__, other_field)
+def test_every_variable_a_service_reads_has_a_sample():
+    services = {name for name in READERS if name not in OTHER_READERS}
+    assert set(SAMPLES) == services
+    for name, (_, expected) in SAMPLES.items():
+        for settings in readers(name):
+            assert getattr(settings(), field(name)) != expected, f"{name}: sample is the default"
 
 
-@pytest.mark.parametrize(
-    ("old", "readers"),
-    [
-        (
-            "COSMOS_RENDER_SPP",
-            [
-                (RendererSettings, "renderer_default_spp"),
-                (ControllerSettings, "controller_view_spp"),
-            ],
-        ),
-        (
-            "COSMOS_MAX_BODY_BYTES",
-            [
-                (RendererSettings, "renderer_max_body_bytes"),
-                (OptimizerSettings, "optimizer_max_body_bytes"),
-            ],
-        ),
-    ],
-)
-def test_an_old_shared_name_still_works_with_a_warning(monkeypatch, caplog, old, readers):
-    monkeypatch.setenv(old, "1024")
-    for settings, field in readers:
-        caplog.clear()
-        with caplog.at_level(logging.WARNING, logger="services.common.settings"):
-            assert getattr(settings(), field) == 1024
-        [message] = caplog.messages
-        assert old in message
-        assert f"set COSMOS_{field.upper()} instead" in message
-        assert "different things to different services" in message
+@pytest.mark.parametrize("name", list(SAMPLES))
+def test_each_variable_is_read_by_its_services_only(monkeypatch, name):
+    defaults = {service: settings().model_dump() for service, settings in SERVICE_SETTINGS.items()}
+    value, expected = SAMPLES[name]
+    monkeypatch.setenv(name, value)
+    for service, settings in SERVICE_SETTINGS.items():
+        read = settings().model_dump()
+        if service in READERS[name]:
+            assert read[field(name)] == expected
+            assert read == {**defaults[service], field(name): expected}
+        else:
+            assert read == defaults[service], f"{service} reads {name}"
 
 
-def test_a_new_name_wins_over_the_old_one(monkeypatch, caplog):
-    monkeypatch.setenv("COSMOS_RENDER_SPP", "3")
-    monkeypatch.setenv("COSMOS_CONTROLLER_VIEW_SPP", "5")
-    with caplog.at_level(logging.WARNING, logger="services.common.settings"):
-        assert ControllerSettings().controller_view_spp == 5
-    assert caplog.messages == [
-        "COSMOS_RENDER_SPP is ignored: COSMOS_CONTROLLER_VIEW_SPP is set. Unset COSMOS_RENDER_SPP."
-    ]
+def test_a_service_reads_its_own_prefix_and_the_shared_variables_only():
+    for service, settings in SERVICE_SETTINGS.items():
+        prefix = f"COSMOS_{service.upper()}_"
+        assert settings.variables(), service
+        for name in settings.variables():
+            assert name.startswith(prefix) or name in SHARED, name
+    for name, who in READERS.items():
+        assert len(who) == 1 or name in SHARED, f"{name} is read by {who}"
+
+
+@pytest.mark.parametrize(("old", "new"), RENAMES)
+def test_an_old_name_still_works_with_a_warning_naming_the_new_one(monkeypatch, caplog, old, new):
+    value, expected = SAMPLES[new]
+    monkeypatch.setenv(old, value)
+    [settings] = readers(new)
+    with caplog.at_level(logging.WARNING, logger=SETTINGS_LOG):
+        assert getattr(settings(), field(new)) == expected
+    [message] = caplog.messages
+    assert message.startswith(f"{old} is deprecated")
+    assert f"set {new} instead" in message
+
+
+@pytest.mark.parametrize(("old", "new"), RENAMES)
+def test_a_new_name_wins_over_the_old_one(monkeypatch, caplog, old, new):
+    value, expected = SAMPLES[new]
+    monkeypatch.setenv(new, value)
+    monkeypatch.setenv(old, "not-a-valid-value")  # read, it would fail or differ
+    [settings] = readers(new)
+    with caplog.at_level(logging.WARNING, logger=SETTINGS_LOG):
+        assert getattr(settings(), field(new)) == expected
+    assert caplog.messages == [f"{old} is ignored: {new} is set. Unset {old}."]
+
+
+def test_the_old_names_are_known_as_old_names_only():
+    assert dict(OLD_NAMES) == RENAMED
+    assert not set(OLD_NAMES) & set(READERS), "an old name is a current name"
 
 
 def test_settings_given_in_code_win_over_the_environment(monkeypatch):
     monkeypatch.setenv("COSMOS_RENDER_SPP", "3")
+    monkeypatch.setenv("COSMOS_RENDERER_DEFAULT_SPP", "5")
     assert RendererSettings(renderer_default_spp=7).renderer_default_spp == 7
+
+
+@pytest.mark.parametrize("service", APPS)
+def test_an_unknown_variable_is_reported_at_start_up(monkeypatch, caplog, service):
+    monkeypatch.setenv("COSMOS_RENDERER_DEFALT_SPP", "32")
+    monkeypatch.setenv("COSMOS_NOBODY", "1")
+    with caplog.at_level(logging.WARNING, logger=ENVIRONMENT_LOG):
+        APPS[service]()
+    assert [(r.name, r.levelno) for r in caplog.records] == [(ENVIRONMENT_LOG, logging.WARNING)] * 2
+    nobody, typo = caplog.messages
+    assert nobody.startswith("COSMOS_NOBODY is ignored: no COSMOS 3D Search service reads it.")
+    assert typo.startswith(
+        "COSMOS_RENDERER_DEFALT_SPP is ignored: no COSMOS 3D Search service reads it "
+        "(did you mean COSMOS_RENDERER_DEFAULT_SPP?)."
+    )
+
+
+@pytest.mark.parametrize("service", APPS)
+def test_another_services_variable_is_not_reported(monkeypatch, caplog, service):
+    others = {name for name, who in READERS.items() if service not in who}
+    others |= {
+        old
+        for old, names in OLD_NAMES.items()
+        if not any(service in READERS[name] for name in names)
+    }
+    assert {"COSMOS_TRAINING", "COSMOS_DATABASE_URL"} & others
+    for name in others:
+        monkeypatch.setenv(name, SAMPLES.get(name, ("1",))[0])
+    with caplog.at_level(logging.DEBUG):
+        APPS[service]()
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+
+
+def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, caplog):
+    def no_stack(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("not starting services in this test")
+
+    monkeypatch.setattr(cli, "running_stack", no_stack)
+    monkeypatch.setenv("COSMOS_NOBODY", "1")
+    with caplog.at_level(logging.WARNING, logger=ENVIRONMENT_LOG):
+        assert cli.main(["up"]) == 1
+    [message] = caplog.messages
+    assert message.startswith("COSMOS_NOBODY is ignored")
+
+
+def test_names_are_matched_as_the_settings_read_them_regardless_of_case():
+    environ = {"cosmos_detector_conf": "0.3", "cosmos_nobody": "1", "PATH": "/bin"}
+    assert unknown_variables(environ) == ["COSMOS_NOBODY"]
+
+
+def readme_table() -> dict[str, tuple[str, ...]]:
+    """The README's settings table: each ``COSMOS_`` variable (``_X`` after a first name is
+    that service's ``COSMOS_<SERVICE>_X``) and its "read by" column."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("### Configuration (environment)")[1].split("\n## ")[0]
+    table: dict[str, tuple[str, ...]] = {}
+    for row in section.splitlines():
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        if not row.startswith("| `COSMOS_"):
+            continue
+        first, *rest = re.findall(r"`([A-Z_]+)`", cells[0])
+        service = re.match(r"COSMOS_[A-Z]+", first)
+        assert service, first
+        readers = tuple(part.strip(" `") for part in cells[1].split(","))
+        for name in [first, *(f"{service.group()}{suffix}" for suffix in rest)]:
+            assert name not in table, f"{name} is in the README twice"
+            table[name] = readers
+    return table
+
+
+def test_the_readme_lists_every_variable_and_who_reads_it():
+    assert readme_table() == dict(READERS)
+
+
+def test_the_stack_and_the_containers_use_current_names_only():
+    plan = plan_stack(database_url="sqlite:///x.db", env={})
+    names = {name for service in plan for name in service.env}
+    for path in ("docker-compose.yml", "Dockerfile"):
+        names |= set(re.findall(r"\bCOSMOS_[A-Z_]+\b", (ROOT / path).read_text()))
+    assert "COSMOS_CONTROLLER_RENDERER_URLS" in names
+    assert names <= set(READERS), names - set(READERS)

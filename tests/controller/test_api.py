@@ -63,10 +63,10 @@ async def controller(tmp_path: Path) -> AsyncIterator[tuple[FastAPI, httpx.Async
     assert fine != demo
     (scenes / "fine.yaml").write_text(fine)
     settings = ControllerSettings(
-        renderer_urls="http://renderer",
-        detector_urls="http://detector",
-        optimizer_urls="http://optimizer",
-        database_url=f"sqlite:///{tmp_path / 'controller.sqlite3'}",
+        controller_renderer_urls="http://renderer",
+        controller_detector_urls="http://detector",
+        controller_optimizer_urls="http://optimizer",
+        controller_database_url=f"sqlite:///{tmp_path / 'controller.sqlite3'}",
     )
     async with LifespanManager(create_renderer(RendererSettings(scenes_dir=str(scenes)))) as r:
         app = create_controller(settings, transport=RendererOnly(r.app))

@@ -23,7 +23,9 @@ GRID = {"angle_step_deg": 7.5, "min_theta_deg": 7.5, "max_theta_deg": 82.5}
 
 @pytest.fixture(scope="module")
 async def client() -> AsyncIterator[httpx.AsyncClient]:
-    app = create_app(OptimizerSettings(optimizer_max_body_bytes=200_000, max_grid_poses=5000))
+    app = create_app(
+        OptimizerSettings(optimizer_max_body_bytes=200_000, optimizer_max_grid_poses=5000)
+    )
     async with LifespanManager(app) as manager:
         transport = httpx.ASGITransport(app=manager.app)
         async with httpx.AsyncClient(transport=transport, base_url="http://optimizer") as c:

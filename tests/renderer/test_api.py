@@ -21,7 +21,7 @@ pytestmark = pytest.mark.anyio
 
 @pytest.fixture(scope="module")
 async def client() -> AsyncIterator[httpx.AsyncClient]:
-    settings = RendererSettings(render_max_side=1024, renderer_max_body_bytes=4096)
+    settings = RendererSettings(renderer_max_side=1024, renderer_max_body_bytes=4096)
     app = create_app(settings)
     async with LifespanManager(app) as manager:
         transport = httpx.ASGITransport(app=manager.app)
