@@ -44,9 +44,9 @@ from pydantic import ValidationError
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.contracts.optimize import (
     GridPose,
-    SearchableGrid,
     NextPoseRequest,
     NextPoseResponse,
+    SearchableGrid,
     TargetImage,
     UnsupportedGridError,
     VisitedView,
