@@ -16,40 +16,13 @@ import schemathesis
 from services.common.geometry.grid import grid_for
 from services.detector.client import DetectorClient, DetectorError
 from services.detector.postprocess import box_iou
-from services.detector.synthetic import constant_model
-from tests.scene_model_support import add_scene, balls_png, onboard
-from tests.support import ROOT, ServiceProcess, fuzz_service, homogeneous_tuples, running_service
+from tests.detector.conftest import APP, UPLOAD_LIMIT
+from tests.scene_model_support import balls_png
+from tests.support import ROOT, fuzz_service, homogeneous_tuples, running_service
 
 pytestmark = pytest.mark.slow
 
-APP = "services.detector.app:app"
-UPLOAD_LIMIT = 200_000
 SHIPPED_MODEL = ROOT / "models" / "detector.onnx"
-
-
-@pytest.fixture(scope="module")
-def detector_process(tmp_path_factory) -> Iterator[ServiceProcess]:
-    """A real detector serving a synthetic model: one sphere at input (80, 80)-(120, 160); and
-    scene ``field`` (the demo) with its own model."""
-    directory = tmp_path_factory.mktemp("detector-http")
-    scenes = directory / "scenes"
-    scenes.mkdir()
-    add_scene(scenes, "field")
-    onboard(scenes, "field")
-    model = constant_model(
-        directory / "constant.onnx",
-        np.array([[100], [120], [40], [80], [0.9], [0.0]], np.float32),
-        classes=["sphere", "cube"],
-    )
-    env = {
-        "COSMOS_DETECTOR_MODEL": str(model),
-        "COSMOS_DETECTOR_THREADS": "1",
-        "COSMOS_DETECTOR_MAX_UPLOAD_BYTES": str(UPLOAD_LIMIT),
-        "COSMOS_DETECTOR_MAX_IMAGE_PIXELS": "1000000",
-        "COSMOS_SCENES_DIR": str(scenes),
-    }
-    with running_service(APP, directory / "logs", env) as service:
-        yield service
 
 
 def test_the_client_detects_over_http(detector_process):

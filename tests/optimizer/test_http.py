@@ -3,9 +3,6 @@ fuzz of every route (no 5xx, answers match the OpenAPI schema)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from pathlib import Path
-
 import httpx
 import pytest
 import schemathesis
@@ -13,22 +10,9 @@ from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import positive_data_acceptance
 
 from services.common.geometry.pose import GridIndex
-from services.common.launch import ServiceProcess, running_service
 from services.optimizer.simulator import SceneSimulator
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def optimizer_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
-    """A real optimizer with small caps, so fuzzing stays fast."""
-    logs: Path = tmp_path_factory.mktemp("logs")
-    env = {
-        "COSMOS_OPTIMIZER_MAX_GRID_POSES": "1500",
-        "COSMOS_OPTIMIZER_MAX_HISTORY_DETECTIONS": "300",
-    }
-    with running_service("services.optimizer.app:app", logs, env) as service:
-        yield service
 
 
 def test_a_search_over_real_http(optimizer_process, catalog):
