@@ -14,7 +14,7 @@ from services.common.grid import grid_for
 from services.common.models import GridIndex
 from services.optimizer.app import create_app
 from services.optimizer.settings import OptimizerSettings
-from services.optimizer.simulator import SceneSimulator
+from simulation import SceneSimulator
 
 pytestmark = pytest.mark.anyio
 

@@ -15,7 +15,7 @@ from schemathesis.checks import positive_data_acceptance
 from services.common.catalog import scene_grid
 from services.common.launch import ServiceProcess, running_service
 from services.common.models import GridIndex
-from services.optimizer.simulator import SceneSimulator
+from simulation import SceneSimulator
 
 pytestmark = pytest.mark.slow
 

@@ -18,8 +18,8 @@ from services.optimizer.calibration import CalibrationStore
 from services.optimizer.observations import Observation
 from services.optimizer.planning import OptimizerContext, next_pose
 from services.optimizer.problem import SearchProblem, Visit
-from services.optimizer.simulator import NoiseModel, SceneSimulator, run_search
 from services.optimizer.strategies import STRATEGIES, plan_next
+from simulation import NoiseModel, SceneSimulator, run_search
 
 FULL = grid_for(7.5, 0.0, 90.0)
 
