@@ -13,12 +13,11 @@ from services.common.grid import angular_distance_deg, grid_for
 from services.common.models import GridIndex, PoseQuery
 from services.common.optimization import NextPoseRequest, TargetImage, VisitedView, search_grid
 from services.common.scene import LoadedScene, SceneSpec
-from services.optimizer import strategies
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.observations import Observation
 from services.optimizer.planning import OptimizerContext, next_pose
 from services.optimizer.problem import SearchProblem, Visit
-from services.optimizer.strategies import STRATEGIES, plan_next
+from services.optimizer.strategies import STRATEGIES, plan_next, simple
 from simulation import NoiseModel, SceneSimulator, run_search
 
 FULL = grid_for(7.5, 0.0, 90.0)
@@ -324,7 +323,7 @@ def test_the_simple_searchs_caches_hit_across_requests(catalog, sims):
         history=(visited(start),),
     ).model_dump_json(exclude_none=True)
     context = OptimizerContext(calibrations=CalibrationStore.load(), catalog=None)
-    caches = (strategies._mapped_single_cached, strategies._scored_cached)
+    caches = (simple._mapped_single_cached, simple._scored_cached)
     for cache in caches:
         cache.cache_clear()
     first = next_pose(NextPoseRequest.model_validate_json(request), context)
