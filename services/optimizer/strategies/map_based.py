@@ -166,16 +166,31 @@ def _theta_bounds(grid: HemisphereGrid) -> tuple[float, float]:
     )
 
 
+def _own_anchors(anchors: Sequence[Anchor], visit: Visit) -> list[Anchor]:
+    """The anchors of ``visit``'s own view: those holding its observation, else (a map cached
+    from an earlier request, which holds that request's objects) those with equal detections
+    at its pose."""
+    own = [a for a in anchors if a.observation is visit.observation]
+    if own:
+        return own
+    digest = visit.observation.digest
+    return [
+        a
+        for a in anchors
+        if (a.theta_deg, a.phi_deg) == (visit.theta_deg, visit.phi_deg)
+        and a.observation.digest == digest
+    ]
+
+
 def _anchored_visit(problem: SearchProblem, found: MapEstimate, flat: int) -> Visit | None:
     """The latest visit of grid pose ``flat`` whose own view anchors the map's prediction
     there (at least two of its detections joined the map, or all of one), else None."""
     for visit in reversed(problem.history):
         if visit.flat != flat:
             continue
-        for a in found.anchors:
-            if a.observation is visit.observation:
-                if int(np.sum(a.link >= 0)) >= min(2, len(a.link)):
-                    return visit
+        for a in _own_anchors(found.anchors, visit):
+            if int(np.sum(a.link >= 0)) >= min(2, len(a.link)):
+                return visit
         return None
     return None
 
