@@ -15,14 +15,12 @@ the far side of the equator, 12 + 24 = 36 moves at Δ = 7.5° (π/24).
 
 from __future__ import annotations
 
-import functools
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Final
 
-from services.common.grid import Direction, HemisphereGrid
-from services.common.scene import Camera
+from services.common.grid import Direction
+from services.optimizer.lru import LruCache
 from services.optimizer.matching import compare_views
-from services.optimizer.observations import Observation
 from services.optimizer.problem import Plan, SearchProblem, Visit
 from services.optimizer.strategies.done import done_plan
 from services.optimizer.strategies.map_based import (
@@ -33,71 +31,48 @@ from services.optimizer.strategies.map_based import (
     score_map,
 )
 from services.optimizer.strategies.moves import explore, neighbour_flat, start_plan
-from services.optimizer.view_cache import SHARED_MAPPINGS, ViewMappings
+from services.optimizer.view_cache import SHARED_MAPPINGS
 
 __all__ = ["decision_key", "plan_simple"]
 
-_CACHED_GRID_POSES: Final = 2_000  # larger grids: predictions too heavy to keep many of
-_MAPPED_VIEWS: Final = 512
-"""Views kept mapped into every pose (keyed by content and pose, so searches of one scene share
-them): all of a 341-pose grid's, which the offline simulator revisits for every target (64 made
-it 40 % slower). One weighs ~60 kB on 341 poses, in proportion to the grid's size."""
-_SCORED_VIEWS: Final = 64
-"""Maps kept scored against a target: a simple search reuses one at a time."""
+_MAPPED_BYTES: Final = 32 * 2**20
+"""Memory for reference views mapped and predicted into every grid pose: ~60 kB each on a
+341-pose grid, in proportion to the grid's poses and the view's objects, so 32 MB keep all of a
+341-pose grid's views, which the offline simulator revisits for every target (room for 64 made
+it 40 % slower)."""
+_SCORED_BYTES: Final = 8 * 2**20
+"""Memory for those maps scored against a target: ~5 kB each on a 341-pose grid."""
+
+_mapped_views: Final = LruCache[Mapped](_MAPPED_BYTES)
+_scored_views: Final = LruCache[MapEstimate | None](_SCORED_BYTES)
 
 
-def _mapped_single(
-    observation: Observation,
-    flat: int,
-    theta_deg: float,
-    phi_deg: float,
-    grid: HemisphereGrid,
-    camera: Camera,
-    mappings: ViewMappings | None = None,
-) -> Mapped:
-    """One view alone, mapped and predicted into every grid pose; cached per view by content
-    (a search's requests resend its reference view as new objects) unless the grid is so large
-    that the cached predictions would weigh too much."""
-    if grid.size > _CACHED_GRID_POSES:
-        return map_views([Visit(flat, theta_deg, phi_deg, observation)], grid, camera, mappings)
-    return _mapped_single_cached(
-        _ByContent(observation), flat, theta_deg, phi_deg, grid, camera, mappings
+def _reference_estimate(problem: SearchProblem, reference: Visit) -> MapEstimate | None:
+    """The reference view alone, mapped and predicted into every grid pose, scored against the
+    target.
+
+    Both steps are cached by content (:attr:`~services.optimizer.observations.Observation.digest`)
+    and pose: a search's requests resend its reference view and target as new objects, and
+    searches of one scene share views. The answer is the fresh one's, also where the refinement
+    looks for the view's own anchor (:func:`~.map_based.plan_estimate`)."""
+    grid, camera = problem.grid, problem.camera
+    view = (
+        reference.observation.digest,
+        reference.flat,
+        reference.theta_deg,
+        reference.phi_deg,
+        grid,
+        camera,
     )
 
+    def mapped() -> Mapped:
+        return map_views([reference], grid, camera, problem.mappings)
 
-@dataclass(frozen=True, eq=False)
-class _ByContent:
-    """An observation as a cache key: equal when the contents are (:attr:`Observation.digest`)."""
+    def scored() -> MapEstimate | None:
+        map_ = _mapped_views.get(view, mapped)
+        return score_map(map_, problem.target, grid, problem.ambiguity_ratio)
 
-    observation: Observation
-
-    def __hash__(self) -> int:
-        return hash(self.observation.digest)
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, _ByContent) and other.observation.digest == self.observation.digest
-
-
-@functools.lru_cache(maxsize=_MAPPED_VIEWS)
-def _mapped_single_cached(
-    view: _ByContent,
-    flat: int,
-    theta_deg: float,
-    phi_deg: float,
-    grid: HemisphereGrid,
-    camera: Camera,
-    mappings: ViewMappings | None,
-) -> Mapped:
-    return map_views([Visit(flat, theta_deg, phi_deg, view.observation)], grid, camera, mappings)
-
-
-@functools.lru_cache(maxsize=_SCORED_VIEWS)
-def _scored_cached(
-    mapped: Mapped, target: _ByContent, grid: HemisphereGrid, ambiguity_ratio: float
-) -> MapEstimate | None:
-    """:func:`score_map`, cached per (map, target): the simple search asks it again at every step
-    that keeps its reference view (the map is the cached one of that view, so the same object)."""
-    return score_map(mapped, target.observation, grid, ambiguity_ratio)
+    return _scored_views.get((view, problem.target.digest, problem.ambiguity_ratio), scored)
 
 
 def _reliable_count(problem: SearchProblem, visit: Visit) -> int:
@@ -142,19 +117,7 @@ def plan_simple(problem: SearchProblem) -> Plan:
     if reference is None:
         done = done_plan(problem, current, comparison, None, False)
         return done or explore(problem, current, "no object of any view so far could be mapped")
-    mapped = _mapped_single(
-        reference.observation,
-        reference.flat,
-        reference.theta_deg,
-        reference.phi_deg,
-        grid,
-        problem.camera,
-        problem.mappings,
-    )
-    if grid.size > _CACHED_GRID_POSES:
-        found = score_map(mapped, problem.target, grid, problem.ambiguity_ratio)
-    else:
-        found = _scored_cached(mapped, _ByContent(problem.target), grid, problem.ambiguity_ratio)
+    found = _reference_estimate(problem, reference)
     if found is None:  # cannot happen: the reference view maps at least one object
         return explore(problem, current, "no object could be mapped")
     est, refined = plan_estimate(problem, current, found)
