@@ -2,12 +2,12 @@
 
 Run: ``.venv/bin/python -m benchmarks.strategies [--scene demo] [--starts 8] [--noise]``
 
-Detections come from :class:`services.optimizer.simulator.SceneSimulator` (no renderer). For
-each scene, grid and strategy every grid pose is a target; ``simple`` and ``paper`` start from
-*every* grid pose (their decisions depend only on the current view and the target, so each
-(decision, target) is computed once and reused, which keeps all pairs affordable), the
-map-based ``reprojection`` from a seeded sample of ``--starts`` poses per target plus the pose
-farthest from it. Grids: the scene's own and the full π/24 grid (7.5°, θ 0–90°).
+Detections come from :class:`simulation.SceneSimulator` (no renderer). For each scene, grid and
+strategy every grid pose is a target; ``simple`` and ``paper`` start from *every* grid pose (their
+decisions depend only on the current view and the target, so each (decision, target) is computed
+once and reused, which keeps all pairs affordable), the map-based ``reprojection`` from a seeded
+sample of ``--starts`` poses per target plus the pose farthest from it. Grids: the scene's own and
+the full π/24 grid (7.5°, θ 0–90°).
 
 Columns: ``success`` — the strategy declared the search done with the camera at the target;
 ``iterations`` — moves after the start view until the camera first sat at the target (mean /
@@ -36,8 +36,8 @@ from services.common.geometry.grid import HemisphereGrid, grid_for, pose_to_cart
 from services.common.geometry.scene import LoadedScene
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.problem import Plan
-from services.optimizer.simulator import NoiseModel, SceneSimulator, SearchOutcome, run_search
 from services.optimizer.strategies import STRATEGIES
+from simulation import NoiseModel, SceneSimulator, SearchOutcome, run_search
 
 ALL_PAIRS = ("simple", "paper")
 PAPER_SIMPLE_WORST = 36

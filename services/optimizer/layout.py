@@ -23,7 +23,6 @@ flagged ambiguous when a second assignment fits almost as well.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Final
@@ -35,6 +34,7 @@ from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import PaperCalibration
 from services.optimizer.geometry import FloatArray
 from services.optimizer.longitude import solve_rotation
+from services.optimizer.lru import LruCache
 from services.optimizer.mapping import map_paper, paper_offsets
 from services.optimizer.matching import COLOUR_GATE, Assignment, assign
 from services.optimizer.observations import ALIKE_COST, Observation, appearance_cost
@@ -93,21 +93,33 @@ def _unique_pairs(looks: FloatArray) -> Assignment | None:
     return pairs if bool(np.all(rows_unique & cols_unique)) else None
 
 
-@functools.lru_cache(maxsize=1024)
+_CANDIDATES_BYTES: Final = 8 * 2**20
+"""Memory for targets' distance profiles: ~8 kB for five detections over ~200 candidate θ."""
+_MAPPED_BYTES: Final = 4 * 2**20
+"""Memory for current views' paper mappings: ~1 kB each."""
+
+_candidate_profiles: Final = LruCache[tuple[FloatArray, FloatArray]](_CANDIDATES_BYTES)
+_mapped_views: Final = LruCache[tuple[Observation, FloatArray]](_MAPPED_BYTES)
+
+
 def _candidates(
     target: Observation, camera: CameraSpec, grid: HemisphereGrid, calibration: PaperCalibration
 ) -> tuple[FloatArray, FloatArray]:
     """Candidate θ ``(T,)`` and the target's distances to the centre ``|q_j(θ)|`` ``(T, n)``;
-    cached per target observation (the search asks about one target many times)."""
-    step = grid.angle_step_deg
-    lo = max(0.0, float(grid.theta_deg[0]) - step / 2.0)
-    hi = min(90.0, float(grid.theta_deg[-1]) + step / 2.0)
-    thetas = np.linspace(lo, hi, max(3, int(math.ceil((hi - lo) / min(0.5, step / 8.0))) + 1))
-    offsets = paper_offsets(target.boxes, camera, thetas, calibration)
-    return thetas, np.linalg.norm(offsets, axis=-1)
+    cached by the target's content (a search's requests resend it as new objects)."""
+
+    def profile() -> tuple[FloatArray, FloatArray]:
+        step = grid.angle_step_deg
+        lo = max(0.0, float(grid.theta_deg[0]) - step / 2.0)
+        hi = min(90.0, float(grid.theta_deg[-1]) + step / 2.0)
+        count = max(3, int(math.ceil((hi - lo) / min(0.5, step / 8.0))) + 1)
+        thetas = np.linspace(lo, hi, count)
+        offsets = paper_offsets(target.boxes, camera, thetas, calibration)
+        return thetas, np.linalg.norm(offsets, axis=-1)
+
+    return _candidate_profiles.get((target.digest, camera, grid, calibration), profile)
 
 
-@functools.lru_cache(maxsize=1024)
 def _mapped(
     current: Observation,
     theta_deg: float,
@@ -115,9 +127,15 @@ def _mapped(
     camera: CameraSpec,
     calibration: PaperCalibration,
 ) -> tuple[Observation, FloatArray]:
-    """The current view's usable detections and their paper-mapped world positions."""
-    world = map_paper(current.boxes, camera, theta_deg, phi_deg, calibration)
-    return current.subset(world.reliable), world.position[world.reliable]
+    """The current view's usable detections and their paper-mapped world positions; cached by
+    content (a view sent again, as every search's start view is)."""
+
+    def mapped() -> tuple[Observation, FloatArray]:
+        world = map_paper(current.boxes, camera, theta_deg, phi_deg, calibration)
+        return current.subset(world.reliable), world.position[world.reliable]
+
+    key = (current.digest, theta_deg, phi_deg, camera, calibration)
+    return _mapped_views.get(key, mapped)
 
 
 def estimate_layout(

@@ -127,7 +127,7 @@ class RenderEngine:
         if self._freeze and choice.variant != SCALAR_VARIANT:
             # A frozen render replays the recorded kernel launches instead of tracing the
             # integrator in Python again: ~3-5 ms less per view, identical pixels
-            # (tests/test_render_engine.py). The camera pose and seed are inputs of the
+            # (tests/renderer/test_engine.py). The camera pose and seed are inputs of the
             # recording; a scene, film size or spp not seen yet records anew (at most
             # FROZEN_RECORDINGS are kept).
             self._render_view = dr.freeze(self._traced_render, limit=FROZEN_RECORDINGS)

@@ -1,6 +1,6 @@
 """The controller's HTTP/1.1 transport on the wire: scripted answers from a raw TCP server
 (chunked, closed, malformed, a kept-alive connection dropped) and the request bytes it writes.
-The same transport against a real uvicorn replica is in ``test_controller_transport.py``."""
+The same transport against a real uvicorn replica is in ``test_transport.py``."""
 
 from __future__ import annotations
 

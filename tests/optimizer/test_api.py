@@ -13,7 +13,7 @@ from services.common.geometry.grid import grid_for
 from services.common.geometry.pose import GridIndex
 from services.optimizer.app import create_app
 from services.optimizer.settings import OptimizerSettings
-from services.optimizer.simulator import SceneSimulator
+from simulation import SceneSimulator
 
 pytestmark = pytest.mark.anyio
 

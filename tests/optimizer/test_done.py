@@ -17,8 +17,8 @@ from services.optimizer.matching import compare_views
 from services.optimizer.observations import EDGE_NOISE_FRACTION, Observation, box_sizes
 from services.optimizer.planning import OptimizerContext, next_pose
 from services.optimizer.problem import SearchProblem, Visit
-from services.optimizer.simulator import SceneSimulator
-from services.optimizer.strategies import plan_reprojection
+from services.optimizer.strategies.reprojection import plan_reprojection
+from simulation import SceneSimulator
 
 RED = (200.0, 30.0, 30.0)
 

@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import positive_data_acceptance
 
 from services.common.geometry.pose import GridIndex
-from services.optimizer.simulator import SceneSimulator
+from simulation import SceneSimulator
 
 pytestmark = pytest.mark.slow
 

@@ -8,22 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.common.contracts.optimize import (
-    NextPoseRequest,
-    TargetImage,
-    VisitedView,
-    searchable_grid,
-)
 from services.common.geometry.grid import angular_distance_deg, grid_for
-from services.common.geometry.pose import GridIndex, PoseQuery
+from services.common.geometry.pose import GridIndex
 from services.common.geometry.scene import LoadedScene, SceneSpec
-from services.optimizer import strategies
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.observations import Observation
-from services.optimizer.planning import OptimizerContext, next_pose
 from services.optimizer.problem import SearchProblem, Visit
-from services.optimizer.simulator import NoiseModel, SceneSimulator, run_search
 from services.optimizer.strategies import STRATEGIES, plan_next
+from simulation import NoiseModel, SceneSimulator, run_search
 
 FULL = grid_for(7.5, 0.0, 90.0)
 
@@ -297,45 +289,3 @@ def test_reprojection_finds_targets_from_rendered_boxes(engine, catalog, sims, s
         assert plan.done
         assert history[-1] == target
         assert len(history) <= 3
-
-
-def test_the_simple_searchs_caches_hit_across_requests(catalog, sims):
-    """The service builds new observations from every request's JSON; the reference view's map
-    and its scores against the target are still found again (keyed by content), and the caches
-    stay bounded."""
-    scene = catalog.get("demo")
-    spec = searchable_grid(scene.spec.search)
-    grid, camera = spec.grid(), scene.spec.camera
-    sim = sims["demo"]
-    views = sim.grid_views(grid)
-    size = (camera.width, camera.height)
-
-    def image(flat: int) -> tuple:
-        return sim.detections(sim.clean_observation(views, flat))
-
-    def visited(flat: int) -> VisitedView:
-        index = grid.unflat(flat)
-        return VisitedView(
-            image_size=size, detections=image(flat), pose=PoseQuery(lat=index.lat, lon=index.lon)
-        )
-
-    target, start = grid.flat(GridIndex(lat=2, lon=7)), grid.flat(GridIndex(lat=5, lon=20))
-    request = NextPoseRequest(
-        strategy="simple",
-        camera=camera,
-        grid=spec,
-        target=TargetImage(image_size=size, detections=image(target)),
-        history=(visited(start),),
-    ).model_dump_json(exclude_none=True)
-    context = OptimizerContext(calibrations=CalibrationStore.load(), catalog=None)
-    caches = (strategies._mapped_single_cached, strategies._scored_cached)
-    for cache in caches:
-        cache.cache_clear()
-    first = next_pose(NextPoseRequest.model_validate_json(request), context)
-    again = next_pose(NextPoseRequest.model_validate_json(request), context)
-    assert again == first
-    for cache in caches:
-        info = cache.cache_info()
-        assert (info.hits, info.misses) == (1, 1), cache.__name__
-        assert info.maxsize is not None
-        assert info.maxsize <= 512

@@ -15,8 +15,8 @@ from services.optimizer.calibration import CalibrationStore
 from services.optimizer.mapping import map_exact
 from services.optimizer.observations import Observation
 from services.optimizer.planning import OptimizerContext, next_pose
-from services.optimizer.simulator import NoiseModel, SceneSimulator
 from services.optimizer.view_cache import ViewMappings
+from simulation import NoiseModel, SceneSimulator
 
 CAMERA = CameraSpec(fov_deg=45.0, width=320, height=240, radius=8.0)
 
