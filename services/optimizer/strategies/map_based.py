@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Final
 
 import numpy as np
@@ -23,9 +23,9 @@ from numpy.typing import NDArray
 from services.common.geometry.grid import HemisphereGrid, pose_to_cartesian
 from services.common.geometry.scene import CameraSpec
 from services.optimizer.geometry import PinholeCameras
-from services.optimizer.matching import Assignment
+from services.optimizer.matching import Assignment, ViewComparison
 from services.optimizer.observations import Observation
-from services.optimizer.problem import Estimate, SearchProblem, Visit
+from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 from services.optimizer.reprojection import (
     SCALE_PX,
     Anchor,
@@ -36,13 +36,14 @@ from services.optimizer.reprojection import (
     refine_pose,
     score_poses,
 )
-from services.optimizer.strategies.done import Refined
+from services.optimizer.strategies.done import Refined, done_plan
 from services.optimizer.view_cache import ViewMappings
 from services.optimizer.world_map import MappedView, WorldMap, build_map
 
 __all__ = [
     "MapEstimate",
     "Mapped",
+    "estimate_or_done",
     "grid_cameras",
     "map_estimate",
     "map_views",
@@ -243,3 +244,16 @@ def plan_estimate(
     target = problem.target.confidence
     unpaired = float(target.sum() - target[found.pairs.rows].sum())
     return est, Refined(refined.residual_px, elsewhere=True, unpaired_target=unpaired)
+
+
+def estimate_or_done(
+    problem: SearchProblem, current: Visit, comparison: ViewComparison, found: MapEstimate
+) -> tuple[Estimate, bool, Plan | None]:
+    """A map-based strategy's estimate, whether it names the current grid pose, and the done
+    plan when the done test passes (else None)."""
+    est, refined = plan_estimate(problem, current, found)
+    here = est.flat == current.flat
+    done = done_plan(
+        problem, current, comparison, est, here, refined, found.ambiguous, found.alternatives
+    )
+    return est, here, None if done is None else replace(done, reason=done.reason + found.note)

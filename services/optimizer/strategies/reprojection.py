@@ -13,12 +13,10 @@ the current view must otherwise.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 from services.optimizer.matching import compare_views
 from services.optimizer.problem import Plan, SearchProblem
 from services.optimizer.strategies.done import done_plan, matched_text
-from services.optimizer.strategies.map_based import map_estimate, map_views, plan_estimate
+from services.optimizer.strategies.map_based import estimate_or_done, map_estimate, map_views
 from services.optimizer.strategies.moves import explore, move_between, start_plan
 
 __all__ = ["plan_reprojection"]
@@ -37,13 +35,9 @@ def plan_reprojection(problem: SearchProblem) -> Plan:
     if found is None:
         done = done_plan(problem, current, comparison, None, False)
         return done or explore(problem, current, "no object could be mapped from the views")
-    est, refined = plan_estimate(problem, current, found)
-    here = est.flat == current.flat
-    done = done_plan(
-        problem, current, comparison, est, here, refined, found.ambiguous, found.alternatives
-    )
+    est, here, done = estimate_or_done(problem, current, comparison, found)
     if done is not None:
-        return replace(done, reason=done.reason + found.note)
+        return done
     visited = {v.flat for v in problem.history}
     if found.best == current.flat and not here:
         nxt = est.flat

@@ -15,7 +15,6 @@ the far side of the equator, 12 + 24 = 36 moves at Δ = 7.5° (π/24).
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Final
 
 from services.common.geometry.grid import Direction
@@ -26,8 +25,8 @@ from services.optimizer.strategies.done import done_plan
 from services.optimizer.strategies.map_based import (
     MapEstimate,
     Mapped,
+    estimate_or_done,
     map_views,
-    plan_estimate,
     score_map,
 )
 from services.optimizer.strategies.moves import explore, neighbour_flat, start_plan
@@ -54,7 +53,7 @@ def _reference_estimate(problem: SearchProblem, reference: Visit) -> MapEstimate
     Both steps are cached by content (:attr:`~services.optimizer.observations.Observation.digest`)
     and pose: a search's requests resend its reference view and target as new objects, and
     searches of one scene share views. The answer is the fresh one's, also where the refinement
-    looks for the view's own anchor (:func:`~.map_based.plan_estimate`)."""
+    looks for the view's own anchor (:func:`~.map_based.estimate_or_done`)."""
     grid, camera = problem.grid, problem.camera
     view = (
         reference.observation.digest,
@@ -120,13 +119,9 @@ def plan_simple(problem: SearchProblem) -> Plan:
     found = _reference_estimate(problem, reference)
     if found is None:  # cannot happen: the reference view maps at least one object
         return explore(problem, current, "no object could be mapped")
-    est, refined = plan_estimate(problem, current, found)
-    here = est.flat == current.flat
-    done = done_plan(
-        problem, current, comparison, est, here, refined, found.ambiguous, found.alternatives
-    )
+    est, here, done = estimate_or_done(problem, current, comparison, found)
     if done is not None:
-        return replace(done, reason=done.reason + found.note)
+        return done
     goal = est.flat
     if here:  # the estimate says "here" but the views differ: head for the runner-up
         goal = next((int(f) for f in found.scores.candidates if int(f) != current.flat), goal)
