@@ -123,7 +123,7 @@ APPS = {
     "controller": create_controller,
 }
 SETTINGS_LOG = "services.common.settings"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ENVIRONMENT_LOG = "services.environment"
 
 
