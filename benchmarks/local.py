@@ -31,7 +31,15 @@ from services.controller.submit import create_search
 from services.controller.transport import Transport
 from services.renderer.client import RendererClient
 
-__all__ = ["SCENE", "Controller", "StageUrls", "Target", "make_targets", "stage_processes"]
+__all__ = [
+    "SCENE",
+    "TARGET_SPP",
+    "Controller",
+    "StageUrls",
+    "Target",
+    "make_targets",
+    "stage_processes",
+]
 
 SCENE = "demo"
 TARGET_SPP = 16  # the bench's targets (services.bench.runner.TARGET_SPP)
