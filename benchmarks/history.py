@@ -50,7 +50,8 @@ from typing import Any
 import numpy as np
 import uvloop
 
-from benchmarks.local import TARGET_SPP, Controller, StageUrls, Target, stage_processes
+from benchmarks.local import Controller, StageUrls, Target, stage_processes
+from services.bench.runner import TARGET_SPP
 from services.common.catalog import SceneCatalog
 from services.common.grid import HemisphereGrid, angular_distance_deg
 from services.common.images import media_type_of

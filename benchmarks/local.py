@@ -1,4 +1,4 @@
-"""What the transport and history benchmarks share: the stages as processes, the search loop.
+"""The stages as processes and the controller's search loop over them, for benchmarks.
 
 Renderer, detector and optimizer run as uvicorn processes on loopback (:func:`stage_processes`);
 :class:`Controller` is the controller's own search loop over them, in this process, without its
@@ -15,11 +15,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from services.common.launch import spawn_service, stop_service, wait_healthy
-from services.common.models import PoseQuery, RenderRequest
-from services.common.optimization import StrategyName, search_grid
+from services.common.optimization import StrategyName
 from services.common.search import TERMINAL_STATUSES
 from services.controller.broker import Broker
 from services.controller.events import Notifier
@@ -29,20 +26,10 @@ from services.controller.stages import Stages
 from services.controller.store import SearchStore
 from services.controller.submit import create_search
 from services.controller.transport import Transport
-from services.renderer.client import RendererClient
 
-__all__ = [
-    "SCENE",
-    "TARGET_SPP",
-    "Controller",
-    "StageUrls",
-    "Target",
-    "make_targets",
-    "stage_processes",
-]
+__all__ = ["SCENE", "Controller", "StageUrls", "Target", "stage_processes"]
 
 SCENE = "demo"
-TARGET_SPP = 16  # the bench's targets (services.bench.runner.TARGET_SPP)
 STAGES = ("renderer", "detector", "optimizer")
 SEARCH_TIMEOUT_S = 120.0
 
@@ -76,33 +63,13 @@ def stage_processes(workdir: Path) -> Iterator[StageUrls]:
 
 @dataclass(frozen=True)
 class Target:
+    """A target image to search for, and where its search starts."""
+
     image: bytes
     start_theta_deg: float
     start_phi_deg: float
     seed: int
     scene: str = SCENE
-
-
-def make_targets(renderer_url: str, count: int, seed: int) -> list[Target]:
-    """Seeded demo-scene targets on grid poses, each with a start pose."""
-    rng = np.random.default_rng(seed)
-    targets = []
-    with RendererClient(renderer_url) as renderer:
-        detail = renderer.scene(SCENE)
-        grid = search_grid(detail.spec.search).grid()
-        for number in range(count):
-            truth = grid.unflat(int(rng.integers(grid.size)))
-            start = grid.pose(grid.unflat(int(rng.integers(grid.size))))
-            image = renderer.render_png(
-                RenderRequest(
-                    scene=SCENE,
-                    pose=PoseQuery(lat=truth.lat, lon=truth.lon),
-                    spp=TARGET_SPP,
-                    seed=1000 + number,
-                )
-            )
-            targets.append(Target(image, start.theta_deg, start.phi_deg, number))
-    return targets
 
 
 class Controller:
