@@ -28,8 +28,8 @@ from enum import StrEnum
 from typing import Any
 
 from services.common.contracts.search import ReplicaHealth
-from services.controller.http1 import Http1Transport
 from services.controller.transport import (
+    AiohttpTransport,
     StageAnswer,
     StageRequest,
     Transport,
@@ -107,7 +107,7 @@ class Broker:
         self.cooldown_s = cooldown_s
         self.health_interval_s = health_interval_s
         self._timeouts = dict(timeouts_s or {})
-        self._transport = transport or Http1Transport(connect_timeout_s)
+        self._transport = transport or AiohttpTransport(connect_timeout_s)
         self._replicas: dict[str, list[Replica]] = {}
         self._turns: dict[str, itertools.count[int]] = {}
         for stage, urls in pools.items():

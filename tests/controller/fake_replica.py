@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import os
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 
 app = FastAPI()
@@ -23,7 +23,7 @@ async def health() -> dict[str, object]:
 
 
 @app.post("/work")
-async def work() -> JSONResponse:
+async def work(request: Request) -> JSONResponse:
     _state["in_flight"] += 1
     try:
         _state["served"] += 1
@@ -33,6 +33,10 @@ async def work() -> JSONResponse:
         if fail == "500" or _state["served"] <= int(os.environ.get("FAKE_FAIL_FIRST", "0")):
             return JSONResponse({"error": "boom"}, status_code=500)
         await asyncio.sleep(float(os.environ.get("FAKE_DELAY_MS", "0")) / 1000.0)
-        return JSONResponse({"replica": os.environ.get("FAKE_NAME")})
+        # The client's port tells the connections apart.
+        port = str(request.client.port) if request.client is not None else ""
+        return JSONResponse(
+            {"replica": os.environ.get("FAKE_NAME")}, headers={"X-Client-Port": port}
+        )
     finally:
         _state["in_flight"] -= 1

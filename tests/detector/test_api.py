@@ -5,7 +5,6 @@ bad upload."""
 from __future__ import annotations
 
 import asyncio
-import math
 import struct
 import zlib
 from collections.abc import AsyncIterator
@@ -19,7 +18,7 @@ from asgi_lifespan import LifespanManager
 
 from services.common.images import encode_ppm, media_type_of
 from services.detector.app import create_app
-from services.detector.letterbox import PAD_VALUE
+from services.detector.letterbox import PAD_VALUE, fit
 from services.detector.model import ModelError
 from services.detector.settings import DetectorSettings
 from services.detector.synthetic import channel_mean_model, constant_model
@@ -461,9 +460,23 @@ async def test_unknown_route_is_a_problem(client):
     await problem(response, 404)
 
 
-def test_golden_numbers_follow_from_the_letterbox():
-    """The expected boxes above, derived: x = (x_in - pad_x) / s, y = (y_in - pad_y) / s."""
-    x1, y1, x2, y2 = 80, 80, 120, 160
-    assert [x1 / 0.5, (y1 - 70) / 0.5, x2 / 0.5, (y2 - 70) / 0.5] == [160, 20, 240, 180]
-    assert [(x1 - 80) / 0.8, y1 / 0.8, (x2 - 80) / 0.8, y2 / 0.8] == [0, 100, 50, 200]
-    assert math.isclose(min(320 / 640, 320 / 360), 0.5)
+@pytest.mark.parametrize(
+    ("size", "scale", "pad", "expected"),
+    [
+        # r = min(320/640, 320/360) = 0.5, 360 rows -> 180, (320 - 180) // 2 = 70 rows on top:
+        # x = x_in / 0.5, y = (y_in - 70) / 0.5
+        ((640, 360), (0.5, 0.5), (0, 70), [160, 20, 240, 180]),
+        # r = min(320/200, 320/400) = 0.8, 200 columns -> 160, (320 - 160) // 2 = 80 on the left:
+        # x = (x_in - 80) / 0.8, y = y_in / 0.8
+        ((200, 400), (0.8, 0.8), (80, 0), [0, 100, 50, 200]),
+    ],
+)
+def test_the_golden_boxes_are_the_letterbox_inverse_of_anchor_a(size, scale, pad, expected):
+    """The expected boxes of ``test_boxes_come_back_in_pixels_of_the_upload``, from the detector's
+    own letterbox: anchor A's input box (80, 80)-(120, 160) mapped back into the upload."""
+    cx, cy, w, h = ANCHORS[0][:4]
+    input_box = np.array([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2])
+    box = fit(size, (320, 320))
+    assert box.scale == pytest.approx(scale)
+    assert box.pad == pad
+    assert box.to_image(input_box).tolist() == expected

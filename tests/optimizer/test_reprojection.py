@@ -1,36 +1,100 @@
-"""The refinement's batched finite differences: the Jacobian least_squares would estimate."""
+"""The refinement's Jacobian: what :func:`refine_pose` hands the solver is the derivative of its own
+residuals, checked against central differences of those residuals (numpy, no solver code)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from scipy.optimize._numdiff import approx_derivative
+import pytest
+from services.optimizer.simulator import SceneSimulator
 
-from services.optimizer.reprojection import _DIFF_STEP, _forward_steps
+from services.common.geometry.pose import GridIndex
+from services.optimizer import reprojection
+from services.optimizer.problem import SearchProblem, Visit
+from services.optimizer.strategies import plan_next
 
-LOWER = np.array([7.5, -np.inf])
-UPPER = np.array([82.5, np.inf])
-
-
-def residuals(x: np.ndarray) -> np.ndarray:
-    return np.array([np.sin(x[0]) * x[1], x[0] ** 2 - x[1], np.exp(x[1] / 400.0) * x[0]])
+Function = Callable[[np.ndarray], np.ndarray]
 
 
-@settings(max_examples=200, deadline=None)
-@given(
-    theta=st.one_of(st.floats(7.5, 82.5), st.sampled_from([7.5, 82.5, 82.5 - 1e-9])),
-    phi=st.one_of(st.floats(-720.0, 720.0), st.sampled_from([0.0, -0.0, 360.0])),
-)
-def test_forward_steps_give_scipys_two_point_jacobian_to_the_last_bit(theta, phi):
-    """refine_pose predicts the perturbed poses in one batch instead of letting the solver
-    difference its residuals; its answers stay those of the solver's own differences."""
-    x = np.array([theta, phi])
-    expected = approx_derivative(
-        residuals, x, method="2-point", rel_step=_DIFF_STEP, bounds=(LOWER, UPPER)
+@dataclass(frozen=True)
+class SolverCall:
+    """What refine_pose gave :func:`scipy.optimize.least_squares`, and the pose it found."""
+
+    residuals: Function
+    jacobian: Function
+    start: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    found: np.ndarray
+
+
+@pytest.fixture(scope="module")
+def solver_call(catalog) -> SolverCall:
+    """The last refinement of a reprojection search on the demo scene for a target between grid
+    poses (so the refinement has something to do), with the solver call recorded."""
+    calls: list[SolverCall] = []
+    solve = reprojection.least_squares
+
+    def recorded(fun: Function, x0: np.ndarray, *, jac: Function, bounds: Any, **kw: Any) -> Any:
+        result = solve(fun, x0, jac=jac, bounds=bounds, **kw)
+        lower, upper = (np.asarray(b, dtype=float) for b in bounds)
+        calls.append(SolverCall(fun, jac, np.array(x0), lower, upper, result.x))
+        return result
+
+    scene = catalog.get("demo")
+    grid = scene.spec.search.grid()
+    simulator = SceneSimulator.from_scene(scene)
+    views = simulator.grid_views(grid)
+    target = simulator.observe(simulator.views([33.7], [47.9]), 0)
+    history = [grid.flat(GridIndex(lat=8, lon=30))]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(reprojection, "least_squares", recorded)
+        for _ in range(10):
+            visits = tuple(
+                Visit(
+                    f, float(grid.theta_deg[f]), float(grid.phi_deg[f]), simulator.observe(views, f)
+                )
+                for f in history
+            )
+            plan = plan_next(SearchProblem(grid, scene.spec.camera, target, visits), "reprojection")
+            if plan.done:
+                break
+            history.append(plan.next_flat)
+    assert calls, "the search never refined a pose"
+    return calls[-1]
+
+
+def central_difference(residuals: Function, x: np.ndarray, h_deg: float = 1e-3) -> np.ndarray:
+    """``∂r/∂x`` ``(m, 2)`` in pixels per degree: ``(r(x + h e_i) − r(x − h e_i)) / 2h``."""
+    columns = []
+    for i in range(len(x)):
+        step = np.zeros_like(x)
+        step[i] = h_deg
+        columns.append((residuals(x + step) - residuals(x - step)) / (2 * h_deg))
+    return np.stack(columns, axis=1)
+
+
+def test_the_jacobian_is_the_derivative_of_the_residuals(solver_call):
+    call = solver_call
+    for x in (call.start, call.found, call.found + np.array([1.5, -2.0])):
+        jacobian = call.jacobian(x)
+        expected = central_difference(call.residuals, x)
+        assert jacobian.shape == (len(call.residuals(x)), 2)
+        assert np.abs(expected).max() > 1.0  # boxes move by pixels per degree: a real test
+        np.testing.assert_allclose(jacobian, expected, rtol=1e-3, atol=1e-3)
+
+
+def test_at_the_theta_bound_the_difference_steps_back_inside(solver_call):
+    """At the upper θ bound a forward step would leave the bounds: it is taken backwards, and the
+    Jacobian is still the residuals' derivative."""
+    call = solver_call
+    x = np.array([call.upper[0], call.found[1] % 360.0])
+    steps = reprojection._forward_steps(x, call.lower, call.upper)
+    assert steps[0] < 0 < steps[1]
+    assert np.all((x + steps >= call.lower) & (x + steps <= call.upper))
+    np.testing.assert_allclose(
+        call.jacobian(x), central_difference(call.residuals, x), rtol=1e-3, atol=1e-3
     )
-    h = _forward_steps(x, LOWER, UPPER)
-    shifted = np.array([residuals(p) for p in x + np.diag(h)])
-    mine = ((shifted - residuals(x)) / ((x + h) - x)[:, np.newaxis]).T
-    assert np.all((x + h >= LOWER) & (x + h <= UPPER))
-    np.testing.assert_array_equal(mine, expected)

@@ -1,0 +1,144 @@
+"""The stages as processes and the controller's search loop over them, for benchmarks.
+
+Renderer, detector and optimizer run as uvicorn processes on loopback (:func:`stage_processes`);
+:class:`Controller` is the controller's own search loop over them, in this process, without its
+HTTP API: a search goes from :func:`~services.controller.submit.create_search` through a
+:class:`~services.controller.runner.SearchRunner` to its end, as ``POST /searches`` runs it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from services.common.contracts.optimize import StrategyName
+from services.common.contracts.search import TERMINAL_STATUSES
+from services.common.launch import spawn_service, stop_service, wait_healthy
+from services.controller.broker import Broker
+from services.controller.events import Notifier
+from services.controller.runner import SearchRunner
+from services.controller.settings import ControllerSettings
+from services.controller.stages import Stages
+from services.controller.store import SearchStore
+from services.controller.submit import create_search
+from services.controller.transport import Transport
+
+__all__ = ["SCENE", "Controller", "StageUrls", "Target", "stage_processes"]
+
+SCENE = "demo"
+STAGES = ("renderer", "detector", "optimizer")
+SEARCH_TIMEOUT_S = 120.0
+
+
+@dataclass(frozen=True)
+class StageUrls:
+    renderer: str
+    detector: str
+    optimizer: str
+
+    def pools(self) -> dict[str, list[str]]:
+        return {
+            "renderer": [self.renderer],
+            "detector": [self.detector],
+            "optimizer": [self.optimizer],
+        }
+
+
+@contextmanager
+def stage_processes(workdir: Path) -> Iterator[StageUrls]:
+    """Renderer, detector and optimizer as uvicorn processes on free loopback ports."""
+    started = [spawn_service(f"services.{name}.app:app", workdir) for name in STAGES]
+    try:
+        for process in started:
+            wait_healthy(process, 120.0)
+        yield StageUrls(*(process.url for process in started))
+    finally:
+        for process in started:
+            stop_service(process)
+
+
+@dataclass(frozen=True)
+class Target:
+    """A target image to search for, and where its search starts."""
+
+    image: bytes
+    start_theta_deg: float
+    start_phi_deg: float
+    seed: int
+    scene: str = SCENE
+
+
+class Controller:
+    """The controller's search loop over one transport (the broker's own unless given), with its
+    own store and runner; ``stages`` makes its stage calls."""
+
+    def __init__(
+        self,
+        urls: StageUrls,
+        transport: Transport | None,
+        database: Path,
+        stages: type[Stages] = Stages,
+    ) -> None:
+        self.settings = ControllerSettings(database_url=f"sqlite:///{database}")
+        self.broker = Broker(urls.pools(), transport=transport, health_interval_s=0)
+        self.stages = stages(self.broker, render_spp=self.settings.controller_view_spp)
+        self.store = SearchStore(self.settings.database_url)
+        self.notifier = Notifier()
+        self.runner = SearchRunner(self.store, self.stages, self.notifier, 1)
+
+    async def start(self) -> None:
+        await self.runner.start()
+
+    async def close(self) -> None:
+        # A worker cancelled before it has seen its search end takes the cancellation for the
+        # search's and carries on (SearchRunner._work), and close() would wait for it forever.
+        while self.runner.running:
+            await asyncio.sleep(0)
+        await self.runner.close()
+        await self.broker.close()
+        self.store.close()
+
+    async def _ended(self, search_id: str) -> None:
+        with self.notifier.following(search_id):
+            while True:
+                changed = self.notifier.current(search_id)
+                state = self.store.status_doc(search_id)
+                if state is not None and state[0] in TERMINAL_STATUSES:
+                    return
+                await changed.wait()
+
+    async def search(self, target: Target, strategy: StrategyName) -> tuple[float, int]:
+        """One search as ``POST /searches`` runs it: wall milliseconds and stage calls."""
+        t0 = time.perf_counter()
+        record = await create_search(
+            self.store,
+            self.stages,
+            image=target.image,
+            scene_id=target.scene,
+            strategy=strategy,
+            start_theta_deg=target.start_theta_deg,
+            start_phi_deg=target.start_phi_deg,
+            seed=target.seed,
+            max_iterations=self.settings.default_max_iterations,
+            max_image_pixels=self.settings.max_image_pixels,
+            max_image_side=self.settings.max_image_side,
+            start_early=self.runner.idle,
+        )
+        self.runner.submit(record.id, recorded=(record, target.image))
+        try:
+            async with asyncio.timeout(SEARCH_TIMEOUT_S):
+                await self._ended(record.id)
+        except TimeoutError:
+            state = self.store.status_doc(record.id)
+            raise RuntimeError(f"search {record.id} still {state and state[0]}") from None
+        wall_ms = (time.perf_counter() - t0) * 1000
+        search = self.store.get(record.id)
+        if search is None or search.status != "succeeded" or search.result is None:
+            raise RuntimeError(f"search {record.id} ended {search and search.status}")
+        iterations = len(self.store.iterations(record.id))
+        renders = search.result.renders
+        return wall_ms, 2 * renders + 1 + iterations  # renders, detections (+ target), plans
