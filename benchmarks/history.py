@@ -140,7 +140,7 @@ async def measure(
     """Per quantity and k, the samples (module docstring); render and detect under k = 0."""
     settings = OptimizerSettings()
     context = OptimizerContext(
-        calibrations=CalibrationStore.load(settings.paper_calibration),
+        calibrations=CalibrationStore.load(settings.optimizer_paper_calibration),
         catalog=SceneCatalog(settings.scene_directories()),
     )
     steps = [k for k in STEPS if k <= len(full.history)]

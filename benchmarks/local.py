@@ -83,10 +83,10 @@ class Controller:
         database: Path,
         stages: type[Stages] = Stages,
     ) -> None:
-        self.settings = ControllerSettings(database_url=f"sqlite:///{database}")
+        self.settings = ControllerSettings(controller_database_url=f"sqlite:///{database}")
         self.broker = Broker(urls.pools(), transport=transport, health_interval_s=0)
         self.stages = stages(self.broker, render_spp=self.settings.controller_view_spp)
-        self.store = SearchStore(self.settings.database_url)
+        self.store = SearchStore(self.settings.controller_database_url)
         self.notifier = Notifier()
         self.runner = SearchRunner(self.store, self.stages, self.notifier, 1)
 
@@ -123,9 +123,9 @@ class Controller:
             start_theta_deg=target.start_theta_deg,
             start_phi_deg=target.start_phi_deg,
             seed=target.seed,
-            max_iterations=self.settings.default_max_iterations,
-            max_image_pixels=self.settings.max_image_pixels,
-            max_image_side=self.settings.max_image_side,
+            max_iterations=self.settings.controller_default_max_iterations,
+            max_image_pixels=self.settings.controller_max_image_pixels,
+            max_image_side=self.settings.controller_max_image_side,
             start_early=self.runner.idle,
         )
         self.runner.submit(record.id, recorded=(record, target.image))
