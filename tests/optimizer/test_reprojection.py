@@ -9,12 +9,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from services.optimizer.simulator import SceneSimulator
 
 from services.common.geometry.pose import GridIndex
 from services.optimizer import reprojection
 from services.optimizer.problem import SearchProblem, Visit
 from services.optimizer.strategies import plan_next
+from simulation import SceneSimulator
 
 Function = Callable[[np.ndarray], np.ndarray]
 
