@@ -37,7 +37,7 @@ import logging
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import Unpack
+from typing import Any, Unpack
 
 from pydantic import ValidationError
 
@@ -127,6 +127,14 @@ def _stage_call() -> Iterator[None]:
         yield
     except (StageError, BrokerError) as exc:
         raise _stage_failure(exc) from exc
+
+
+def _retrieve(task: asyncio.Task[Any]) -> None:
+    """Mark a finished task's exception as retrieved. Its awaiter may have stopped before
+    awaiting it (another stage call failed first), and asyncio would log "Task exception was
+    never retrieved" for an error the search already answers with its own."""
+    if not task.cancelled():
+        task.exception()
 
 
 def _unreadable_answer(exc: ValidationError) -> SearchFailed:
@@ -522,13 +530,12 @@ class SearchRunner:
         Returns the view, the target's detections (or None), render and detect milliseconds.
         """
         sid = search.id
-        target_task = (
-            asyncio.create_task(
+        target_task = None
+        if target_image is not None:
+            target_task = asyncio.create_task(
                 self._detect(target_image, media_type_of(target_image), sid, search.scene)
             )
-            if target_image is not None
-            else None
-        )
+            target_task.add_done_callback(_retrieve)
         try:
             t0 = time.perf_counter()
             with _stage_call():
@@ -550,6 +557,7 @@ class SearchRunner:
     ) -> tuple[_View, DetectResponse | None, float, float]:
         """:meth:`_observe`, with the search's waiting writes done once its requests are out."""
         observing = asyncio.create_task(self._observe(search, pose, target_image))
+        observing.add_done_callback(_retrieve)  # when a write fails before it is awaited
         try:
             # The render request goes out first. It takes the loop a few turns: the task's first
             # step, then (before Python 3.12) aiohttp writes the body from a task of its own.

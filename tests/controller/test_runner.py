@@ -5,7 +5,9 @@ resumption from what was recorded, and object classes sent only for the scene's 
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
+import logging
 import re
 from collections import Counter
 
@@ -460,3 +462,32 @@ def test_a_bug_fails_the_search_with_an_internal_error_and_logs_it(tmp_path, det
     crash = next(r for r in caplog.records if r.name == "cosmos.controller" and r.exc_info)
     assert crash.exc_info is not None
     assert crash.exc_info[1] is bug
+
+
+class SlowRender(FakeStages):
+    """Renders take a moment: the target's detection, started beside the render, ends first."""
+
+    async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+        await asyncio.sleep(0.02)
+        return await super().render(scene_id, index, request_id)
+
+
+def test_a_target_detection_that_fails_while_the_render_fails_too_is_not_left_unretrieved(
+    tmp_path, detail, caplog
+):
+    """The target's detection fails first, the render then fails as well: the search fails with
+    the render's error, and asyncio has no "Task exception was never retrieved" to log."""
+    refused = ProblemDetails(title="Bad request", status=422, detail="not an image")
+    stages = SlowRender(
+        detail,
+        faults={
+            "detect target": (0, StageError("detector", refused)),
+            "render": (0, StageError("renderer", refused)),
+        },
+    )
+    with caplog.at_level(logging.ERROR, logger="asyncio"):
+        final = run(tmp_path, stages)
+        gc.collect()  # an unretrieved exception is logged when its task is collected
+    assert_failed(final, "stage-refused", 422, "Renderer refused", "not an image")
+    assert stages.calls["detect target"] == 1
+    assert "never retrieved" not in caplog.text
