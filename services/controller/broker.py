@@ -14,14 +14,22 @@ A connect error, a timeout or a 5xx answer sends the task to another replica aft
 backoff; a replica that fails ``failure_threshold`` times in a row is taken out for
 ``cooldown_s`` and then probed back through ``/health``. A task fails, with the reasons, only when
 no replica could serve it. 4xx answers are the caller's problem and are returned as they are.
+
+A stage is *unavailable* (:meth:`Broker.unavailable`) while it has no replica, while every
+replica is out, or from a task that no replica could serve until a replica serves a task or
+answers ``/health`` again. Who wants to wait for it to come back calls
+:meth:`Broker.wait_for_replica`: one prober per stage then asks its replicas' ``/health`` every
+``recovery_probe_s`` (more often than the background probe) until one answers.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import logging
 import time
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -96,6 +104,7 @@ class Broker:
         failure_threshold: int = 3,
         cooldown_s: float = 5.0,
         health_interval_s: float = 2.0,
+        recovery_probe_s: float = 0.5,
         transport: Transport | None = None,
     ) -> None:
         if max_attempts < 1 or failure_threshold < 1:
@@ -106,6 +115,7 @@ class Broker:
         self.failure_threshold = failure_threshold
         self.cooldown_s = cooldown_s
         self.health_interval_s = health_interval_s
+        self.recovery_probe_s = recovery_probe_s
         self._timeouts = dict(timeouts_s or {})
         self._transport = transport or AiohttpTransport(connect_timeout_s)
         self._replicas: dict[str, list[Replica]] = {}
@@ -114,6 +124,11 @@ class Broker:
             self._replicas[stage] = [self._replica(stage, url) for url in urls]
             self._turns[stage] = itertools.count()
         self._health_task: asyncio.Task[None] | None = None
+        # stage -> when its task last failed on every attempt (none served or answered since)
+        self._outages: dict[str, float] = {}
+        self._back: dict[str, asyncio.Event] = {}  # set when a replica of the stage answers
+        self._recoveries: dict[str, asyncio.Task[None]] = {}
+        self._waiting: Counter[str] = Counter()  # callers in wait_for_replica, per stage
 
     def _replica(self, stage: str, url: str) -> Replica:
         return Replica(stage=stage, url=url.rstrip("/"))
@@ -133,13 +148,16 @@ class Broker:
             self._health_task = asyncio.create_task(self._probe_forever(), name="broker-health")
 
     async def close(self) -> None:
+        tasks = [*self._recoveries.values()]
         if self._health_task is not None:
-            self._health_task.cancel()
-            try:
-                await self._health_task
-            except asyncio.CancelledError:
-                pass
-            self._health_task = None
+            tasks.append(self._health_task)
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._health_task = None
+        self._recoveries.clear()
         await self._transport.close()
 
     # -- introspection ------------------------------------------------------------------------
@@ -166,6 +184,17 @@ class Broker:
             for r in self.replicas()
         ]
 
+    def unavailable(self) -> list[str]:
+        """The stages no replica serves now: those without replicas, those whose every replica
+        is out, and those whose last task no replica could serve, until a replica serves a task
+        or answers ``/health`` again."""
+        now = time.monotonic()
+        return [
+            stage
+            for stage, pool in self._replicas.items()
+            if stage in self._outages or not any(r.available(now) for r in pool)
+        ]
+
     # -- placement ----------------------------------------------------------------------------
 
     def _expected_ms(self, replica: Replica, kind: str, pool: Sequence[Replica]) -> float:
@@ -179,6 +208,7 @@ class Broker:
         for cooldown, unless every replica is)."""
         pool = self._replicas.get(stage, [])
         if not pool:
+            self._outages.setdefault(stage, time.monotonic())
             raise BrokerError(stage, kind, [])
         now = time.monotonic()
         exclude = exclude or set()
@@ -228,6 +258,7 @@ class Broker:
             self._failed(replica, reason)
             reasons.append(reason)
             tried.add(replica.url)
+        self._outages.setdefault(stage, time.monotonic())
         raise BrokerError(stage, kind, reasons)
 
     def _succeeded(self, replica: Replica, kind: str, elapsed_ms: float) -> None:
@@ -238,6 +269,7 @@ class Broker:
         replica.consecutive_failures = 0
         replica.down_until = 0.0
         replica.served += 1
+        self._answered(replica.stage)
 
     def _failed(self, replica: Replica, reason: str) -> None:
         replica.failed += 1
@@ -270,6 +302,52 @@ class Broker:
             _log.info("%s answers /health again", replica.url)
         replica.down_until = 0.0
         replica.consecutive_failures = 0
+        self._answered(replica.stage)
+
+    def _answered(self, stage: str) -> None:
+        """A replica of ``stage`` served a task or answered ``/health``: the stage is back."""
+        if self._outages.pop(stage, None) is not None:
+            _log.info("the %s is available again", stage)
+        back = self._back.pop(stage, None)
+        if back is not None:
+            back.set()
+
+    async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
+        """Wait until a replica of ``stage`` serves a task or answers ``/health`` (meanwhile the
+        stage's replicas are probed every ``recovery_probe_s``); False if none did within
+        ``timeout_s``.
+
+        For a caller whose task no replica could serve: it calls again once this is true.
+        """
+        if stage not in self.unavailable():
+            return True  # one answered since the caller's task failed
+        back = self._back.setdefault(stage, asyncio.Event())
+        self._waiting[stage] += 1
+        recovery = self._recoveries.get(stage)
+        if recovery is None or recovery.done():
+            self._recoveries[stage] = asyncio.create_task(
+                self._recover(stage), name=f"broker-recover-{stage}"
+            )
+        try:
+            await asyncio.wait_for(back.wait(), timeout_s)
+        except TimeoutError:
+            return False
+        finally:
+            self._waiting[stage] -= 1
+            if not self._waiting[stage]:
+                del self._waiting[stage]
+                if self._back.get(stage) is back:
+                    del self._back[stage]
+        return True
+
+    async def _recover(self, stage: str) -> None:
+        """Probe ``stage``'s replicas until one answers, while anyone waits for one."""
+        while self._waiting[stage]:
+            await asyncio.sleep(self.recovery_probe_s)
+            try:
+                await asyncio.gather(*(self._probe(r) for r in self.replicas(stage)))
+            except Exception:  # a probe must never end the recovery
+                _log.exception("probing the %s failed", stage)
 
     async def _probe_forever(self) -> None:
         while True:

@@ -228,3 +228,90 @@ async def test_a_new_pool_keeps_what_is_known_of_remaining_replicas():
     assert [r.url for r in broker.replicas("renderer")] == ["http://a", "http://d"]
     assert broker.replicas("renderer")[0].expected_ms == {"render": 42.0}
     await broker.close()
+
+
+# -- outages: a stage no replica serves ---------------------------------------------------------
+
+
+def outage_broker(up: dict[str, bool], health_calls: Counter | None = None) -> Broker:
+    """Replicas a, b, c: tasks and ``/health`` fail while ``up[host]`` is false."""
+
+    def behaviour(host, request):
+        if request.path == "/health" and health_calls is not None:
+            health_calls[host] += 1
+        if not up[host]:
+            raise TransportError("ClientConnectorError: refused")
+        return answer(200, {"in_flight": 0})
+
+    return mock_broker(behaviour, recovery_probe_s=0.01)
+
+
+async def test_a_stage_is_unavailable_from_a_task_nobody_served_until_a_replica_answers():
+    up = {"a": False, "b": False, "c": False}
+    broker = outage_broker(up)
+    assert broker.unavailable() == []
+    with pytest.raises(BrokerError):
+        await broker.call("renderer", "render", work)
+    # not every replica is out yet (3 of 4 attempts spread over 3), but nobody served the task
+    assert any(r.up for r in broker.stats())
+    assert broker.unavailable() == ["renderer"]
+    await broker.probe()
+    assert broker.unavailable() == ["renderer"]
+    up["b"] = True
+    await broker.probe()
+    assert broker.unavailable() == []
+    await broker.close()
+
+
+async def test_a_stage_whose_every_replica_is_out_or_that_has_none_is_unavailable():
+    broker = outage_broker({"a": True, "b": True, "c": True})
+    for replica in broker.replicas("renderer"):
+        replica.down_until = float("inf")
+    await broker.set_pool("detector", [])
+    assert broker.unavailable() == ["renderer", "detector"]
+    await broker.close()
+
+
+async def test_waiting_for_a_replica_probes_the_stage_until_one_answers():
+    up = {"a": False, "b": False, "c": False}
+    health = Counter()
+    broker = outage_broker(up, health)
+    with pytest.raises(BrokerError):
+        await broker.call("renderer", "render", work)
+    waiters = [asyncio.create_task(broker.wait_for_replica("renderer", 10.0)) for _ in range(20)]
+    await asyncio.sleep(0.1)
+    assert not any(w.done() for w in waiters)
+    probed = sum(health.values())
+    assert 3 * 3 <= probed <= 3 * 12  # one prober for every waiter: ~10 rounds of 3 probes
+    up["c"] = True
+    assert await asyncio.wait_for(asyncio.gather(*waiters), 1.0) == [True] * 20
+    assert broker.unavailable() == []
+    assert (await broker.call("renderer", "render", work)).status_code == 200
+    await asyncio.sleep(0.05)
+    assert all(task.done() for task in broker._recoveries.values())  # nobody waits: no probes
+    await broker.close()
+
+
+async def test_a_wait_for_a_stage_that_stays_away_times_out():
+    health = Counter()
+    broker = outage_broker({"a": False, "b": False, "c": False}, health)
+    with pytest.raises(BrokerError):
+        await broker.call("renderer", "render", work)
+    assert not await broker.wait_for_replica("renderer", 0.05)
+    await asyncio.sleep(0.05)
+    probed = sum(health.values())
+    await asyncio.sleep(0.05)
+    assert sum(health.values()) == probed  # the prober stopped with its last waiter
+    assert broker.unavailable() == ["renderer"]
+    await broker.close()
+
+
+async def test_a_wait_for_a_stage_that_answered_meanwhile_returns_at_once():
+    up = {"a": False, "b": False, "c": False}
+    broker = outage_broker(up)
+    with pytest.raises(BrokerError):
+        await broker.call("renderer", "render", work)
+    up.update(a=True, b=True, c=True)
+    await broker.probe()
+    assert await asyncio.wait_for(broker.wait_for_replica("renderer", 10.0), 0.01)
+    await broker.close()
