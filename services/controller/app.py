@@ -61,7 +61,13 @@ def create_app(
             render_width=settings.controller_view_width,
         )
         notifier = Notifier()
-        runner = SearchRunner(store, stages, notifier, settings.controller_max_concurrent_searches)
+        runner = SearchRunner(
+            store,
+            stages,
+            notifier,
+            settings.controller_max_concurrent_searches,
+            outage_budget_s=settings.controller_outage_budget_s,
+        )
         await broker.start()
         discovery = (
             asyncio.create_task(_discover(broker, settings))

@@ -7,7 +7,14 @@ objects in it and asks the optimizer for the next pose, until the optimizer says
 A search that runs out of iterations, or whose strategy goes round in circles, still succeeds,
 with an *unconfirmed* answer (``result.confirmed`` false): the visited pose whose view matched
 the target best by the optimizer's match score. Only real errors fail a search (a stage
-unavailable or refusing, nothing detected in the target, a grid the optimizer cannot search).
+unavailable for longer than ``outage_budget_s`` or refusing, nothing detected in the target, a
+grid the optimizer cannot search).
+
+Outages: a stage call that no replica serves waits for a replica to answer again (the broker
+probes the stage meanwhile) and is made again, for up to ``outage_budget_s`` after it first
+failed; the search's time goes into the waiting call's stage time. A search that waited longer
+fails with :data:`OUTAGE` and can be queued again with :meth:`SearchRunner.retry`: it resumes from
+its recorded iterations like a search after a restart.
 
 Detector classes: when the target was detected by the scene's own model (``model.scene`` is
 the search's scene), its labels are the scene's object classes and the optimizer is told so
@@ -35,9 +42,9 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
-from typing import Any, Unpack
+from typing import Any, TypeVar, Unpack
 
 from pydantic import ValidationError
 
@@ -69,9 +76,14 @@ from services.controller.events import Notifier
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchChanges, SearchStore
 
-__all__ = ["SearchRunner"]
+__all__ = ["OUTAGE", "NotRetryable", "SearchRunner", "why_not_retryable"]
 
 _log = logging.getLogger("cosmos.controller")
+T = TypeVar("T")
+
+
+class NotRetryable(Exception):
+    """A search that :meth:`SearchRunner.retry` does not queue again; the message says why."""
 
 
 class SearchFailed(Exception):
@@ -98,35 +110,60 @@ class _View:
     model: str | None = None
 
 
-def _stage_failure(exc: StageError | BrokerError) -> SearchFailed:
-    """The search's failure when a stage refused its task or no replica could serve it.
+def _refused(exc: StageError) -> SearchFailed:
+    """The search's failure when a stage refused its task (a 4xx answer)."""
+    problem = exc.problem
+    detail = f"the {exc.stage} refused a task: {problem.detail or problem.title}"
+    return _failure("stage-refused", f"{exc.stage.capitalize()} refused", detail, 422)
+
+
+OUTAGE = problem_type("stage-unavailable")
+"""The ``type`` of a search's error when a stage was unavailable for longer than the search
+waits: such a search can be resumed (:meth:`SearchRunner.retry`)."""
+
+
+def _outage(exc: BrokerError, search_id: str, budget_s: float) -> SearchFailed:
+    """The search's failure when no replica of a stage served its task and none came back within
+    ``budget_s``: what happened and what to do, in words for whoever submitted it.
 
     The broker's reasons name replica addresses: they go to the log (:meth:`SearchRunner._run`),
     not into the search's error, which every client reads.
     """
-    if isinstance(exc, StageError):
-        problem = exc.problem
-        detail = f"the {exc.stage} refused a task: {problem.detail or problem.title}"
-        return _failure("stage-refused", f"{exc.stage.capitalize()} refused", detail, 422)
+    stage = exc.stage
     if exc.reasons:
-        attempts = f"{len(exc.reasons)} attempt{'s' if len(exc.reasons) > 1 else ''}"
-        why = (
-            f"no {exc.stage} replica could {exc.kind} after {attempts} (each timed out, refused "
-            "the connection or answered with a server error)"
+        what = (
+            f"the {stage} was unavailable (no replica could {exc.kind}: each timed out, refused "
+            f"the connection or answered with a server error) and did not come back within "
+            f"{budget_s:g} s"
         )
     else:
-        why = f"no {exc.stage} replica is known (none configured or discovered)"
-    detail = f"{why}; the controller's /health lists them: search again once one is up"
-    return _failure("stage-unavailable", f"No {exc.stage} available", detail, 503)
+        what = (
+            f"no {stage} replica is known (none configured or discovered) and none appeared "
+            f"within {budget_s:g} s"
+        )
+    detail = (
+        f"{what}; once GET /health no longer lists the {stage} as unavailable, resume the search "
+        f"with POST /searches/{search_id}/retry"
+    )
+    return SearchFailed(
+        ProblemDetails(type=OUTAGE, title=f"No {stage} available", status=503, detail=detail)
+    )
 
 
-@contextlib.contextmanager
-def _stage_call() -> Iterator[None]:
-    """Inside: a stage that refuses, or that no replica serves, fails the search."""
-    try:
-        yield
-    except (StageError, BrokerError) as exc:
-        raise _stage_failure(exc) from exc
+def why_not_retryable(search: Search) -> str | None:
+    """Why :meth:`SearchRunner.retry` would refuse ``search``, or None if it would take it."""
+    if search.status != "failed":
+        return (
+            f"search {search.id} is {search.status}: only a search that failed because a stage "
+            "was unavailable can be retried"
+        )
+    if search.error is None or search.error.type != OUTAGE:
+        why = search.error.title if search.error is not None else "no error recorded"
+        return (
+            f"search {search.id} failed for a reason a retry does not change ({why}); only a "
+            "search that failed because a stage was unavailable can be retried"
+        )
+    return None
 
 
 def _retrieve(task: asyncio.Task[Any]) -> None:
@@ -404,12 +441,19 @@ class SearchRunner:
     """Runs queued searches on a bounded number of workers."""
 
     def __init__(
-        self, store: SearchStore, stages: Stages, notifier: Notifier, max_concurrent: int
+        self,
+        store: SearchStore,
+        stages: Stages,
+        notifier: Notifier,
+        max_concurrent: int,
+        *,
+        outage_budget_s: float = 60.0,
     ) -> None:
         self.store = store
         self.stages = stages
         self.notifier = notifier
         self.max_concurrent = max_concurrent
+        self.outage_budget_s = outage_budget_s
         self._queue: asyncio.Queue[str] = asyncio.Queue()
         self._workers: list[asyncio.Task[None]] = []
         self._running: dict[str, asyncio.Task[None]] = {}
@@ -468,6 +512,24 @@ class SearchRunner:
         self.notifier.publish(search_id)
         return search
 
+    def retry(self, search_id: str) -> Search:
+        """Queue again a search that failed because a stage was unavailable for longer than it
+        waits (:data:`OUTAGE`): it resumes from its recorded iterations, as after a restart.
+
+        Raises ``KeyError`` for an unknown search and :class:`NotRetryable` for any other.
+        """
+        search = self.store.get(search_id)
+        if search is None:
+            raise KeyError(search_id)
+        why = why_not_retryable(search)
+        if why is not None:
+            raise NotRetryable(why)
+        search = self.store.reopen(search_id)
+        _log.info("retrying search %s", search_id)
+        self.submit(search_id)
+        self.notifier.publish(search_id)
+        return search
+
     async def _work(self) -> None:
         while True:
             search_id = await self._queue.get()
@@ -518,9 +580,43 @@ class SearchRunner:
             self.stages.forget_early(search_id)  # a start view the search did not take
             self.notifier.publish(search_id)
 
+    async def _stage(self, search_id: str, call: Callable[[], Awaitable[T]]) -> T:
+        """``call()``, one stage call of a search, riding out an outage of its stage.
+
+        When no replica serves the call (:class:`BrokerError`), the search waits for one to
+        answer again (:meth:`Stages.wait_for_replica`: the broker probes the stage meanwhile)
+        and calls again, for up to ``outage_budget_s`` after the first failure. A stage that
+        refuses the call, or stays away longer, fails the search.
+        """
+        since: float | None = None
+        while True:
+            try:
+                answer = await call()
+            except StageError as exc:
+                raise _refused(exc) from exc
+            except BrokerError as exc:
+                now = time.monotonic()
+                if since is None:
+                    since = now
+                    _log.warning(
+                        "search %s waits up to %g s for the %s: %s",
+                        search_id,
+                        self.outage_budget_s,
+                        exc.stage,
+                        exc,
+                    )
+                left = since + self.outage_budget_s - now
+                if left <= 0 or not await self.stages.wait_for_replica(exc.stage, left):
+                    raise _outage(exc, search_id, self.outage_budget_s) from exc
+                continue
+            if since is not None:
+                _log.info("search %s goes on after %.1f s", search_id, time.monotonic() - since)
+            return answer
+
     async def _detect(self, image: bytes, media_type: str, sid: str, scene: str) -> DetectResponse:
-        with _stage_call():
-            return await self.stages.detect(image, media_type, sid, scene=scene)
+        return await self._stage(
+            sid, lambda: self.stages.detect(image, media_type, sid, scene=scene)
+        )
 
     async def _observe(
         self, search: Search, pose: GridPose, target_image: bytes | None
@@ -538,8 +634,9 @@ class SearchRunner:
             target_task.add_done_callback(_retrieve)
         try:
             t0 = time.perf_counter()
-            with _stage_call():
-                view_image = await self.stages.render(search.scene, pose.index, sid)
+            view_image = await self._stage(
+                sid, lambda: self.stages.render(search.scene, pose.index, sid)
+            )
             t1 = time.perf_counter()
             found = await self._detect(view_image, media_type_of(view_image), sid, search.scene)
             t2 = time.perf_counter()
@@ -623,8 +720,7 @@ class SearchRunner:
         """The search's scene and grid, and what it recorded before (nothing when new). A search
         resumed before its target's detections were recorded detects the target ``image`` again.
         """
-        with _stage_call():
-            scene = await self.stages.scene(search.scene, search.id)
+        scene = await self._stage(search.id, lambda: self.stages.scene(search.scene, search.id))
         try:
             grid = searchable_grid(scene.spec.search)
         except UnsupportedGridError as exc:  # the scene file changed since the search was taken
@@ -679,8 +775,8 @@ class SearchRunner:
         request = progress.request(target, pose, view)
         t0 = time.perf_counter()
         try:
-            with _stage_call():
-                answer = await self.stages.optimize(request, progress.search.id)
+            sid = progress.search.id
+            answer = await self._stage(sid, lambda: self.stages.optimize(request, sid))
         except ValidationError as exc:
             raise _unreadable_answer(exc) from exc
         return answer, (time.perf_counter() - t0) * 1000

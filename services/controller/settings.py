@@ -67,6 +67,9 @@ class ControllerSettings(ServiceSettings):
     controller_detect_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
     controller_optimize_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
     controller_connect_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    controller_outage_budget_s: Annotated[float, Field(ge=0, le=3600)] = 60.0
+    """How long a search waits for a stage that no replica serves to come back before it fails
+    (0: it fails at once); a search failed so can be resumed (``POST /searches/{id}/retry``)."""
     controller_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
     controller_max_image_pixels: Annotated[int, Field(ge=64)] = 4096 * 4096
     controller_max_image_side: Annotated[int, Field(ge=8)] = 8192

@@ -119,6 +119,11 @@ class Stages:
         response = await self._call("optimizer", "optimize", call)
         return NextPoseResponse.model_validate_json(response.content)
 
+    async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
+        """Wait until a replica of ``stage`` answers again (see
+        :meth:`Broker.wait_for_replica`); False if none did within ``timeout_s``."""
+        return await self.broker.wait_for_replica(stage, timeout_s)
+
     async def _call(self, stage: str, kind: str, request: StageRequest) -> StageAnswer:
         """``request`` through the broker; any answer but 200 is the stage's :class:`StageError`."""
         response = await self.broker.call(stage, kind, request)

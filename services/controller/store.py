@@ -216,6 +216,22 @@ class SearchStore:
         )
         return search
 
+    def reopen(self, search_id: str) -> Search:
+        """Queue a finished search again: status ``queued``, its error dropped (it resumes from
+        its recorded iterations); stamps ``updated_at``."""
+        with self._lock:
+            row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
+            if row is None:
+                raise KeyError(search_id)
+            search = Search.model_validate_json(row[0]).model_copy(
+                update={"status": "queued", "error": None, "updated_at": utcnow()}
+            )
+            self._db.execute(
+                "UPDATE searches SET status = ?, doc = ? WHERE id = ?",
+                (search.status, search.model_dump_json(), search_id),
+            )
+        return search
+
     def unfinished(self) -> list[str]:
         """Ids of queued and running searches, oldest first (to resume after a restart)."""
         with self._lock:

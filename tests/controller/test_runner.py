@@ -9,6 +9,7 @@ import gc
 import json
 import logging
 import re
+import time
 from collections import Counter
 
 import pytest
@@ -28,7 +29,7 @@ from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
 from services.controller.broker import BrokerError
 from services.controller.events import Notifier
-from services.controller.runner import SearchRunner
+from services.controller.runner import NotRetryable, SearchRunner
 from services.controller.stages import StageError
 from services.controller.store import SearchStore, utcnow
 
@@ -43,6 +44,10 @@ class FakeStages:
 
     ``faults`` scripts failures: a call (``scene``, ``render``, ``detect target``, ``detect view``,
     ``optimize``) answers ``n`` times, then raises the error. ``calls`` counts every call.
+
+    A stage no replica serves comes back, its faults gone, at the ``back_after``-th wait for it
+    (:meth:`wait_for_replica`); until then (or always, for None) a wait times out. ``waits``
+    records each wait: the stage and its timeout.
     """
 
     def __init__(
@@ -54,6 +59,7 @@ class FakeStages:
         done_after=99,
         boxes=1,
         faults: dict[str, tuple[int, BaseException]] | None = None,
+        back_after: int | None = None,
     ):
         self.detail = scene
         self.grid = scene.grid.grid()
@@ -62,6 +68,8 @@ class FakeStages:
         self.done_after = done_after
         self.boxes = boxes
         self.faults = faults or {}
+        self.back_after = back_after
+        self.waits: list[tuple[str, float]] = []
         self.calls: Counter[str] = Counter()
         self.requests: list[NextPoseRequest] = []
 
@@ -71,6 +79,14 @@ class FakeStages:
             answers, error = self.faults[name]
             if self.calls[name] > answers:
                 raise error
+
+    async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
+        self.waits.append((stage, timeout_s))
+        await asyncio.sleep(0)
+        if self.back_after is None or len(self.waits) < self.back_after:
+            return False
+        self.faults.clear()
+        return True
 
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
         self._call("scene")
@@ -167,9 +183,15 @@ def stored(tmp_path, stages: FakeStages, max_iterations: int = 6) -> SearchStore
     return store
 
 
-def run_stored(store: SearchStore, stages: FakeStages) -> Search:
+def run_stored(store: SearchStore, stages: FakeStages, outage_budget_s: float = 60.0) -> Search:
     """Run search ``s1`` of ``store`` on a fresh runner (as a restarted controller would)."""
-    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+    runner = SearchRunner(
+        store,
+        stages,  # type: ignore[arg-type]
+        Notifier(),
+        max_concurrent=1,
+        outage_budget_s=outage_budget_s,
+    )
 
     async def go() -> None:
         await runner._run("s1")
@@ -180,8 +202,10 @@ def run_stored(store: SearchStore, stages: FakeStages) -> Search:
     return final
 
 
-def run(tmp_path, stages: FakeStages, max_iterations: int = 6) -> Search:
-    return run_stored(stored(tmp_path, stages, max_iterations), stages)
+def run(
+    tmp_path, stages: FakeStages, max_iterations: int = 6, outage_budget_s: float = 60.0
+) -> Search:
+    return run_stored(stored(tmp_path, stages, max_iterations), stages, outage_budget_s)
 
 
 def test_a_search_out_of_iterations_answers_its_best_visited_pose(tmp_path, detail):
@@ -386,19 +410,73 @@ def test_a_stage_that_refuses_fails_the_search_with_its_reason(
 def test_a_stage_nobody_serves_fails_the_search_naming_the_stage_not_its_replicas(
     tmp_path, detail, caplog, call, answers, stage, kind, why
 ):
+    """The stage stays away longer than the search waits: the error says what happened and how
+    to resume the search."""
     stages = FakeStages(detail, faults={call: (answers, unavailable(stage, kind))})
-    final = run(tmp_path, stages)
+    final = run(tmp_path, stages, outage_budget_s=60.0)
     assert_failed(
-        final, "stage-unavailable", 503, f"No {stage} available", stage, "3 attempts", "again"
+        final,
+        "stage-unavailable",
+        503,
+        f"No {stage} available",
+        f"the {stage} was unavailable",
+        "did not come back within 60 s",
+        "POST /searches/s1/retry",
     )
     assert len(final.iterations) == answers
+    assert [stage for stage, _ in stages.waits] == [stage]
+    assert 59.0 < stages.waits[0][1] <= 60.0
     assert REPLICAS[1] in caplog.text  # the operator still learns which replicas failed
 
 
-def test_one_failed_attempt_is_one_attempt(tmp_path, detail):
+@pytest.mark.parametrize(("call", "answers", "stage", "kind", "why"), STAGE_CALLS)
+def test_a_stage_that_comes_back_within_the_budget_is_called_again(
+    tmp_path, detail, call, answers, stage, kind, why
+):
+    stages = FakeStages(
+        detail, faults={call: (answers, unavailable(stage, kind))}, back_after=1, done_after=3
+    )
+    final = run(tmp_path, stages)
+    assert final.status == "succeeded", final.error
+    assert [stage for stage, _ in stages.waits] == [stage]
+    assert final.result is not None
+    assert final.result.renders == 3
+    assert stages.calls["render"] == 3 + (call == "render")  # only the failed call is repeated
+
+
+def test_a_search_without_an_outage_budget_fails_at_once(tmp_path, detail):
     gone = BrokerError("optimizer", "optimize", [f"{REPLICAS[0]}: HTTP 502"])
-    final = run(tmp_path, FakeStages(detail, faults={"optimize": (0, gone)}))
-    assert_failed(final, "stage-unavailable", 503, "No optimizer available", "after 1 attempt (")
+    stages = FakeStages(detail, faults={"optimize": (0, gone)}, back_after=1)
+    final = run(tmp_path, stages, outage_budget_s=0.0)
+    assert_failed(
+        final, "stage-unavailable", 503, "No optimizer available", "did not come back within 0 s"
+    )
+    assert stages.waits == []
+
+
+class BackButBroken(FakeStages):
+    """The stage answers /health again at once, yet every task still fails (a replica that is
+    up but broken): the search keeps trying only until its outage budget is spent."""
+
+    async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
+        self.waits.append((stage, timeout_s))
+        await asyncio.sleep(0.01)
+        return True
+
+
+def test_a_stage_that_answers_health_but_fails_every_task_fails_the_search_in_time(
+    tmp_path, detail
+):
+    gone = unavailable("detector", "detect")
+    stages = BackButBroken(detail, faults={"detect view": (0, gone)})
+    started = time.monotonic()
+    final = run(tmp_path, stages, outage_budget_s=0.2)
+    assert time.monotonic() - started < 2.0
+    assert_failed(final, "stage-unavailable", 503, "No detector available", "within 0.2 s")
+    assert 5 <= len(stages.waits) <= 25
+    assert [timeout for _, timeout in stages.waits] == sorted(
+        (timeout for _, timeout in stages.waits), reverse=True
+    )
 
 
 def test_a_stage_without_replicas_fails_the_search_saying_so(tmp_path, detail):
@@ -491,3 +569,45 @@ def test_a_target_detection_that_fails_while_the_render_fails_too_is_not_left_un
     assert_failed(final, "stage-refused", 422, "Renderer refused", "not an image")
     assert stages.calls["detect target"] == 1
     assert "never retrieved" not in caplog.text
+
+
+# -- retrying a search an outage failed ---------------------------------------------------------
+
+
+def test_a_search_an_outage_failed_resumes_where_it_stopped_when_retried(tmp_path, detail):
+    stages = FakeStages(
+        detail, faults={"detect view": (2, unavailable("detector", "detect"))}, done_after=4
+    )
+    store = stored(tmp_path, stages)
+    failed = run_stored(store, stages)
+    assert_failed(failed, "stage-unavailable", 503, "No detector available")
+    assert len(failed.iterations) == 2
+
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+    queued = runner.retry("s1")
+    assert queued.status == "queued"
+    assert queued.error is None
+    assert runner.queued == 1
+    stages.faults.clear()  # the detector is back
+    stages.calls.clear()
+    final = run_stored(store, stages)
+    assert final.status == "succeeded", final.error
+    assert final.error is None
+    assert [it.index for it in final.iterations] == [0, 1, 2, 3]
+    assert stages.calls == {"scene": 1, "render": 2, "detect view": 2, "optimize": 2}
+
+
+def test_only_a_search_an_outage_failed_is_retried(tmp_path, detail):
+    refused = StageError("detector", ProblemDetails(title="Bad request", status=422))
+    stages = FakeStages(detail, faults={"detect view": (0, refused)})
+    store = stored(tmp_path, stages)
+    run_stored(store, stages)
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+    with pytest.raises(NotRetryable, match="a reason a retry does not change"):
+        runner.retry("s1")
+    store.update("s1", status="succeeded")
+    with pytest.raises(NotRetryable, match="s1 is succeeded"):
+        runner.retry("s1")
+    with pytest.raises(KeyError):
+        runner.retry("nope")
+    assert runner.queued == 0
