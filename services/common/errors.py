@@ -14,6 +14,7 @@ from services.common.contracts.base import FrozenModel
 
 __all__ = [
     "BadRequestError",
+    "ConflictError",
     "NotFoundError",
     "PayloadTooLargeError",
     "ProblemDetails",
@@ -94,6 +95,12 @@ class NotFoundError(ServiceError):
     title = "Not found"
 
 
+class ConflictError(ServiceError):
+    status = 409
+    slug = "conflict"
+    title = "Conflict"
+
+
 class PayloadTooLargeError(ServiceError):
     status = 413
     slug = "payload-too-large"
@@ -113,6 +120,21 @@ class UnprocessableError(ServiceError):
 
 
 class ServiceUnavailableError(ServiceError):
+    """Answered with a ``Retry-After`` of ``retry_after_s`` seconds."""
+
     status = 503
     slug = "unavailable"
     title = "Service unavailable"
+
+    def __init__(
+        self,
+        detail: str,
+        *,
+        retry_after_s: int = 1,
+        field: str | None = None,
+        slug: str | None = None,
+        title: str | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(detail, field=field, slug=slug, title=title, extra=extra)
+        self.retry_after_s = retry_after_s

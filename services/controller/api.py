@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated, Any
@@ -13,7 +14,12 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
 from services.common.contracts.render import SceneSummary
 from services.common.contracts.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
-from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
+from services.common.errors import (
+    ConflictError,
+    NotFoundError,
+    ServiceUnavailableError,
+    UnprocessableError,
+)
 from services.common.geometry.grid import GridSpec
 from services.common.http import app_state, problem_responses
 from services.common.upload import read_upload
@@ -21,7 +27,7 @@ from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
 from services.controller.form import OPENAPI, search_options
 from services.controller.plots import distance_png, trajectory_png
-from services.controller.runner import SearchRunner
+from services.controller.runner import SearchRunner, why_not_retryable
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
@@ -31,6 +37,10 @@ from services.controller.transport import StageRequest
 __all__ = ["ControllerState", "router"]
 
 router = APIRouter()
+_log = logging.getLogger("cosmos.controller")
+
+RETRY_AFTER_S = 5
+"""``Retry-After`` of a 503 while a stage is unavailable (the broker probes it more often)."""
 
 
 @dataclass(frozen=True)
@@ -61,14 +71,17 @@ def _search_or_404(state: ControllerState, search_id: str) -> Search:
 
 @router.get("/health", response_model=ControllerHealth)
 async def health(state: State) -> ControllerHealth:
-    """Liveness, the queue, and what the broker knows of every replica."""
+    """Liveness, the queue, and what the broker knows of every replica: ``degraded``, naming
+    the stages, while a stage has no replica available."""
+    unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(
-        status="ok",
+        status="degraded" if unavailable else "ok",
         service="controller",
         searches_queued=state.runner.queued,
         searches_running=state.runner.running,
         broker_heuristic=state.broker.heuristic.value,
         replicas=tuple(state.broker.stats()),
+        unavailable_stages=unavailable,
     )
 
 
@@ -78,12 +91,36 @@ async def scenes(state: State) -> Any:
     try:
         response = await state.broker.call("renderer", "scene", StageRequest("GET", "/scenes"))
     except BrokerError as exc:
-        raise _unavailable(exc) from exc
+        raise _unavailable(exc.stage, exc) from exc
     return JSONResponse(response.json(), status_code=response.status_code)
 
 
-def _unavailable(exc: BrokerError) -> ServiceUnavailableError:
-    return ServiceUnavailableError(str(exc), slug="stage-unavailable", title="Stage unavailable")
+def _unavailable(stage: str, why: Exception) -> ServiceUnavailableError:
+    """A 503 for a request that ``stage`` could not serve. ``why`` names replica addresses: it
+    goes to the log only."""
+    _log.warning("the %s could not serve a request: %s", stage, why)
+    return ServiceUnavailableError(
+        f"the {stage} is unavailable: no replica could serve the request; try again later "
+        "(GET /health lists the stages no replica serves)",
+        slug="stage-unavailable",
+        title="Stage unavailable",
+        retry_after_s=RETRY_AFTER_S,
+    )
+
+
+def _refuse_while_unavailable(state: ControllerState) -> None:
+    """503 with ``Retry-After`` while a stage no replica serves: a search taken now would only
+    wait for it (and fail after the outage budget), so it is not taken."""
+    down = state.broker.unavailable()
+    if down:
+        raise ServiceUnavailableError(
+            f"the {' and the '.join(down)} {'is' if len(down) == 1 else 'are'} unavailable (no "
+            "replica answers); try again once GET /health no longer lists "
+            f"{'it' if len(down) == 1 else 'them'}",
+            slug="stage-unavailable",
+            title="Stage unavailable",
+            retry_after_s=RETRY_AFTER_S,
+        )
 
 
 @router.post(
@@ -97,7 +134,9 @@ async def submit(request: Request, state: State) -> JSONResponse:
     """Start a search for where ``image`` was taken in ``scene``; answers 202 and a Location.
 
     The image is a form's file field ``image`` with the options as text fields, or the raw PNG,
-    JPEG or binary PPM body with the options in the query."""
+    JPEG or binary PPM body with the options in the query. While a stage has no replica
+    available (``GET /health`` says ``degraded``) it answers 503 with ``Retry-After``."""
+    _refuse_while_unavailable(state)
     upload = await read_upload(request)
     options = search_options(upload.fields, request.query_params.multi_items())
     try:
@@ -117,7 +156,7 @@ async def submit(request: Request, state: State) -> JSONResponse:
             start_early=state.runner.idle,
         )
     except BrokerError as exc:
-        raise _unavailable(exc) from exc
+        raise _unavailable(exc.stage, exc) from exc
     except StageError as exc:
         raise UnprocessableError(str(exc), field="scene") from exc
     state.runner.submit(search.id, recorded=(search, upload.image))
@@ -150,6 +189,29 @@ async def cancel_search(search_id: str, state: State) -> Search:
     """Cancel a queued or running search (a finished one is returned unchanged)."""
     _search_or_404(state, search_id)
     return state.runner.cancel(search_id)
+
+
+@router.post(
+    "/searches/{search_id}/retry",
+    status_code=202,
+    response_model=Search,
+    responses=problem_responses(404, 409, 503),
+)
+async def retry_search(search_id: str, state: State) -> JSONResponse:
+    """Resume a search that failed because a stage was unavailable (its error's ``type`` is
+    ``urn:cosmos:problem:stage-unavailable``) from its recorded iterations: 202, the search
+    queued again. 409 for any other search; 503 with ``Retry-After`` while a stage is still
+    unavailable."""
+    why = why_not_retryable(_search_or_404(state, search_id))
+    if why is not None:
+        raise ConflictError(why, slug="not-retryable", title="Not retryable")
+    _refuse_while_unavailable(state)
+    search = state.runner.retry(search_id)  # nothing ran since the check: it takes the search
+    return JSONResponse(
+        search.model_dump(mode="json"),
+        status_code=202,
+        headers={"Location": f"/searches/{search.id}"},
+    )
 
 
 def _sse(event: str, data: str) -> bytes:
@@ -197,7 +259,7 @@ async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
     try:
         scene = await state.stages.scene(search.scene)
     except (StageError, BrokerError) as exc:
-        raise _unavailable(BrokerError("renderer", "scene", [str(exc)])) from exc
+        raise _unavailable("renderer", exc) from exc
     try:
         return searchable_grid(scene.spec.search)
     except UnsupportedGridError as exc:  # the scene file changed since the search was taken

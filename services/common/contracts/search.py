@@ -160,11 +160,16 @@ class ReplicaHealth(FrozenModel):
 
 
 class ControllerHealth(FrozenModel):
-    """``GET /health`` of the controller."""
+    """``GET /health`` of the controller: ``degraded`` while a stage has no replica available."""
 
-    status: Literal["ok"]
+    status: Literal["ok", "degraded"]
     service: Literal["controller"]
     searches_queued: int
     searches_running: int
     broker_heuristic: str
     replicas: tuple[ReplicaHealth, ...]
+    unavailable_stages: tuple[str, ...] = Field(
+        default=(),
+        description="Stages no replica serves now: running searches wait for them (up to the "
+        "controller's outage budget) and new submissions are refused with 503 and Retry-After.",
+    )
