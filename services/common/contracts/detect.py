@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from services.common.contracts.base import BoxXYXY, FrozenModel, NonNegInt
+from services.common.contracts.base import BoxXYXY, FrozenModel, Integer, NonNegInt, Number
 
 __all__ = [
     "DetectResponse",
@@ -19,11 +19,11 @@ __all__ = [
 ]
 
 
-Rgb255 = tuple[
-    Annotated[float, Field(ge=0.0, le=255.0)],
-    Annotated[float, Field(ge=0.0, le=255.0)],
-    Annotated[float, Field(ge=0.0, le=255.0)],
-]
+Channel255 = Annotated[Number, Field(ge=0.0, le=255.0)]
+Rgb255 = tuple[Channel255, Channel255, Channel255]
+
+MAX_CLASS_ID = 65535
+"""The largest class id a detection may carry (a model has far fewer classes)."""
 
 
 class Detection(FrozenModel):
@@ -36,8 +36,8 @@ class Detection(FrozenModel):
     """
 
     label: Annotated[str, Field(min_length=1, max_length=64)]
-    class_id: NonNegInt
-    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
+    class_id: Annotated[Integer, Field(ge=0, le=MAX_CLASS_ID)]
+    confidence: Annotated[Number, Field(ge=0.0, le=1.0)]
     box: BoxXYXY
     color: Rgb255 | None = None
 
@@ -47,9 +47,11 @@ class ModelInfo(FrozenModel):
 
     name: str
     classes: tuple[str, ...]
-    input_size: tuple[int, int] = Field(description="Network input (width, height) in pixels.")
+    input_size: tuple[Integer, Integer] = Field(
+        description="Network input (width, height) in pixels."
+    )
     sha256: str
-    provenance: dict[str, str | int | float] = Field(default_factory=dict)
+    provenance: dict[str, str | Integer | Number] = Field(default_factory=dict)
     scene: str | None = Field(
         default=None,
         description="The scene this model was onboarded for (its classes are that scene's "
@@ -61,9 +63,9 @@ class DetectResponse(FrozenModel):
     """``POST /detect``: the detections and the size (width, height) of the image they refer to."""
 
     detections: tuple[Detection, ...]
-    image_size: tuple[int, int]
+    image_size: tuple[Integer, Integer]
     model: ModelInfo
-    inference_ms: Annotated[float, Field(ge=0.0)] = 0.0
+    inference_ms: Annotated[Number, Field(ge=0.0)] = 0.0
 
 
 class DetectorHealth(FrozenModel):
@@ -78,7 +80,7 @@ class DetectorHealth(FrozenModel):
     intra_op_threads: NonNegInt = Field(
         description="onnxruntime intra-op threads (0: one per core)."
     )
-    max_batch: Annotated[int, Field(ge=1)] = Field(description="Images per inference run.")
+    max_batch: Annotated[Integer, Field(ge=1)] = Field(description="Images per inference run.")
     batches_run: NonNegInt
     images_run: NonNegInt
     scene_models: NonNegInt = Field(

@@ -11,7 +11,7 @@ from typing import Annotated, Any, Final, Literal
 
 from pydantic import BeforeValidator, ConfigDict, Field, field_validator
 
-from services.common.contracts.base import FrozenModel
+from services.common.contracts.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery
@@ -55,7 +55,7 @@ StrategyName = Literal["simple", "paper", "reprojection"]
 MappingMethod = Literal["exact", "paper"]
 Move = Literal["start", "stay", "N", "S", "E", "W", "jump"]
 
-ImageSide = Annotated[int, Field(ge=1, le=16384)]
+ImageSide = Annotated[Integer, Field(ge=1, le=16384)]
 ObjectClasses = Annotated[tuple[ObjectClass, ...], Field(min_length=1, max_length=256)]
 
 
@@ -79,9 +79,7 @@ class SearchableGrid(GridSpec):
     """A :class:`GridSpec` the optimizer can search: its step is at least
     :data:`MIN_SEARCH_STEP_DEG` (the same type, one bound tighter, so errors name the field)."""
 
-    angle_step_deg: Annotated[
-        float, Field(ge=MIN_SEARCH_STEP_DEG, le=90.0, allow_inf_nan=False)
-    ] = 7.5
+    angle_step_deg: Annotated[Number, Field(ge=MIN_SEARCH_STEP_DEG, le=90.0)] = 7.5
 
 
 def _grid_fields(value: object) -> object:
@@ -140,9 +138,9 @@ class SearchTolerances(FrozenModel):
     each image's unpaired detections.
     """
 
-    match_rms_px: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 1.0
-    max_unmatched: Annotated[int, Field(ge=0, le=MAX_DETECTIONS)] = 1
-    ambiguity_ratio: Annotated[float, Field(ge=1.0, le=100.0, allow_inf_nan=False)] = 1.25
+    match_rms_px: Annotated[Number, Field(gt=0.0, le=1000.0)] = 1.0
+    max_unmatched: Annotated[Integer, Field(ge=0, le=MAX_DETECTIONS)] = 1
+    ambiguity_ratio: Annotated[Number, Field(ge=1.0, le=100.0)] = 1.25
 
 
 def _optional_not_null(schema: dict[str, Any]) -> None:
@@ -207,8 +205,8 @@ class GridPose(FrozenModel):
     """A grid pose: its indices and angles (degrees)."""
 
     index: GridIndex
-    theta_deg: float
-    phi_deg: float
+    theta_deg: Number
+    phi_deg: Number
 
 
 class PoseEstimate(FrozenModel):
@@ -220,17 +218,17 @@ class PoseEstimate(FrozenModel):
     """
 
     grid: GridPose
-    theta_deg: float
-    phi_deg: float
-    residual_px: Annotated[float, Field(ge=0.0)] | None
-    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
+    theta_deg: Number
+    phi_deg: Number
+    residual_px: Annotated[Number, Field(ge=0.0)] | None
+    confidence: Annotated[Number, Field(ge=0.0, le=1.0)]
 
 
 class CandidatePose(FrozenModel):
     """An alternative pose that explains the target almost as well (lower score is better)."""
 
     pose: GridPose
-    score: float
+    score: Number
 
 
 class ViewMatch(FrozenModel):
@@ -246,12 +244,12 @@ class ViewMatch(FrozenModel):
     never hears ``done`` can answer with the visited pose that scored best.
     """
 
-    rms_px: Annotated[float, Field(ge=0.0)] | None
-    noise_px: Annotated[float, Field(ge=0.0)]
-    pairs: Annotated[int, Field(ge=0)]
-    unpaired_current: Annotated[float, Field(ge=0.0)]
-    unpaired_target: Annotated[float, Field(ge=0.0)]
-    score: Annotated[float, Field(ge=0.0, le=1.0)]
+    rms_px: Annotated[Number, Field(ge=0.0)] | None
+    noise_px: Annotated[Number, Field(ge=0.0)]
+    pairs: Annotated[Integer, Field(ge=0)]
+    unpaired_current: Annotated[Number, Field(ge=0.0)]
+    unpaired_target: Annotated[Number, Field(ge=0.0)]
+    score: Annotated[Number, Field(ge=0.0, le=1.0)]
 
 
 class NextPoseResponse(FrozenModel):
@@ -293,11 +291,11 @@ class MappedObject(FrozenModel):
     """
 
     label: str
-    position: tuple[float, float] | None
-    offset: tuple[float, float] | None
-    radius: float | None
-    height: float | None
-    sigma: Annotated[float, Field(ge=0.0)] | None = Field(
+    position: tuple[Number, Number] | None
+    offset: tuple[Number, Number] | None
+    radius: Number | None
+    height: Number | None
+    sigma: Annotated[Number, Field(ge=0.0)] | None = Field(
         description="Positional standard deviation for 1-pixel box errors (exact method)."
     )
     reliable: bool
@@ -327,4 +325,4 @@ class OptimizerHealth(FrozenModel):
     service: Literal["optimizer"]
     strategies: tuple[StrategyName, ...]
     default_strategy: StrategyName
-    paper_calibrations: Annotated[int, Field(ge=0)]
+    paper_calibrations: Annotated[Integer, Field(ge=0)]

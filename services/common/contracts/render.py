@@ -6,7 +6,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_serializer, field_validator
 
-from services.common.contracts.base import BoxXYXY, FrozenModel, NonNegInt
+from services.common.contracts.base import BoxXYXY, FrozenModel, Integer, NonNegInt, Number
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery
@@ -27,10 +27,10 @@ class RenderRequest(FrozenModel):
 
     scene: Annotated[str, Field(min_length=1, max_length=128)]
     pose: PoseQuery
-    width: Annotated[int, Field(ge=8)] | None = None
-    height: Annotated[int, Field(ge=8)] | None = None
-    spp: Annotated[int, Field(ge=1)] | None = None
-    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    width: Annotated[Integer, Field(ge=8)] | None = None
+    height: Annotated[Integer, Field(ge=8)] | None = None
+    spp: Annotated[Integer, Field(ge=1)] | None = None
+    seed: Annotated[Integer, Field(ge=0, le=2**31 - 1)] = 0
 
 
 class ObjectAnnotation(FrozenModel):
@@ -38,10 +38,10 @@ class ObjectAnnotation(FrozenModel):
 
     name: str
     shape: str = Field(description="The object's class: sphere, cube, cylinder, cone or mesh.")
-    position: tuple[float, float, float] = Field(
+    position: tuple[Number, Number, Number] = Field(
         description="World position of the object's footprint centre on the ground (z = 0)."
     )
-    centroid: tuple[float, float, float] = Field(
+    centroid: tuple[Number, Number, Number] = Field(
         description="World position of the object's bounding-box centre."
     )
     box: BoxXYXY | None = Field(
@@ -55,8 +55,8 @@ class ObjectAnnotation(FrozenModel):
     full_pixels: NonNegInt = Field(
         description="Pixels the object would cover inside the image with nothing in front of it."
     )
-    visible_fraction: Annotated[float, Field(ge=0.0, le=1.0)]
-    projected_center: tuple[float, float] = Field(
+    visible_fraction: Annotated[Number, Field(ge=0.0, le=1.0)]
+    projected_center: tuple[Number, Number] = Field(
         description="Pinhole projection of ``centroid`` in pixels (may lie outside the image)."
     )
 
@@ -75,10 +75,10 @@ class SceneSummary(FrozenModel):
     """One entry of ``GET /scenes``."""
 
     id: str
-    objects: int
-    grid_size: int
-    width: int
-    height: int
+    objects: Integer
+    grid_size: Integer
+    width: Integer
+    height: Integer
 
 
 class RenderHealth(FrozenModel):
@@ -88,7 +88,7 @@ class RenderHealth(FrozenModel):
     service: Literal["renderer"]
     variant: str
     scenes_loaded: tuple[str, ...]
-    scenes_available: int
+    scenes_available: Integer
     in_flight: NonNegInt
 
 

@@ -7,7 +7,7 @@ from typing import Annotated, Final, Literal
 
 from pydantic import ConfigDict, Field
 
-from services.common.contracts.base import Angle, FrozenModel, ThetaDeg
+from services.common.contracts.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection, ModelInfo
 from services.common.contracts.optimize import GridPose, StrategyName, ViewMatch
 from services.common.errors import ProblemDetails
@@ -31,23 +31,26 @@ SearchStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 
 
-NonNegMs = Annotated[float, Field(ge=0.0)]
+NonNegMs = Annotated[Number, Field(ge=0.0)]
+Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
+Count = Annotated[Integer, Field(ge=0)]
 
 MAX_ITERATIONS: Final = 500
 
 
 class SearchOptions(FrozenModel):
     """What ``POST /searches`` takes besides the image: the form's text fields, or the query
-    beside a raw image body. Unknown names are ignored, as for any form."""
+    beside a raw image body. Unknown names are ignored, as for any form. The values are text,
+    so numbers are read from it (not strict, unlike the JSON messages')."""
 
     model_config = ConfigDict(extra="ignore", frozen=True, allow_inf_nan=False)
 
     scene: Annotated[str, Field(min_length=1, max_length=128, description="The scene's id.")]
     strategy: StrategyName = Field(default="reprojection", description="The search strategy.")
-    start_theta_deg: ThetaDeg | None = Field(
+    start_theta_deg: Annotated[float, Field(ge=0.0, le=90.0)] | None = Field(
         default=None, description="Start pose (snapped to the grid); with start_phi_deg."
     )
-    start_phi_deg: Angle | None = Field(default=None, description="Start pose's longitude.")
+    start_phi_deg: float | None = Field(default=None, description="Start pose's longitude.")
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] | None = Field(
         default=None, description="Draws the start pose when none is given (recorded)."
     )
@@ -68,16 +71,16 @@ class StageTimings(FrozenModel):
 class Iteration(FrozenModel):
     """One rendered view of a search and what the optimizer made of it."""
 
-    index: int
+    index: Count
     pose: GridPose
-    image_size: tuple[int, int]
+    image_size: tuple[Integer, Integer]
     detections: tuple[Detection, ...]
     timings: StageTimings
     estimate: Pose | None = Field(default=None, description="The continuous estimate so far.")
     estimate_grid: GridPose | None = Field(
         default=None, description="The grid pose nearest the estimate."
     )
-    confidence: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
+    confidence: Unit = 0.0
     ambiguous: bool = False
     next_pose: GridPose | None = None
     done: bool = False
@@ -102,8 +105,8 @@ class SearchResult(FrozenModel):
 
     pose: GridPose
     refined_pose: Pose
-    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
-    renders: int
+    confidence: Unit
+    renders: Count
     ambiguous: bool = False
     reason: str = ""
     confirmed: bool = Field(
@@ -121,11 +124,13 @@ class Search(FrozenModel):
     scene: str
     strategy: StrategyName
     start: GridPose
-    seed: int
-    max_iterations: int
+    seed: Integer
+    max_iterations: Integer
     created_at: datetime
     updated_at: datetime
-    target_size: tuple[int, int] = Field(description="Target image (width, height) in pixels.")
+    target_size: tuple[Integer, Integer] = Field(
+        description="Target image (width, height) in pixels."
+    )
     target_detections: tuple[Detection, ...] | None = None
     target_model: ModelInfo | None = Field(
         default=None,
@@ -141,9 +146,9 @@ class SearchPage(FrozenModel):
     """``GET /searches``: newest first."""
 
     items: tuple[Search, ...]
-    total: int
-    limit: int
-    offset: int
+    total: Count
+    limit: Count
+    offset: Count
 
 
 class ReplicaHealth(FrozenModel):
@@ -152,11 +157,11 @@ class ReplicaHealth(FrozenModel):
     stage: str
     url: str
     up: bool
-    in_flight: int
-    reported_load: float
-    expected_ms: dict[str, float]
-    served: int
-    failed: int
+    in_flight: Count
+    reported_load: Number
+    expected_ms: dict[str, Number]
+    served: Count
+    failed: Count
 
 
 class ControllerHealth(FrozenModel):
@@ -164,8 +169,8 @@ class ControllerHealth(FrozenModel):
 
     status: Literal["ok", "degraded"]
     service: Literal["controller"]
-    searches_queued: int
-    searches_running: int
+    searches_queued: Count
+    searches_running: Count
     broker_heuristic: str
     replicas: tuple[ReplicaHealth, ...]
     unavailable_stages: tuple[str, ...] = Field(

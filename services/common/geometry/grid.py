@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, model_validator
 
-from services.common.contracts.base import FrozenModel, NonNegInt, ThetaDeg
+from services.common.contracts.base import FrozenModel, Integer, NonNegInt, Number, ThetaDeg
 from services.common.geometry.pose import GridIndex, Pose
 
 __all__ = [
@@ -471,7 +471,7 @@ class GridRing(FrozenModel):
 
     lat: NonNegInt
     theta_deg: ThetaDeg
-    count: Annotated[int, Field(ge=1)]
+    count: Annotated[Integer, Field(ge=1)]
 
 
 class GridSpec(FrozenModel):
@@ -481,7 +481,7 @@ class GridSpec(FrozenModel):
     optimizer's request; :meth:`grid` gives its rings, indices and neighbours.
     """
 
-    angle_step_deg: Annotated[float, Field(gt=0.0, le=90.0, allow_inf_nan=False)] = 7.5
+    angle_step_deg: Annotated[Number, Field(gt=0.0, le=90.0)] = 7.5
     min_theta_deg: ThetaDeg = 0.0
     max_theta_deg: ThetaDeg = 90.0
 

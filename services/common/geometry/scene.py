@@ -19,7 +19,7 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
-from services.common.contracts.base import FrozenModel
+from services.common.contracts.base import FrozenModel, Integer, Number
 from services.common.geometry.grid import GridSpec
 
 __all__ = [
@@ -46,20 +46,21 @@ SCENE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
 MAX_SCENE_FILE_CHARS = 1_000_000
 _NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 
-PositiveLength = Annotated[float, Field(gt=0.0, le=1e4, allow_inf_nan=False)]
-Coordinate = Annotated[float, Field(ge=-1e4, le=1e4, allow_inf_nan=False)]
-Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+# Strict numbers (as a scene file is read): the camera also travels in optimizer requests.
+PositiveLength = Annotated[Number, Field(gt=0.0, le=1e4)]
+Coordinate = Annotated[Number, Field(ge=-1e4, le=1e4)]
+Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
 Rgb = tuple[Unit, Unit, Unit]
-YawDeg = Annotated[float, Field(ge=-360.0, le=360.0, allow_inf_nan=False)]
+YawDeg = Annotated[Number, Field(ge=-360.0, le=360.0)]
 AssetPath = Annotated[str, Field(min_length=1, max_length=512)]
 
 
 class CameraSpec(FrozenModel):
     """The perspective camera: horizontal field of view, film size in pixels, hemisphere radius."""
 
-    fov_deg: Annotated[float, Field(gt=1.0, lt=170.0, description="Horizontal field of view.")]
-    width: Annotated[int, Field(ge=16, le=4096)]
-    height: Annotated[int, Field(ge=16, le=4096)]
+    fov_deg: Annotated[Number, Field(gt=1.0, lt=170.0, description="Horizontal field of view.")]
+    width: Annotated[Integer, Field(ge=16, le=4096)]
+    height: Annotated[Integer, Field(ge=16, le=4096)]
     radius: PositiveLength
 
 
