@@ -18,12 +18,14 @@ from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.common.errors import PayloadTooLargeError, ProblemDetails, ServiceError, problem_type
 
 __all__ = [
     "PROBLEM_JSON",
+    "allowed_methods",
     "app_state",
     "freeze_heap",
     "service_app",
@@ -90,19 +92,47 @@ async def _validation_error(request: Request, exc: Exception) -> ProblemResponse
     )
 
 
+_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method a route of the app answers at the request's path. Starlette's 405 names
+    only the methods of the first route whose path matched (``GET`` for a path that also takes
+    ``DELETE``), so each method is matched against every route."""
+    allowed = []
+    for method in _METHODS:
+        scope = {
+            "type": "http",
+            "path": request.scope["path"],
+            "root_path": request.scope.get("root_path", ""),
+            "method": method,
+            "headers": [],
+            "query_string": b"",
+        }
+        if any(route.matches(scope)[0] is Match.FULL for route in request.app.router.routes):
+            allowed.append(method)
+    return allowed
+
+
 async def _http_error(request: Request, exc: Exception) -> ProblemResponse:
     if not isinstance(exc, StarletteHTTPException):  # registered for this type only
         raise exc
     title = {404: "Not found", 405: "Method not allowed"}.get(exc.status_code, "HTTP error")
+    headers = dict(exc.headers) if exc.headers else {}
+    detail = str(exc.detail)
+    if exc.status_code == 405:
+        allowed = ", ".join(allowed_methods(request))
+        headers["Allow"] = allowed
+        detail = f"{request.method} is not allowed here; allowed: {allowed}"
     return _respond(
         ProblemDetails(
             type="about:blank",
             title=title,
             status=exc.status_code,
-            detail=str(exc.detail),
+            detail=detail,
             instance=request.url.path,
         ),
-        dict(exc.headers) if exc.headers else None,
+        headers or None,
     )
 
 
