@@ -14,7 +14,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from typing import Any
 
-from fastapi import APIRouter, FastAPI, Request
+from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -29,6 +29,7 @@ __all__ = [
     "app_state",
     "freeze_heap",
     "service_app",
+    "single_query_values",
     "BodySizeLimitMiddleware",
     "ProblemResponse",
     "install_problem_handlers",
@@ -261,6 +262,24 @@ def freeze_heap() -> int:
     return gc.get_freeze_count()
 
 
+async def single_query_values(request: Request) -> None:
+    """Refuse a query parameter given more than once (422 naming it): FastAPI would silently
+    take the last value of a parameter declared once. A dependency of every route."""
+    seen: set[str] = set()
+    twice: list[str] = []
+    for name, _ in request.query_params.multi_items():
+        if name in seen and name not in twice:
+            twice.append(name)
+        seen.add(name)
+    if twice:
+        raise RequestValidationError(
+            [
+                {"loc": ("query", name), "msg": f"'{name}' is given twice", "type": "repeated"}
+                for name in twice
+            ]
+        )
+
+
 def service_app(
     name: str,
     summary: str,
@@ -268,7 +287,8 @@ def service_app(
     router: APIRouter,
     max_body_bytes: int,
 ) -> FastAPI:
-    """A COSMOS service app: its routes, problem+json errors and a request body limit."""
+    """A COSMOS service app: its routes, problem+json errors, a request body limit, and no
+    query parameter given twice."""
 
     @asynccontextmanager
     async def started(app: FastAPI) -> AsyncIterator[None]:
@@ -279,10 +299,18 @@ def service_app(
             finally:
                 gc.unfreeze()  # what the app leaves behind can be collected again
 
-    app = FastAPI(title=f"COSMOS {name}", version="0.1.0", summary=summary, lifespan=started)
+    app = FastAPI(
+        title=f"COSMOS {name}",
+        version="0.1.0",
+        summary=summary,
+        lifespan=started,
+        dependencies=[Depends(single_query_values)],
+    )
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=max_body_bytes)
-    app.include_router(router)
+    # Any route answers 422 for a query parameter given twice, and FastAPI's own 422s are
+    # problem+json here, not its HTTPValidationError: declared once for all.
+    app.include_router(router, responses=problem_responses(422))
     return app
 
 

@@ -62,7 +62,9 @@ async def strategies(state: State) -> list[StrategyInfo]:
 
 
 @router.post(
-    "/next-pose", response_model=NextPoseResponse, responses=problem_responses(404, 413, 422)
+    "/next-pose",
+    response_model=NextPoseResponse,
+    responses=problem_responses(400, 404, 413, 422),
 )
 async def plan(body: NextPoseRequest, state: State) -> Response:
     """One stateless search step: the next grid pose, whether the search is done, the current
@@ -76,7 +78,7 @@ async def plan(body: NextPoseRequest, state: State) -> Response:
     return Response(answer.model_dump_json(), media_type="application/json")
 
 
-@router.post("/map", response_model=MapResponse, responses=problem_responses(413, 422))
+@router.post("/map", response_model=MapResponse, responses=problem_responses(400, 413, 422))
 def map_objects(body: MapRequest, state: State) -> MapResponse:
     """Ground positions of the detections of one view seen from a known pose (paper §3.2)."""
     return map_detections(body, state.context.calibrations)

@@ -94,7 +94,7 @@ async def get_scene(scene_id: str, state: State) -> SceneDetail:
             "description": "The rendered view: PNG, or binary PPM when the request's Accept "
             f"header names {PPM_MEDIA_TYPE}.",
         },
-        **problem_responses(404, 413, 422, 503),
+        **problem_responses(400, 404, 413, 422, 503),
     },
 )
 async def render(
@@ -125,7 +125,7 @@ async def render(
 @router.post(
     "/render/annotations",
     response_model=RenderAnnotations,
-    responses=problem_responses(404, 413, 422, 503),
+    responses=problem_responses(400, 404, 413, 422, 503),
 )
 async def render_annotations(body: RenderRequest, state: State) -> RenderAnnotations:
     """Ground truth of a view: per object its visible and full silhouette boxes and pixel counts,
