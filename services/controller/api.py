@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -26,7 +26,7 @@ from services.common.upload import read_upload
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
 from services.controller.form import OPENAPI, search_options
-from services.controller.plots import distance_png, trajectory_png
+from services.controller.plots import PlotCache, distance_png, trajectory_png
 from services.controller.runner import SearchRunner, why_not_retryable
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
@@ -51,6 +51,7 @@ class ControllerState:
     stages: Stages
     runner: SearchRunner
     notifier: Notifier
+    plots: PlotCache = field(default_factory=PlotCache)
 
 
 State = Annotated[ControllerState, Depends(app_state("controller"))]
@@ -279,9 +280,12 @@ async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
 async def trajectory(search_id: str, state: State) -> Response:
     """The camera's path on the hemisphere (like the paper's Fig. 6)."""
     search = _search_or_404(state, search_id)
-    grid = (await _grid_of(state, search)).grid()
-    png = await asyncio.to_thread(trajectory_png, search, grid)
-    return Response(png, media_type="image/png")
+
+    async def draw() -> bytes:
+        grid = (await _grid_of(state, search)).grid()
+        return await asyncio.to_thread(trajectory_png, search, grid)
+
+    return Response(await state.plots.png(search, "trajectory", draw), media_type="image/png")
 
 
 @router.get(
@@ -292,5 +296,8 @@ async def trajectory(search_id: str, state: State) -> Response:
 async def distance(search_id: str, state: State) -> Response:
     """Angle to the estimate per iteration (like the paper's Fig. 8)."""
     search = _search_or_404(state, search_id)
-    png = await asyncio.to_thread(distance_png, search)
-    return Response(png, media_type="image/png")
+
+    async def draw() -> bytes:
+        return await asyncio.to_thread(distance_png, search)
+
+    return Response(await state.plots.png(search, "distance", draw), media_type="image/png")

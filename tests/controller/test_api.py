@@ -1,6 +1,6 @@
 """The controller app in process over an in-process renderer: a scene whose grid the optimizer
-cannot search is refused at submission with a 422 naming the field, and followers of a search's
-events leave nothing behind in the notifier."""
+cannot search is refused at submission with a 422 naming the field, followers of a search's
+events leave nothing behind in the notifier, and a finished search's plots are drawn once."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from services.common.contracts.optimize import GridPose
 from services.common.contracts.search import Search, SearchStatus
 from services.common.geometry.pose import GridIndex
 from services.controller.events import Notifier
+from services.controller.plots import PlotCache
 from services.controller.store import SearchStore, utcnow
 
 pytestmark = pytest.mark.anyio
@@ -95,3 +96,59 @@ async def test_a_follower_wakes_on_a_change_and_then_lets_go():
         assert changed.is_set()
         assert notifier.current("s") is not changed  # the next change sets a fresh event
     assert notifier.followed() == 0
+
+
+async def test_a_finished_search_s_plots_are_drawn_once_a_running_one_s_every_time(controller):
+    app, client = controller
+    state = app.state.controller
+    record(state.store, "done", "cancelled")
+    record(state.store, "running", "running")
+    for name in ("trajectory.png", "distance.png"):
+        first = await client.get(f"/searches/done/{name}")
+        second = await client.get(f"/searches/done/{name}")
+        assert first.status_code == second.status_code == 200
+        assert first.content == second.content
+    assert state.plots.hits == 2
+    assert len(state.plots) == 2
+    for _ in range(2):
+        assert (await client.get("/searches/running/distance.png")).status_code == 200
+    assert state.plots.hits == 2  # drawn each time, not kept
+    assert len(state.plots) == 2
+    state.store.update("done", status="failed")  # changed since (as a retried search would be)
+    assert (await client.get("/searches/done/distance.png")).status_code == 200
+    assert state.plots.hits == 2
+    assert len(state.plots) == 3
+
+
+async def test_the_plot_cache_keeps_the_most_recently_used():
+    cache = PlotCache(capacity=2)
+    drawn: list[str] = []
+
+    def search(search_id: str) -> Search:
+        now = utcnow()
+        return Search(
+            id=search_id,
+            status="succeeded",
+            scene="demo",
+            strategy="reprojection",
+            start=GridPose(index=GridIndex(lat=3, lon=0), theta_deg=30.0, phi_deg=0.0),
+            seed=1,
+            max_iterations=5,
+            created_at=now,
+            updated_at=now,
+            target_size=(32, 24),
+        )
+
+    def drawing(search_id: str):
+        async def draw() -> bytes:
+            drawn.append(search_id)
+            return search_id.encode()
+
+        return draw
+
+    a, b, c = search("a"), search("b"), search("c")
+    for s in (a, b, a, c, a, b):  # c pushes out b (a was used since); b comes back
+        assert await cache.png(s, "distance", drawing(s.id)) == s.id.encode()
+    assert drawn == ["a", "b", "c", "b"]
+    assert cache.hits == 2
+    assert len(cache) == 2
