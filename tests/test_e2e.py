@@ -377,6 +377,115 @@ def test_a_killed_controller_resumes_its_searches(tmp_path):
     assert len(indices) > recorded >= 3
 
 
+def test_searches_ride_out_a_detector_outage_or_resume_when_retried(tmp_path):
+    """The only detector stops. Back within the outage budget (10 s here), the running search
+    succeeds; gone for longer, the search fails saying so, and once the detector is back, POST
+    /searches/{id}/retry resumes it from its recorded iterations and it succeeds."""
+    ports = [free_port() for _ in range(4)]
+    plan = plan_stack(
+        controller_port=ports[0],
+        renderer_port=ports[1],
+        detector_port=ports[2],
+        optimizer_port=ports[3],
+        database_url=f"sqlite:///{tmp_path}/controller.sqlite3",
+        env={"COSMOS_CONTROLLER_OUTAGE_BUDGET_S": "10"},
+    )
+    (detector_plan,) = [p for p in plan if p.name == "detector"]
+    with running_stack(plan, tmp_path / "logs") as stack:
+        (detector,) = [p for p in stack.processes if p.url == stack.detectors[0]]
+        image = render(stack, "demo", 9, 30)
+        http = httpx.Client(base_url=stack.controller, timeout=30)
+
+        def start_far_away() -> str:
+            response = http.post(
+                "/searches",
+                content=image,
+                headers={"Content-Type": "image/png"},
+                params={
+                    "scene": "demo",
+                    "strategy": "simple",
+                    "start_theta_deg": "7.5",
+                    "start_phi_deg": "0",
+                    "max_iterations": "80",
+                },
+            )
+            assert response.status_code == 202, response.text
+            search_id: str = response.json()["id"]
+            wait_for(lambda: len(http.get(f"/searches/{search_id}").json()["iterations"]) >= 2)
+            return search_id
+
+        def finished(search_id: str) -> dict:
+            wait_for(
+                lambda: http.get(f"/searches/{search_id}").json()["status"] not in UNFINISHED,
+                timeout_s=180,
+            )
+            found: dict = http.get(f"/searches/{search_id}").json()
+            return found
+
+        def restart_detector() -> None:
+            again = spawn_service(
+                detector_plan.app, tmp_path / "logs-again", port=detector_plan.port
+            )
+            wait_healthy(again)
+            restarted.append(again)
+
+        restarted: list = []
+        try:
+            # back within the budget: the running search waits and succeeds
+            short = start_far_away()
+            stop_service(detector)
+            wait_for(lambda: http.get("/health").json()["unavailable_stages"] == ["detector"])
+            refused = http.post(
+                "/searches",
+                content=image,
+                params={"scene": "demo"},
+                headers={"Content-Type": "image/png"},
+            )
+            assert refused.status_code == 503, refused.text
+            assert refused.headers["retry-after"] == "5"
+            time.sleep(1.0)
+            restart_detector()
+            search = finished(short)
+            assert search["status"] == "succeeded", search["error"]
+            assert search["result"]["pose"]["index"] == {"lat": 9, "lon": 30}
+
+            # gone for longer: the search fails saying so; retried once it is back, it resumes
+            long = start_far_away()
+            stop_service(restarted.pop())
+            failed = finished(long)
+            assert failed["status"] == "failed"
+            assert failed["error"]["type"] == "urn:cosmos:problem:stage-unavailable"
+            assert "the detector was unavailable" in failed["error"]["detail"]
+            assert f"POST /searches/{long}/retry" in failed["error"]["detail"]
+            assert "127.0.0.1" not in failed["error"]["detail"]
+            assert http.post(f"/searches/{long}/retry").status_code == 503  # still down
+            restart_detector()
+            wait_for(lambda: http.get("/health").json()["status"] == "ok")
+            retried = http.post(f"/searches/{long}/retry")
+            assert retried.status_code == 202, retried.text
+            search = finished(long)
+            assert search["status"] == "succeeded", search["error"]
+            assert search["result"]["pose"]["index"] == {"lat": 9, "lon": 30}
+            recorded = failed["iterations"]
+            assert search["iterations"][: len(recorded)] == recorded  # resumed, not redone
+            indices = [it["index"] for it in search["iterations"]]
+            assert indices == list(range(len(indices)))
+        finally:
+            http.close()
+            for process in restarted:
+                stop_service(process)
+
+
+UNFINISHED = {"queued", "running"}
+
+
+def wait_for(check, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.1)
+
+
 def test_every_controller_route_answers_within_its_schema(stack):
     """Schema-driven fuzzing of the public API (see :func:`tests.support.fuzz_service`)."""
     assert fuzz_service(stack.controller, max_examples=15) >= 8
