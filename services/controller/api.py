@@ -1,4 +1,11 @@
-"""Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots."""
+"""Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots.
+
+Every route but ``/health`` (and the OpenAPI documents) wants an API key
+(``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
+``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays open for load balancers and container health
+checks; it tells counts and replica URLs, no search. A key sees and cancels its own searches only
+(another tenant's is a 404, as an unknown one, so ids do not leak); an admin key sees them all.
+"""
 
 from __future__ import annotations
 
@@ -9,17 +16,24 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
 from services.common.contracts.render import SceneSummary
 from services.common.contracts.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
-from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
+from services.common.errors import (
+    NotFoundError,
+    ServiceUnavailableError,
+    UnauthorizedError,
+    UnprocessableError,
+)
 from services.common.geometry.grid import GridSpec
 from services.common.http import app_state, problem_responses
 from services.common.upload import read_upload
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
 from services.controller.form import OPENAPI, search_options
+from services.controller.keys import ApiKey, KeyStore
 from services.controller.plots import distance_png, trajectory_png
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
@@ -41,9 +55,50 @@ class ControllerState:
     stages: Stages
     runner: SearchRunner
     notifier: Notifier
+    keys: KeyStore
 
 
 State = Annotated[ControllerState, Depends(app_state("controller"))]
+
+_bearer = HTTPBearer(
+    scheme_name="ApiKey",
+    bearerFormat="cosmos_<43 characters>",
+    description="An API key: `cosmos keys create` makes one (`cosmos up` prints a local one).",
+    auto_error=False,
+)
+
+
+def _unauthorized(detail: str, challenge: str) -> UnauthorizedError:
+    return UnauthorizedError(detail, headers={"WWW-Authenticate": challenge})
+
+
+async def _caller(
+    state: State, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+) -> ApiKey | None:
+    """The key a request acts for; None when auth is off (everyone's searches)."""
+    if not state.settings.controller_auth:
+        return None
+    if credentials is None:
+        raise _unauthorized(
+            "send an API key as Authorization: Bearer <key>; `cosmos keys create` makes one "
+            "(`cosmos up` prints a local one)",
+            'Bearer realm="cosmos"',
+        )
+    key = state.keys.verify(credentials.credentials)
+    if key is None:
+        raise _unauthorized(
+            "the API key is unknown or was revoked; ask for a new one (cosmos keys create)",
+            'Bearer realm="cosmos", error="invalid_token"',
+        )
+    return key
+
+
+Caller = Annotated[ApiKey | None, Depends(_caller)]
+
+
+def _visible_to(key: ApiKey | None) -> str | None:
+    """The owner whose searches ``key`` sees (None: everyone's, for admin keys or no auth)."""
+    return None if key is None or key.admin else key.id
 
 
 def _unknown_search(search_id: str) -> NotFoundError:
@@ -52,8 +107,8 @@ def _unknown_search(search_id: str) -> NotFoundError:
     )
 
 
-def _search_or_404(state: ControllerState, search_id: str) -> Search:
-    search = state.store.get(search_id)
+def _search_or_404(state: ControllerState, key: ApiKey | None, search_id: str) -> Search:
+    search = state.store.get(search_id, visible_to=_visible_to(key))
     if search is None:
         raise _unknown_search(search_id)
     return search
@@ -61,7 +116,8 @@ def _search_or_404(state: ControllerState, search_id: str) -> Search:
 
 @router.get("/health", response_model=ControllerHealth)
 async def health(state: State) -> ControllerHealth:
-    """Liveness, the queue, and what the broker knows of every replica."""
+    """Liveness, the queue, and what the broker knows of every replica.
+    Open to anyone (no key): health checks have none, and no search is shown."""
     return ControllerHealth(
         status="ok",
         service="controller",
@@ -72,7 +128,12 @@ async def health(state: State) -> ControllerHealth:
     )
 
 
-@router.get("/scenes", response_model=list[SceneSummary], responses=problem_responses(503))
+@router.get(
+    "/scenes",
+    response_model=list[SceneSummary],
+    responses=problem_responses(401, 503),
+    dependencies=[Depends(_caller)],
+)
 async def scenes(state: State) -> Any:
     """The scenes the renderers know (proxied)."""
     try:
@@ -90,10 +151,10 @@ def _unavailable(exc: BrokerError) -> ServiceUnavailableError:
     "/searches",
     status_code=202,
     response_model=Search,
-    responses=problem_responses(400, 404, 413, 415, 422, 503),
+    responses=problem_responses(400, 401, 404, 413, 415, 422, 503),
     openapi_extra=OPENAPI,
 )
-async def submit(request: Request, state: State) -> JSONResponse:
+async def submit(request: Request, state: State, key: Caller) -> JSONResponse:
     """Start a search for where ``image`` was taken in ``scene``; answers 202 and a Location.
 
     The image is a form's file field ``image`` with the options as text fields, or the raw PNG,
@@ -115,6 +176,7 @@ async def submit(request: Request, state: State) -> JSONResponse:
             max_image_pixels=state.settings.controller_max_image_pixels,
             max_image_side=state.settings.controller_max_image_side,
             start_early=state.runner.idle,
+            owner=None if key is None else key.id,
         )
     except BrokerError as exc:
         raise _unavailable(exc) from exc
@@ -128,27 +190,30 @@ async def submit(request: Request, state: State) -> JSONResponse:
     )
 
 
-@router.get("/searches", response_model=SearchPage)
+@router.get("/searches", response_model=SearchPage, responses=problem_responses(401))
 async def list_searches(
     state: State,
+    key: Caller,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: Annotated[int, Query(ge=0, le=2**62)] = 0,
 ) -> SearchPage:
-    """Searches, newest first (without their iterations)."""
-    items, total = state.store.page(limit, offset)
+    """The key's searches (an admin key's: everyone's), newest first, without iterations."""
+    items, total = state.store.page(limit, offset, visible_to=_visible_to(key))
     return SearchPage(items=tuple(items), total=total, limit=limit, offset=offset)
 
 
-@router.get("/searches/{search_id}", response_model=Search, responses=problem_responses(404))
-async def get_search(search_id: str, state: State) -> Search:
+@router.get("/searches/{search_id}", response_model=Search, responses=problem_responses(401, 404))
+async def get_search(search_id: str, state: State, key: Caller) -> Search:
     """A search: status, iterations so far, result or error."""
-    return _search_or_404(state, search_id)
+    return _search_or_404(state, key, search_id)
 
 
-@router.delete("/searches/{search_id}", response_model=Search, responses=problem_responses(404))
-async def cancel_search(search_id: str, state: State) -> Search:
+@router.delete(
+    "/searches/{search_id}", response_model=Search, responses=problem_responses(401, 404)
+)
+async def cancel_search(search_id: str, state: State, key: Caller) -> Search:
     """Cancel a queued or running search (a finished one is returned unchanged)."""
-    _search_or_404(state, search_id)
+    _search_or_404(state, key, search_id)
     return state.runner.cancel(search_id)
 
 
@@ -159,12 +224,12 @@ def _sse(event: str, data: str) -> bytes:
 @router.get(
     "/searches/{search_id}/events",
     response_class=StreamingResponse,
-    responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(404)},
+    responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(401, 404)},
 )
-async def search_events(search_id: str, state: State) -> StreamingResponse:
+async def search_events(search_id: str, state: State, key: Caller) -> StreamingResponse:
     """Server-sent events: ``iteration`` for each recorded iteration, then one ``end`` with the
     search without its iterations. The stored JSON documents are sent as they are."""
-    if state.store.status_doc(search_id) is None:
+    if state.store.status_doc(search_id, visible_to=_visible_to(key)) is None:
         raise _unknown_search(search_id)
 
     async def stream() -> AsyncIterator[bytes]:
@@ -178,7 +243,7 @@ async def search_events(search_id: str, state: State) -> StreamingResponse:
                 for doc in docs:
                     yield _sse("iteration", doc)
                 sent += len(docs)
-                if status_doc is None:  # searches are never deleted; stop rather than spin
+                if status_doc is None:  # expired meanwhile: stop rather than spin
                     return
                 if status_doc[0] in TERMINAL_STATUSES:
                     yield _sse("end", status_doc[1])
@@ -212,11 +277,11 @@ async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
 @router.get(
     "/searches/{search_id}/trajectory.png",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}}}, **problem_responses(404, 422, 503)},
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(401, 404, 422, 503)},
 )
-async def trajectory(search_id: str, state: State) -> Response:
+async def trajectory(search_id: str, state: State, key: Caller) -> Response:
     """The camera's path on the hemisphere (like the paper's Fig. 6)."""
-    search = _search_or_404(state, search_id)
+    search = _search_or_404(state, key, search_id)
     grid = (await _grid_of(state, search)).grid()
     png = await asyncio.to_thread(trajectory_png, search, grid)
     return Response(png, media_type="image/png")
@@ -225,10 +290,10 @@ async def trajectory(search_id: str, state: State) -> Response:
 @router.get(
     "/searches/{search_id}/distance.png",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}}}, **problem_responses(404)},
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(401, 404)},
 )
-async def distance(search_id: str, state: State) -> Response:
+async def distance(search_id: str, state: State, key: Caller) -> Response:
     """Angle to the estimate per iteration (like the paper's Fig. 8)."""
-    search = _search_or_404(state, search_id)
+    search = _search_or_404(state, key, search_id)
     png = await asyncio.to_thread(distance_png, search)
     return Response(png, media_type="image/png")

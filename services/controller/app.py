@@ -10,12 +10,14 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from starlette.middleware.cors import CORSMiddleware
 
 from services.common.http import service_app
 from services.controller.api import ControllerState, router
 from services.controller.broker import Broker
 from services.controller.discovery import expand_urls
 from services.controller.events import Notifier
+from services.controller.keys import KeyStore
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
@@ -48,6 +50,7 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = await asyncio.to_thread(SearchStore, settings.controller_database_url)
+        keys = await asyncio.to_thread(KeyStore, settings.controller_database_url)
         broker = Broker(
             settings.pools(),
             heuristic=settings.controller_broker_heuristic,
@@ -69,7 +72,9 @@ def create_app(
             else None
         )
         await runner.start()
-        app.state.controller = ControllerState(settings, store, broker, stages, runner, notifier)
+        app.state.controller = ControllerState(
+            settings, store, broker, stages, runner, notifier, keys
+        )
         try:
             yield
         finally:
@@ -77,15 +82,27 @@ def create_app(
                 discovery.cancel()
             await runner.close()
             await broker.close()
+            keys.close()
             store.close()
 
-    return service_app(
+    app = service_app(
         "controller",
         "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
         lifespan,
         router,
         settings.controller_max_upload_bytes,
     )
+    origins = settings.cors_origins()
+    if origins:  # none: no CORS headers, so browsers keep other origins' pages out
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
+            expose_headers=["Location", "Retry-After", "WWW-Authenticate"],
+            max_age=600,
+        )
+    return app
 
 
 app = create_app()
