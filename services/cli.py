@@ -546,7 +546,7 @@ def _parser() -> argparse.ArgumentParser:
         help="create, list and revoke the controller's API keys",
         description="The API keys of the controller whose database is --database-url (default "
         "COSMOS_CONTROLLER_DATABASE_URL's, as the controller reads it). A key sees and cancels "
-        "its own searches; an admin key sees everyone's.",
+        "its own searches, within its quotas; an admin key sees everyone's, without quotas.",
     )
     database = argparse.ArgumentParser(add_help=False)
     database.add_argument("--database-url", help="the controller's COSMOS_CONTROLLER_DATABASE_URL")

@@ -10,6 +10,7 @@ checks; it tells counts and replica URLs, no search. A key sees and cancels its 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated, Any
@@ -35,6 +36,7 @@ from services.controller.events import Notifier
 from services.controller.form import OPENAPI, search_options
 from services.controller.keys import ApiKey, KeyStore
 from services.controller.plots import distance_png, trajectory_png
+from services.controller.quotas import Quotas
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
@@ -56,6 +58,7 @@ class ControllerState:
     runner: SearchRunner
     notifier: Notifier
     keys: KeyStore
+    quotas: Quotas
 
 
 State = Annotated[ControllerState, Depends(app_state("controller"))]
@@ -75,7 +78,7 @@ def _unauthorized(detail: str, challenge: str) -> UnauthorizedError:
 async def _caller(
     state: State, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> ApiKey | None:
-    """The key a request acts for; None when auth is off (everyone's searches)."""
+    """The key a request acts for; None when auth is off (everyone's searches, no quotas)."""
     if not state.settings.controller_auth:
         return None
     if credentials is None:
@@ -116,8 +119,9 @@ def _search_or_404(state: ControllerState, key: ApiKey | None, search_id: str) -
 
 @router.get("/health", response_model=ControllerHealth)
 async def health(state: State) -> ControllerHealth:
-    """Liveness, the queue, and what the broker knows of every replica.
+    """Liveness, the queue, what the broker knows of every replica, and the store's size.
     Open to anyone (no key): health checks have none, and no search is shown."""
+    size = state.store.size()
     return ControllerHealth(
         status="ok",
         service="controller",
@@ -125,6 +129,9 @@ async def health(state: State) -> ControllerHealth:
         searches_running=state.runner.running,
         broker_heuristic=state.broker.heuristic.value,
         replicas=tuple(state.broker.stats()),
+        store_searches=size.searches,
+        store_image_bytes=size.image_bytes,
+        store_bytes=size.database_bytes,
     )
 
 
@@ -151,33 +158,40 @@ def _unavailable(exc: BrokerError) -> ServiceUnavailableError:
     "/searches",
     status_code=202,
     response_model=Search,
-    responses=problem_responses(400, 401, 404, 413, 415, 422, 503),
+    responses=problem_responses(400, 401, 404, 413, 415, 422, 429, 503),
     openapi_extra=OPENAPI,
 )
 async def submit(request: Request, state: State, key: Caller) -> JSONResponse:
     """Start a search for where ``image`` was taken in ``scene``; answers 202 and a Location.
 
     The image is a form's file field ``image`` with the options as text fields, or the raw PNG,
-    JPEG or binary PPM body with the options in the query."""
+    JPEG or binary PPM body with the options in the query. A key over one of its quotas gets
+    429 with ``Retry-After``."""
     upload = await read_upload(request)
     options = search_options(upload.fields, request.query_params.multi_items())
+    admitted: contextlib.AbstractContextManager[None] = (
+        state.quotas.admit(key.id, len(upload.image))
+        if key is not None and not key.admin
+        else contextlib.nullcontext()
+    )
     try:
-        search = await create_search(
-            state.store,
-            state.stages,
-            image=upload.image,
-            scene_id=options.scene,
-            strategy=options.strategy,
-            start_theta_deg=options.start_theta_deg,
-            start_phi_deg=options.start_phi_deg,
-            seed=options.seed,
-            max_iterations=options.max_iterations
-            or state.settings.controller_default_max_iterations,
-            max_image_pixels=state.settings.controller_max_image_pixels,
-            max_image_side=state.settings.controller_max_image_side,
-            start_early=state.runner.idle,
-            owner=None if key is None else key.id,
-        )
+        with admitted:
+            search = await create_search(
+                state.store,
+                state.stages,
+                image=upload.image,
+                scene_id=options.scene,
+                strategy=options.strategy,
+                start_theta_deg=options.start_theta_deg,
+                start_phi_deg=options.start_phi_deg,
+                seed=options.seed,
+                max_iterations=options.max_iterations
+                or state.settings.controller_default_max_iterations,
+                max_image_pixels=state.settings.controller_max_image_pixels,
+                max_image_side=state.settings.controller_max_image_side,
+                start_early=state.runner.idle,
+                owner=None if key is None else key.id,
+            )
     except BrokerError as exc:
         raise _unavailable(exc) from exc
     except StageError as exc:

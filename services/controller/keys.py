@@ -8,8 +8,8 @@ one request's key at one indexed lookup. The lookup is by hash, so how long it t
 about the key.
 
 Each key has a public id (what ``cosmos keys list`` and ``revoke`` show and take, and what owns
-the key's searches), a name, and whether it is an admin key (sees every tenant's searches). A
-revoked key stays listed, with when it was revoked, and is refused from then on.
+the key's searches), a name, and whether it is an admin key (sees every tenant's searches, has
+no quotas). A revoked key stays listed, with when it was revoked, and is refused from then on.
 
 The local key (:func:`local_key`) is how ``cosmos up``, ``cosmos demo`` and the tests work
 without set-up: an admin key named ``local``, kept in :data:`KEY_FILE` beside the controller's

@@ -80,6 +80,11 @@ SAMPLES: dict[str, tuple[str, Any]] = {
     "COSMOS_CONTROLLER_MAX_IMAGE_SIDE": ("100", 100),
     "COSMOS_CONTROLLER_AUTH": ("off", False),
     "COSMOS_CONTROLLER_CORS_ORIGINS": ("https://a.example", "https://a.example"),
+    "COSMOS_CONTROLLER_QUOTA_ACTIVE_SEARCHES": ("3", 3),
+    "COSMOS_CONTROLLER_QUOTA_SEARCHES_PER_MINUTE": ("5", 5),
+    "COSMOS_CONTROLLER_QUOTA_STORED_BYTES": ("4096", 4096),
+    "COSMOS_CONTROLLER_RETENTION_S": ("60", 60.0),
+    "COSMOS_CONTROLLER_RETENTION_SWEEP_S": ("5", 5.0),
 }
 """A valid value of every variable a service reads, other than its default, and what it reads as."""
 

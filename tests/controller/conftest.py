@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp
 
 from services.common.catalog import BUILTIN_SCENES_DIR
+from services.common.contracts.render import SceneDetail
 from services.controller.app import create_app as create_controller
 from services.controller.settings import ControllerSettings
 from services.controller.transport import StageAnswer, StageRequest
@@ -46,6 +47,13 @@ class RendererOnly:
 
 Controller = tuple[FastAPI, httpx.AsyncClient]
 StartController = Callable[..., AbstractAsyncContextManager[Controller]]
+
+
+@pytest.fixture
+def detail(catalog) -> SceneDetail:
+    """The demo scene as the renderer describes it."""
+    scene = catalog.get("demo")
+    return SceneDetail(id="demo", spec=scene.spec, grid=scene.spec.search)
 
 
 @pytest.fixture

@@ -1,8 +1,10 @@
 """What the store holds is bounded: finished searches expire with their images and iterations,
-a failed search loses its image when it fails, and the store says how much it holds."""
+a failed search loses its image when it fails, the controller sweeps on its own, and ``/health``
+says how much is held."""
 
 from __future__ import annotations
 
+import asyncio
 import sqlite3
 from datetime import timedelta
 
@@ -10,6 +12,9 @@ import pytest
 
 from services.common.errors import ProblemDetails
 from services.controller.store import SearchStore, utcnow
+from tests.controller.clients import key_id
+from tests.controller.test_runner import PNG, FakeStages, run_stored
+from tests.controller.test_runner import stored as stored_for_runner
 from tests.controller.test_store import iteration, search
 
 FAILED = ProblemDetails(title="Stage unavailable", status=503)
@@ -73,6 +78,18 @@ def test_a_failed_search_loses_its_image_and_keeps_its_record(tmp_path):
     store.close()
 
 
+def test_a_search_the_runner_fails_loses_its_image(tmp_path, detail):
+    stages = FakeStages(detail, boxes=0)  # nothing in the target: the search fails
+    store = stored_for_runner(tmp_path, stages)
+    assert store.image("s1") == PNG
+    final = run_stored(store, stages)
+    assert final.status == "failed"
+    assert final.error is not None
+    with pytest.raises(KeyError):
+        store.image("s1")
+    store.close()
+
+
 def test_the_store_reports_its_size(tmp_path):
     store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
     empty = store.size()
@@ -119,3 +136,30 @@ def test_an_earlier_database_gets_owners_finish_times_and_image_sizes(tmp_path):
     assert store.expire(utcnow() - timedelta(minutes=9)) == 2  # finished 10 minutes ago
     store.close()
     SearchStore(f"sqlite:///{path}").close()  # opening it again changes nothing
+
+
+@pytest.mark.anyio
+async def test_the_controller_sweeps_expired_searches_and_health_reports_the_store(
+    start_controller,
+):
+    async with start_controller(controller_retention_s=0.2, controller_retention_sweep_s=0.05) as (
+        app,
+        client,
+    ):
+        store = app.state.controller.store
+        owner = key_id(app, client)
+        store.create(search("running"), b"r" * 1000, owner=owner)
+        store.update("running", status="running")
+        store.create(search("done"), b"d" * 3000, owner=owner)
+        store.update("done", status="succeeded")
+        health = (await client.get("/health")).json()
+        assert (health["store_searches"], health["store_image_bytes"]) == (2, 4000)
+        assert health["store_bytes"] > 4000
+        for _ in range(100):
+            if store.get("done") is None:
+                break
+            await asyncio.sleep(0.02)
+        assert store.get("done") is None
+        assert (await client.get("/searches/done")).status_code == 404
+        health = (await client.get("/health")).json()
+        assert (health["store_searches"], health["store_image_bytes"]) == (1, 1000)

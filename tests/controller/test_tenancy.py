@@ -148,6 +148,7 @@ async def test_the_openapi_schema_declares_the_bearer_scheme_on_the_protected_ro
     for key in protected:
         assert operations[key]["security"] == [{"ApiKey": []}], key
         assert "401" in operations[key]["responses"], key
+    assert "429" in operations[("POST", "/searches")]["responses"]
 
 
 async def test_cors_is_closed_by_default(controller):
