@@ -19,6 +19,8 @@ __all__ = [
     "ProblemDetails",
     "ServiceError",
     "ServiceUnavailableError",
+    "TooManyRequestsError",
+    "UnauthorizedError",
     "UnprocessableError",
     "UnsupportedMediaTypeError",
     "problem_type",
@@ -59,10 +61,13 @@ class ServiceError(Exception):
         slug: str | None = None,
         title: str | None = None,
         extra: dict[str, Any] | None = None,
+        headers: dict[str, str] | None = None,
     ) -> None:
         super().__init__(detail)
         self.detail = detail
         self.field = field
+        self.headers = headers or {}
+        """Response headers the problem needs (``WWW-Authenticate``, ``Retry-After``)."""
         if slug is not None:
             self.slug = slug
         if title is not None:
@@ -88,6 +93,14 @@ class BadRequestError(ServiceError):
     title = "Bad request"
 
 
+class UnauthorizedError(ServiceError):
+    """No credentials, or ones the service does not accept; answers ``WWW-Authenticate``."""
+
+    status = 401
+    slug = "unauthorized"
+    title = "Unauthorized"
+
+
 class NotFoundError(ServiceError):
     status = 404
     slug = "not-found"
@@ -110,6 +123,14 @@ class UnprocessableError(ServiceError):
     status = 422
     slug = "invalid-request"
     title = "Invalid request"
+
+
+class TooManyRequestsError(ServiceError):
+    """A limit of the caller's was reached; answers ``Retry-After``."""
+
+    status = 429
+    slug = "too-many-requests"
+    title = "Too many requests"
 
 
 class ServiceUnavailableError(ServiceError):

@@ -61,7 +61,7 @@ def _field_of(loc: tuple[int | str, ...]) -> str:
 async def _service_error(request: Request, exc: Exception) -> ProblemResponse:
     if not isinstance(exc, ServiceError):  # registered for this type only
         raise exc
-    headers = {"Retry-After": "1"} if exc.status == 503 else None
+    headers = exc.headers or ({"Retry-After": "1"} if exc.status == 503 else None)
     return _respond(exc.problem(instance=request.url.path), headers)
 
 

@@ -15,6 +15,7 @@ from services.common.contracts.search import Search, SearchStatus
 from services.common.geometry.pose import GridIndex
 from services.controller.events import Notifier
 from services.controller.store import SearchStore, utcnow
+from tests.controller.clients import key_id
 
 pytestmark = pytest.mark.anyio
 
@@ -41,8 +42,16 @@ async def test_a_grid_the_optimizer_cannot_search_is_refused_at_submission(contr
     assert listed.json()["total"] == 0  # nothing was recorded
 
 
-def record(store: SearchStore, search_id: str, status: SearchStatus, scene: str = "demo") -> None:
-    """Store a search as if submitted (the runner is not told, so it stays as stored)."""
+def record(
+    store: SearchStore,
+    search_id: str,
+    status: SearchStatus,
+    scene: str = "demo",
+    *,
+    owner: str | None = None,
+) -> None:
+    """Store a search as if ``owner`` submitted it (the runner is not told, so it stays as
+    stored)."""
     now = utcnow()
     search = Search(
         id=search_id,
@@ -56,13 +65,13 @@ def record(store: SearchStore, search_id: str, status: SearchStatus, scene: str 
         updated_at=now,
         target_size=(32, 24),
     )
-    store.create(search, png_bytes())
+    store.create(search, png_bytes(), owner=owner)
 
 
 async def test_the_trajectory_of_a_search_whose_grid_became_unsearchable_is_a_422(controller):
     """A search taken before its scene file changed to a grid the optimizer cannot search."""
     app, client = controller
-    record(app.state.controller.store, "old", "cancelled", scene="fine")
+    record(app.state.controller.store, "old", "cancelled", scene="fine", owner=key_id(app, client))
     response = await client.get("/searches/old/trajectory.png")
     assert response.status_code == 422, response.text
     assert response.json()["field"] == "search.angle_step_deg"
@@ -73,8 +82,9 @@ async def test_followers_that_come_and_go_leave_nothing_in_the_notifier(controll
     request is cancelled while they wait), leave no event behind."""
     app, client = controller
     state = app.state.controller
-    record(state.store, "finished", "cancelled")
-    record(state.store, "running", "running")
+    owner = key_id(app, client)
+    record(state.store, "finished", "cancelled", owner=owner)
+    record(state.store, "running", "running", owner=owner)
     for _ in range(5):
         response = await client.get("/searches/finished/events")
         assert response.status_code == 200

@@ -168,3 +168,8 @@ class ControllerHealth(FrozenModel):
     searches_running: int
     broker_heuristic: str
     replicas: tuple[ReplicaHealth, ...]
+    store_searches: int = Field(description="Searches held (finished ones expire).")
+    store_image_bytes: int = Field(description="Bytes of the target images held.")
+    store_bytes: int = Field(
+        description="Bytes of the database's pages in use (free pages and the log aside)."
+    )
