@@ -5,11 +5,18 @@
   own detector beside its file (:mod:`training.onboard`; needs the ``train`` extra);
 * ``cosmos render --scene demo --theta 40 --phi 120 -o target.png``: one view, rendered in this
   process or by a renderer at ``--url``; ``--annotations FILE`` also writes its ground truth;
-* ``cosmos up``: the four services as local processes (Ctrl-C or SIGTERM stops them all);
+* ``cosmos up``: the four services as local processes (Ctrl-C or SIGTERM stops them all), and
+  the local API key, printed and kept beside the controller's database (``data/api-key``);
 * ``cosmos search target.png --scene demo``: submit a search, follow it, save its plots;
+* ``cosmos keys create [--admin] [--name N]``, ``cosmos keys list``, ``cosmos keys revoke ID``:
+  the controller's API keys, in its database (``COSMOS_CONTROLLER_DATABASE_URL``);
 * ``cosmos demo``: the whole thing end to end on the demo scene: starts the stack on free ports,
   renders a target from a random grid pose, searches for it, prints the true and found poses;
 * ``cosmos bench``: the paper's evaluation through the real services (:mod:`services.bench`).
+
+The commands that call a running controller (``search``, ``bench --url``) send the key in
+``COSMOS_API_KEY``, else the one ``cosmos up`` keeps beside the controller's database; ``demo``
+and ``bench`` without ``--url`` start their own stack, with its own key.
 """
 
 from __future__ import annotations
@@ -22,7 +29,8 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -31,7 +39,9 @@ from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.common.contracts.search import Iteration, Search
 from services.common.errors import ServiceError
 from services.common.geometry.pose import PoseQuery
+from services.common.launch import ROOT
 from services.controller.client import ControllerClient, ControllerError
+from services.controller.keys import KeyStore, client_key, key_file, local_key, rooted
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
 from services.stack import local_stack, plan_stack, running_stack
@@ -249,9 +259,23 @@ def _follow(client: ControllerClient, search: Search, out: Path | None) -> Searc
     return final
 
 
+def _database_url(given: str | None = None) -> str:
+    """The controller database a local command means: ``given``, else the controller's own
+    setting (``COSMOS_CONTROLLER_DATABASE_URL`` or its default); a relative path is taken from
+    the repository root, where ``cosmos up`` runs the services."""
+    from services.controller.settings import ControllerSettings
+
+    return rooted(given or ControllerSettings().controller_database_url, ROOT)
+
+
+def _client_key() -> str | None:
+    """``COSMOS_API_KEY``, else the local key ``cosmos up`` keeps (None: none found)."""
+    return client_key(_database_url())
+
+
 def _cmd_search(args: argparse.Namespace) -> int:
     image = Path(args.image).read_bytes()
-    with ControllerClient(args.url) as client:
+    with ControllerClient(args.url, api_key=_client_key()) as client:
         search = client.submit(
             image,
             args.scene,
@@ -273,6 +297,12 @@ def _cmd_up(args: argparse.Namespace) -> int:
     from services.environment import report_unknown_variables
 
     report_unknown_variables()  # each service warns too, but into its log file
+    database_url = _database_url(args.database_url)
+    try:
+        api_key: str | None = local_key(database_url)
+        where = f"kept in {key_file(database_url)}, which cosmos search reads"
+    except ValueError as exc:  # an in-memory database: no other process can add a key
+        api_key, where = None, str(exc)
     plan = plan_stack(
         host=args.host,
         controller_port=args.port,
@@ -281,13 +311,14 @@ def _cmd_up(args: argparse.Namespace) -> int:
         optimizer_port=args.port + 3,
         renderers=args.renderers,
         detectors=args.detectors,
-        database_url=args.database_url,
+        database_url=database_url,
     )
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    with running_stack(plan, Path(args.logs), host=args.host) as stack:
+    with running_stack(plan, Path(args.logs), host=args.host, api_key=api_key) as stack:
         print(f"controller  {stack.controller}")
+        print(f"API key     {stack.api_key or 'none'} (admin; {where})")
         for name, urls in (
             ("renderer", stack.renderers),
             ("detector", stack.detectors),
@@ -331,7 +362,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                 f"target rendered at lat {index.lat}, lon {index.lon} "
                 f"(θ {pose.theta_deg:.1f}°, φ {pose.phi_deg:.1f}°): {out / 'demo-target.png'}"
             )
-            with ControllerClient(stack.controller) as client:
+            with ControllerClient(stack.controller, api_key=stack.api_key) as client:
                 search = client.submit(target, "demo", seed=rng.randrange(2**31))
                 print(
                     f"searching with {search.strategy} from lat {search.start.index.lat}, "
@@ -353,6 +384,51 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     ok = found is not None and found.pose.index == index
     print("the search found the target's grid pose" if ok else "the search did NOT find the target")
     return 0 if ok else 3
+
+
+@contextmanager
+def _key_store(args: argparse.Namespace) -> Iterator[tuple[KeyStore, str]]:
+    database_url = _database_url(args.database_url)
+    keys = KeyStore(database_url)
+    try:
+        yield keys, database_url
+    finally:
+        keys.close()
+
+
+def _cmd_keys_create(args: argparse.Namespace) -> int:
+    with _key_store(args) as (keys, database_url):
+        record, key = keys.create(args.name, admin=args.admin)
+    kind = "admin key" if record.admin else "key"
+    print(
+        f"{kind} {record.id} ({record.name}) created in {database_url}; it is shown only now, "
+        "keep it (clients read COSMOS_API_KEY):",
+        file=sys.stderr,
+    )
+    print(key)  # alone on stdout: KEY=$(cosmos keys create)
+    return 0
+
+
+def _cmd_keys_list(args: argparse.Namespace) -> int:
+    with _key_store(args) as (keys, _):
+        records = keys.all()
+    print(f"{'id':<12}  {'name':<20}  {'kind':<6}  {'created (UTC)':<19}  revoked (UTC)")
+    for record in records:
+        kind = "admin" if record.admin else "tenant"
+        created = f"{record.created_at:%Y-%m-%d %H:%M:%S}"
+        revoked = f"{record.revoked_at:%Y-%m-%d %H:%M:%S}" if record.revoked_at else ""
+        print(f"{record.id:<12}  {record.name:<20}  {kind:<6}  {created:<19}  {revoked}")
+    return 0
+
+
+def _cmd_keys_revoke(args: argparse.Namespace) -> int:
+    with _key_store(args) as (keys, database_url):
+        try:
+            record = keys.revoke(args.id)
+        except KeyError:
+            raise ValueError(f"no key {args.id!r} in {database_url} (cosmos keys list)") from None
+    print(f"revoked key {record.id} ({record.name}): it is refused from now on")
+    return 0
 
 
 def _csv(value: str) -> tuple[str, ...]:
@@ -384,6 +460,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         out=Path(args.out),
         results_md=Path(args.results_md) if args.results_md else None,
         url=args.url,
+        api_key=_client_key() if args.url else None,
         renderer_url=args.renderer_url,
         spp=args.spp,
         width=args.width,
@@ -463,6 +540,28 @@ def _parser() -> argparse.ArgumentParser:
     up.add_argument("--database-url", help="the controller's COSMOS_CONTROLLER_DATABASE_URL")
     up.add_argument("--logs", default="logs", help="folder for the services' logs")
     up.set_defaults(run=_cmd_up)
+
+    keys = commands.add_parser(
+        "keys",
+        help="create, list and revoke the controller's API keys",
+        description="The API keys of the controller whose database is --database-url (default "
+        "COSMOS_CONTROLLER_DATABASE_URL's, as the controller reads it). A key sees and cancels "
+        "its own searches, within its quotas; an admin key sees everyone's, without quotas.",
+    )
+    database = argparse.ArgumentParser(add_help=False)
+    database.add_argument("--database-url", help="the controller's COSMOS_CONTROLLER_DATABASE_URL")
+    key_commands = keys.add_subparsers(dest="keys_command", required=True)
+    create = key_commands.add_parser("create", help="a new key, printed once", parents=[database])
+    create.add_argument("--name", default="unnamed", help="who or what the key is for")
+    create.add_argument("--admin", action="store_true", help="sees every tenant's searches")
+    create.set_defaults(run=_cmd_keys_create)
+    listing = key_commands.add_parser(
+        "list", help="every key (never the keys themselves)", parents=[database]
+    )
+    listing.set_defaults(run=_cmd_keys_list)
+    revoke = key_commands.add_parser("revoke", help="refuse a key from now on", parents=[database])
+    revoke.add_argument("id", help="the key's id (cosmos keys list)")
+    revoke.set_defaults(run=_cmd_keys_revoke)
 
     search = commands.add_parser("search", help="search for where an image was taken")
     search.add_argument("image", help="the target image (PNG or JPEG)")

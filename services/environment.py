@@ -15,6 +15,7 @@ from collections.abc import Mapping
 from typing import TypeVar
 
 from services.common.settings import ENV_PREFIX, ServiceSettings
+from services.controller.keys import API_KEY_VARIABLE
 from services.controller.settings import ControllerSettings
 from services.detector.settings import DetectorSettings
 from services.optimizer.settings import OptimizerSettings
@@ -44,8 +45,12 @@ SERVICE_SETTINGS: Mapping[str, type[ServiceSettings]] = {
 SHARED = frozenset({"COSMOS_SCENES_DIR"})
 """Variables several services read, each in the same meaning."""
 
-OTHER_READERS: Mapping[str, tuple[str, ...]] = {"COSMOS_TRAINING": ("scripts/bootstrap.sh",)}
-"""Variables read outside the services' settings, and by what."""
+OTHER_READERS: Mapping[str, tuple[str, ...]] = {
+    API_KEY_VARIABLE: ("cosmos",),
+    "COSMOS_TRAINING": ("scripts/bootstrap.sh",),
+}
+"""Variables read outside the services' settings, and by what (``cosmos``: the command, as a
+client of the controller)."""
 
 
 def _readers() -> dict[str, tuple[str, ...]]:

@@ -20,6 +20,7 @@ from services.common.launch import (
     stop_service,
     wait_healthy,
 )
+from services.controller.keys import local_key
 
 __all__ = ["ServicePlan", "Stack", "local_stack", "plan_stack", "running_stack"]
 
@@ -45,6 +46,8 @@ class Stack:
     detectors: tuple[str, ...]
     optimizers: tuple[str, ...]
     processes: tuple[ServiceProcess, ...]
+    api_key: str | None = None
+    """The controller's local admin key (:func:`services.controller.keys.local_key`), if known."""
 
 
 def plan_stack(
@@ -97,10 +100,14 @@ def plan_stack(
 
 @contextmanager
 def running_stack(
-    plan: list[ServicePlan], log_dir: Path, host: str = "127.0.0.1", timeout_s: float = 120.0
+    plan: list[ServicePlan],
+    log_dir: Path,
+    host: str = "127.0.0.1",
+    timeout_s: float = 120.0,
+    api_key: str | None = None,
 ) -> Iterator[Stack]:
     """Start the planned processes (stages first, all at once; then the controller) and stop
-    them all when the block ends."""
+    them all when the block ends; ``api_key`` is handed on in the :class:`Stack`."""
     started: list[ServiceProcess] = []
     try:
         stages = [p for p in plan if p.name != "controller"]
@@ -129,6 +136,7 @@ def running_stack(
             detectors=urls("detector"),
             optimizers=urls("optimizer"),
             processes=tuple(started),
+            api_key=api_key,
         )
     finally:
         for process in reversed(started):
@@ -160,8 +168,9 @@ def local_stack(
     env: Mapping[str, str] | None = None,
     host: str = "127.0.0.1",
 ) -> Iterator[Stack]:
-    """A stack on free ports of ``host`` with a fresh SQLite database and the logs in
-    ``workdir``, stopped when the block ends (demos, tests, benchmarks)."""
+    """A stack on free ports of ``host`` with a fresh SQLite database, its local API key and
+    the logs in ``workdir``, stopped when the block ends (demos, tests, benchmarks)."""
+    database_url = f"sqlite:///{workdir}/controller.sqlite3"
     ports = [_free_base(count, host) for count in (1, renderers, detectors, 1)]
     plan = plan_stack(
         host=host,
@@ -172,8 +181,9 @@ def local_stack(
         renderers=renderers,
         detectors=detectors,
         port_stride=LOCAL_STRIDE,
-        database_url=f"sqlite:///{workdir}/controller.sqlite3",
+        database_url=database_url,
         env=env,
     )
-    with running_stack(plan, workdir / "logs", host=host) as stack:
+    key = local_key(database_url)
+    with running_stack(plan, workdir / "logs", host=host, api_key=key) as stack:
         yield stack

@@ -48,14 +48,21 @@ def homogeneous_tuples(node: Any) -> Any:
     return out
 
 
-def fuzz_service(url: str, *, max_examples: int = 25, timeout_s: float = 60.0) -> int:
+def fuzz_service(
+    url: str,
+    *,
+    max_examples: int = 25,
+    timeout_s: float = 60.0,
+    headers: dict[str, str] | None = None,
+) -> int:
     """Fuzz every operation of the service at ``url`` from its OpenAPI schema (schemathesis):
     valid and invalid inputs alike must never get a 5xx, and every answer must match the route's
     declared status codes, media types and schemas. Returns the number of operations.
 
     Schema-valid requests may still be refused with a 4xx problem (whether a pose is on a scene's
     grid, bytes are an image, a scene exists, depends on what a static schema cannot say), so the
-    ``positive_data_acceptance`` heuristic is the one check left out.
+    ``positive_data_acceptance`` heuristic is the one check left out. ``headers`` go with every
+    request (an API key: schemathesis also checks that the routes refuse requests without it).
     """
     document = httpx.get(f"{url}/openapi.json", timeout=10.0).json()
     schema = schemathesis.openapi.from_dict(homogeneous_tuples(document))
@@ -72,7 +79,10 @@ def fuzz_service(url: str, *, max_examples: int = 25, timeout_s: float = 60.0) -
         )
         def fuzz(case: schemathesis.Case) -> None:
             case.call_and_validate(
-                base_url=url, timeout=timeout_s, excluded_checks=[positive_data_acceptance]
+                base_url=url,
+                timeout=timeout_s,
+                headers=headers,
+                excluded_checks=[positive_data_acceptance],
             )
 
         fuzz()

@@ -2,7 +2,8 @@
 
 Targets are rendered by the renderer at random grid poses; the controller must find each
 target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, and a
-controller killed mid-search that finishes the search after it comes back.
+controller killed mid-search that finishes the search after it comes back. Every call to the
+controller carries the stack's local API key, as the demo's do.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from services.common.geometry.pose import PoseQuery
 from services.common.images import encode_ppm
 from services.common.launch import free_port, spawn_service, stop_service, wait_healthy
 from services.controller.client import ControllerClient
+from services.controller.keys import local_key
 from services.renderer.client import RendererClient
 from services.stack import Stack, local_stack, plan_stack, running_stack
 from tests.support import fuzz_service
@@ -41,13 +43,22 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         yield running
 
 
+def auth(stack: Stack) -> dict[str, str]:
+    """The header that carries the stack's API key."""
+    return {"Authorization": f"Bearer {stack.api_key}"}
+
+
+def controller_client(stack: Stack) -> ControllerClient:
+    return ControllerClient(stack.controller, api_key=stack.api_key)
+
+
 def render(stack: Stack, scene: str, lat: int, lon: int) -> bytes:
     with RendererClient(stack.renderers[0]) as client:
         return client.render_png(RenderRequest(scene=scene, pose=PoseQuery(lat=lat, lon=lon)))
 
 
 def run_search(stack: Stack, image: bytes, scene: str, **options):
-    with ControllerClient(stack.controller) as client:
+    with controller_client(stack) as client:
         search = client.submit(image, scene, **options)
         for _ in client.follow(search.id, timeout_s=300):
             pass
@@ -134,7 +145,7 @@ def test_a_ppm_target_is_accepted_and_an_empty_one_fails_clearly(stack):
 def test_plots_events_listing_and_scenes(stack):
     image = render(stack, "demo", 6, 12)
     final = run_search(stack, image, "demo", seed=5)
-    with httpx.Client(base_url=stack.controller, timeout=30) as http:
+    with httpx.Client(base_url=stack.controller, timeout=30, headers=auth(stack)) as http:
         for name in ("trajectory.png", "distance.png"):
             response = http.get(f"/searches/{final.id}/{name}")
             assert response.status_code == 200
@@ -157,7 +168,7 @@ def test_plots_events_listing_and_scenes(stack):
 
 def test_a_search_can_be_cancelled(stack):
     image = render(stack, "demo", 10, 0)
-    with ControllerClient(stack.controller) as client:
+    with controller_client(stack) as client:
         search = client.submit(
             image,
             "demo",
@@ -166,7 +177,9 @@ def test_a_search_can_be_cancelled(stack):
             start_phi_deg=180,
             max_iterations=200,
         )
-        cancelled = httpx.delete(f"{stack.controller}/searches/{search.id}").json()
+        cancelled = httpx.delete(
+            f"{stack.controller}/searches/{search.id}", headers=auth(stack)
+        ).json()
         assert cancelled["status"] == "cancelled"
         time.sleep(1.0)
         assert client.get(search.id).status == "cancelled"
@@ -210,9 +223,9 @@ def test_bad_submissions_get_problem_details(stack, how, image, data, status, fi
     url = f"{stack.controller}/searches"
     if how == "form":
         files = {"image": ("t", content, media_type)}
-        response = httpx.post(url, files=files, data=data, timeout=30)
+        response = httpx.post(url, files=files, data=data, timeout=30, headers=auth(stack))
     else:
-        headers = {"Content-Type": media_type}
+        headers = {"Content-Type": media_type, **auth(stack)}
         response = httpx.post(url, content=content, params=data, headers=headers, timeout=30)
     assert response.status_code == status, response.text
     assert response.headers["content-type"] == "application/problem+json"
@@ -270,6 +283,7 @@ PNG_BODY = {"headers": {"Content-Type": "image/png"}}
     ],
 )
 def test_bad_submission_shapes_get_problem_details(stack, request_args, status, field):
+    request_args = {**request_args, "headers": {**request_args.get("headers", {}), **auth(stack)}}
     response = httpx.post(f"{stack.controller}/searches", timeout=30, **request_args)
     assert response.status_code == status, response.text
     assert response.headers["content-type"] == "application/problem+json"
@@ -284,7 +298,7 @@ def test_a_raw_submission_searches_like_a_form(stack):
         f"{stack.controller}/searches",
         content=image,
         params=options,
-        headers={"Content-Type": "image/png"},
+        headers={"Content-Type": "image/png", **auth(stack)},
         timeout=30,
     )
     form = httpx.post(
@@ -292,9 +306,10 @@ def test_a_raw_submission_searches_like_a_form(stack):
         files={"image": ("t.png", image, "image/png")},
         data=options,
         timeout=30,
+        headers=auth(stack),
     )
     assert raw.status_code == form.status_code == 202, (raw.text, form.text)
-    with ControllerClient(stack.controller) as client:
+    with controller_client(stack) as client:
         found = []
         for answer in (raw, form):
             *_, end = client.follow(answer.json()["id"])
@@ -307,8 +322,11 @@ def test_a_raw_submission_searches_like_a_form(stack):
     assert results[0] == results[1]
 
 
-def test_unknown_searches_and_oversized_uploads(stack):
-    with httpx.Client(base_url=stack.controller, timeout=30) as http:
+def test_unknown_searches_and_oversized_uploads_and_no_key(stack):
+    response = httpx.get(f"{stack.controller}/searches", timeout=30)
+    assert response.status_code == 401
+    assert response.headers["www-authenticate"].startswith("Bearer")
+    with httpx.Client(base_url=stack.controller, timeout=30, headers=auth(stack)) as http:
         for method, path in [
             ("GET", "/searches/nope"),
             ("DELETE", "/searches/nope"),
@@ -327,16 +345,18 @@ def test_a_killed_controller_resumes_its_searches(tmp_path):
     """SIGKILL the controller mid-search; a new one on the same database finishes the search
     from its last recorded iteration."""
     ports = [free_port() for _ in range(4)]
+    database_url = f"sqlite:///{tmp_path}/controller.sqlite3"
     plan = plan_stack(
         controller_port=ports[0],
         renderer_port=ports[1],
         detector_port=ports[2],
         optimizer_port=ports[3],
-        database_url=f"sqlite:///{tmp_path}/controller.sqlite3",
+        database_url=database_url,
     )
-    with running_stack(plan, tmp_path / "logs") as stack:
+    key = local_key(database_url)
+    with running_stack(plan, tmp_path / "logs", api_key=key) as stack:
         image = render(stack, "demo", 9, 30)
-        with ControllerClient(stack.controller) as client:
+        with controller_client(stack) as client:
             search = client.submit(
                 image,
                 "demo",
@@ -356,7 +376,7 @@ def test_a_killed_controller_resumes_its_searches(tmp_path):
         again = spawn_service(spec.app, tmp_path / "logs2", port=spec.port, env=spec.env)
         try:
             wait_healthy(again)
-            with ControllerClient(again.url) as client:
+            with ControllerClient(again.url, api_key=key) as client:
                 seen = client.get(search.id)
                 assert seen.status in {"queued", "running", "succeeded"}
                 recorded = len(seen.iterations)
@@ -382,19 +402,20 @@ def test_searches_ride_out_a_detector_outage_or_resume_when_retried(tmp_path):
     succeeds; gone for longer, the search fails saying so, and once the detector is back, POST
     /searches/{id}/retry resumes it from its recorded iterations and it succeeds."""
     ports = [free_port() for _ in range(4)]
+    database_url = f"sqlite:///{tmp_path}/controller.sqlite3"
     plan = plan_stack(
         controller_port=ports[0],
         renderer_port=ports[1],
         detector_port=ports[2],
         optimizer_port=ports[3],
-        database_url=f"sqlite:///{tmp_path}/controller.sqlite3",
+        database_url=database_url,
         env={"COSMOS_CONTROLLER_OUTAGE_BUDGET_S": "10"},
     )
     (detector_plan,) = [p for p in plan if p.name == "detector"]
-    with running_stack(plan, tmp_path / "logs") as stack:
+    with running_stack(plan, tmp_path / "logs", api_key=local_key(database_url)) as stack:
         (detector,) = [p for p in stack.processes if p.url == stack.detectors[0]]
         image = render(stack, "demo", 9, 30)
-        http = httpx.Client(base_url=stack.controller, timeout=30)
+        http = httpx.Client(base_url=stack.controller, timeout=30, headers=auth(stack))
 
         def start_far_away() -> str:
             response = http.post(
@@ -488,4 +509,4 @@ def wait_for(check, timeout_s: float = 60.0) -> None:
 
 def test_every_controller_route_answers_within_its_schema(stack):
     """Schema-driven fuzzing of the public API (see :func:`tests.support.fuzz_service`)."""
-    assert fuzz_service(stack.controller, max_examples=15) >= 8
+    assert fuzz_service(stack.controller, max_examples=15, headers=auth(stack)) >= 8

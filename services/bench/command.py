@@ -73,6 +73,8 @@ class BenchConfig:
     out: Path = Path("docs/results")
     results_md: Path | None = Path("docs/RESULTS.md")
     url: str | None = None
+    api_key: str | None = field(default=None, repr=False)
+    """With ``url``: the key sent to that controller (a local stack has its own)."""
     renderer_url: str | None = None
     spp: int | None = None
     width: int | None = None
@@ -105,6 +107,8 @@ def say(message: str) -> None:
 class Endpoints:
     controller: str
     renderer: str
+    api_key: str | None = field(default=None, repr=False)
+    """The key sent to the controller (the local stack's, or ``--url``'s)."""
     renderers: tuple[str, ...] = ()
     detectors: tuple[str, ...] = ()
     scene_dirs: tuple[Path, ...] = ()
@@ -158,7 +162,7 @@ def open_endpoints(
     if config.url is not None:
         if config.renderer_url is None:
             raise ValueError("--url needs --renderer-url too (the targets are rendered there)")
-        yield Endpoints(config.url.rstrip("/"), config.renderer_url.rstrip("/"))
+        yield Endpoints(config.url.rstrip("/"), config.renderer_url.rstrip("/"), config.api_key)
         return
     with tempfile.TemporaryDirectory(prefix="cosmos-bench-") as tmp:
         started = time.perf_counter()
@@ -183,6 +187,7 @@ def open_endpoints(
             yield Endpoints(
                 stack.controller,
                 stack.renderers[0],
+                stack.api_key,
                 stack.renderers,
                 stack.detectors,
                 scene_dirs=tuple(dirs),
@@ -278,6 +283,7 @@ def search_all(
         endpoints.controller,
         [(t, s) for t in firsts.values() for s in strategies],
         max_iterations=config.max_iterations,
+        api_key=endpoints.api_key,
     )
     jobs = [(t, s) for t in targets for s in strategies]
     say(f"{len(jobs)} searches, {config.concurrency} in flight")
@@ -287,6 +293,7 @@ def search_all(
         concurrency=config.concurrency,
         max_iterations=config.max_iterations,
         progress=progress_printer(len(jobs), config.verbose),
+        api_key=endpoints.api_key,
     )
     return targets, records
 
@@ -332,6 +339,7 @@ def run_main(config: BenchConfig) -> int:
                 render_width=config.width,
                 max_iterations=config.max_iterations,
                 progress=say if config.verbose else None,
+                api_key=endpoints.api_key,
             )
             profile = profile_summary(samples)
             for row in profile["rows"]:
@@ -443,13 +451,16 @@ def run_throughput(config: BenchConfig) -> int:
             jobs: list[tuple[Target, StrategyName]] = [(t, "reprojection") for t in targets]
             jobs = jobs[: config.throughput_searches]
             ep.warm(scenes)
-            run_searches(ep.controller, jobs[:1], max_iterations=config.max_iterations)
+            run_searches(
+                ep.controller, jobs[:1], max_iterations=config.max_iterations, api_key=ep.api_key
+            )
             t0 = time.perf_counter()
             records = run_searches(
                 ep.controller,
                 jobs,
                 concurrency=len(jobs),
                 max_iterations=config.max_iterations,
+                api_key=ep.api_key,
             )
             elapsed = time.perf_counter() - t0
         errors = sum(r.status == "error" for r in records)

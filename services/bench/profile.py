@@ -247,6 +247,7 @@ def profile_searches(
     max_iterations: int = 60,
     repeats: int = 3,
     progress: Callable[[str], None] | None = None,
+    api_key: str | None = None,
 ) -> list[ProfileSample]:
     """For each target, ``repeats`` rounds of: its search through the stack again, its
     one-process pipeline, its floor; each time is the median of its rounds."""
@@ -259,7 +260,10 @@ def profile_searches(
             record = None
             for _ in range(repeats):
                 (record,) = run_searches(
-                    controller_url, [(target, strategy)], max_iterations=max_iterations
+                    controller_url,
+                    [(target, strategy)],
+                    max_iterations=max_iterations,
+                    api_key=api_key,
                 )
                 if record.status == "error" or not record.trajectory:
                     break

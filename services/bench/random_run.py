@@ -175,6 +175,7 @@ def _scene_arm(
         [(t, s) for t in firsts.values() for s in config.strategies],
         max_iterations=config.max_iterations,
         arm="scene",
+        api_key=endpoints.api_key,
     )
     say(f"{len(jobs)} searches with the scenes' own models")
     return run_searches(
@@ -184,6 +185,7 @@ def _scene_arm(
         max_iterations=config.max_iterations,
         progress=progress_printer(len(jobs), config.verbose),
         arm="scene",
+        api_key=endpoints.api_key,
     )
 
 

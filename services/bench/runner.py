@@ -383,6 +383,7 @@ async def _run(
     progress: Callable[[int, SearchRecord], None] | None,
     timeout_s: float,
     arm: str,
+    api_key: str | None,
 ) -> list[SearchRecord]:
     records: list[SearchRecord | None] = [None] * len(jobs)
     queue: asyncio.Queue[int] = asyncio.Queue()
@@ -393,7 +394,8 @@ async def _run(
     connector = aiohttp.TCPConnector(limit=2 * concurrency + 4)
     timeout = aiohttp.ClientTimeout(total=timeout_s, connect=5.0)
 
-    async with aiohttp.ClientSession(connector=connector, timeout=timeout) as http:
+    headers = {"Authorization": f"Bearer {api_key}"} if api_key is not None else None
+    async with aiohttp.ClientSession(connector=connector, timeout=timeout, headers=headers) as http:
 
         async def worker() -> None:
             nonlocal done
@@ -419,14 +421,15 @@ def run_searches(
     progress: Callable[[int, SearchRecord], None] | None = None,
     timeout_s: float = 600.0,
     arm: str = "general",
+    api_key: str | None = None,
 ) -> list[SearchRecord]:
     """Run every (target, strategy) search with ``concurrency`` in flight; records in job order,
-    labelled with the detector ``arm`` they ran with.
+    labelled with the detector ``arm`` they ran with; ``api_key`` goes to the controller.
 
     A search the controller refused or lost is recorded with status ``error``, never raised.
     """
     return asyncio.run(
-        _run(controller_url, jobs, concurrency, max_iterations, progress, timeout_s, arm)
+        _run(controller_url, jobs, concurrency, max_iterations, progress, timeout_s, arm, api_key)
     )
 
 

@@ -20,6 +20,8 @@ __all__ = [
     "ProblemDetails",
     "ServiceError",
     "ServiceUnavailableError",
+    "TooManyRequestsError",
+    "UnauthorizedError",
     "UnprocessableError",
     "UnsupportedMediaTypeError",
     "problem_type",
@@ -60,10 +62,13 @@ class ServiceError(Exception):
         slug: str | None = None,
         title: str | None = None,
         extra: dict[str, Any] | None = None,
+        headers: dict[str, str] | None = None,
     ) -> None:
         super().__init__(detail)
         self.detail = detail
         self.field = field
+        self.headers = headers or {}
+        """Response headers the problem needs (``WWW-Authenticate``, ``Retry-After``)."""
         if slug is not None:
             self.slug = slug
         if title is not None:
@@ -87,6 +92,14 @@ class BadRequestError(ServiceError):
     status = 400
     slug = "bad-request"
     title = "Bad request"
+
+
+class UnauthorizedError(ServiceError):
+    """No credentials, or ones the service does not accept; answers ``WWW-Authenticate``."""
+
+    status = 401
+    slug = "unauthorized"
+    title = "Unauthorized"
 
 
 class NotFoundError(ServiceError):
@@ -119,22 +132,15 @@ class UnprocessableError(ServiceError):
     title = "Invalid request"
 
 
-class ServiceUnavailableError(ServiceError):
-    """Answered with a ``Retry-After`` of ``retry_after_s`` seconds."""
+class TooManyRequestsError(ServiceError):
+    """A limit of the caller's was reached; answers ``Retry-After``."""
 
+    status = 429
+    slug = "too-many-requests"
+    title = "Too many requests"
+
+
+class ServiceUnavailableError(ServiceError):
     status = 503
     slug = "unavailable"
     title = "Service unavailable"
-
-    def __init__(
-        self,
-        detail: str,
-        *,
-        retry_after_s: int = 1,
-        field: str | None = None,
-        slug: str | None = None,
-        title: str | None = None,
-        extra: dict[str, Any] | None = None,
-    ) -> None:
-        super().__init__(detail, field=field, slug=slug, title=title, extra=extra)
-        self.retry_after_s = retry_after_s

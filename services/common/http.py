@@ -64,8 +64,7 @@ def _field_of(loc: tuple[int | str, ...]) -> str:
 async def _service_error(request: Request, exc: Exception) -> ProblemResponse:
     if not isinstance(exc, ServiceError):  # registered for this type only
         raise exc
-    retry_after_s = getattr(exc, "retry_after_s", 1)
-    headers = {"Retry-After": str(retry_after_s)} if exc.status == 503 else None
+    headers = exc.headers or ({"Retry-After": "1"} if exc.status == 503 else None)
     return _respond(exc.problem(instance=request.url.path), headers)
 
 

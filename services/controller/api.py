@@ -1,8 +1,16 @@
-"""Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots."""
+"""Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots.
+
+Every route but ``/health`` (and the OpenAPI documents) wants an API key
+(``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
+``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays open for load balancers and container health
+checks; it tells counts and replica URLs, no search. A key sees and cancels its own searches only
+(another tenant's is a 404, as an unknown one, so ids do not leak); an admin key sees them all.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
@@ -10,6 +18,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
 from services.common.contracts.render import SceneSummary
@@ -18,6 +27,7 @@ from services.common.errors import (
     ConflictError,
     NotFoundError,
     ServiceUnavailableError,
+    UnauthorizedError,
     UnprocessableError,
 )
 from services.common.geometry.grid import GridSpec
@@ -26,8 +36,10 @@ from services.common.upload import read_upload
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
 from services.controller.form import OPENAPI, search_options
+from services.controller.keys import ApiKey, KeyStore
 from services.controller.plots import PlotCache, distance_png, trajectory_png
-from services.controller.runner import SearchRunner, why_not_retryable
+from services.controller.quotas import Quotas
+from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
@@ -51,10 +63,52 @@ class ControllerState:
     stages: Stages
     runner: SearchRunner
     notifier: Notifier
+    keys: KeyStore
+    quotas: Quotas
     plots: PlotCache = field(default_factory=PlotCache)
 
 
 State = Annotated[ControllerState, Depends(app_state("controller"))]
+
+_bearer = HTTPBearer(
+    scheme_name="ApiKey",
+    bearerFormat="cosmos_<43 characters>",
+    description="An API key: `cosmos keys create` makes one (`cosmos up` prints a local one).",
+    auto_error=False,
+)
+
+
+def _unauthorized(detail: str, challenge: str) -> UnauthorizedError:
+    return UnauthorizedError(detail, headers={"WWW-Authenticate": challenge})
+
+
+async def _caller(
+    state: State, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+) -> ApiKey | None:
+    """The key a request acts for; None when auth is off (everyone's searches, no quotas)."""
+    if not state.settings.controller_auth:
+        return None
+    if credentials is None:
+        raise _unauthorized(
+            "send an API key as Authorization: Bearer <key>; `cosmos keys create` makes one "
+            "(`cosmos up` prints a local one)",
+            'Bearer realm="cosmos"',
+        )
+    key = state.keys.verify(credentials.credentials)
+    if key is None:
+        raise _unauthorized(
+            "the API key is unknown or was revoked; ask for a new one (cosmos keys create)",
+            'Bearer realm="cosmos", error="invalid_token"',
+        )
+    return key
+
+
+Caller = Annotated[ApiKey | None, Depends(_caller)]
+
+
+def _visible_to(key: ApiKey | None) -> str | None:
+    """The owner whose searches ``key`` sees (None: everyone's, for admin keys or no auth)."""
+    return None if key is None or key.admin else key.id
 
 
 def _unknown_search(search_id: str) -> NotFoundError:
@@ -63,8 +117,8 @@ def _unknown_search(search_id: str) -> NotFoundError:
     )
 
 
-def _search_or_404(state: ControllerState, search_id: str) -> Search:
-    search = state.store.get(search_id)
+def _search_or_404(state: ControllerState, key: ApiKey | None, search_id: str) -> Search:
+    search = state.store.get(search_id, visible_to=_visible_to(key))
     if search is None:
         raise _unknown_search(search_id)
     return search
@@ -72,8 +126,10 @@ def _search_or_404(state: ControllerState, search_id: str) -> Search:
 
 @router.get("/health", response_model=ControllerHealth)
 async def health(state: State) -> ControllerHealth:
-    """Liveness, the queue, and what the broker knows of every replica: ``degraded``, naming
-    the stages, while a stage has no replica available."""
+    """Liveness, the queue, what the broker knows of every replica (``degraded``, naming the
+    stages, while a stage has no replica available), and the store's size. Open to anyone (no
+    key): health checks have none, and no search is shown."""
+    size = state.store.size()
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(
         status="degraded" if unavailable else "ok",
@@ -82,11 +138,19 @@ async def health(state: State) -> ControllerHealth:
         searches_running=state.runner.running,
         broker_heuristic=state.broker.heuristic.value,
         replicas=tuple(state.broker.stats()),
+        store_searches=size.searches,
+        store_image_bytes=size.image_bytes,
+        store_bytes=size.database_bytes,
         unavailable_stages=unavailable,
     )
 
 
-@router.get("/scenes", response_model=list[SceneSummary], responses=problem_responses(503))
+@router.get(
+    "/scenes",
+    response_model=list[SceneSummary],
+    responses=problem_responses(401, 503),
+    dependencies=[Depends(_caller)],
+)
 async def scenes(state: State) -> Any:
     """The scenes the renderers know (proxied)."""
     try:
@@ -105,7 +169,7 @@ def _unavailable(stage: str, why: Exception) -> ServiceUnavailableError:
         "(GET /health lists the stages no replica serves)",
         slug="stage-unavailable",
         title="Stage unavailable",
-        retry_after_s=RETRY_AFTER_S,
+        headers={"Retry-After": str(RETRY_AFTER_S)},
     )
 
 
@@ -120,7 +184,7 @@ def _refuse_while_unavailable(state: ControllerState) -> None:
             f"{'it' if len(down) == 1 else 'them'}",
             slug="stage-unavailable",
             title="Stage unavailable",
-            retry_after_s=RETRY_AFTER_S,
+            headers={"Retry-After": str(RETRY_AFTER_S)},
         )
 
 
@@ -128,34 +192,42 @@ def _refuse_while_unavailable(state: ControllerState) -> None:
     "/searches",
     status_code=202,
     response_model=Search,
-    responses=problem_responses(400, 404, 413, 415, 422, 503),
+    responses=problem_responses(400, 401, 404, 413, 415, 422, 429, 503),
     openapi_extra=OPENAPI,
 )
-async def submit(request: Request, state: State) -> JSONResponse:
+async def submit(request: Request, state: State, key: Caller) -> JSONResponse:
     """Start a search for where ``image`` was taken in ``scene``; answers 202 and a Location.
 
     The image is a form's file field ``image`` with the options as text fields, or the raw PNG,
-    JPEG or binary PPM body with the options in the query. While a stage has no replica
-    available (``GET /health`` says ``degraded``) it answers 503 with ``Retry-After``."""
+    JPEG or binary PPM body with the options in the query. A key over one of its quotas gets
+    429 with ``Retry-After``; while a stage has no replica available (``GET /health`` says
+    ``degraded``), 503 with ``Retry-After``."""
     _refuse_while_unavailable(state)
     upload = await read_upload(request)
     options = search_options(upload.fields, request.query_params.multi_items())
+    admitted: contextlib.AbstractContextManager[None] = (
+        state.quotas.admit(key.id, len(upload.image))
+        if key is not None and not key.admin
+        else contextlib.nullcontext()
+    )
     try:
-        search = await create_search(
-            state.store,
-            state.stages,
-            image=upload.image,
-            scene_id=options.scene,
-            strategy=options.strategy,
-            start_theta_deg=options.start_theta_deg,
-            start_phi_deg=options.start_phi_deg,
-            seed=options.seed,
-            max_iterations=options.max_iterations
-            or state.settings.controller_default_max_iterations,
-            max_image_pixels=state.settings.controller_max_image_pixels,
-            max_image_side=state.settings.controller_max_image_side,
-            start_early=state.runner.idle,
-        )
+        with admitted:
+            search = await create_search(
+                state.store,
+                state.stages,
+                image=upload.image,
+                scene_id=options.scene,
+                strategy=options.strategy,
+                start_theta_deg=options.start_theta_deg,
+                start_phi_deg=options.start_phi_deg,
+                seed=options.seed,
+                max_iterations=options.max_iterations
+                or state.settings.controller_default_max_iterations,
+                max_image_pixels=state.settings.controller_max_image_pixels,
+                max_image_side=state.settings.controller_max_image_side,
+                start_early=state.runner.idle,
+                owner=None if key is None else key.id,
+            )
     except BrokerError as exc:
         raise _unavailable(exc.stage, exc) from exc
     except StageError as exc:
@@ -168,27 +240,30 @@ async def submit(request: Request, state: State) -> JSONResponse:
     )
 
 
-@router.get("/searches", response_model=SearchPage)
+@router.get("/searches", response_model=SearchPage, responses=problem_responses(401))
 async def list_searches(
     state: State,
+    key: Caller,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: Annotated[int, Query(ge=0, le=2**62)] = 0,
 ) -> SearchPage:
-    """Searches, newest first (without their iterations)."""
-    items, total = state.store.page(limit, offset)
+    """The key's searches (an admin key's: everyone's), newest first, without iterations."""
+    items, total = state.store.page(limit, offset, visible_to=_visible_to(key))
     return SearchPage(items=tuple(items), total=total, limit=limit, offset=offset)
 
 
-@router.get("/searches/{search_id}", response_model=Search, responses=problem_responses(404))
-async def get_search(search_id: str, state: State) -> Search:
+@router.get("/searches/{search_id}", response_model=Search, responses=problem_responses(401, 404))
+async def get_search(search_id: str, state: State, key: Caller) -> Search:
     """A search: status, iterations so far, result or error."""
-    return _search_or_404(state, search_id)
+    return _search_or_404(state, key, search_id)
 
 
-@router.delete("/searches/{search_id}", response_model=Search, responses=problem_responses(404))
-async def cancel_search(search_id: str, state: State) -> Search:
+@router.delete(
+    "/searches/{search_id}", response_model=Search, responses=problem_responses(401, 404)
+)
+async def cancel_search(search_id: str, state: State, key: Caller) -> Search:
     """Cancel a queued or running search (a finished one is returned unchanged)."""
-    _search_or_404(state, search_id)
+    _search_or_404(state, key, search_id)
     return state.runner.cancel(search_id)
 
 
@@ -196,17 +271,19 @@ async def cancel_search(search_id: str, state: State) -> Search:
     "/searches/{search_id}/retry",
     status_code=202,
     response_model=Search,
-    responses=problem_responses(404, 409, 503),
+    responses=problem_responses(401, 404, 409, 429, 503),
 )
-async def retry_search(search_id: str, state: State) -> JSONResponse:
+async def retry_search(search_id: str, state: State, key: Caller) -> JSONResponse:
     """Resume a search that failed because a stage was unavailable (its error's ``type`` is
     ``urn:cosmos:problem:stage-unavailable``) from its recorded iterations: 202, the search
     queued again. 409 for any other search; 503 with ``Retry-After`` while a stage is still
-    unavailable."""
-    why = why_not_retryable(_search_or_404(state, search_id))
+    unavailable; 429 for a key at its quota of searches queued or running."""
+    why = state.runner.why_not_retryable(_search_or_404(state, key, search_id))
     if why is not None:
         raise ConflictError(why, slug="not-retryable", title="Not retryable")
     _refuse_while_unavailable(state)
+    if key is not None and not key.admin:
+        state.quotas.check(key.id, 0)  # its image is stored already
     search = state.runner.retry(search_id)  # nothing ran since the check: it takes the search
     return JSONResponse(
         search.model_dump(mode="json"),
@@ -222,12 +299,12 @@ def _sse(event: str, data: str) -> bytes:
 @router.get(
     "/searches/{search_id}/events",
     response_class=StreamingResponse,
-    responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(404)},
+    responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(401, 404)},
 )
-async def search_events(search_id: str, state: State) -> StreamingResponse:
+async def search_events(search_id: str, state: State, key: Caller) -> StreamingResponse:
     """Server-sent events: ``iteration`` for each recorded iteration, then one ``end`` with the
     search without its iterations. The stored JSON documents are sent as they are."""
-    if state.store.status_doc(search_id) is None:
+    if state.store.status_doc(search_id, visible_to=_visible_to(key)) is None:
         raise _unknown_search(search_id)
 
     async def stream() -> AsyncIterator[bytes]:
@@ -241,7 +318,7 @@ async def search_events(search_id: str, state: State) -> StreamingResponse:
                 for doc in docs:
                     yield _sse("iteration", doc)
                 sent += len(docs)
-                if status_doc is None:  # searches are never deleted; stop rather than spin
+                if status_doc is None:  # expired meanwhile: stop rather than spin
                     return
                 if status_doc[0] in TERMINAL_STATUSES:
                     yield _sse("end", status_doc[1])
@@ -275,11 +352,11 @@ async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
 @router.get(
     "/searches/{search_id}/trajectory.png",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}}}, **problem_responses(404, 422, 503)},
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(401, 404, 422, 503)},
 )
-async def trajectory(search_id: str, state: State) -> Response:
+async def trajectory(search_id: str, state: State, key: Caller) -> Response:
     """The camera's path on the hemisphere (like the paper's Fig. 6)."""
-    search = _search_or_404(state, search_id)
+    search = _search_or_404(state, key, search_id)
 
     async def draw() -> bytes:
         grid = (await _grid_of(state, search)).grid()
@@ -291,11 +368,11 @@ async def trajectory(search_id: str, state: State) -> Response:
 @router.get(
     "/searches/{search_id}/distance.png",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}}}, **problem_responses(404)},
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(401, 404)},
 )
-async def distance(search_id: str, state: State) -> Response:
+async def distance(search_id: str, state: State, key: Caller) -> Response:
     """Angle to the estimate per iteration (like the paper's Fig. 8)."""
-    search = _search_or_404(state, search_id)
+    search = _search_or_404(state, key, search_id)
 
     async def draw() -> bytes:
         return await asyncio.to_thread(distance_png, search)

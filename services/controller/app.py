@@ -6,24 +6,31 @@ Run it with ``uvicorn services.controller.app:app --port 8000``.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from datetime import timedelta
 
 from fastapi import FastAPI
+from starlette.middleware.cors import CORSMiddleware
 
 from services.common.http import service_app
 from services.controller.api import ControllerState, router
 from services.controller.broker import Broker
 from services.controller.discovery import expand_urls
 from services.controller.events import Notifier
+from services.controller.keys import KeyStore
+from services.controller.quotas import Limits, Quotas
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
-from services.controller.store import SearchStore
+from services.controller.store import SearchStore, utcnow
 from services.controller.transport import Transport
 from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
+
+_log = logging.getLogger("cosmos.controller")
 
 
 async def _discover(broker: Broker, settings: ControllerSettings) -> None:
@@ -32,6 +39,20 @@ async def _discover(broker: Broker, settings: ControllerSettings) -> None:
         for stage, urls in settings.pools().items():
             await broker.set_pool(stage, await expand_urls(urls))
         await asyncio.sleep(settings.controller_discovery_interval_s)
+
+
+async def _expire(store: SearchStore, settings: ControllerSettings) -> None:
+    """Delete the searches that finished more than the retention time ago, now and then."""
+    retention = timedelta(seconds=settings.controller_retention_s)
+    while True:
+        try:
+            expired = await asyncio.to_thread(store.expire, utcnow() - retention)
+        except Exception:  # a failed sweep must not end the sweeping
+            _log.exception("expiring old searches failed")
+        else:
+            if expired:
+                _log.info("expired %d searches finished over %s ago", expired, retention)
+        await asyncio.sleep(settings.controller_retention_sweep_s)
 
 
 def create_app(
@@ -48,6 +69,16 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = await asyncio.to_thread(SearchStore, settings.controller_database_url)
+        keys = await asyncio.to_thread(KeyStore, settings.controller_database_url)
+        quotas = Quotas(
+            store,
+            Limits(
+                active_searches=settings.controller_quota_active_searches,
+                searches_per_minute=settings.controller_quota_searches_per_minute,
+                stored_bytes=settings.controller_quota_stored_bytes,
+                retention_s=settings.controller_retention_s,
+            ),
+        )
         broker = Broker(
             settings.pools(),
             heuristic=settings.controller_broker_heuristic,
@@ -75,23 +106,40 @@ def create_app(
             else None
         )
         await runner.start()
-        app.state.controller = ControllerState(settings, store, broker, stages, runner, notifier)
+        expiry = asyncio.create_task(_expire(store, settings))
+        app.state.controller = ControllerState(
+            settings, store, broker, stages, runner, notifier, keys, quotas
+        )
         try:
             yield
         finally:
             if discovery is not None:
                 discovery.cancel()
+            expiry.cancel()
+            await asyncio.gather(expiry, return_exceptions=True)
             await runner.close()
             await broker.close()
+            keys.close()
             store.close()
 
-    return service_app(
+    app = service_app(
         "controller",
         "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
         lifespan,
         router,
         settings.controller_max_upload_bytes,
     )
+    origins = settings.cors_origins()
+    if origins:  # none: no CORS headers, so browsers keep other origins' pages out
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
+            expose_headers=["Location", "Retry-After", "WWW-Authenticate"],
+            max_age=600,
+        )
+    return app
 
 
 app = create_app()

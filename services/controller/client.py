@@ -20,10 +20,18 @@ class ControllerError(ServiceCallError):
 
 
 class ControllerClient(ServiceClient):
-    """Calls the controller at ``base_url`` with explicit timeouts."""
+    """Calls the controller at ``base_url`` with explicit timeouts, sending ``api_key`` as
+    ``Authorization: Bearer`` (:func:`services.controller.keys.client_key` finds the local one)."""
 
     service = "controller"
     error = ControllerError
+
+    def __init__(
+        self, base_url: str, timeout_s: float = 60.0, *, api_key: str | None = None
+    ) -> None:
+        super().__init__(base_url, timeout_s)
+        if api_key is not None:
+            self._http.headers["Authorization"] = f"Bearer {api_key}"
 
     def submit(self, image: bytes, scene: str, **options: Any) -> Search:
         """``POST /searches`` with the image as the body; ``options`` are the optional

@@ -61,6 +61,7 @@ from services.common.contracts.optimize import (
 )
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import (
+    OUTAGE,
     TERMINAL_STATUSES,
     Iteration,
     Search,
@@ -76,7 +77,7 @@ from services.controller.events import Notifier
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchChanges, SearchStore
 
-__all__ = ["OUTAGE", "NotRetryable", "SearchRunner", "why_not_retryable"]
+__all__ = ["NotRetryable", "SearchRunner"]
 
 _log = logging.getLogger("cosmos.controller")
 T = TypeVar("T")
@@ -117,11 +118,6 @@ def _refused(exc: StageError) -> SearchFailed:
     return _failure("stage-refused", f"{exc.stage.capitalize()} refused", detail, 422)
 
 
-OUTAGE = problem_type("stage-unavailable")
-"""The ``type`` of a search's error when a stage was unavailable for longer than the search
-waits: such a search can be resumed (:meth:`SearchRunner.retry`)."""
-
-
 def _outage(exc: BrokerError, search_id: str, budget_s: float) -> SearchFailed:
     """The search's failure when no replica of a stage served its task and none came back within
     ``budget_s``: what happened and what to do, in words for whoever submitted it.
@@ -150,8 +146,8 @@ def _outage(exc: BrokerError, search_id: str, budget_s: float) -> SearchFailed:
     )
 
 
-def why_not_retryable(search: Search) -> str | None:
-    """Why :meth:`SearchRunner.retry` would refuse ``search``, or None if it would take it."""
+def _why_not_retryable(search: Search) -> str | None:
+    """Why ``search``'s record says it cannot be retried, or None."""
     if search.status != "failed":
         return (
             f"search {search.id} is {search.status}: only a search that failed because a stage "
@@ -512,6 +508,13 @@ class SearchRunner:
         self.notifier.publish(search_id)
         return search
 
+    def why_not_retryable(self, search: Search) -> str | None:
+        """Why :meth:`retry` would refuse ``search``, or None if it would take it."""
+        why = _why_not_retryable(search)
+        if why is None and not self.store.holds_image(search.id):  # failed before it was kept
+            why = f"search {search.id} no longer holds its target image; submit it again"
+        return why
+
     def retry(self, search_id: str) -> Search:
         """Queue again a search that failed because a stage was unavailable for longer than it
         waits (:data:`OUTAGE`): it resumes from its recorded iterations, as after a restart.
@@ -521,7 +524,7 @@ class SearchRunner:
         search = self.store.get(search_id)
         if search is None:
             raise KeyError(search_id)
-        why = why_not_retryable(search)
+        why = self.why_not_retryable(search)
         if why is not None:
             raise NotRetryable(why)
         search = self.store.reopen(search_id)

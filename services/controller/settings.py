@@ -17,10 +17,13 @@ def _urls(value: str) -> list[str]:
 
 
 class ControllerSettings(ServiceSettings):
-    """Replica URLs per stage (comma-separated), the database, and limits.
+    """Replica URLs per stage (comma-separated), the database, limits, API keys and quotas.
 
     ``COSMOS_CONTROLLER_RENDERER_URLS``, ``COSMOS_CONTROLLER_DETECTOR_URLS``,
     ``COSMOS_CONTROLLER_OPTIMIZER_URLS``; ``COSMOS_CONTROLLER_DATABASE_URL`` (``sqlite:///path``).
+    ``COSMOS_CONTROLLER_AUTH`` (default on: every route but ``/health`` and the docs wants an
+    API key; ``off`` for development only), ``COSMOS_CONTROLLER_CORS_ORIGINS`` (none by default),
+    ``COSMOS_CONTROLLER_QUOTA_…`` per key, ``COSMOS_CONTROLLER_RETENTION_S``.
 
     The old names in ``renamed`` are still read for one more release, with a warning:
     ``COSMOS_RENDER_SPP`` meant something else to the renderer too, ``COSMOS_RENDERER_URLS``
@@ -73,6 +76,23 @@ class ControllerSettings(ServiceSettings):
     controller_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
     controller_max_image_pixels: Annotated[int, Field(ge=64)] = 4096 * 4096
     controller_max_image_side: Annotated[int, Field(ge=8)] = 8192
+    controller_auth: bool = True
+    """Whether the public API wants an API key (``Authorization: Bearer``). Off (``off``,
+    ``false``, ``0``), anyone may submit, see and cancel every search: for development only."""
+    controller_cors_origins: str = ""
+    """Origins whose pages may call the API from a browser, comma-separated
+    (``https://app.example.org``); none by default, ``*`` for any."""
+    controller_quota_active_searches: Annotated[int, Field(ge=1, le=100_000)] = 8
+    """Searches one key may have queued or running at once."""
+    controller_quota_searches_per_minute: Annotated[int, Field(ge=1, le=100_000)] = 30
+    """Searches one key may submit in any minute."""
+    controller_quota_stored_bytes: Annotated[int, Field(ge=1024)] = 1024**3
+    """Bytes of target images one key's searches may hold (a failed search's is deleted)."""
+    controller_retention_s: Annotated[float, Field(gt=0)] = 7 * 24 * 3600.0
+    """Seconds a finished search (succeeded, failed, cancelled) is kept, with its image and
+    iterations, after it finished."""
+    controller_retention_sweep_s: Annotated[float, Field(gt=0, le=86400)] = 600.0
+    """How often expired searches are looked for and deleted."""
 
     @field_validator(
         "controller_renderer_urls", "controller_detector_urls", "controller_optimizer_urls"
@@ -86,6 +106,24 @@ class ControllerSettings(ServiceSettings):
             if not url.startswith(("http://", "https://")):
                 raise ValueError(f"{url!r} is not an http(s) URL")
         return value
+
+    @field_validator("controller_cors_origins")
+    @classmethod
+    def _origins(cls, value: str) -> str:
+        for origin in _urls(value):
+            if origin == "*":
+                continue
+            scheme, _, rest = origin.partition("://")
+            if scheme not in {"http", "https"} or not rest or "/" in rest:
+                raise ValueError(
+                    f"{origin!r} is not an origin: give scheme://host[:port] "
+                    "(https://app.example.org), comma-separated, or *"
+                )
+        return value
+
+    def cors_origins(self) -> list[str]:
+        """The origins allowed to call the API from a browser (none: no CORS headers at all)."""
+        return _urls(self.controller_cors_origins)
 
     def pools(self) -> dict[str, list[str]]:
         """Replica URLs per stage."""

@@ -7,6 +7,13 @@ search's document changes several times per search while its ~230 KB image never
 happen, so a controller that dies loses nothing recorded: queued and running searches are found
 again by :meth:`SearchStore.unfinished`. The write-ahead log is copied back into the database by a
 :class:`~services.controller.checkpoint.Checkpointer` thread, never inside a commit.
+
+Each search has an owner (the id of the API key that submitted it, or none when the controller
+ran without keys); queries take ``visible_to``, the key id whose searches alone are seen (None:
+everyone's). What a search holds is bounded: a failed search's target image is deleted when it
+fails (the record stays, to say why), and :meth:`SearchStore.expire` deletes finished searches
+with their images and iterations. Deleted pages are reused by later writes; the file does not
+shrink (no ``VACUUM``, which would rewrite the whole database under the lock).
 """
 
 from __future__ import annotations
@@ -15,25 +22,35 @@ import sqlite3
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypedDict, Unpack
 
 from services.common.contracts.detect import Detection, ModelInfo
-from services.common.contracts.search import Iteration, Search, SearchResult, SearchStatus
+from services.common.contracts.search import (
+    OUTAGE,
+    TERMINAL_STATUSES,
+    Iteration,
+    Search,
+    SearchResult,
+    SearchStatus,
+)
 from services.common.errors import ProblemDetails
 from services.controller.checkpoint import Checkpointer
 
-__all__ = ["SearchStore", "database_path", "utcnow"]
+__all__ = ["SearchStore", "StoreSize", "Usage", "database_path", "utcnow"]
 
-_SCHEMA = """
+_TABLES = """
 CREATE TABLE IF NOT EXISTS searches (
     id TEXT PRIMARY KEY,
     status TEXT NOT NULL,
     created_at TEXT NOT NULL,
-    doc TEXT NOT NULL
+    doc TEXT NOT NULL,
+    owner TEXT,
+    finished_at TEXT,
+    image_bytes INTEGER NOT NULL DEFAULT 0
 );
-CREATE INDEX IF NOT EXISTS searches_created ON searches (created_at DESC);
 CREATE TABLE IF NOT EXISTS images (
     search_id TEXT PRIMARY KEY REFERENCES searches (id) ON DELETE CASCADE,
     image BLOB NOT NULL
@@ -45,6 +62,52 @@ CREATE TABLE IF NOT EXISTS iterations (
     PRIMARY KEY (search_id, idx)
 );
 """
+
+_ADDED_COLUMNS = {
+    "owner": "TEXT",
+    "finished_at": "TEXT",
+    "image_bytes": "INTEGER NOT NULL DEFAULT 0",
+}
+"""Columns a database from an earlier version lacks: added, then filled in, on opening."""
+
+# After the columns: an earlier version's table gets them before they are indexed.
+_INDEXES = """
+CREATE INDEX IF NOT EXISTS searches_created ON searches (created_at DESC);
+CREATE INDEX IF NOT EXISTS searches_owner_created ON searches (owner, created_at);
+CREATE INDEX IF NOT EXISTS searches_owner_status ON searches (owner, status, image_bytes);
+CREATE INDEX IF NOT EXISTS searches_finished ON searches (finished_at)
+    WHERE finished_at IS NOT NULL;
+"""
+
+_VISIBLE = "(?1 IS NULL OR owner = ?1)"
+"""The condition of ``visible_to`` (parameter 1): everyone's searches, or one owner's."""
+
+
+@dataclass(frozen=True)
+class Usage:
+    """What one owner holds, for its quotas."""
+
+    active: int
+    """Searches queued or running."""
+    recent: int
+    """Searches created since the time asked about."""
+    first_recent: datetime | None
+    """When the oldest of those was created."""
+    image_bytes: int
+    """Bytes of the target images its searches hold."""
+    first_expiry: datetime | None
+    """When the first of its finished searches that hold an image finished."""
+
+
+@dataclass(frozen=True)
+class StoreSize:
+    """How much the store holds (the controller's ``/health``)."""
+
+    searches: int
+    image_bytes: int
+    """Bytes of the target images held."""
+    database_bytes: int
+    """Bytes of the database's pages in use (free pages, and the write-ahead log, aside)."""
 
 
 class SearchChanges(TypedDict, total=False):
@@ -59,6 +122,11 @@ class SearchChanges(TypedDict, total=False):
 
 def utcnow() -> datetime:
     return datetime.now(UTC)
+
+
+def _stamp(when: datetime) -> str:
+    """A UTC time as stored: ISO 8601 with ``+00:00``, which sorts as the times do."""
+    return when.astimezone(UTC).isoformat()
 
 
 def database_path(url: str) -> str:
@@ -88,11 +156,14 @@ class SearchStore:
             wal = self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0] == "wal"
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.execute("PRAGMA foreign_keys=ON")
-            self._db.executescript(_SCHEMA)
+            self._db.executescript(_TABLES)
             if wal:  # no commit on the event loop copies the log back: the Checkpointer does
                 self._db.execute("PRAGMA wal_autocheckpoint=0")
         self._checkpointer = Checkpointer(path, checkpoint_every_s) if wal else None
         self._move_images()
+        self._add_columns()
+        with self._lock:
+            self._db.executescript(_INDEXES)
 
     def _move_images(self) -> None:
         """Move target images out of the search rows of a database from an earlier version."""
@@ -104,6 +175,34 @@ class SearchStore:
                 "INSERT OR IGNORE INTO images (search_id, image) SELECT id, image FROM searches"
             )
             self._db.execute("ALTER TABLE searches DROP COLUMN image")
+
+    def _add_columns(self) -> None:
+        """Give a database from an earlier version the owner, finish time and image size of each
+        search; its searches have no owner (only admin keys see them), its finished ones finished
+        when last updated, its failed ones lose their images as they would have on failing."""
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(searches)")}
+        missing = [name for name in _ADDED_COLUMNS if name not in columns]
+        if not missing:
+            return
+        with self._transaction():
+            for name in missing:
+                self._db.execute(f"ALTER TABLE searches ADD COLUMN {name} {_ADDED_COLUMNS[name]}")
+            finished = self._db.execute(
+                "SELECT id, doc FROM searches WHERE status IN ('succeeded', 'failed', 'cancelled')"
+            ).fetchall()
+            for search_id, doc in finished:
+                updated = Search.model_validate_json(doc).updated_at
+                self._db.execute(
+                    "UPDATE searches SET finished_at = ? WHERE id = ?", (_stamp(updated), search_id)
+                )
+            self._db.execute(
+                "DELETE FROM images WHERE search_id IN "
+                "(SELECT id FROM searches WHERE status = 'failed')"
+            )
+            self._db.execute(
+                "UPDATE searches SET image_bytes = coalesce("
+                "(SELECT length(image) FROM images WHERE search_id = searches.id), 0)"
+            )
 
     def close(self) -> None:
         if self._checkpointer is not None:
@@ -127,25 +226,32 @@ class SearchStore:
         with self._lock:
             return self._db.execute(sql, args).fetchone()
 
-    def create(self, search: Search, image: bytes) -> None:
-        """Record a new search and its target image."""
+    def create(self, search: Search, image: bytes, *, owner: str | None = None) -> None:
+        """Record a new search and its target image; ``owner`` is the submitting key's id."""
         doc = search.model_copy(update={"iterations": ()}).model_dump_json()
         with self._transaction():
             self._db.execute(
-                "INSERT INTO searches (id, status, created_at, doc) VALUES (?, ?, ?, ?)",
-                (search.id, search.status, search.created_at.isoformat(), doc),
+                "INSERT INTO searches (id, status, created_at, doc, owner, image_bytes) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                (search.id, search.status, _stamp(search.created_at), doc, owner, len(image)),
             )
             self._db.execute(
                 "INSERT INTO images (search_id, image) VALUES (?, ?)", (search.id, image)
             )
 
-    def get(self, search_id: str) -> Search | None:
-        """The search with its iterations, or None."""
-        row = self._one("SELECT doc FROM searches WHERE id = ?", search_id)
+    def get(self, search_id: str, *, visible_to: str | None = None) -> Search | None:
+        """The search with its iterations, or None (also when ``visible_to`` does not own it)."""
+        row = self._one(
+            f"SELECT doc FROM searches WHERE id = ?2 AND {_VISIBLE}", visible_to, search_id
+        )
         if row is None:
             return None
         search = Search.model_validate_json(row[0])
         return search.model_copy(update={"iterations": tuple(self.iterations(search_id))})
+
+    def holds_image(self, search_id: str) -> bool:
+        """Whether the search's target image is still held."""
+        return self._one("SELECT 1 FROM images WHERE search_id = ?", search_id) is not None
 
     def image(self, search_id: str) -> bytes:
         row = self._one("SELECT image FROM images WHERE search_id = ?", search_id)
@@ -153,14 +259,19 @@ class SearchStore:
             raise KeyError(search_id)
         return bytes(row[0])
 
-    def page(self, limit: int, offset: int) -> tuple[list[Search], int]:
+    def page(
+        self, limit: int, offset: int, *, visible_to: str | None = None
+    ) -> tuple[list[Search], int]:
         """Newest first, without iterations (they can be long), and the total count."""
         with self._lock:
             rows = self._db.execute(
-                "SELECT doc FROM searches ORDER BY created_at DESC, id LIMIT ? OFFSET ?",
-                (limit, offset),
+                f"SELECT doc FROM searches WHERE {_VISIBLE} "
+                "ORDER BY created_at DESC, id LIMIT ?2 OFFSET ?3",
+                (visible_to, limit, offset),
             ).fetchall()
-            total = self._db.execute("SELECT COUNT(*) FROM searches").fetchone()[0]
+            total = self._db.execute(
+                f"SELECT COUNT(*) FROM searches WHERE {_VISIBLE}", (visible_to,)
+            ).fetchone()[0]
         return [Search.model_validate_json(row[0]) for row in rows], int(total)
 
     def iterations(self, search_id: str) -> list[Iteration]:
@@ -175,9 +286,14 @@ class SearchStore:
             ).fetchall()
         return [row[0] for row in rows]
 
-    def status_doc(self, search_id: str) -> tuple[SearchStatus, str] | None:
-        """The search's status and its JSON document without iterations, or None."""
-        row = self._one("SELECT status, doc FROM searches WHERE id = ?", search_id)
+    def status_doc(
+        self, search_id: str, *, visible_to: str | None = None
+    ) -> tuple[SearchStatus, str] | None:
+        """The search's status and its JSON document without iterations, or None (also when
+        ``visible_to`` does not own it)."""
+        row = self._one(
+            f"SELECT status, doc FROM searches WHERE id = ?2 AND {_VISIBLE}", visible_to, search_id
+        )
         return None if row is None else (row[0], row[1])
 
     def add_iteration(
@@ -197,7 +313,10 @@ class SearchStore:
             self._update(search_id, changes)
 
     def update(self, search_id: str, **changes: Unpack[SearchChanges]) -> Search:
-        """Change a search's status, result, error or target detections; stamps ``updated_at``."""
+        """Change a search's status, result, error or target detections; stamps ``updated_at``,
+        and a search's finish time when it finishes. A search that fails loses its target image
+        (nothing reads it again; its record says why it failed), unless it failed for an outage
+        (:data:`OUTAGE`): it may be retried."""
         with self._lock:
             return self._update(search_id, changes)
 
@@ -210,15 +329,26 @@ class SearchStore:
         search = Search.model_validate_json(row[0]).model_copy(
             update={**given, "updated_at": utcnow()}
         )
+        finishes = search.status in TERMINAL_STATUSES
         self._db.execute(
-            "UPDATE searches SET status = ?, doc = ? WHERE id = ?",
-            (search.status, search.model_dump_json(), search_id),
+            "UPDATE searches SET status = ?, doc = ?, "
+            "finished_at = CASE WHEN ? THEN coalesce(finished_at, ?) END WHERE id = ?",
+            (
+                search.status,
+                search.model_dump_json(),
+                finishes,
+                _stamp(search.updated_at),
+                search_id,
+            ),
         )
+        if search.status == "failed" and (search.error is None or search.error.type != OUTAGE):
+            self._db.execute("DELETE FROM images WHERE search_id = ?", (search_id,))
+            self._db.execute("UPDATE searches SET image_bytes = 0 WHERE id = ?", (search_id,))
         return search
 
     def reopen(self, search_id: str) -> Search:
-        """Queue a finished search again: status ``queued``, its error dropped (it resumes from
-        its recorded iterations); stamps ``updated_at``."""
+        """Queue a finished search again: status ``queued``, its error and finish time dropped
+        (it resumes from its recorded iterations); stamps ``updated_at``."""
         with self._lock:
             row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
             if row is None:
@@ -227,7 +357,7 @@ class SearchStore:
                 update={"status": "queued", "error": None, "updated_at": utcnow()}
             )
             self._db.execute(
-                "UPDATE searches SET status = ?, doc = ? WHERE id = ?",
+                "UPDATE searches SET status = ?, doc = ?, finished_at = NULL WHERE id = ?",
                 (search.status, search.model_dump_json(), search_id),
             )
         return search
@@ -240,3 +370,60 @@ class SearchStore:
                 "ORDER BY created_at, id"
             ).fetchall()
         return [row[0] for row in rows]
+
+    def usage(self, owner: str, since: datetime) -> Usage:
+        """What ``owner``'s searches hold, and how many it created since ``since``."""
+        with self._lock:
+            active, image_bytes = self._db.execute(
+                "SELECT count(CASE WHEN status IN ('queued', 'running') THEN 1 END), "
+                "coalesce(sum(image_bytes), 0) FROM searches WHERE owner = ?",
+                (owner,),
+            ).fetchone()
+            recent, first_recent = self._db.execute(
+                "SELECT count(*), min(created_at) FROM searches "
+                "WHERE owner = ? AND created_at >= ?",
+                (owner, _stamp(since)),
+            ).fetchone()
+            (first_expiry,) = self._db.execute(
+                "SELECT min(finished_at) FROM searches "
+                "WHERE owner = ? AND finished_at IS NOT NULL AND image_bytes > 0",
+                (owner,),
+            ).fetchone()
+        return Usage(
+            active=int(active),
+            recent=int(recent),
+            first_recent=None if first_recent is None else datetime.fromisoformat(first_recent),
+            image_bytes=int(image_bytes),
+            first_expiry=None if first_expiry is None else datetime.fromisoformat(first_expiry),
+        )
+
+    def expire(self, finished_before: datetime, batch: int = 200) -> int:
+        """Delete the searches that finished before ``finished_before``, with their images and
+        iterations; how many. In batches of ``batch``, each its own transaction, so that other
+        requests get the lock between them."""
+        expired = 0
+        while True:
+            with self._transaction():
+                deleted = self._db.execute(
+                    "DELETE FROM searches WHERE id IN (SELECT id FROM searches "
+                    "WHERE finished_at IS NOT NULL AND finished_at < ? LIMIT ?)",
+                    (_stamp(finished_before), batch),
+                ).rowcount
+            expired += deleted
+            if deleted < batch:
+                return expired
+
+    def size(self) -> StoreSize:
+        """How many searches the store holds, their images' bytes, the database's bytes."""
+        with self._lock:
+            searches, image_bytes = self._db.execute(
+                "SELECT count(*), coalesce(sum(image_bytes), 0) FROM searches"
+            ).fetchone()
+            pages = self._db.execute("PRAGMA page_count").fetchone()[0]
+            free = self._db.execute("PRAGMA freelist_count").fetchone()[0]
+            page_size = self._db.execute("PRAGMA page_size").fetchone()[0]
+        return StoreSize(
+            searches=int(searches),
+            image_bytes=int(image_bytes),
+            database_bytes=int((pages - free) * page_size),
+        )

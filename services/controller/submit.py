@@ -38,6 +38,7 @@ async def create_search(
     max_image_pixels: int,
     max_image_side: int,
     start_early: bool = False,
+    owner: str | None = None,
 ) -> Search:
     """Validate a new search and record it as queued (the caller queues it).
 
@@ -46,7 +47,8 @@ async def create_search(
     start pose given by angles is snapped to the nearest grid pose; without one, a grid pose is
     drawn from ``seed`` (itself drawn when absent, and recorded). With ``start_early`` the start
     view's render is under way while the pixels are decoded and the search stored
-    (:meth:`Stages.render_early`; dropped again if the image turns out broken).
+    (:meth:`Stages.render_early`; dropped again if the image turns out broken). ``owner`` is
+    the id of the API key that submits it.
     """
     header = checked_header(image, max_pixels=max_image_pixels, max_side=max_image_side)
     if not 1 <= max_iterations <= MAX_ITERATIONS:
@@ -122,7 +124,7 @@ async def create_search(
             updated_at=now,
             target_size=(header.width, header.height),
         )
-        store.create(record, image)
+        store.create(record, image, owner=owner)
     except BaseException:
         stages.forget_early(search_id)
         raise

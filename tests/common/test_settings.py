@@ -79,6 +79,13 @@ SAMPLES: dict[str, tuple[str, Any]] = {
     "COSMOS_CONTROLLER_MAX_UPLOAD_BYTES": ("4096", 4096),
     "COSMOS_CONTROLLER_MAX_IMAGE_PIXELS": ("10000", 10_000),
     "COSMOS_CONTROLLER_MAX_IMAGE_SIDE": ("100", 100),
+    "COSMOS_CONTROLLER_AUTH": ("off", False),
+    "COSMOS_CONTROLLER_CORS_ORIGINS": ("https://a.example", "https://a.example"),
+    "COSMOS_CONTROLLER_QUOTA_ACTIVE_SEARCHES": ("3", 3),
+    "COSMOS_CONTROLLER_QUOTA_SEARCHES_PER_MINUTE": ("5", 5),
+    "COSMOS_CONTROLLER_QUOTA_STORED_BYTES": ("4096", 4096),
+    "COSMOS_CONTROLLER_RETENTION_S": ("60", 60.0),
+    "COSMOS_CONTROLLER_RETENTION_SWEEP_S": ("5", 5.0),
 }
 """A valid value of every variable a service reads, other than its default, and what it reads as."""
 
@@ -240,12 +247,14 @@ def test_another_services_variable_is_not_reported(monkeypatch, caplog, service)
     assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
 
 
-def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, caplog):
+def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, caplog, tmp_path):
     def no_stack(*args: object, **kwargs: object) -> None:
         raise RuntimeError("not starting services in this test")
 
     monkeypatch.setattr(cli, "running_stack", no_stack)
     monkeypatch.setenv("COSMOS_NOBODY", "1")
+    # cosmos up makes its local key before it starts anything: not in the repository's data/
+    monkeypatch.setenv("COSMOS_CONTROLLER_DATABASE_URL", f"sqlite:///{tmp_path}/c.sqlite3")
     with caplog.at_level(logging.WARNING, logger=ENVIRONMENT_LOG):
         assert cli.main(["up"]) == 1
     [message] = caplog.messages

@@ -16,6 +16,7 @@ from services.common.geometry.pose import GridIndex
 from services.controller.events import Notifier
 from services.controller.plots import PlotCache
 from services.controller.store import SearchStore, utcnow
+from tests.controller.clients import key_id
 
 pytestmark = pytest.mark.anyio
 
@@ -42,8 +43,16 @@ async def test_a_grid_the_optimizer_cannot_search_is_refused_at_submission(contr
     assert listed.json()["total"] == 0  # nothing was recorded
 
 
-def record(store: SearchStore, search_id: str, status: SearchStatus, scene: str = "demo") -> None:
-    """Store a search as if submitted (the runner is not told, so it stays as stored)."""
+def record(
+    store: SearchStore,
+    search_id: str,
+    status: SearchStatus,
+    scene: str = "demo",
+    *,
+    owner: str | None = None,
+) -> None:
+    """Store a search as if ``owner`` submitted it (the runner is not told, so it stays as
+    stored)."""
     now = utcnow()
     search = Search(
         id=search_id,
@@ -57,13 +66,13 @@ def record(store: SearchStore, search_id: str, status: SearchStatus, scene: str 
         updated_at=now,
         target_size=(32, 24),
     )
-    store.create(search, png_bytes())
+    store.create(search, png_bytes(), owner=owner)
 
 
 async def test_the_trajectory_of_a_search_whose_grid_became_unsearchable_is_a_422(controller):
     """A search taken before its scene file changed to a grid the optimizer cannot search."""
     app, client = controller
-    record(app.state.controller.store, "old", "cancelled", scene="fine")
+    record(app.state.controller.store, "old", "cancelled", scene="fine", owner=key_id(app, client))
     response = await client.get("/searches/old/trajectory.png")
     assert response.status_code == 422, response.text
     assert response.json()["field"] == "search.angle_step_deg"
@@ -74,8 +83,9 @@ async def test_followers_that_come_and_go_leave_nothing_in_the_notifier(controll
     request is cancelled while they wait), leave no event behind."""
     app, client = controller
     state = app.state.controller
-    record(state.store, "finished", "cancelled")
-    record(state.store, "running", "running")
+    owner = key_id(app, client)
+    record(state.store, "finished", "cancelled", owner=owner)
+    record(state.store, "running", "running", owner=owner)
     for _ in range(5):
         response = await client.get("/searches/finished/events")
         assert response.status_code == 200
@@ -101,8 +111,9 @@ async def test_a_follower_wakes_on_a_change_and_then_lets_go():
 async def test_a_finished_search_s_plots_are_drawn_once_a_running_one_s_every_time(controller):
     app, client = controller
     state = app.state.controller
-    record(state.store, "done", "cancelled")
-    record(state.store, "running", "running")
+    owner = key_id(app, client)
+    record(state.store, "done", "cancelled", owner=owner)
+    record(state.store, "running", "running", owner=owner)
     for name in ("trajectory.png", "distance.png"):
         first = await client.get(f"/searches/done/{name}")
         second = await client.get(f"/searches/done/{name}")

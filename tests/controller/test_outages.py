@@ -19,6 +19,7 @@ from urllib.parse import urlsplit
 import httpx
 import pytest
 from asgi_lifespan import LifespanManager
+from fastapi import FastAPI
 from starlette.types import ASGIApp
 
 from services.controller.app import create_app as create_controller
@@ -27,6 +28,7 @@ from services.controller.transport import StageAnswer, StageRequest, TransportEr
 from services.detector.app import create_app as create_detector
 from services.optimizer.app import create_app as create_optimizer
 from services.renderer.app import create_app as create_renderer
+from tests.controller.clients import key_client, new_key
 
 pytestmark = pytest.mark.anyio
 
@@ -85,7 +87,8 @@ class Switchable:
 @asynccontextmanager
 async def controller(
     tmp_path: Path, transport: Switchable, outage_budget_s: float
-) -> AsyncIterator[httpx.AsyncClient]:
+) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
+    """A controller over ``transport``, and a client with a tenant's key."""
     settings = ControllerSettings(
         controller_renderer_urls="http://renderer",
         controller_detector_urls="http://detector",
@@ -94,13 +97,9 @@ async def controller(
         controller_outage_budget_s=outage_budget_s,
     )
     app = create_controller(settings, transport=transport)
-    async with (
-        LifespanManager(app) as running,
-        httpx.AsyncClient(
-            transport=httpx.ASGITransport(app=running.app), base_url="http://controller"
-        ) as client,
-    ):
-        yield client
+    async with LifespanManager(app) as running:
+        async with key_client(running.app, new_key(app, "tenant")) as client:
+            yield app, client
 
 
 async def target_png(apps: dict[str, ASGIApp], lat: int, lon: int) -> bytes:
@@ -162,7 +161,7 @@ def assert_refused_while_down(response: httpx.Response, stage: str) -> None:
 async def test_running_searches_ride_out_a_short_detector_outage(apps, tmp_path):
     transport = Switchable(apps)
     image = await target_png(apps, 3, 7)
-    async with controller(tmp_path, transport, outage_budget_s=60.0) as client:
+    async with controller(tmp_path, transport, outage_budget_s=60.0) as (_, client):
         assert (await health(client))["status"] == "ok"
         transport.stop_after["detector"] = 3  # both targets and one view: then it stops
         submitted = [await submit(client, image) for _ in range(2)]
@@ -193,7 +192,7 @@ async def test_a_search_an_outage_outlasted_fails_saying_so_and_resumes_when_ret
 ):
     transport = Switchable(apps)
     image = await target_png(apps, 3, 7)
-    async with controller(tmp_path, transport, outage_budget_s=1.0) as client:
+    async with controller(tmp_path, transport, outage_budget_s=1.0) as (app, client):
         transport.stop_after["detector"] = 2  # the target and the start view
         submitted = await submit(client, image)
         assert submitted.status_code == 202, submitted.text
@@ -210,6 +209,8 @@ async def test_a_search_an_outage_outlasted_fails_saying_so_and_resumes_when_ret
         assert len(failed["iterations"]) == 1  # the start view's, recorded before the failure
 
         assert_refused_while_down(await client.post(f"/searches/{search_id}/retry"), "detector")
+        async with key_client(app, new_key(app, "other")) as other:  # another tenant's search
+            assert (await other.post(f"/searches/{search_id}/retry")).status_code == 404
         transport.start("detector")
 
         async def back() -> bool:
@@ -237,7 +238,7 @@ async def test_a_search_an_outage_outlasted_fails_saying_so_and_resumes_when_ret
 async def test_stage_errors_of_the_api_name_the_stage_not_its_replicas(apps, tmp_path):
     transport = Switchable(apps)
     transport.down.add("renderer")
-    async with controller(tmp_path, transport, outage_budget_s=60.0) as client:
+    async with controller(tmp_path, transport, outage_budget_s=60.0) as (_, client):
         assert_refused_while_down(await client.get("/scenes"), "renderer")
         assert (await health(client))["unavailable_stages"] == ["renderer"]
         refused = await submit(client, await target_png(apps, 3, 7))

@@ -157,12 +157,6 @@ class FakeStages:
         )
 
 
-@pytest.fixture
-def detail(catalog) -> SceneDetail:
-    scene = catalog.get("demo")
-    return SceneDetail(id="demo", spec=scene.spec, grid=scene.spec.search)
-
-
 def stored(tmp_path, stages: FakeStages, max_iterations: int = 6) -> SearchStore:
     """A store holding search ``s1`` as submitted: queued, its target image, nothing else."""
     store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")

@@ -10,11 +10,12 @@ from pydantic import ConfigDict, Field
 from services.common.contracts.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection, ModelInfo
 from services.common.contracts.optimize import GridPose, StrategyName, ViewMatch
-from services.common.errors import ProblemDetails
+from services.common.errors import ProblemDetails, problem_type
 from services.common.geometry.pose import Pose
 
 __all__ = [
     "MAX_ITERATIONS",
+    "OUTAGE",
     "ControllerHealth",
     "Iteration",
     "ReplicaHealth",
@@ -29,6 +30,10 @@ __all__ = [
 
 SearchStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+
+OUTAGE: Final = problem_type("stage-unavailable")
+"""The ``type`` of a search's error when a stage was unavailable for longer than the controller
+waits: the one failure ``POST /searches/{id}/retry`` resumes (the search keeps its image)."""
 
 
 NonNegMs = Annotated[Number, Field(ge=0.0)]
@@ -173,6 +178,11 @@ class ControllerHealth(FrozenModel):
     searches_running: Count
     broker_heuristic: str
     replicas: tuple[ReplicaHealth, ...]
+    store_searches: Count = Field(description="Searches held (finished ones expire).")
+    store_image_bytes: Count = Field(description="Bytes of the target images held.")
+    store_bytes: Count = Field(
+        description="Bytes of the database's pages in use (free pages and the log aside)."
+    )
     unavailable_stages: tuple[str, ...] = Field(
         default=(),
         description="Stages no replica serves now: running searches wait for them (up to the "
