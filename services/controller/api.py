@@ -20,6 +20,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from services.common.contracts.base import MAX_SAFE_INTEGER
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
 from services.common.contracts.render import SceneSummary
 from services.common.contracts.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
@@ -245,7 +246,7 @@ async def list_searches(
     state: State,
     key: Caller,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
-    offset: Annotated[int, Query(ge=0, le=2**62)] = 0,
+    offset: Annotated[int, Query(ge=0, le=MAX_SAFE_INTEGER)] = 0,
 ) -> SearchPage:
     """The key's searches (an admin key's: everyone's), newest first, without iterations."""
     items, total = state.store.page(limit, offset, visible_to=_visible_to(key))

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from services.common.contracts.base import MAX_SAFE_INTEGER
 from services.common.contracts.optimize import GridPose
 from services.common.contracts.search import Search, SearchStatus
 from services.common.geometry.pose import GridIndex
@@ -163,3 +164,13 @@ async def test_the_plot_cache_keeps_the_most_recently_used():
     assert drawn == ["a", "b", "c", "b"]
     assert cache.hits == 2
     assert len(cache) == 2
+
+
+async def test_the_largest_offset_a_page_takes_is_one_its_answer_can_carry(controller):
+    _, client = controller
+    largest = await client.get("/searches", params={"offset": MAX_SAFE_INTEGER})
+    assert largest.status_code == 200, largest.text
+    assert largest.json()["offset"] == MAX_SAFE_INTEGER
+    beyond = await client.get("/searches", params={"offset": MAX_SAFE_INTEGER + 1})
+    assert beyond.status_code == 422
+    assert beyond.json()["field"] == "offset"
