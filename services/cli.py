@@ -6,7 +6,8 @@
 * ``cosmos render --scene demo --theta 40 --phi 120 -o target.png``: one view, rendered in this
   process or by a renderer at ``--url``; ``--annotations FILE`` also writes its ground truth;
 * ``cosmos up``: the four services as local processes (Ctrl-C or SIGTERM stops them all), and
-  the local API key, printed and kept beside the controller's database (``data/api-key``);
+  the local API key, printed and kept beside the controller's
+  database (``data/api-key``);
 * ``cosmos search target.png --scene demo``: submit a search, follow it, save its plots;
 * ``cosmos keys create [--admin] [--name N]``, ``cosmos keys list``, ``cosmos keys revoke ID``:
   the controller's API keys, in its database (``COSMOS_CONTROLLER_DATABASE_URL``);
@@ -34,6 +35,7 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
+from services.common.auth import TOKEN_VARIABLE, token_from_environment
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.common.contracts.search import Iteration, Search
@@ -57,7 +59,7 @@ def _pose_query(args: argparse.Namespace) -> PoseQuery:
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
     if args.url:
-        with RendererClient(args.url) as client:
+        with RendererClient(args.url, token=token_from_environment()) as client:
             for summary in client.scenes():
                 print(
                     f"{summary.id:<16} {summary.objects:>3} objects  {summary.grid_size:>5} poses"
@@ -200,7 +202,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     if args.url:
-        with RendererClient(args.url) as client:
+        with RendererClient(args.url, token=token_from_environment()) as client:
             png = client.render_png(request)
             ann = client.annotations(request) if args.annotations else None
         where = args.url
@@ -312,6 +314,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
         renderers=args.renderers,
         detectors=args.detectors,
         database_url=database_url,
+        service_token=token_from_environment(),  # else one for this run
     )
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -325,6 +328,11 @@ def _cmd_up(args: argparse.Namespace) -> int:
             ("optimizer", stack.optimizers),
         ):
             print(f"{name:<11} {', '.join(urls)}")
+        if token_from_environment() is None:
+            print(
+                "the stages serve only the controller (a new service token for this run; set "
+                f"{TOKEN_VARIABLE} before cosmos up to call them yourself)"
+            )
         print(f"logs in {args.logs}; Ctrl-C stops everything", flush=True)
         while not stop.wait(1.0):
             dead = [p for p in stack.processes if p.process.poll() is not None]
@@ -353,7 +361,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             print(
                 f"stack up in {time.perf_counter() - started:.1f} s (controller {stack.controller})"
             )
-            with RendererClient(stack.renderers[0]) as renderer:
+            with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
                 target = renderer.render_png(
                     RenderRequest(scene="demo", pose=PoseQuery(lat=index.lat, lon=index.lon))
                 )

@@ -2,7 +2,8 @@
 
 Replicas of the renderer and detector get consecutive ports after the base ports; the controller
 is told every replica's URL. Environment variables (``COSMOS_SCENES_DIR`` and the rest) pass
-through to every process.
+through to every process, with one service token for all of them (the stages serve the
+controller with it, :mod:`services.common.auth`).
 """
 
 from __future__ import annotations
@@ -10,9 +11,10 @@ from __future__ import annotations
 import socket
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.launch import (
     ServiceProcess,
     free_port,
@@ -39,13 +41,15 @@ class ServicePlan:
 
 @dataclass(frozen=True)
 class Stack:
-    """A running stack: the controller's URL and every process."""
+    """A running stack: the controller's URL, every process, and the service token a client
+    of a stage sends."""
 
     controller: str
     renderers: tuple[str, ...]
     detectors: tuple[str, ...]
     optimizers: tuple[str, ...]
     processes: tuple[ServiceProcess, ...]
+    service_token: str | None = field(default=None, repr=False)
     api_key: str | None = None
     """The controller's local admin key (:func:`services.controller.keys.local_key`), if known."""
 
@@ -63,11 +67,13 @@ def plan_stack(
     port_stride: int = 10,
     database_url: str | None = None,
     env: Mapping[str, str] | None = None,
+    service_token: str | None = None,
 ) -> list[ServicePlan]:
-    """The processes of a stack; replica ``i`` of a stage listens on ``port + i * port_stride``."""
+    """The processes of a stack; replica ``i`` of a stage listens on ``port + i * port_stride``.
+    Every process gets ``service_token`` (a new one when None)."""
     if min(renderers, detectors, optimizers) < 1:
         raise ValueError("every stage needs at least one replica")
-    base = dict(env or {})
+    base = {**(env or {}), TOKEN_VARIABLE: service_token or new_token()}
 
     def replicas(name: str, port: int, count: int) -> list[ServicePlan]:
         return [
@@ -136,6 +142,7 @@ def running_stack(
             detectors=urls("detector"),
             optimizers=urls("optimizer"),
             processes=tuple(started),
+            service_token=started[-1].token,
             api_key=api_key,
         )
     finally:

@@ -1,7 +1,8 @@
 """End to end: the four real services as separate processes on loopback, searches over HTTP.
 
 Targets are rendered by the renderer at random grid poses; the controller must find each
-target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, and a
+target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, the
+stages serving the controller (with the stack's service token) and no stranger, and a
 controller killed mid-search that finishes the search after it comes back. Every call to the
 controller carries the stack's local API key, as the demo's do.
 """
@@ -19,6 +20,7 @@ import httpx
 import numpy as np
 import pytest
 
+from services.common.auth import bearer
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search
 from services.common.geometry.pose import PoseQuery
@@ -53,7 +55,7 @@ def controller_client(stack: Stack) -> ControllerClient:
 
 
 def render(stack: Stack, scene: str, lat: int, lon: int) -> bytes:
-    with RendererClient(stack.renderers[0]) as client:
+    with RendererClient(stack.renderers[0], token=stack.service_token) as client:
         return client.render_png(RenderRequest(scene=scene, pose=PoseQuery(lat=lat, lon=lon)))
 
 
@@ -68,7 +70,8 @@ def run_search(stack: Stack, image: bytes, scene: str, **options):
 def grid_of(stack: Stack, scene: str):
     from services.common.geometry.grid import grid_for
 
-    detail = httpx.get(f"{stack.renderers[0]}/scenes/{scene}").json()["spec"]["search"]
+    url = f"{stack.renderers[0]}/scenes/{scene}"
+    detail = httpx.get(url, headers=bearer(stack.service_token)).json()["spec"]["search"]
     return grid_for(detail["angle_step_deg"], detail["min_theta_deg"], detail["max_theta_deg"])
 
 
@@ -164,6 +167,26 @@ def test_plots_events_listing_and_scenes(stack):
         health = http.get("/health").json()
         assert all(r["up"] for r in health["replicas"])
         assert {r["stage"] for r in health["replicas"]} == {"renderer", "detector", "optimizer"}
+
+
+def test_the_stages_serve_the_stacks_token_only(stack):
+    """The searches above went through the controller, which sends the token; a stranger gets
+    401 from every stage."""
+    stranger = {"Authorization": "Bearer a-token-that-is-not-the-stacks"}
+    for url, method, path in [
+        (stack.renderers[0], "GET", "/scenes"),
+        (stack.renderers[0], "POST", "/render"),
+        (stack.detectors[0], "POST", "/detect"),
+        (stack.optimizers[0], "POST", "/next-pose"),
+    ]:
+        for headers in ({}, stranger):
+            response = httpx.request(method, f"{url}{path}", headers=headers, json={}, timeout=30)
+            assert response.status_code == 401, (url, path, response.text)
+            assert response.headers["content-type"] == "application/problem+json"
+        mine = httpx.request(
+            method, f"{url}{path}", headers=bearer(stack.service_token), json={}, timeout=30
+        )
+        assert mine.status_code in {200, 415, 422}, (url, path, mine.text)  # past the token
 
 
 def test_a_search_can_be_cancelled(stack):

@@ -1,4 +1,5 @@
-"""HTTP plumbing shared by the services: problem+json handlers and a request body size limit.
+"""HTTP plumbing shared by the services: problem+json handlers, a request body size limit and
+the service token (:mod:`services.common.auth`).
 
 Every error leaves a service as ``application/problem+json`` (RFC 9457): domain errors
 (:class:`~services.common.errors.ServiceError`), request validation errors, Starlette's own HTTP
@@ -20,7 +21,18 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from services.common.errors import PayloadTooLargeError, ProblemDetails, ServiceError, problem_type
+from services.common.auth import (
+    MissingServiceTokenError,
+    ServiceTokenMiddleware,
+    ServiceTokenSettings,
+    declare_service_token,
+)
+from services.common.errors import (
+    PayloadTooLargeError,
+    ProblemDetails,
+    ServiceError,
+    problem_type,
+)
 
 __all__ = [
     "PROBLEM_JSON",
@@ -236,11 +248,26 @@ def service_app(
     lifespan: Callable[[FastAPI], AbstractAsyncContextManager[None]],
     router: APIRouter,
     max_body_bytes: int,
+    *,
+    settings: ServiceTokenSettings,
+    guarded: bool,
 ) -> FastAPI:
-    """A COSMOS service app: its routes, problem+json errors and a request body limit."""
+    """A COSMOS service app: its routes, problem+json errors and a request body limit.
+
+    A ``guarded`` app (a stage) serves only callers with the service token of ``settings``,
+    except on ``/health``; any app refuses to start without a token unless
+    ``COSMOS_SERVICE_AUTH=off`` (the controller needs it to call the stages).
+    """
 
     @asynccontextmanager
     async def started(app: FastAPI) -> AsyncIterator[None]:
+        try:
+            settings.token()
+        except MissingServiceTokenError as exc:
+            _log.error("%s", exc)  # before uvicorn's traceback: the line that says what to do
+            raise
+        if guarded and settings.service_auth == "off":
+            _log.warning("COSMOS_SERVICE_AUTH=off: this %s serves every caller", name)
         async with lifespan(app):
             freeze_heap()
             try:
@@ -251,6 +278,14 @@ def service_app(
     app = FastAPI(title=f"COSMOS {name}", version="0.1.0", summary=summary, lifespan=started)
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=max_body_bytes)
+    if guarded and settings.service_auth == "token":
+        # Added last, so it runs first: a stranger's body is never read. Without a token the
+        # app does not start (above); until then the middleware refuses everyone.
+        secret = settings.service_token
+        app.add_middleware(
+            ServiceTokenMiddleware, token=secret.get_secret_value() if secret else None
+        )
+        declare_service_token(app, lambda: problem_responses(401)[401])
     app.include_router(router)
     return app
 

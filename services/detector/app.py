@@ -66,6 +66,8 @@ def create_app(settings: DetectorSettings | None = None) -> FastAPI:
         lifespan,
         router,
         settings.detector_max_upload_bytes,
+        settings=settings,
+        guarded=True,
     )
 
 

@@ -50,6 +50,8 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
         lifespan,
         router,
         settings.optimizer_max_body_bytes,
+        settings=settings,
+        guarded=True,
     )
 
 

@@ -47,6 +47,8 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
         lifespan,
         router,
         settings.renderer_max_body_bytes,
+        settings=settings,
+        guarded=True,
     )
 
 

@@ -1,18 +1,88 @@
-"""What every service app gets from ``service_app``: its start-up heap frozen while it runs."""
+"""What every service app gets from ``service_app``: its start-up heap frozen while it runs, and
+the service token on a stage's routes (not on ``/health``)."""
 
 from __future__ import annotations
 
 import gc
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
+import httpx
 import pytest
 from asgi_lifespan import LifespanManager
 from fastapi import APIRouter, FastAPI
+from pydantic import SecretStr, ValidationError
 
+from services.common.auth import (
+    PROBE_PATHS,
+    SCHEME_NAME,
+    MissingServiceTokenError,
+    ServiceTokenSettings,
+    bearer,
+    new_token,
+)
 from services.common.http import service_app
+from services.controller.app import create_app as create_controller
+from services.detector.app import create_app as create_detector
+from services.optimizer.app import create_app as create_optimizer
+from services.renderer.app import create_app as create_renderer
 
 pytestmark = pytest.mark.anyio
+
+TOKEN = new_token()
+
+
+@asynccontextmanager
+async def nothing(app: FastAPI) -> AsyncIterator[None]:
+    yield
+
+
+def echo_router() -> APIRouter:
+    router = APIRouter()
+
+    @router.post("/echo")
+    async def echo(body: dict[str, Any]) -> dict[str, Any]:
+        return body
+
+    @router.get("/health")
+    async def health() -> dict[str, str]:
+        return {"status": "ok"}
+
+    return router
+
+
+def app_with(
+    token: str | None = TOKEN,
+    *,
+    auth: str = "token",
+    guarded: bool = True,
+) -> FastAPI:
+    settings = ServiceTokenSettings(
+        service_token=SecretStr(token) if token else None,
+        service_auth=auth,  # type: ignore[arg-type]
+    )
+    return service_app(
+        "test",
+        "A test service.",
+        nothing,
+        echo_router(),
+        1024,
+        settings=settings,
+        guarded=guarded,
+    )
+
+
+@asynccontextmanager
+async def client_of(app: FastAPI) -> AsyncIterator[httpx.AsyncClient]:
+    async with (
+        LifespanManager(app) as running,
+        httpx.AsyncClient(
+            transport=httpx.ASGITransport(app=running.app), base_url="http://test"
+        ) as client,
+    ):
+        yield client
 
 
 async def test_the_start_up_heap_is_frozen_while_the_app_runs():
@@ -23,8 +93,139 @@ async def test_the_start_up_heap_is_frozen_while_the_app_runs():
         built.append([object() for _ in range(1000)])  # what a lifespan builds, e.g. a model
         yield
 
-    app = service_app("test", "A test service.", lifespan, APIRouter(), 1024)
+    settings = ServiceTokenSettings(service_token=SecretStr(TOKEN))
+    app = service_app(
+        "test",
+        "A test service.",
+        lifespan,
+        APIRouter(),
+        1024,
+        settings=settings,
+        guarded=True,
+    )
     gc.unfreeze()
     async with LifespanManager(app):
         assert gc.get_freeze_count() > 1000
     assert gc.get_freeze_count() == 0  # unfrozen on shutdown: the app's leftovers can go
+
+
+@pytest.mark.parametrize(
+    ("headers", "detail"),
+    [
+        ({}, "needs the stack's service token"),
+        ({"Authorization": f"Basic {TOKEN}"}, "needs the stack's service token"),
+        ({"Authorization": "Bearer not-the-token-at-all"}, "wrong"),
+        ({"Authorization": f"Bearer {TOKEN}x"}, "wrong"),
+        ({"Authorization": f"Bearer {TOKEN[:-1]}"}, "wrong"),
+        ({"Authorization": "Bearer"}, "needs the stack's service token"),
+        ({"X-Cosmos-Service-Token": TOKEN}, "needs the stack's service token"),
+    ],
+)
+async def test_a_stage_refuses_a_caller_without_the_token(headers, detail):
+    async with client_of(app_with()) as client:
+        for method, path in [("POST", "/echo"), ("GET", "/nowhere"), ("GET", "/openapi.json")]:
+            response = await client.request(method, path, json={"a": 1}, headers=headers)
+            assert response.status_code == 401, (path, response.text)
+            assert response.headers["content-type"] == "application/problem+json"
+            assert response.headers["www-authenticate"].startswith("Bearer")
+            problem = response.json()
+            assert problem["type"] == "urn:cosmos:problem:unauthorized"
+            assert problem["instance"] == path
+            assert detail in problem["detail"]
+            assert TOKEN not in response.text
+
+
+async def test_a_stage_serves_a_caller_with_the_token():
+    async with client_of(app_with()) as client:
+        for scheme in ("Bearer", "bearer", "BEARER"):
+            headers = {"Authorization": f"{scheme} {TOKEN}"}
+            response = await client.post("/echo", json={"a": 1}, headers=headers)
+            assert response.status_code == 200, response.text
+            assert response.json() == {"a": 1}
+        assert (await client.get("/nowhere", headers=bearer(TOKEN))).status_code == 404
+        assert (await client.get("/openapi.json", headers=bearer(TOKEN))).status_code == 200
+
+
+async def test_health_needs_no_token():
+    async with client_of(app_with()) as client:
+        for path in sorted(PROBE_PATHS):
+            response = await client.get(path)
+            assert response.status_code == 200, (path, response.text)
+            assert response.json()["status"] == "ok"
+
+
+async def test_a_strangers_body_is_not_read():
+    """Refused before the body limit looks at it: no 413 for a stranger, only 401."""
+    async with client_of(app_with()) as client:
+        response = await client.post("/echo", content=b"x" * 4096)
+        assert response.status_code == 401
+        response = await client.post("/echo", content=b"x" * 4096, headers=bearer(TOKEN))
+        assert response.status_code == 413
+
+
+async def test_without_a_token_a_service_does_not_start(monkeypatch, caplog):
+    for guarded in (True, False):  # the controller needs it as much as the stages
+        with (
+            caplog.at_level(logging.ERROR),
+            pytest.raises(MissingServiceTokenError, match="COSMOS_SERVICE_AUTH=off"),
+        ):
+            async with LifespanManager(app_with(None, guarded=guarded)):
+                pass
+        assert "COSMOS_SERVICE_TOKEN is not set" in caplog.text
+
+
+async def test_auth_off_serves_every_caller_and_says_so(caplog):
+    with caplog.at_level(logging.WARNING):
+        async with client_of(app_with(None, auth="off")) as client:
+            response = await client.post("/echo", json={"a": 1})
+            assert response.status_code == 200
+    assert "COSMOS_SERVICE_AUTH=off" in caplog.text
+    assert "securitySchemes" not in app_with(None, auth="off").openapi().get("components", {})
+
+
+async def test_the_controller_asks_no_token_of_its_callers():
+    async with client_of(app_with(guarded=False)) as client:
+        assert (await client.post("/echo", json={"a": 1})).status_code == 200
+
+
+@pytest.mark.parametrize("value", ["short", "x" * 15])
+def test_a_short_token_is_refused(value):
+    with pytest.raises(ValidationError, match="shorter than 16"):
+        ServiceTokenSettings(service_token=SecretStr(value))
+
+
+def test_an_empty_token_is_no_token():
+    settings = ServiceTokenSettings(service_token=SecretStr(""))
+    assert settings.service_token is None
+    with pytest.raises(MissingServiceTokenError):
+        settings.token()
+
+
+STAGES = {"renderer": create_renderer, "detector": create_detector, "optimizer": create_optimizer}
+
+
+@pytest.mark.parametrize("stage", STAGES)
+def test_a_stages_openapi_declares_the_token(stage):
+    schema = STAGES[stage]().openapi()
+    assert schema["components"]["securitySchemes"][SCHEME_NAME] == {
+        "type": "http",
+        "scheme": "bearer",
+        "description": "The stack's service token (COSMOS_SERVICE_TOKEN).",
+    }
+    operations = [
+        (path, operation) for path, ops in schema["paths"].items() for operation in ops.values()
+    ]
+    assert "/health" in {path for path, _ in operations}
+    for path, operation in operations:
+        if path in PROBE_PATHS:
+            assert "security" not in operation, path
+            assert "401" not in operation["responses"], path
+        else:
+            assert operation["security"] == [{SCHEME_NAME: []}], path
+            assert "application/problem+json" in operation["responses"]["401"]["content"]
+
+
+def test_the_controllers_openapi_declares_no_service_token():
+    """The controller's public API takes API keys (its own scheme), never the service token."""
+    schema = create_controller().openapi()
+    assert SCHEME_NAME not in schema["components"].get("securitySchemes", {})
