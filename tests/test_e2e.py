@@ -2,8 +2,8 @@
 
 Targets are rendered by the renderer at random grid poses; the controller must find each
 target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, the
-stages serving the controller (with the stack's service token) and no stranger, and a
-controller killed mid-search that finishes the search after it comes back. Every call to the
+stages serving the controller (with the stack's service token) and no stranger, the probes, and
+a controller killed mid-search that finishes the search after it comes back. Every call to the
 controller carries the stack's local API key, as the demo's do.
 """
 
@@ -169,9 +169,9 @@ def test_plots_events_listing_and_scenes(stack):
         assert {r["stage"] for r in health["replicas"]} == {"renderer", "detector", "optimizer"}
 
 
-def test_the_stages_serve_the_stacks_token_only(stack):
+def test_the_stages_serve_the_stacks_token_only_and_every_service_is_ready(stack):
     """The searches above went through the controller, which sends the token; a stranger gets
-    401 from every stage."""
+    401 from every stage, and every service says it is alive and ready."""
     stranger = {"Authorization": "Bearer a-token-that-is-not-the-stacks"}
     for url, method, path in [
         (stack.renderers[0], "GET", "/scenes"),
@@ -187,6 +187,11 @@ def test_the_stages_serve_the_stacks_token_only(stack):
             method, f"{url}{path}", headers=bearer(stack.service_token), json={}, timeout=30
         )
         assert mine.status_code in {200, 415, 422}, (url, path, mine.text)  # past the token
+    for url in (stack.controller, *stack.renderers, *stack.detectors, *stack.optimizers):
+        for probe in ("/livez", "/readyz"):
+            response = httpx.get(f"{url}{probe}", timeout=30)
+            assert response.status_code == 200, (url, probe, response.text)
+            assert response.json()["status"] == "ok"
 
 
 def test_a_search_can_be_cancelled(stack):

@@ -1,7 +1,7 @@
 """The service token: the stages (renderer, detector, optimizer) serve only callers that hold it.
 
 One secret, ``COSMOS_SERVICE_TOKEN``, is given to every service of a stack: the stages require it
-as ``Authorization: Bearer <token>`` on every route but health (:data:`PROBE_PATHS`),
+as ``Authorization: Bearer <token>`` on every route but the health probes (:data:`PROBE_PATHS`),
 and the controller sends it on every stage call. ``cosmos up`` and ``cosmos demo`` make one per
 run. A service without a token refuses to start, unless ``COSMOS_SERVICE_AUTH=off`` says that
 every caller is welcome (development on a trusted machine).
@@ -44,8 +44,8 @@ __all__ = [
 ]
 
 TOKEN_VARIABLE = "COSMOS_SERVICE_TOKEN"
-PROBE_PATHS = frozenset({"/health"})
-"""The routes anyone may call: health, for load balancers, orchestrators and the broker."""
+PROBE_PATHS = frozenset({"/health", "/livez", "/readyz"})
+"""The routes anyone may call: health and the probes of orchestrators and load balancers."""
 SCHEME_NAME = "serviceToken"
 MIN_TOKEN_CHARS = 16
 

@@ -1,9 +1,14 @@
-"""HTTP plumbing shared by the services: problem+json handlers, a request body size limit and
-the service token (:mod:`services.common.auth`).
+"""HTTP plumbing shared by the services: problem+json handlers, a request body size limit, the
+service token (:mod:`services.common.auth`) and the liveness and readiness probes.
 
 Every error leaves a service as ``application/problem+json`` (RFC 9457): domain errors
 (:class:`~services.common.errors.ServiceError`), request validation errors, Starlette's own HTTP
 errors, and, as a last resort, unexpected exceptions (500, without internals).
+
+Every service answers ``GET /livez`` (the process answers: restart it if not) and
+``GET /readyz`` (it can serve now: send it work if so; 503 with the reasons if not), the way
+Kubernetes' probes and ``docker compose`` health checks ask. ``GET /health`` says more, for people
+and the controller's broker.
 """
 
 from __future__ import annotations
@@ -11,9 +16,9 @@ from __future__ import annotations
 import gc
 import json
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
-from typing import Any
+from typing import Any, Literal
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -27,10 +32,12 @@ from services.common.auth import (
     ServiceTokenSettings,
     declare_service_token,
 )
+from services.common.contracts.base import FrozenModel
 from services.common.errors import (
     PayloadTooLargeError,
     ProblemDetails,
     ServiceError,
+    ServiceUnavailableError,
     problem_type,
 )
 
@@ -40,7 +47,9 @@ __all__ = [
     "freeze_heap",
     "service_app",
     "BodySizeLimitMiddleware",
+    "Probe",
     "ProblemResponse",
+    "Readiness",
     "install_problem_handlers",
     "problem_responses",
 ]
@@ -242,6 +251,50 @@ def freeze_heap() -> int:
     return gc.get_freeze_count()
 
 
+Readiness = Callable[[FastAPI], Awaitable[Sequence[str]]]
+"""Why a started app cannot serve yet (nothing when it can), in words for its operators."""
+
+
+class Probe(FrozenModel):
+    """``GET /livez`` and ``GET /readyz`` when the answer is yes."""
+
+    status: Literal["ok"]
+    service: str
+
+
+def _probes(name: str, readiness: Readiness | None) -> APIRouter:
+    probes = APIRouter(tags=["probes"])
+
+    @probes.get("/livez", response_model=Probe)
+    async def livez() -> Probe:
+        """Liveness: the process answers (an orchestrator restarts it when it stops)."""
+        return Probe(status="ok", service=name)
+
+    @probes.get("/readyz", response_model=Probe, responses=problem_responses(503))
+    async def readyz(request: Request) -> Probe:
+        """Readiness: the service can serve requests now; 503 with the reasons when it
+        cannot (starting, stopping, or missing what it needs)."""
+        app = request.app
+        if not getattr(app.state, "serving", False):
+            reasons: Sequence[str] = ["starting or stopping"]
+        else:
+            try:
+                reasons = [] if readiness is None else await readiness(app)
+            except Exception:  # a failing check is a "no", never a 500
+                _log.exception("the readiness check of %s failed", name)
+                reasons = ["the readiness check failed; see the service's log"]
+        if reasons:
+            raise ServiceUnavailableError(
+                "; ".join(reasons),
+                slug="not-ready",
+                title="Not ready",
+                extra={"reasons": list(reasons)},
+            )
+        return Probe(status="ok", service=name)
+
+    return probes
+
+
 def service_app(
     name: str,
     summary: str,
@@ -251,11 +304,14 @@ def service_app(
     *,
     settings: ServiceTokenSettings,
     guarded: bool,
+    readiness: Readiness | None,
 ) -> FastAPI:
-    """A COSMOS service app: its routes, problem+json errors and a request body limit.
+    """A COSMOS service app: its routes, the probes (``/livez``; ``/readyz``, which asks
+    ``readiness`` once the lifespan has started, or, None, answers yes then), problem+json
+    errors and a request body limit.
 
     A ``guarded`` app (a stage) serves only callers with the service token of ``settings``,
-    except on ``/health``; any app refuses to start without a token unless
+    except on the health and probe routes; any app refuses to start without a token unless
     ``COSMOS_SERVICE_AUTH=off`` (the controller needs it to call the stages).
     """
 
@@ -270,9 +326,11 @@ def service_app(
             _log.warning("COSMOS_SERVICE_AUTH=off: this %s serves every caller", name)
         async with lifespan(app):
             freeze_heap()
+            app.state.serving = True
             try:
                 yield
             finally:
+                app.state.serving = False
                 gc.unfreeze()  # what the app leaves behind can be collected again
 
     app = FastAPI(title=f"COSMOS {name}", version="0.1.0", summary=summary, lifespan=started)
@@ -286,6 +344,7 @@ def service_app(
             ServiceTokenMiddleware, token=secret.get_secret_value() if secret else None
         )
         declare_service_token(app, lambda: problem_responses(401)[401])
+    app.include_router(_probes(name, readiness))
     app.include_router(router)
     return app
 

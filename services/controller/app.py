@@ -21,6 +21,7 @@ from services.controller.discovery import expand_urls
 from services.controller.events import Notifier
 from services.controller.keys import KeyStore
 from services.controller.quotas import Limits, Quotas
+from services.controller.readiness import ControllerReadiness
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
@@ -107,6 +108,7 @@ def create_app(
         app.state.controller = ControllerState(
             settings, store, broker, stages, runner, notifier, keys, quotas
         )
+        app.state.readiness = ControllerReadiness(store, broker, to_stages)
         try:
             yield
         finally:
@@ -119,6 +121,10 @@ def create_app(
             keys.close()
             store.close()
 
+    async def readiness(app: FastAPI) -> list[str]:
+        check: ControllerReadiness = app.state.readiness
+        return await check.unready()
+
     app = service_app(
         "controller",
         "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
@@ -127,6 +133,7 @@ def create_app(
         settings.controller_max_upload_bytes,
         settings=settings,
         guarded=False,  # its public API takes API keys (api.py); it sends the stages the token
+        readiness=readiness,
     )
     origins = settings.cors_origins()
     if origins:  # none: no CORS headers, so browsers keep other origins' pages out

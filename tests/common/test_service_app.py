@@ -1,11 +1,11 @@
-"""What every service app gets from ``service_app``: its start-up heap frozen while it runs, and
-the service token on a stage's routes (not on ``/health``)."""
+"""What every service app gets from ``service_app``: its start-up heap frozen while it runs, the
+service token on a stage's routes (not on its probes), and the liveness and readiness probes."""
 
 from __future__ import annotations
 
 import gc
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -23,7 +23,7 @@ from services.common.auth import (
     bearer,
     new_token,
 )
-from services.common.http import service_app
+from services.common.http import Readiness, service_app
 from services.controller.app import create_app as create_controller
 from services.detector.app import create_app as create_detector
 from services.optimizer.app import create_app as create_optimizer
@@ -58,6 +58,7 @@ def app_with(
     *,
     auth: str = "token",
     guarded: bool = True,
+    readiness: Readiness | None = None,
 ) -> FastAPI:
     settings = ServiceTokenSettings(
         service_token=SecretStr(token) if token else None,
@@ -71,6 +72,7 @@ def app_with(
         1024,
         settings=settings,
         guarded=guarded,
+        readiness=readiness,
     )
 
 
@@ -102,6 +104,7 @@ async def test_the_start_up_heap_is_frozen_while_the_app_runs():
         1024,
         settings=settings,
         guarded=True,
+        readiness=None,
     )
     gc.unfreeze()
     async with LifespanManager(app):
@@ -146,7 +149,7 @@ async def test_a_stage_serves_a_caller_with_the_token():
         assert (await client.get("/openapi.json", headers=bearer(TOKEN))).status_code == 200
 
 
-async def test_health_needs_no_token():
+async def test_the_probes_need_no_token():
     async with client_of(app_with()) as client:
         for path in sorted(PROBE_PATHS):
             response = await client.get(path)
@@ -215,7 +218,7 @@ def test_a_stages_openapi_declares_the_token(stage):
     operations = [
         (path, operation) for path, ops in schema["paths"].items() for operation in ops.values()
     ]
-    assert "/health" in {path for path, _ in operations}
+    assert {path for path, _ in operations} >= {"/health", "/livez", "/readyz"}
     for path, operation in operations:
         if path in PROBE_PATHS:
             assert "security" not in operation, path
@@ -225,7 +228,51 @@ def test_a_stages_openapi_declares_the_token(stage):
             assert "application/problem+json" in operation["responses"]["401"]["content"]
 
 
-def test_the_controllers_openapi_declares_no_service_token():
+def test_the_controllers_openapi_declares_open_probes_and_no_service_token():
     """The controller's public API takes API keys (its own scheme), never the service token."""
     schema = create_controller().openapi()
     assert SCHEME_NAME not in schema["components"].get("securitySchemes", {})
+    for path in ("/livez", "/readyz"):
+        operation = schema["paths"][path]["get"]
+        assert "security" not in operation, path
+        assert "401" not in operation["responses"], path
+    assert "503" in schema["paths"]["/readyz"]["get"]["responses"]
+
+
+async def test_readyz_says_why_not_in_problem_details():
+    reasons: list[str] = ["the model is not loaded", "the disk is full"]
+
+    async def readiness(app: FastAPI) -> Sequence[str]:
+        return reasons
+
+    async with client_of(app_with(readiness=readiness)) as client:
+        response = await client.get("/readyz")
+        assert response.status_code == 503
+        assert response.headers["content-type"] == "application/problem+json"
+        assert response.headers["retry-after"] == "1"
+        problem = response.json()
+        assert problem["type"] == "urn:cosmos:problem:not-ready"
+        assert problem["detail"] == "the model is not loaded; the disk is full"
+        assert problem["reasons"] == reasons
+        assert (await client.get("/livez")).status_code == 200  # alive all the same
+        reasons.clear()
+        assert (await client.get("/readyz")).json() == {"status": "ok", "service": "test"}
+
+
+async def test_readyz_is_no_before_the_start_and_when_the_check_fails(caplog):
+    async def broken(app: FastAPI) -> Sequence[str]:
+        raise RuntimeError("boom")
+
+    app = app_with(readiness=broken)
+    async with httpx.AsyncClient(
+        transport=httpx.ASGITransport(app=app), base_url="http://test"
+    ) as client:  # no lifespan: not started
+        response = await client.get("/readyz")
+        assert response.status_code == 503
+        assert response.json()["reasons"] == ["starting or stopping"]
+    with caplog.at_level(logging.ERROR):
+        async with client_of(app) as client:
+            response = await client.get("/readyz")
+    assert response.status_code == 503
+    assert response.json()["reasons"] == ["the readiness check failed; see the service's log"]
+    assert "boom" in caplog.text
