@@ -5,8 +5,8 @@
   own detector beside its file (:mod:`training.onboard`; needs the ``train`` extra);
 * ``cosmos render --scene demo --theta 40 --phi 120 -o target.png``: one view, rendered in this
   process or by a renderer at ``--url``; ``--annotations FILE`` also writes its ground truth;
-* ``cosmos up``: the four services as local processes (Ctrl-C or SIGTERM stops them all), and
-  the local API key, printed and kept beside the controller's
+* ``cosmos up``: the four services as local processes, each started again if it exits (Ctrl-C
+  or SIGTERM stops them all), and the local API key, printed and kept beside the controller's
   database (``data/api-key``);
 * ``cosmos search target.png --scene demo``: submit a search, follow it, save its plots;
 * ``cosmos keys create [--admin] [--name N]``, ``cosmos keys list``, ``cosmos keys revoke ID``:
@@ -295,6 +295,10 @@ def _cmd_search(args: argparse.Namespace) -> int:
     return 0 if final.status == "succeeded" else 3
 
 
+def _say(message: str) -> None:
+    print(f"{time.strftime('%H:%M:%S')} cosmos: {message}", file=sys.stderr, flush=True)
+
+
 def _cmd_up(args: argparse.Namespace) -> int:
     from services.environment import report_unknown_variables
 
@@ -319,7 +323,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    with running_stack(plan, Path(args.logs), host=args.host, api_key=api_key) as stack:
+    with running_stack(
+        plan, Path(args.logs), host=args.host, api_key=api_key, supervise=True, say=_say
+    ) as stack:
         print(f"controller  {stack.controller}")
         print(f"API key     {stack.api_key or 'none'} (admin; {where})")
         for name, urls in (
@@ -333,14 +339,12 @@ def _cmd_up(args: argparse.Namespace) -> int:
                 "the stages serve only the controller (a new service token for this run; set "
                 f"{TOKEN_VARIABLE} before cosmos up to call them yourself)"
             )
-        print(f"logs in {args.logs}; Ctrl-C stops everything", flush=True)
+        print(
+            f"logs in {args.logs}; a service that exits is started again; Ctrl-C stops everything",
+            flush=True,
+        )
         while not stop.wait(1.0):
-            dead = [p for p in stack.processes if p.process.poll() is not None]
-            if dead:
-                print(
-                    f"cosmos: {dead[0].url} exited; stopping (see {dead[0].log})", file=sys.stderr
-                )
-                return 1
+            pass
     print("stopped")
     return 0
 

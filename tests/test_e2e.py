@@ -2,9 +2,10 @@
 
 Targets are rendered by the renderer at random grid poses; the controller must find each
 target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, the
-stages serving the controller (with the stack's service token) and no stranger, the probes, and
-a controller killed mid-search that finishes the search after it comes back. Every call to the
-controller carries the stack's local API key, as the demo's do.
+stages serving the controller (with the stack's service token) and no stranger, the probes, a
+controller killed mid-search that finishes the search after it comes back, and a renderer
+killed under ``cosmos up``'s supervision that comes back while the other serves. Every call to
+the controller carries the stack's local API key, as the demo's do.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from services.common.launch import free_port, spawn_service, stop_service, wait_
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
 from services.renderer.client import RendererClient
-from services.stack import Stack, local_stack, plan_stack, running_stack
+from services.stack import Stack, local_stack, plan_local_stack, plan_stack, running_stack
 from tests.support import fuzz_service
 
 pytestmark = pytest.mark.slow
@@ -428,3 +429,43 @@ def test_a_killed_controller_resumes_its_searches(tmp_path):
 def test_every_controller_route_answers_within_its_schema(stack):
     """Schema-driven fuzzing of the public API (see :func:`tests.support.fuzz_service`)."""
     assert fuzz_service(stack.controller, max_examples=15, headers=auth(stack)) >= 8
+
+
+def test_a_killed_renderer_is_started_again_while_the_other_serves(tmp_path):
+    """``cosmos up``'s supervision: SIGKILL one renderer of two; a search submitted right then
+    succeeds on the other, the controller stays ready, and the killed one is started again on
+    its port (with the stack's token) and answers again."""
+    said: list[str] = []
+    plan = plan_local_stack(tmp_path, renderers=2)
+    key = local_key(plan[-1].env["COSMOS_CONTROLLER_DATABASE_URL"])
+    logs = tmp_path / "logs"
+    with running_stack(plan, logs, api_key=key, supervise=True, say=said.append) as stack:
+        assert stack.supervisor is not None
+        image = render(stack, "demo", 5, 14)
+        victim = next(p for p in stack.processes if p.url == stack.renderers[1])
+        os.kill(victim.process.pid, signal.SIGKILL)
+        victim.process.wait(timeout=10)
+        final = run_search(stack, image, "demo", seed=11)
+        assert final.status == "succeeded", final.error
+        assert final.result is not None
+        assert (final.result.pose.index.lat, final.result.pose.index.lon) == (5, 14)
+        assert httpx.get(f"{stack.controller}/readyz", timeout=30).status_code == 200  # no key
+        deadline = time.monotonic() + 120
+        while True:
+            assert time.monotonic() < deadline, f"the renderer did not come back: {said}"
+            try:
+                if httpx.get(f"{victim.url}/livez", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        assert stack.supervisor.restarts(victim.url) == 1
+        (again,) = [p for p in stack.supervisor.processes if p.url == victim.url]
+        assert again.process.pid != victim.process.pid
+        assert any(f"{victim.url} exited (signal 9)" in line for line in said), said
+        assert any(f"{victim.url} started again (restart 1" in line for line in said), said
+        with RendererClient(victim.url, token=stack.service_token) as client:
+            assert {s.id for s in client.scenes()} >= {"demo"}
+        final = run_search(stack, image, "demo", seed=12)  # both renderers serve again
+        assert final.status == "succeeded", final.error
+    assert all(p.process.poll() is not None for p in stack.supervisor.processes)

@@ -62,16 +62,18 @@ def spawn_service(
     port: int | None = None,
     host: str = "127.0.0.1",
     env: Mapping[str, str] | None = None,
+    append_log: bool = False,
 ) -> ServiceProcess:
     """Start ``uvicorn <app>`` without waiting for it (see :func:`wait_healthy`), with
     ``COSMOS_SERVICE_TOKEN`` from ``env``, else from this process's environment, else a new
-    one."""
+    one. Its output goes to ``<service>-<port>.log`` in ``log_dir`` (after what is there with
+    ``append_log``, for a process started again)."""
     port = port or free_port(host)
     log_dir.mkdir(parents=True, exist_ok=True)
     log = log_dir / f"{app.split('.')[1] if app.count('.') >= 1 else app}-{port}.log"
     environ = {**os.environ, **(env or {})}
     environ[TOKEN_VARIABLE] = environ.get(TOKEN_VARIABLE) or new_token()
-    with log.open("wb") as sink:
+    with log.open("ab" if append_log else "wb") as sink:
         process = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", app, "--host", host, "--port", str(port)],
             cwd=ROOT,
