@@ -24,6 +24,8 @@ ENV COSMOS_SCENES_DIR=/app/scenes \
 RUN useradd --create-home cosmos && mkdir -p /data && chown cosmos /data
 USER cosmos
 EXPOSE 8000 8001 8002 8003
-HEALTHCHECK --interval=10s --timeout=3s --start-period=20s \
-    CMD python -c "import os, urllib.request; urllib.request.urlopen(f'http://127.0.0.1:{os.environ[\"PORT\"]}/health', timeout=2)"
+# Healthy when ready to serve (GET /readyz; /livez only says the process answers). The stages
+# need COSMOS_SERVICE_TOKEN, given at run time (docker-compose.yml), never baked in.
+HEALTHCHECK --interval=10s --timeout=3s --start-period=30s \
+    CMD python -c "import os, urllib.request; urllib.request.urlopen(f'http://127.0.0.1:{os.environ[\"PORT\"]}/readyz', timeout=2)"
 CMD ["sh", "-c", "exec uvicorn services.${SERVICE}.app:app --host 0.0.0.0 --port ${PORT}"]

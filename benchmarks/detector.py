@@ -88,7 +88,7 @@ def run(count: int, seed: int, model: Path) -> dict[str, Any]:
         running_service(
             "services.detector.app:app", Path(tmp) / "logs", {"COSMOS_DETECTOR_MODEL": str(model)}
         ) as service,
-        DetectorClient(service.url) as client,
+        DetectorClient(service.url, token=service.token) as client,
     ):
         for view in views(asset_folder(Path(tmp)), seed, count, builtin_share=0.35):
             group = view.scene.id if not view.scene.id.startswith("s") else "random"

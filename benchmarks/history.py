@@ -218,7 +218,7 @@ def report(samples: dict[str, dict[int, list[float]]], views: int) -> None:
 
 
 async def run(args: argparse.Namespace, urls: StageUrls, workdir: Path) -> None:
-    with RendererClient(urls.renderer) as renderer:
+    with RendererClient(urls.renderer, token=urls.token) as renderer:
         grid = searchable_grid(renderer.scene(args.scene).spec.search).grid()
         truth, start = farthest_pair(grid)
         render = RenderRequest(

@@ -12,9 +12,10 @@ import asyncio
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.contracts.optimize import StrategyName
 from services.common.contracts.search import TERMINAL_STATUSES
 from services.common.launch import spawn_service, stop_service, wait_healthy
@@ -25,7 +26,7 @@ from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
 from services.controller.submit import create_search
-from services.controller.transport import Transport
+from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
 
 __all__ = ["SCENE", "Controller", "StageUrls", "Target", "stage_processes"]
 
@@ -39,6 +40,8 @@ class StageUrls:
     renderer: str
     detector: str
     optimizer: str
+    token: str = field(repr=False)
+    """The service token the three stages share."""
 
     def pools(self) -> dict[str, list[str]]:
         return {
@@ -50,12 +53,16 @@ class StageUrls:
 
 @contextmanager
 def stage_processes(workdir: Path) -> Iterator[StageUrls]:
-    """Renderer, detector and optimizer as uvicorn processes on free loopback ports."""
-    started = [spawn_service(f"services.{name}.app:app", workdir) for name in STAGES]
+    """Renderer, detector and optimizer as uvicorn processes on free loopback ports, with one
+    service token."""
+    token = new_token()
+    env = {TOKEN_VARIABLE: token}
+    started = [spawn_service(f"services.{name}.app:app", workdir, env=env) for name in STAGES]
     try:
         for process in started:
             wait_healthy(process, 120.0)
-        yield StageUrls(*(process.url for process in started))
+        renderer, detector, optimizer = (process.url for process in started)
+        yield StageUrls(renderer, detector, optimizer, token)
     finally:
         for process in started:
             stop_service(process)
@@ -84,7 +91,8 @@ class Controller:
         stages: type[Stages] = Stages,
     ) -> None:
         self.settings = ControllerSettings(controller_database_url=f"sqlite:///{database}")
-        self.broker = Broker(urls.pools(), transport=transport, health_interval_s=0)
+        to_stages = WithServiceToken(transport or AiohttpTransport(2.0), urls.token)
+        self.broker = Broker(urls.pools(), transport=to_stages, health_interval_s=0)
         self.stages = stages(self.broker, render_spp=self.settings.controller_view_spp)
         self.store = SearchStore(self.settings.controller_database_url)
         self.notifier = Notifier()

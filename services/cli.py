@@ -5,8 +5,9 @@
   own detector beside its file (:mod:`training.onboard`; needs the ``train`` extra);
 * ``cosmos render --scene demo --theta 40 --phi 120 -o target.png``: one view, rendered in this
   process or by a renderer at ``--url``; ``--annotations FILE`` also writes its ground truth;
-* ``cosmos up``: the four services as local processes (Ctrl-C or SIGTERM stops them all), and
-  the local API key, printed and kept beside the controller's database (``data/api-key``);
+* ``cosmos up``: the four services as local processes, each started again if it exits (Ctrl-C
+  or SIGTERM stops them all), and the local API key, printed and kept beside the controller's
+  database (``data/api-key``);
 * ``cosmos search target.png --scene demo``: submit a search, follow it, save its plots;
 * ``cosmos keys create [--admin] [--name N]``, ``cosmos keys list``, ``cosmos keys revoke ID``:
   the controller's API keys, in its database (``COSMOS_CONTROLLER_DATABASE_URL``);
@@ -34,6 +35,7 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
+from services.common.auth import TOKEN_VARIABLE, token_from_environment
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.common.contracts.search import Iteration, Search
@@ -57,7 +59,7 @@ def _pose_query(args: argparse.Namespace) -> PoseQuery:
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
     if args.url:
-        with RendererClient(args.url) as client:
+        with RendererClient(args.url, token=token_from_environment()) as client:
             for summary in client.scenes():
                 print(
                     f"{summary.id:<16} {summary.objects:>3} objects  {summary.grid_size:>5} poses"
@@ -200,7 +202,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     if args.url:
-        with RendererClient(args.url) as client:
+        with RendererClient(args.url, token=token_from_environment()) as client:
             png = client.render_png(request)
             ann = client.annotations(request) if args.annotations else None
         where = args.url
@@ -293,6 +295,10 @@ def _cmd_search(args: argparse.Namespace) -> int:
     return 0 if final.status == "succeeded" else 3
 
 
+def _say(message: str) -> None:
+    print(f"{time.strftime('%H:%M:%S')} cosmos: {message}", file=sys.stderr, flush=True)
+
+
 def _cmd_up(args: argparse.Namespace) -> int:
     from services.environment import report_unknown_variables
 
@@ -312,11 +318,14 @@ def _cmd_up(args: argparse.Namespace) -> int:
         renderers=args.renderers,
         detectors=args.detectors,
         database_url=database_url,
+        service_token=token_from_environment(),  # else one for this run
     )
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    with running_stack(plan, Path(args.logs), host=args.host, api_key=api_key) as stack:
+    with running_stack(
+        plan, Path(args.logs), host=args.host, api_key=api_key, supervise=True, say=_say
+    ) as stack:
         print(f"controller  {stack.controller}")
         print(f"API key     {stack.api_key or 'none'} (admin; {where})")
         for name, urls in (
@@ -325,14 +334,17 @@ def _cmd_up(args: argparse.Namespace) -> int:
             ("optimizer", stack.optimizers),
         ):
             print(f"{name:<11} {', '.join(urls)}")
-        print(f"logs in {args.logs}; Ctrl-C stops everything", flush=True)
+        if token_from_environment() is None:
+            print(
+                "the stages serve only the controller (a new service token for this run; set "
+                f"{TOKEN_VARIABLE} before cosmos up to call them yourself)"
+            )
+        print(
+            f"logs in {args.logs}; a service that exits is started again; Ctrl-C stops everything",
+            flush=True,
+        )
         while not stop.wait(1.0):
-            dead = [p for p in stack.processes if p.process.poll() is not None]
-            if dead:
-                print(
-                    f"cosmos: {dead[0].url} exited; stopping (see {dead[0].log})", file=sys.stderr
-                )
-                return 1
+            pass
     print("stopped")
     return 0
 
@@ -353,7 +365,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             print(
                 f"stack up in {time.perf_counter() - started:.1f} s (controller {stack.controller})"
             )
-            with RendererClient(stack.renderers[0]) as renderer:
+            with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
                 target = renderer.render_png(
                     RenderRequest(scene="demo", pose=PoseQuery(lat=index.lat, lon=index.lon))
                 )

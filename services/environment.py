@@ -42,7 +42,7 @@ SERVICE_SETTINGS: Mapping[str, type[ServiceSettings]] = {
 }
 """Each service's settings; a service reads ``COSMOS_<SERVICE>_…`` and the :data:`SHARED` ones."""
 
-SHARED = frozenset({"COSMOS_SCENES_DIR"})
+SHARED = frozenset({"COSMOS_SCENES_DIR", "COSMOS_SERVICE_TOKEN", "COSMOS_SERVICE_AUTH"})
 """Variables several services read, each in the same meaning."""
 
 OTHER_READERS: Mapping[str, tuple[str, ...]] = {

@@ -10,16 +10,42 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import positive_data_acceptance
 
+from services.common.auth import PROBE_PATHS, bearer, new_token
 from services.common.launch import ROOT, ServiceProcess, free_port, running_service
 
 __all__ = [
     "ROOT",
     "ServiceProcess",
+    "assert_token_required",
     "free_port",
     "fuzz_service",
     "homogeneous_tuples",
     "running_service",
 ]
+
+
+def assert_token_required(
+    service: ServiceProcess,
+    method: str,
+    path: str,
+    headers: dict[str, str] | None = None,
+    **request: Any,
+) -> None:
+    """The stage process ``service`` answers ``method path`` (``headers`` and ``request``:
+    httpx's arguments) with 401 problem details without its service token or with another, with
+    200 with it; its health and probe routes answer anyone."""
+    url = f"{service.url}{path}"
+    for auth in ({}, bearer(new_token()), {"Authorization": service.token or ""}):
+        sent = {**(headers or {}), **auth}
+        refused = httpx.request(method, url, headers=sent, timeout=60.0, **request)
+        assert refused.status_code == 401, (auth, refused.text)
+        assert refused.headers["content-type"] == "application/problem+json"
+        assert refused.headers["www-authenticate"].startswith("Bearer")
+    sent = {**(headers or {}), **service.headers}
+    served = httpx.request(method, url, headers=sent, timeout=60.0, **request)
+    assert served.status_code == 200, served.text
+    for probe in sorted(PROBE_PATHS):
+        assert httpx.get(f"{service.url}{probe}", timeout=10.0).status_code == 200, probe
 
 
 def homogeneous_tuples(node: Any) -> Any:
@@ -64,7 +90,7 @@ def fuzz_service(
     ``positive_data_acceptance`` heuristic is the one check left out. ``headers`` go with every
     request (an API key: schemathesis also checks that the routes refuse requests without it).
     """
-    document = httpx.get(f"{url}/openapi.json", timeout=10.0).json()
+    document = httpx.get(f"{url}/openapi.json", timeout=10.0, headers=headers).json()
     schema = schemathesis.openapi.from_dict(homogeneous_tuples(document))
     operations = [result.ok() for result in schema.get_all_operations()]
     for operation in operations:

@@ -1,9 +1,11 @@
 """End to end: the four real services as separate processes on loopback, searches over HTTP.
 
 Targets are rendered by the renderer at random grid poses; the controller must find each
-target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, and a
-controller killed mid-search that finishes the search after it comes back. Every call to the
-controller carries the stack's local API key, as the demo's do.
+target's grid pose. Also: the public API's answers to bad input, cancelling, the plots, the
+stages serving the controller (with the stack's service token) and no stranger, the probes, a
+controller killed mid-search that finishes the search after it comes back, and a renderer
+killed under ``cosmos up``'s supervision that comes back while the other serves. Every call to
+the controller carries the stack's local API key, as the demo's do.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import httpx
 import numpy as np
 import pytest
 
+from services.common.auth import bearer
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search
 from services.common.geometry.pose import PoseQuery
@@ -27,7 +30,7 @@ from services.common.launch import free_port, spawn_service, stop_service, wait_
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
 from services.renderer.client import RendererClient
-from services.stack import Stack, local_stack, plan_stack, running_stack
+from services.stack import Stack, local_stack, plan_local_stack, plan_stack, running_stack
 from tests.support import fuzz_service
 
 pytestmark = pytest.mark.slow
@@ -53,7 +56,7 @@ def controller_client(stack: Stack) -> ControllerClient:
 
 
 def render(stack: Stack, scene: str, lat: int, lon: int) -> bytes:
-    with RendererClient(stack.renderers[0]) as client:
+    with RendererClient(stack.renderers[0], token=stack.service_token) as client:
         return client.render_png(RenderRequest(scene=scene, pose=PoseQuery(lat=lat, lon=lon)))
 
 
@@ -68,7 +71,8 @@ def run_search(stack: Stack, image: bytes, scene: str, **options):
 def grid_of(stack: Stack, scene: str):
     from services.common.geometry.grid import grid_for
 
-    detail = httpx.get(f"{stack.renderers[0]}/scenes/{scene}").json()["spec"]["search"]
+    url = f"{stack.renderers[0]}/scenes/{scene}"
+    detail = httpx.get(url, headers=bearer(stack.service_token)).json()["spec"]["search"]
     return grid_for(detail["angle_step_deg"], detail["min_theta_deg"], detail["max_theta_deg"])
 
 
@@ -164,6 +168,31 @@ def test_plots_events_listing_and_scenes(stack):
         health = http.get("/health").json()
         assert all(r["up"] for r in health["replicas"])
         assert {r["stage"] for r in health["replicas"]} == {"renderer", "detector", "optimizer"}
+
+
+def test_the_stages_serve_the_stacks_token_only_and_every_service_is_ready(stack):
+    """The searches above went through the controller, which sends the token; a stranger gets
+    401 from every stage, and every service says it is alive and ready."""
+    stranger = {"Authorization": "Bearer a-token-that-is-not-the-stacks"}
+    for url, method, path in [
+        (stack.renderers[0], "GET", "/scenes"),
+        (stack.renderers[0], "POST", "/render"),
+        (stack.detectors[0], "POST", "/detect"),
+        (stack.optimizers[0], "POST", "/next-pose"),
+    ]:
+        for headers in ({}, stranger):
+            response = httpx.request(method, f"{url}{path}", headers=headers, json={}, timeout=30)
+            assert response.status_code == 401, (url, path, response.text)
+            assert response.headers["content-type"] == "application/problem+json"
+        mine = httpx.request(
+            method, f"{url}{path}", headers=bearer(stack.service_token), json={}, timeout=30
+        )
+        assert mine.status_code in {200, 415, 422}, (url, path, mine.text)  # past the token
+    for url in (stack.controller, *stack.renderers, *stack.detectors, *stack.optimizers):
+        for probe in ("/livez", "/readyz"):
+            response = httpx.get(f"{url}{probe}", timeout=30)
+            assert response.status_code == 200, (url, probe, response.text)
+            assert response.json()["status"] == "ok"
 
 
 def test_a_search_can_be_cancelled(stack):
@@ -445,7 +474,10 @@ def test_searches_ride_out_a_detector_outage_or_resume_when_retried(tmp_path):
 
         def restart_detector() -> None:
             again = spawn_service(
-                detector_plan.app, tmp_path / "logs-again", port=detector_plan.port
+                detector_plan.app,
+                tmp_path / "logs-again",
+                port=detector_plan.port,
+                env=detector_plan.env,  # with the stack's service token
             )
             wait_healthy(again)
             restarted.append(again)
@@ -510,3 +542,43 @@ def wait_for(check, timeout_s: float = 60.0) -> None:
 def test_every_controller_route_answers_within_its_schema(stack):
     """Schema-driven fuzzing of the public API (see :func:`tests.support.fuzz_service`)."""
     assert fuzz_service(stack.controller, max_examples=15, headers=auth(stack)) >= 8
+
+
+def test_a_killed_renderer_is_started_again_while_the_other_serves(tmp_path):
+    """``cosmos up``'s supervision: SIGKILL one renderer of two; a search submitted right then
+    succeeds on the other, the controller stays ready, and the killed one is started again on
+    its port (with the stack's token) and answers again."""
+    said: list[str] = []
+    plan = plan_local_stack(tmp_path, renderers=2)
+    key = local_key(plan[-1].env["COSMOS_CONTROLLER_DATABASE_URL"])
+    logs = tmp_path / "logs"
+    with running_stack(plan, logs, api_key=key, supervise=True, say=said.append) as stack:
+        assert stack.supervisor is not None
+        image = render(stack, "demo", 5, 14)
+        victim = next(p for p in stack.processes if p.url == stack.renderers[1])
+        os.kill(victim.process.pid, signal.SIGKILL)
+        victim.process.wait(timeout=10)
+        final = run_search(stack, image, "demo", seed=11)
+        assert final.status == "succeeded", final.error
+        assert final.result is not None
+        assert (final.result.pose.index.lat, final.result.pose.index.lon) == (5, 14)
+        assert httpx.get(f"{stack.controller}/readyz", timeout=30).status_code == 200  # no key
+        deadline = time.monotonic() + 120
+        while True:
+            assert time.monotonic() < deadline, f"the renderer did not come back: {said}"
+            try:
+                if httpx.get(f"{victim.url}/livez", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        assert stack.supervisor.restarts(victim.url) == 1
+        (again,) = [p for p in stack.supervisor.processes if p.url == victim.url]
+        assert again.process.pid != victim.process.pid
+        assert any(f"{victim.url} exited (signal 9)" in line for line in said), said
+        assert any(f"{victim.url} started again (restart 1" in line for line in said), said
+        with RendererClient(victim.url, token=stack.service_token) as client:
+            assert {s.id for s in client.scenes()} >= {"demo"}
+        final = run_search(stack, image, "demo", seed=12)  # both renderers serve again
+        assert final.status == "succeeded", final.error
+    assert all(p.process.poll() is not None for p in stack.supervisor.processes)

@@ -43,6 +43,7 @@ from services.bench.runner import SearchRecord, Target, local_stack, make_target
 from services.bench.stats import percentile, summarize
 from services.bench.tables import text_tables
 from services.bench.variants import Variant
+from services.common.auth import bearer, token_from_environment
 from services.common.catalog import SceneCatalog
 from services.common.contracts.optimize import StrategyName
 from services.common.geometry.scene import LoadedScene
@@ -116,6 +117,8 @@ class Endpoints:
     ``COSMOS_SCENES_DIR``)."""
     altered_dir: Path | None = None
     """Where ``photo`` and ``changed`` targets' scene copies go (a local stack reads it)."""
+    service_token: str | None = field(default=None, repr=False)
+    """What the renderers and detectors ask of their callers (the stack's service token)."""
 
     @cached_property
     def _catalog(self) -> SceneCatalog:
@@ -137,7 +140,7 @@ class Endpoints:
         from services.renderer.client import RendererClient
 
         for url in self.renderers:
-            with RendererClient(url) as renderer:
+            with RendererClient(url, token=self.service_token) as renderer:
                 for scene in scenes:
                     request = RenderRequest(scene=scene, pose=PoseQuery(lat=0, lon=0))
                     png = renderer.render_png(request)
@@ -145,6 +148,7 @@ class Endpoints:
                         httpx.post(
                             f"{detector}/detect",
                             files={"image": ("warm.png", png, "image/png")},
+                            headers=bearer(self.service_token),
                             timeout=60.0,
                         ).raise_for_status()
 
@@ -162,7 +166,12 @@ def open_endpoints(
     if config.url is not None:
         if config.renderer_url is None:
             raise ValueError("--url needs --renderer-url too (the targets are rendered there)")
-        yield Endpoints(config.url.rstrip("/"), config.renderer_url.rstrip("/"), config.api_key)
+        yield Endpoints(
+            config.url.rstrip("/"),
+            config.renderer_url.rstrip("/"),
+            config.api_key,
+            service_token=token_from_environment(),  # the renderer's, as cosmos up was given
+        )
         return
     with tempfile.TemporaryDirectory(prefix="cosmos-bench-") as tmp:
         started = time.perf_counter()
@@ -192,6 +201,7 @@ def open_endpoints(
                 stack.detectors,
                 scene_dirs=tuple(dirs),
                 altered_dir=altered,
+                service_token=stack.service_token,
             )
 
 
@@ -276,6 +286,7 @@ def search_all(
         progress=say,
         scene_of=endpoints.scene_of,
         altered_dir=endpoints.altered_dir,
+        token=endpoints.service_token,
     )
     endpoints.warm(config.scenes)
     firsts = {t.scene: t for t in reversed(targets)}
@@ -447,7 +458,9 @@ def run_throughput(config: BenchConfig) -> int:
             machine = machine or machine_info(services_info(ep, config.spp, config.width))
             scenes = config.scenes
             per_scene = -(-config.throughput_searches // len(scenes))
-            targets = make_targets(ep.renderer, scenes, ("clean",), per_scene, config.seed)
+            targets = make_targets(
+                ep.renderer, scenes, ("clean",), per_scene, config.seed, token=ep.service_token
+            )
             jobs: list[tuple[Target, StrategyName]] = [(t, "reprojection") for t in targets]
             jobs = jobs[: config.throughput_searches]
             ep.warm(scenes)

@@ -43,6 +43,7 @@ from services.bench.machine import machine_info
 from services.bench.random_report import GOALS, band_cells, band_table, goal_checks
 from services.bench.runner import SearchRecord, Target, run_searches
 from services.bench.scenes import generate_scene, scene_summary
+from services.common.auth import bearer
 from services.common.geometry.scene import load_scene
 
 __all__ = ["MODEL_WAIT_S", "model_status", "run_random", "served_model"]
@@ -53,13 +54,16 @@ MODEL_WAIT_S: Final = 60.0
 Onboard = Callable[[Path, Path], Any]
 
 
-def served_model(detector_url: str, scene: str, image: bytes) -> dict[str, Any]:
-    """The model ``POST /detect?scene=<scene>`` answers with (``name``, ``sha256``, ``scene``)."""
+def served_model(
+    detector_url: str, scene: str, image: bytes, token: str | None = None
+) -> dict[str, Any]:
+    """The model ``POST /detect?scene=<scene>`` answers with (``name``, ``sha256``, ``scene``);
+    ``token`` is the stack's service token."""
     response = httpx.post(
         f"{detector_url}/detect",
         params={"scene": scene},
         content=image,
-        headers={"Content-Type": "image/png"},
+        headers={"Content-Type": "image/png", **bearer(token)},
         timeout=60.0,
     )
     response.raise_for_status()
@@ -67,11 +71,11 @@ def served_model(detector_url: str, scene: str, image: bytes) -> dict[str, Any]:
     return {k: model.get(k) for k in ("name", "sha256", "scene")}
 
 
-def model_status(detector_url: str, scene: str) -> str:
+def model_status(detector_url: str, scene: str, token: str | None = None) -> str:
     """What ``GET /models`` says of ``scene``'s own model (``serving``, ``refused: why``,
-    ``none``), or why it cannot say."""
+    ``none``), or why it cannot say; ``token`` is the stack's service token."""
     try:
-        response = httpx.get(f"{detector_url}/models", timeout=30.0)
+        response = httpx.get(f"{detector_url}/models", timeout=30.0, headers=bearer(token))
         response.raise_for_status()
         states = response.json().get("scenes", [])
     except (httpx.HTTPError, ValueError) as exc:
@@ -123,7 +127,9 @@ def _wait_for_model(endpoints: Endpoints, scene: str, image: bytes) -> dict[str,
     passes); what the first one served last."""
     deadline = time.monotonic() + MODEL_WAIT_S
     while True:
-        models = [served_model(url, scene, image) for url in endpoints.detectors]
+        models = [
+            served_model(url, scene, image, endpoints.service_token) for url in endpoints.detectors
+        ]
         if all(m.get("scene") == scene for m in models) or time.monotonic() > deadline:
             return models[0]
         time.sleep(1.0)
@@ -163,7 +169,7 @@ def _scene_arm(
         if model.get("scene") == scene:
             ready.append(scene)
         else:
-            status = model_status(endpoints.detectors[0], scene)
+            status = model_status(endpoints.detectors[0], scene, endpoints.service_token)
             models[-1]["served"] += f"; the scene's own model: {status}"
             say(f"  the detector does not serve {scene}'s own model ({status})")
     jobs = [(t, s) for t in targets if t.scene in ready for s in config.strategies]
@@ -206,7 +212,8 @@ def _run(config: BenchConfig, root: Path) -> int:
         targets, records = search_all(config, ep, config.variants, config.strategies)
         for scene in ids:
             image = next(t.image for t in targets if t.scene == scene)
-            served = served_model(ep.detectors[0], scene, image) if ep.detectors else {}
+            token = ep.service_token
+            served = served_model(ep.detectors[0], scene, image, token) if ep.detectors else {}
             models.append({"scene": scene, "arm": "general", "served": _describe(served)})
         onboard, why_not = (None, "onboarding skipped (--onboard none)")
         if config.onboard != "none":

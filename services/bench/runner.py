@@ -172,8 +172,10 @@ def make_targets(
     *,
     scene_of: Callable[[str], LoadedScene] | None = None,
     altered_dir: Path | None = None,
+    token: str | None = None,
 ) -> list[Target]:
-    """``n`` seeded targets per scene and variant, rendered by the renderer at ``renderer_url``.
+    """``n`` seeded targets per scene and variant, rendered by the renderer at ``renderer_url``
+    (``token``: the stack's service token).
 
     ``photo`` and ``changed`` targets need ``scene_of`` (a scene by id, to copy) and
     ``altered_dir``, a folder that renderer reads scenes from.
@@ -190,7 +192,7 @@ def make_targets(
         return alter_scene(scene_of(scene), variant, rng, altered_dir, f"{scene}_{variant}{number}")
 
     targets: list[Target] = []
-    with RendererClient(renderer_url) as renderer:
+    with RendererClient(renderer_url, token=token) as renderer:
         for scene in scenes:
             grid = renderer.scene(scene).grid.grid()
             for variant in variants:

@@ -1,5 +1,5 @@
 """The base of the services' small synchronous clients: one httpx client, explicit timeouts,
-errors that carry the service's problem detail."""
+the service token a stage asks for, errors that carry the service's problem detail."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ from types import TracebackType
 from typing import ClassVar, Self
 
 import httpx
+
+from services.common.auth import bearer
 
 __all__ = ["ServiceCallError", "ServiceClient"]
 
@@ -21,13 +23,16 @@ class ServiceCallError(RuntimeError):
 
 
 class ServiceClient:
-    """Calls one service at ``base_url``; subclasses add the routes."""
+    """Calls one service at ``base_url`` (sending ``token``, the stack's service token, which
+    the stages require); subclasses add the routes."""
 
     service: ClassVar[str] = "service"
     error: ClassVar[type[ServiceCallError]] = ServiceCallError
 
-    def __init__(self, base_url: str, timeout_s: float = 60.0) -> None:
-        self._http = httpx.Client(base_url=base_url, timeout=httpx.Timeout(timeout_s, connect=5.0))
+    def __init__(self, base_url: str, timeout_s: float = 60.0, *, token: str | None = None) -> None:
+        self._http = httpx.Client(
+            base_url=base_url, timeout=httpx.Timeout(timeout_s, connect=5.0), headers=bearer(token)
+        )
 
     def __enter__(self) -> Self:
         return self

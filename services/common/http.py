@@ -1,8 +1,14 @@
-"""HTTP plumbing shared by the services: problem+json handlers and a request body size limit.
+"""HTTP plumbing shared by the services: problem+json handlers, a request body size limit, the
+service token (:mod:`services.common.auth`) and the liveness and readiness probes.
 
 Every error leaves a service as ``application/problem+json`` (RFC 9457): domain errors
 (:class:`~services.common.errors.ServiceError`), request validation errors, Starlette's own HTTP
 errors, and, as a last resort, unexpected exceptions (500, without internals).
+
+Every service answers ``GET /livez`` (the process answers: restart it if not) and
+``GET /readyz`` (it can serve now: send it work if so; 503 with the reasons if not), the way
+Kubernetes' probes and ``docker compose`` health checks ask. ``GET /health`` says more, for people
+and the controller's broker.
 """
 
 from __future__ import annotations
@@ -10,9 +16,9 @@ from __future__ import annotations
 import gc
 import json
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
-from typing import Any
+from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -21,7 +27,20 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from services.common.errors import PayloadTooLargeError, ProblemDetails, ServiceError, problem_type
+from services.common.auth import (
+    MissingServiceTokenError,
+    ServiceTokenMiddleware,
+    ServiceTokenSettings,
+    declare_service_token,
+)
+from services.common.contracts.base import FrozenModel
+from services.common.errors import (
+    PayloadTooLargeError,
+    ProblemDetails,
+    ServiceError,
+    ServiceUnavailableError,
+    problem_type,
+)
 
 __all__ = [
     "PROBLEM_JSON",
@@ -31,7 +50,9 @@ __all__ = [
     "service_app",
     "single_query_values",
     "BodySizeLimitMiddleware",
+    "Probe",
     "ProblemResponse",
+    "Readiness",
     "install_problem_handlers",
     "problem_responses",
 ]
@@ -279,23 +300,86 @@ async def single_query_values(request: Request) -> None:
         )
 
 
+Readiness = Callable[[FastAPI], Awaitable[Sequence[str]]]
+"""Why a started app cannot serve yet (nothing when it can), in words for its operators."""
+
+
+class Probe(FrozenModel):
+    """``GET /livez`` and ``GET /readyz`` when the answer is yes."""
+
+    status: Literal["ok"]
+    service: str
+
+
+def _probes(name: str, readiness: Readiness | None) -> APIRouter:
+    probes = APIRouter(tags=["probes"])
+
+    @probes.get("/livez", response_model=Probe)
+    async def livez() -> Probe:
+        """Liveness: the process answers (an orchestrator restarts it when it stops)."""
+        return Probe(status="ok", service=name)
+
+    @probes.get("/readyz", response_model=Probe, responses=problem_responses(503))
+    async def readyz(request: Request) -> Probe:
+        """Readiness: the service can serve requests now; 503 with the reasons when it
+        cannot (starting, stopping, or missing what it needs)."""
+        app = request.app
+        if not getattr(app.state, "serving", False):
+            reasons: Sequence[str] = ["starting or stopping"]
+        else:
+            try:
+                reasons = [] if readiness is None else await readiness(app)
+            except Exception:  # a failing check is a "no", never a 500
+                _log.exception("the readiness check of %s failed", name)
+                reasons = ["the readiness check failed; see the service's log"]
+        if reasons:
+            raise ServiceUnavailableError(
+                "; ".join(reasons),
+                slug="not-ready",
+                title="Not ready",
+                extra={"reasons": list(reasons)},
+            )
+        return Probe(status="ok", service=name)
+
+    return probes
+
+
 def service_app(
     name: str,
     summary: str,
     lifespan: Callable[[FastAPI], AbstractAsyncContextManager[None]],
     router: APIRouter,
     max_body_bytes: int,
+    *,
+    settings: ServiceTokenSettings,
+    guarded: bool,
+    readiness: Readiness | None,
 ) -> FastAPI:
-    """A COSMOS service app: its routes, problem+json errors, a request body limit, and no
-    query parameter given twice."""
+    """A COSMOS service app: its routes, the probes (``/livez``; ``/readyz``, which asks
+    ``readiness`` once the lifespan has started, or, None, answers yes then), problem+json
+    errors, a request body limit, and no query parameter given twice.
+
+    A ``guarded`` app (a stage) serves only callers with the service token of ``settings``,
+    except on the health and probe routes; any app refuses to start without a token unless
+    ``COSMOS_SERVICE_AUTH=off`` (the controller needs it to call the stages).
+    """
 
     @asynccontextmanager
     async def started(app: FastAPI) -> AsyncIterator[None]:
+        try:
+            settings.token()
+        except MissingServiceTokenError as exc:
+            _log.error("%s", exc)  # before uvicorn's traceback: the line that says what to do
+            raise
+        if guarded and settings.service_auth == "off":
+            _log.warning("COSMOS_SERVICE_AUTH=off: this %s serves every caller", name)
         async with lifespan(app):
             freeze_heap()
+            app.state.serving = True
             try:
                 yield
             finally:
+                app.state.serving = False
                 gc.unfreeze()  # what the app leaves behind can be collected again
 
     app = FastAPI(
@@ -307,8 +391,17 @@ def service_app(
     )
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=max_body_bytes)
+    if guarded and settings.service_auth == "token":
+        # Added last, so it runs first: a stranger's body is never read. Without a token the
+        # app does not start (above); until then the middleware refuses everyone.
+        secret = settings.service_token
+        app.add_middleware(
+            ServiceTokenMiddleware, token=secret.get_secret_value() if secret else None
+        )
+        declare_service_token(app, lambda: problem_responses(401)[401])
     # Any route answers 422 for a query parameter given twice, and FastAPI's own 422s are
     # problem+json here, not its HTTPValidationError: declared once for all.
+    app.include_router(_probes(name, readiness), responses=problem_responses(422))
     app.include_router(router, responses=problem_responses(422))
     return app
 

@@ -1,4 +1,8 @@
-"""Start services as local uvicorn processes on loopback, wait until healthy, stop them."""
+"""Start services as local uvicorn processes on loopback, wait until healthy, stop them.
+
+Every process runs with a service token (:mod:`services.common.auth`): the one its environment
+gives, else a new one of its own; :attr:`ServiceProcess.token` says which, for its callers.
+"""
 
 from __future__ import annotations
 
@@ -9,10 +13,12 @@ import sys
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
+
+from services.common.auth import TOKEN_VARIABLE, bearer, new_token
 
 __all__ = [
     "ServiceProcess",
@@ -36,11 +42,17 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 @dataclass(frozen=True)
 class ServiceProcess:
-    """A running service: its base URL, process and log file."""
+    """A running service: its base URL, process, log file and service token."""
 
     url: str
     process: subprocess.Popen[bytes]
     log: Path
+    token: str | None = field(default=None, repr=False)
+
+    @property
+    def headers(self) -> dict[str, str]:
+        """What a request must carry to be served (the token as ``Authorization: Bearer``)."""
+        return bearer(self.token)
 
 
 def spawn_service(
@@ -50,20 +62,28 @@ def spawn_service(
     port: int | None = None,
     host: str = "127.0.0.1",
     env: Mapping[str, str] | None = None,
+    append_log: bool = False,
 ) -> ServiceProcess:
-    """Start ``uvicorn <app>`` without waiting for it (see :func:`wait_healthy`)."""
+    """Start ``uvicorn <app>`` without waiting for it (see :func:`wait_healthy`), with
+    ``COSMOS_SERVICE_TOKEN`` from ``env``, else from this process's environment, else a new
+    one. Its output goes to ``<service>-<port>.log`` in ``log_dir`` (after what is there with
+    ``append_log``, for a process started again)."""
     port = port or free_port(host)
     log_dir.mkdir(parents=True, exist_ok=True)
     log = log_dir / f"{app.split('.')[1] if app.count('.') >= 1 else app}-{port}.log"
-    with log.open("wb") as sink:
+    environ = {**os.environ, **(env or {})}
+    environ[TOKEN_VARIABLE] = environ.get(TOKEN_VARIABLE) or new_token()
+    with log.open("ab" if append_log else "wb") as sink:
         process = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", app, "--host", host, "--port", str(port)],
             cwd=ROOT,
-            env={**os.environ, **(env or {})},
+            env=environ,
             stdout=sink,
             stderr=subprocess.STDOUT,
         )
-    return ServiceProcess(url=f"http://{host}:{port}", process=process, log=log)
+    return ServiceProcess(
+        url=f"http://{host}:{port}", process=process, log=log, token=environ[TOKEN_VARIABLE]
+    )
 
 
 def wait_healthy(service: ServiceProcess, timeout_s: float = 60.0) -> None:

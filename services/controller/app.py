@@ -21,11 +21,12 @@ from services.controller.discovery import expand_urls
 from services.controller.events import Notifier
 from services.controller.keys import KeyStore
 from services.controller.quotas import Limits, Quotas
+from services.controller.readiness import ControllerReadiness
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
 from services.controller.store import SearchStore, utcnow
-from services.controller.transport import Transport
+from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
 from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
@@ -62,7 +63,7 @@ def create_app(
     (and then warns of each ``COSMOS_`` variable that no service reads).
 
     ``transport`` carries the calls to the stages (HTTP/1.1 over the network unless given; tests
-    hand requests to in-process apps).
+    hand requests to in-process apps), each with the service token.
     """
     settings = settings or from_environment(ControllerSettings)
 
@@ -79,12 +80,15 @@ def create_app(
                 retention_s=settings.controller_retention_s,
             ),
         )
+        to_stages = WithServiceToken(
+            transport or AiohttpTransport(settings.controller_connect_timeout_s), settings.token()
+        )
         broker = Broker(
             settings.pools(),
             heuristic=settings.controller_broker_heuristic,
             timeouts_s=settings.timeouts(),
             connect_timeout_s=settings.controller_connect_timeout_s,
-            transport=transport,
+            transport=to_stages,
         )
         stages = Stages(
             broker,
@@ -110,6 +114,7 @@ def create_app(
         app.state.controller = ControllerState(
             settings, store, broker, stages, runner, notifier, keys, quotas
         )
+        app.state.readiness = ControllerReadiness(store, broker, to_stages)
         try:
             yield
         finally:
@@ -122,12 +127,19 @@ def create_app(
             keys.close()
             store.close()
 
+    async def readiness(app: FastAPI) -> list[str]:
+        check: ControllerReadiness = app.state.readiness
+        return await check.unready()
+
     app = service_app(
         "controller",
         "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
         lifespan,
         router,
         settings.controller_max_upload_bytes,
+        settings=settings,
+        guarded=False,  # its public API takes API keys (api.py); it sends the stages the token
+        readiness=readiness,
     )
     origins = settings.cors_origins()
     if origins:  # none: no CORS headers, so browsers keep other origins' pages out

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from pydantic import Field, field_validator
 
-from services.common.settings import ServiceSettings
+from services.common.auth import ServiceTokenSettings
 from services.controller.broker import Heuristic
 
 __all__ = ["ControllerSettings"]
@@ -16,7 +16,7 @@ def _urls(value: str) -> list[str]:
     return [part.strip().rstrip("/") for part in value.split(",") if part.strip()]
 
 
-class ControllerSettings(ServiceSettings):
+class ControllerSettings(ServiceTokenSettings):
     """Replica URLs per stage (comma-separated), the database, limits, API keys and quotas.
 
     ``COSMOS_CONTROLLER_RENDERER_URLS``, ``COSMOS_CONTROLLER_DETECTOR_URLS``,

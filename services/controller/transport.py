@@ -5,6 +5,9 @@ a :class:`StageAnswer` is the status, headers and the whole body. The broker's t
 :class:`AiohttpTransport`: one aiohttp session with keep-alive connections to every replica,
 ``http://`` or ``https://``. Tests inject other transports (in-process apps, scripted faults).
 
+:class:`WithServiceToken` wraps any transport to send the stack's service token (``Authorization:
+Bearer``) with every request: the stages serve no one else (:mod:`services.common.auth`).
+
 A hand-written HTTP/1.1 client (asyncio and httptools) served ``http://`` replicas until it was
 measured against this one (``git show 5a86024:benchmarks/transport.py``): it saved ~0.45 ms a
 stage call, ~2 ms (~1 %) of a search, within noise; not worth ~500 lines of protocol code.
@@ -15,10 +18,12 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import aiohttp
+
+from services.common.auth import bearer
 
 __all__ = [
     "AiohttpTransport",
@@ -26,6 +31,7 @@ __all__ = [
     "StageRequest",
     "Transport",
     "TransportError",
+    "WithServiceToken",
 ]
 
 
@@ -133,3 +139,20 @@ class AiohttpTransport:
         if self._session is not None:
             await self._session.close()
             self._session = None
+
+
+class WithServiceToken:
+    """``inner``, sending ``token`` as ``Authorization: Bearer`` with every request (nothing
+    added when ``token`` is None: the stages ask for none)."""
+
+    def __init__(self, inner: Transport, token: str | None) -> None:
+        self.inner = inner
+        self._headers = bearer(token)
+
+    async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer:
+        if self._headers:
+            request = replace(request, headers={**request.headers, **self._headers})
+        return await self.inner.send(base_url, request, timeout_s)
+
+    async def close(self) -> None:
+        await self.inner.close()

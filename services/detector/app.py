@@ -66,6 +66,11 @@ def create_app(settings: DetectorSettings | None = None) -> FastAPI:
         lifespan,
         router,
         settings.detector_max_upload_bytes,
+        settings=settings,
+        guarded=True,
+        # Ready once started: the general model, all it needs, is loaded by then (a missing or
+        # broken one stops the start-up; a refused scene model leaves the general one serving).
+        readiness=None,
     )
 
 

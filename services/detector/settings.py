@@ -7,8 +7,9 @@ from typing import Annotated
 
 from pydantic import Field
 
+from services.common.auth import ServiceTokenSettings
 from services.common.catalog import BUILTIN_SCENES_DIR
-from services.common.settings import ServiceSettings, split_paths
+from services.common.settings import split_paths
 from services.detector import HARD_MAX_IMAGE_PIXELS
 
 __all__ = ["DEFAULT_MODEL", "DetectorSettings"]
@@ -19,7 +20,7 @@ DEFAULT_MODEL = Path(__file__).resolve().parents[2] / "models" / "detector.onnx"
 Fraction = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 
 
-class DetectorSettings(ServiceSettings):
+class DetectorSettings(ServiceTokenSettings):
     """``COSMOS_DETECTOR_MODEL`` names the general ONNX model (a sidecar ``<model>.json`` next to
     it, if present, supplies the class names and provenance); ``COSMOS_SCENES_DIR`` adds scene
     directories (as for the renderer), whose scenes' own models serve requests naming them; the

@@ -50,6 +50,11 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
         lifespan,
         router,
         settings.optimizer_max_body_bytes,
+        settings=settings,
+        guarded=True,
+        # Ready once started: the calibrations and the catalog, all it needs, are loaded by
+        # then, and it keeps no state between requests.
+        readiness=None,
     )
 
 

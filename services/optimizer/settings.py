@@ -7,15 +7,16 @@ from typing import Annotated
 
 from pydantic import Field
 
+from services.common.auth import ServiceTokenSettings
 from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.contracts.optimize import StrategyName
-from services.common.settings import ServiceSettings, split_paths
+from services.common.settings import split_paths
 from services.optimizer.calibration import DEFAULT_CALIBRATION_FILE
 
 __all__ = ["OptimizerSettings"]
 
 
-class OptimizerSettings(ServiceSettings):
+class OptimizerSettings(ServiceTokenSettings):
     """``COSMOS_OPTIMIZER_DEFAULT_STRATEGY`` picks the strategy of requests that name none;
     ``COSMOS_OPTIMIZER_PAPER_CALIBRATION`` is the JSON file of the paper mapping's coefficients;
     ``COSMOS_SCENES_DIR`` adds scene directories for requests that name a ``scene``

@@ -37,6 +37,15 @@ class RendererState:
     catalog: SceneCatalog
     engine: RenderEngine
 
+    def unready(self) -> list[str]:
+        """Why this renderer cannot render now (nothing when it can)."""
+        reasons = []
+        if not self.engine.variant:
+            reasons.append("the Mitsuba worker has not started")
+        if not self.catalog.ids():
+            reasons.append("no valid scene to render")
+        return reasons
+
 
 State = Annotated[RendererState, Depends(app_state("renderer"))]
 

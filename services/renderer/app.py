@@ -41,12 +41,19 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
         finally:
             await asyncio.to_thread(engine.close)
 
+    async def readiness(app: FastAPI) -> list[str]:
+        state: RendererState = app.state.renderer
+        return state.unready()
+
     return service_app(
         "renderer",
         "Renders views of known scenes with Mitsuba 3, with exact ground truth.",
         lifespan,
         router,
         settings.renderer_max_body_bytes,
+        settings=settings,
+        guarded=True,
+        readiness=readiness,
     )
 
 

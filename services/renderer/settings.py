@@ -7,14 +7,15 @@ from typing import Annotated
 
 from pydantic import Field
 
+from services.common.auth import ServiceTokenSettings
 from services.common.catalog import BUILTIN_SCENES_DIR
-from services.common.settings import ServiceSettings, split_paths
+from services.common.settings import split_paths
 from services.renderer.variant import VariantRequest
 
 __all__ = ["RendererSettings"]
 
 
-class RendererSettings(ServiceSettings):
+class RendererSettings(ServiceTokenSettings):
     """``COSMOS_SCENES_DIR`` adds scene directories (os.pathsep-separated, searched before the
     built-in ``scenes/``); the rest, ``COSMOS_RENDERER_…``, pick the Mitsuba variant and bound
     what one request may ask for.

@@ -419,7 +419,7 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
     monkeypatch.setattr(
         random_run,
         "served_model",
-        lambda url, scene, image: {
+        lambda url, scene, image, token=None: {
             "name": "m",
             "sha256": "0" * 64,
             "scene": scene * (scene == "a"),
@@ -432,7 +432,9 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
         return [_record(30.0, arm=kw["arm"]) for _ in jobs]
 
     monkeypatch.setattr(random_run, "run_searches", run_searches)
-    monkeypatch.setattr(random_run, "model_status", lambda url, scene: "refused: wrong classes")
+    monkeypatch.setattr(
+        random_run, "model_status", lambda url, scene, token: "refused: wrong classes"
+    )
     models: list = []
     config = BenchConfig(scenes=("a", "b", "c"), strategies=("reprojection",), onboard="tiny")
     endpoints = Endpoints("http://c", "http://r", detectors=("http://d",))
@@ -461,14 +463,16 @@ def test_model_status_reads_get_models(monkeypatch):
         ],
     }
 
-    def get(url, timeout):
+    def get(url, timeout, headers):
         assert url == "http://d/models"
+        assert headers == {"Authorization": "Bearer tttttttttttttttt"}
         return httpx.Response(200, json=body, request=httpx.Request("GET", url))
 
     monkeypatch.setattr(random_run.httpx, "get", get)
-    assert random_run.model_status("http://d", "a") == "serving"
-    assert random_run.model_status("http://d", "b") == "refused: sha256 mismatch"
-    assert random_run.model_status("http://d", "c") == "not listed by GET /models"
+    token = "t" * 16
+    assert random_run.model_status("http://d", "a", token) == "serving"
+    assert random_run.model_status("http://d", "b", token) == "refused: sha256 mismatch"
+    assert random_run.model_status("http://d", "c", token) == "not listed by GET /models"
 
 
 @pytest.mark.slow

@@ -1,7 +1,7 @@
 """Each service reads its own ``COSMOS_<SERVICE>_`` variables (and the shared
-``COSMOS_SCENES_DIR``); the old names still work for one release, with a warning naming the new
-one; a ``COSMOS_`` variable that nothing reads is reported at start-up, one another service
-reads is not."""
+``COSMOS_SCENES_DIR``, ``COSMOS_SERVICE_TOKEN`` and ``COSMOS_SERVICE_AUTH``); the old names
+still work for one release, with a warning naming the new one; a ``COSMOS_`` variable that
+nothing reads is reported at start-up, one another service reads is not."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from pydantic import SecretStr
 
 from services import cli
 from services.controller.app import create_app as create_controller
@@ -32,6 +33,8 @@ from services.stack import plan_stack
 
 SAMPLES: dict[str, tuple[str, Any]] = {
     "COSMOS_SCENES_DIR": ("/srv/scenes", "/srv/scenes"),
+    "COSMOS_SERVICE_TOKEN": ("t" * 32, SecretStr("t" * 32)),
+    "COSMOS_SERVICE_AUTH": ("off", "off"),
     "COSMOS_RENDERER_MITSUBA_VARIANT": ("scalar_rgb", "scalar_rgb"),
     "COSMOS_RENDERER_DEFAULT_SPP": ("32", 32),
     "COSMOS_RENDERER_MAX_SPP": ("128", 128),

@@ -7,6 +7,7 @@ refused with 503 and ``Retry-After``. No answer names a replica's address."""
 from __future__ import annotations
 
 import asyncio
+import os
 import re
 import time
 from collections import Counter
@@ -22,6 +23,7 @@ from asgi_lifespan import LifespanManager
 from fastapi import FastAPI
 from starlette.types import ASGIApp
 
+from services.common.auth import TOKEN_VARIABLE, bearer
 from services.controller.app import create_app as create_controller
 from services.controller.settings import ControllerSettings
 from services.controller.transport import StageAnswer, StageRequest, TransportError
@@ -104,7 +106,9 @@ async def controller(
 
 async def target_png(apps: dict[str, ASGIApp], lat: int, lon: int) -> bytes:
     async with httpx.AsyncClient(
-        transport=httpx.ASGITransport(app=apps["renderer"]), base_url="http://renderer"
+        transport=httpx.ASGITransport(app=apps["renderer"]),
+        base_url="http://renderer",
+        headers=bearer(os.environ[TOKEN_VARIABLE]),  # the session's (tests/conftest.py)
     ) as renderer:
         response = await renderer.post(
             "/render", json={"scene": "demo", "pose": {"lat": lat, "lon": lon}}

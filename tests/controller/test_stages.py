@@ -15,6 +15,7 @@ import pytest
 from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from services.common.auth import token_from_environment
 from services.common.contracts.search import Search
 from services.common.errors import UnprocessableError
 from services.common.geometry.pose import GridIndex
@@ -23,7 +24,7 @@ from services.controller.broker import Broker
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
 from services.controller.submit import create_search
-from services.controller.transport import StageAnswer, StageRequest
+from services.controller.transport import StageAnswer, StageRequest, WithServiceToken
 from services.detector.app import create_app as create_detector
 from services.detector.settings import DetectorSettings
 from services.renderer.app import create_app as create_renderer
@@ -76,9 +77,10 @@ class InProcessApps:
 
 
 def stages_over(renderer: ASGIApp, detector: ASGIApp) -> Stages:
+    apps = InProcessApps({"renderer": renderer, "detector": detector})
     broker = Broker(
         {"renderer": ["http://renderer"], "detector": ["http://detector"]},
-        transport=InProcessApps({"renderer": renderer, "detector": detector}),
+        transport=WithServiceToken(apps, token_from_environment()),  # the app's, as it sends
         health_interval_s=0,
     )
     return Stages(broker, render_spp=2)

@@ -1,6 +1,6 @@
 """The controller's transport to its stages (aiohttp): real HTTP to a real replica process, and
 scripted answers from a raw TCP server (chunked, closed, malformed, a kept-alive connection
-dropped); its failures as :class:`TransportError`."""
+dropped); its failures as :class:`TransportError`; the service token on every request."""
 
 from __future__ import annotations
 
@@ -11,8 +11,15 @@ from contextlib import asynccontextmanager
 
 import pytest
 
+from services.common.auth import bearer
 from services.common.launch import running_service
-from services.controller.transport import AiohttpTransport, StageRequest, TransportError
+from services.controller.transport import (
+    AiohttpTransport,
+    StageAnswer,
+    StageRequest,
+    TransportError,
+    WithServiceToken,
+)
 
 pytestmark = pytest.mark.anyio
 
@@ -170,3 +177,26 @@ async def test_broken_answers_are_transport_errors(answer, sent):
         finally:
             await transport.close()
     assert len(seen) == sent
+
+
+class Recording:
+    """A transport that answers 200 and keeps what it was sent."""
+
+    def __init__(self) -> None:
+        self.sent: list[StageRequest] = []
+
+    async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer:
+        self.sent.append(request)
+        return StageAnswer(200, b"")
+
+    async def close(self) -> None:
+        pass
+
+
+async def test_every_stage_call_carries_the_token():
+    inner = Recording()
+    transport = WithServiceToken(inner, "t" * 32)
+    await transport.send("http://r1", StageRequest("GET", "/x", headers={"X-Request-ID": "7"}), 1)
+    assert dict(inner.sent[-1].headers) == {"X-Request-ID": "7", **bearer("t" * 32)}
+    await WithServiceToken(inner, None).send("http://r1", StageRequest("GET", "/x"), 1)
+    assert dict(inner.sent[-1].headers) == {}  # COSMOS_SERVICE_AUTH=off: nothing to send

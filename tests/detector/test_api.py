@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from asgi_lifespan import LifespanManager
 
+from services.common.auth import bearer
 from services.common.images import encode_ppm, media_type_of
 from services.detector.app import create_app
 from services.detector.letterbox import PAD_VALUE, fit
@@ -91,7 +92,10 @@ async def serve(settings: DetectorSettings) -> AsyncIterator[httpx.AsyncClient]:
     app = create_app(settings)
     async with LifespanManager(app) as manager:
         transport = httpx.ASGITransport(app=manager.app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://detector") as client:
+        headers = bearer(settings.token())  # as the controller calls it
+        async with httpx.AsyncClient(
+            transport=transport, base_url="http://detector", headers=headers
+        ) as client:
             yield client
 
 

@@ -18,7 +18,13 @@ from services.detector.client import DetectorClient, DetectorError
 from services.detector.postprocess import box_iou
 from tests.detector.conftest import APP, UPLOAD_LIMIT
 from tests.scene_model_support import balls_png
-from tests.support import ROOT, fuzz_service, homogeneous_tuples, running_service
+from tests.support import (
+    ROOT,
+    assert_token_required,
+    fuzz_service,
+    homogeneous_tuples,
+    running_service,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -26,7 +32,7 @@ SHIPPED_MODEL = ROOT / "models" / "detector.onnx"
 
 
 def test_the_client_detects_over_http(detector_process):
-    with DetectorClient(detector_process.url) as client:
+    with DetectorClient(detector_process.url, token=detector_process.token) as client:
         assert client.health()["service"] == "detector"
         info = client.model()
         assert info.classes == ("sphere", "cube")
@@ -44,6 +50,13 @@ def test_the_client_detects_over_http(detector_process):
         assert models.general == info
         field = next(status for status in models.scenes if status.scene == "field")
         assert (field.state, field.model) == ("serving", own.model)
+
+
+def test_the_detector_detects_for_holders_of_the_service_token_only(detector_process):
+    png = balls_png()
+    assert_token_required(
+        detector_process, "POST", "/detect", {"Content-Type": "image/png"}, content=png
+    )
 
 
 def multipart(data: bytes, boundary: str = "cosmos-boundary") -> tuple[bytes, str]:
@@ -66,7 +79,10 @@ def test_chunked_multipart_uploads_are_counted(detector_process, size, status):
     response = httpx.post(
         f"{detector_process.url}/detect",
         content=stream(),
-        headers={"content-type": f"multipart/form-data; boundary={boundary}"},
+        headers={
+            "content-type": f"multipart/form-data; boundary={boundary}",
+            **detector_process.headers,
+        },
         timeout=30.0,
     )
     assert response.status_code == status, response.text
@@ -85,19 +101,20 @@ def test_a_missing_model_stops_the_process_naming_the_file(tmp_path):
 def test_every_route_answers_within_its_schema(detector_process):
     """Schema-driven fuzzing (schemathesis): valid and invalid inputs alike never get a 5xx and
     every answer matches the route's declared status codes, media types and schemas."""
-    document = httpx.get(f"{detector_process.url}/openapi.json", timeout=10.0).json()
-    schema = schemathesis.openapi.from_dict(homogeneous_tuples(document))
+    headers = detector_process.headers
+    document = httpx.get(f"{detector_process.url}/openapi.json", timeout=10.0, headers=headers)
+    schema = schemathesis.openapi.from_dict(homogeneous_tuples(document.json()))
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 4
+    assert len(operations) == 6
     # Random bytes are never a PNG, so one real image checks the 200 answer's schema too.
     (detect,) = [op for op in operations if op.path == "/detect"]
     ok, image = cv2.imencode(".png", np.full((90, 160, 3), 70, np.uint8))
     assert ok
     real = detect.Case(body={"image": image.tobytes()}, media_type="multipart/form-data")
-    response = real.call_and_validate(base_url=detector_process.url, timeout=30)
+    response = real.call_and_validate(base_url=detector_process.url, headers=headers, timeout=30)
     assert response.status_code == 200
     assert len(response.json()["detections"]) == 1
-    assert fuzz_service(detector_process.url, max_examples=30, timeout_s=30) == 4
+    assert fuzz_service(detector_process.url, max_examples=30, timeout_s=30, headers=headers) == 6
 
 
 # -- the shipped model -------------------------------------------------------------------------
@@ -136,7 +153,10 @@ def test_the_shipped_model_finds_the_scene_objects(engine, catalog, tmp_path):
     renderer's exact ground truth; recall and precision at least 0.9."""
     found = required = false = detections_total = 0
     env = {"COSMOS_DETECTOR_MODEL": str(SHIPPED_MODEL)}
-    with running_service(APP, tmp_path, env) as service, DetectorClient(service.url) as client:
+    with (
+        running_service(APP, tmp_path, env) as service,
+        DetectorClient(service.url, token=service.token) as client,
+    ):
         for scene_id in ("demo", "garden"):
             scene = catalog.get(scene_id)
             search = scene.spec.search

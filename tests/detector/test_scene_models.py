@@ -20,6 +20,7 @@ import pytest
 from asgi_lifespan import LifespanManager
 from fastapi import FastAPI
 
+from services.common.auth import bearer
 from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.scene_models import MODEL_DIR_SUFFIX, MODEL_FILE_NAME
 from services.detector import registry as registry_module
@@ -71,7 +72,10 @@ async def serving(
     app = create_app(settings)
     async with LifespanManager(app) as manager:
         transport = httpx.ASGITransport(app=manager.app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://detector") as client:
+        headers = bearer(settings.token())  # as the controller calls it
+        async with httpx.AsyncClient(
+            transport=transport, base_url="http://detector", headers=headers
+        ) as client:
             yield client, app
 
 

@@ -9,6 +9,7 @@ import httpx
 import pytest
 from asgi_lifespan import LifespanManager
 
+from services.common.auth import bearer
 from services.common.geometry.grid import grid_for
 from services.common.geometry.pose import GridIndex
 from services.optimizer.app import create_app
@@ -23,12 +24,14 @@ GRID = {"angle_step_deg": 7.5, "min_theta_deg": 7.5, "max_theta_deg": 82.5}
 
 @pytest.fixture(scope="module")
 async def client() -> AsyncIterator[httpx.AsyncClient]:
-    app = create_app(
-        OptimizerSettings(optimizer_max_body_bytes=200_000, optimizer_max_grid_poses=5000)
-    )
+    settings = OptimizerSettings(optimizer_max_body_bytes=200_000, optimizer_max_grid_poses=5000)
+    app = create_app(settings)
     async with LifespanManager(app) as manager:
         transport = httpx.ASGITransport(app=manager.app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://optimizer") as c:
+        headers = bearer(settings.token())  # as the controller calls it
+        async with httpx.AsyncClient(
+            transport=transport, base_url="http://optimizer", headers=headers
+        ) as c:
             yield c
 
 

@@ -11,6 +11,7 @@ from schemathesis.checks import positive_data_acceptance
 
 from services.common.geometry.pose import GridIndex
 from simulation import SceneSimulator
+from tests.support import assert_token_required
 
 pytestmark = pytest.mark.slow
 
@@ -33,7 +34,9 @@ def test_a_search_over_real_http(optimizer_process, catalog):
             "detections": detections(grid.flat(GridIndex(lat=2, lon=3))),
         }
     ]
-    with httpx.Client(base_url=optimizer_process.url, timeout=60.0) as client:
+    with httpx.Client(
+        base_url=optimizer_process.url, timeout=60.0, headers=optimizer_process.headers
+    ) as client:
         for _ in range(10):
             answer = client.post(
                 "/next-pose",
@@ -58,12 +61,25 @@ def test_a_search_over_real_http(optimizer_process, catalog):
     assert len(history) <= 3
 
 
+def test_the_optimizer_plans_for_holders_of_the_service_token_only(optimizer_process):
+    ball = {"label": "sphere", "class_id": 0, "confidence": 0.9, "box": [100, 80, 140, 120]}
+    body = {
+        "scene": "demo",
+        "target": {"image_size": [320, 240], "detections": [ball]},
+        "history": [],
+    }
+    assert_token_required(optimizer_process, "POST", "/next-pose", json=body)
+    assert_token_required(optimizer_process, "GET", "/strategies")
+
+
 def test_every_route_answers_within_its_schema(optimizer_process):
     """Schema-driven fuzzing (schemathesis): valid and invalid inputs alike never get a 5xx and
     every answer matches the route's declared status codes, media types and schemas."""
-    schema = schemathesis.openapi.from_url(f"{optimizer_process.url}/openapi.json")
+    schema = schemathesis.openapi.from_url(
+        f"{optimizer_process.url}/openapi.json", headers=optimizer_process.headers
+    )
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 4
+    assert len(operations) == 6
     for operation in operations:
 
         @given(case=operation.as_strategy())
@@ -81,6 +97,7 @@ def test_every_route_answers_within_its_schema(optimizer_process):
             # Every other check stays on.
             case.call_and_validate(
                 base_url=optimizer_process.url,
+                headers=optimizer_process.headers,
                 timeout=60,
                 excluded_checks=[positive_data_acceptance],
             )

@@ -11,6 +11,7 @@ import pytest
 from asgi_lifespan import LifespanManager
 from pydantic import ValidationError
 
+from services.common.auth import bearer
 from services.common.contracts.render import SceneDetail
 from services.common.images import decode_image
 from services.renderer.app import create_app
@@ -25,7 +26,10 @@ async def client() -> AsyncIterator[httpx.AsyncClient]:
     app = create_app(settings)
     async with LifespanManager(app) as manager:
         transport = httpx.ASGITransport(app=manager.app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://renderer") as c:
+        headers = bearer(settings.token())  # as the controller calls it
+        async with httpx.AsyncClient(
+            transport=transport, base_url="http://renderer", headers=headers
+        ) as c:
             yield c
 
 

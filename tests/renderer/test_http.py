@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.common.geometry.grid import grid_for
-from tests.support import fuzz_service
+from tests.support import assert_token_required, fuzz_service
 
 pytestmark = pytest.mark.slow
 
@@ -52,7 +52,7 @@ def test_annotated_boxes_match_the_rendered_objects(renderer_process):
     """Over real HTTP: every visible ball's annotated box overlaps the box of its coloured pixels
     in the PNG with IoU >= 0.9."""
     url = renderer_process.url
-    with httpx.Client(base_url=url, timeout=60.0) as client:
+    with httpx.Client(base_url=url, timeout=60.0, headers=renderer_process.headers) as client:
         detail = client.get("/scenes/demo").json()
         colours = {o["name"]: tuple(o["color"]) for o in detail["spec"]["objects"]}
         search = detail["spec"]["search"]
@@ -82,6 +82,14 @@ def test_annotated_boxes_match_the_rendered_objects(renderer_process):
         assert compared >= 40
 
 
+def test_the_renderer_renders_for_holders_of_the_service_token_only(renderer_process):
+    body = {"scene": "demo", "pose": {"lat": 2, "lon": 3}, "width": 64, "height": 48, "spp": 1}
+    assert_token_required(renderer_process, "POST", "/render", json=body)
+    assert_token_required(renderer_process, "GET", "/scenes")
+
+
 def test_every_route_answers_within_its_schema(renderer_process):
     """Schema-driven fuzzing of every route (see :func:`tests.support.fuzz_service`)."""
-    assert fuzz_service(renderer_process.url, max_examples=25) >= 6
+    assert (
+        fuzz_service(renderer_process.url, max_examples=25, headers=renderer_process.headers) >= 6
+    )

@@ -36,13 +36,13 @@ def test_an_onboarded_scene_is_searched_with_its_own_model(tmp_path):
         sidecar = json.loads((model_dir(path) / SIDECAR_NAME).read_text())
         assert list(report.classes) == labels == sidecar["classes"]
 
-        with DetectorClient(stack.detectors[0]) as detector:
+        with DetectorClient(stack.detectors[0], token=stack.service_token) as detector:
             models = {s.scene: s for s in detector.models().scenes}
             assert models["yard"].state == "serving"
             assert models["yard"].model is not None
             assert list(models["yard"].model.classes) == labels
 
-        with RendererClient(stack.renderers[0]) as renderer:
+        with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
             target = renderer.render_png(
                 RenderRequest(scene="yard", pose=PoseQuery(lat=2, lon=3), spp=16, seed=5)
             )

@@ -1,0 +1,62 @@
+"""Whether the controller can run searches now: its database answers, and every stage has at
+least one replica that says it is ready (``GET /readyz``), asked afresh each time.
+
+What the broker knows of a replica is no answer here: it learns that a replica died only after a
+few failed calls or health probes, and nothing of one it has not called yet.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import sqlite3
+
+from services.controller.broker import Broker
+from services.controller.store import SearchStore
+from services.controller.transport import StageRequest, Transport, TransportError
+
+__all__ = ["PROBE_TIMEOUT_S", "STAGES", "ControllerReadiness"]
+
+PROBE_TIMEOUT_S = 1.0
+STAGES = ("renderer", "detector", "optimizer")
+
+_log = logging.getLogger("cosmos.controller")
+
+
+class ControllerReadiness:
+    """The controller's answer to ``GET /readyz``."""
+
+    def __init__(self, store: SearchStore, broker: Broker, transport: Transport) -> None:
+        self.store = store
+        self.broker = broker
+        self.transport = transport
+
+    async def unready(self) -> list[str]:
+        """Why the controller cannot run a search now, in words for its operators (nothing
+        when it can)."""
+        database, *stages = await asyncio.gather(
+            self._database(), *(self._stage(stage) for stage in STAGES)
+        )
+        return [reason for reason in (database, *stages) if reason]
+
+    async def _database(self) -> str:
+        try:
+            await asyncio.to_thread(self.store.status_doc, "")  # one primary-key lookup
+        except sqlite3.Error as exc:
+            _log.warning("readiness: the database does not answer (%s)", exc)
+            return "the search database does not answer"
+        return ""
+
+    async def _stage(self, stage: str) -> str:
+        urls = [replica.url for replica in self.broker.replicas(stage)]
+        answers = await asyncio.gather(*(self._ready(url) for url in urls))
+        if any(answers):
+            return ""
+        return f"no {stage} is ready ({len(urls)} replica{'' if len(urls) == 1 else 's'} asked)"
+
+    async def _ready(self, url: str) -> bool:
+        try:
+            answer = await self.transport.send(url, StageRequest("GET", "/readyz"), PROBE_TIMEOUT_S)
+        except TransportError:
+            return False
+        return answer.status_code == 200
