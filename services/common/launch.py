@@ -51,13 +51,15 @@ def spawn_service(
     host: str = "127.0.0.1",
     env: Mapping[str, str] | None = None,
 ) -> ServiceProcess:
-    """Start ``uvicorn <app>`` without waiting for it (see :func:`wait_healthy`)."""
+    """Start ``<app>`` under uvicorn without waiting for it (see :func:`wait_healthy`), with the
+    request head limits of :mod:`services.common.server`."""
     port = port or free_port(host)
     log_dir.mkdir(parents=True, exist_ok=True)
     log = log_dir / f"{app.split('.')[1] if app.count('.') >= 1 else app}-{port}.log"
+    server = [sys.executable, "-m", "services.common.server"]
     with log.open("wb") as sink:
         process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", app, "--host", host, "--port", str(port)],
+            [*server, app, "--host", host, "--port", str(port)],
             cwd=ROOT,
             env={**os.environ, **(env or {})},
             stdout=sink,
