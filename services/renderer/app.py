@@ -33,6 +33,7 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
             settings.renderer_mitsuba_variant,
             settings.renderer_scene_cache,
             settings.renderer_max_queue,
+            slice_samples=settings.renderer_slice_samples,
         )
         await asyncio.to_thread(engine.start)
         app.state.renderer = RendererState(settings=settings, catalog=catalog, engine=engine)
