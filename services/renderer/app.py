@@ -1,6 +1,7 @@
 """The renderer service: ``create_app(settings)`` builds it; ``app`` is the default instance.
 
-Run it with ``uvicorn services.renderer.app:app --port 8001``.
+Run it with ``python -m services.common.server services.renderer.app:app --port 8001`` (uvicorn
+with a request head limit and deadline).
 """
 
 from __future__ import annotations
