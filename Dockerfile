@@ -28,4 +28,5 @@ EXPOSE 8000 8001 8002 8003
 # need COSMOS_SERVICE_TOKEN, given at run time (docker-compose.yml), never baked in.
 HEALTHCHECK --interval=10s --timeout=3s --start-period=30s \
     CMD python -c "import os, urllib.request; urllib.request.urlopen(f'http://127.0.0.1:{os.environ[\"PORT\"]}/readyz', timeout=2)"
-CMD ["sh", "-c", "exec uvicorn services.${SERVICE}.app:app --host 0.0.0.0 --port ${PORT}"]
+# uvicorn with a request head size limit (431) and a deadline for the head (services/common/server.py)
+CMD ["sh", "-c", "exec python -m services.common.server services.${SERVICE}.app:app --host 0.0.0.0 --port ${PORT} --max-head-bytes 65536 --head-timeout-s 10"]

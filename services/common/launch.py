@@ -64,18 +64,20 @@ def spawn_service(
     env: Mapping[str, str] | None = None,
     append_log: bool = False,
 ) -> ServiceProcess:
-    """Start ``uvicorn <app>`` without waiting for it (see :func:`wait_healthy`), with
-    ``COSMOS_SERVICE_TOKEN`` from ``env``, else from this process's environment, else a new
-    one. Its output goes to ``<service>-<port>.log`` in ``log_dir`` (after what is there with
-    ``append_log``, for a process started again)."""
+    """Start ``<app>`` under uvicorn without waiting for it (see :func:`wait_healthy`), with the
+    request head limits of :mod:`services.common.server` and ``COSMOS_SERVICE_TOKEN`` from
+    ``env``, else from this process's environment, else a new one. Its output goes to
+    ``<service>-<port>.log`` in ``log_dir`` (after what is there with ``append_log``, for a
+    process started again)."""
     port = port or free_port(host)
     log_dir.mkdir(parents=True, exist_ok=True)
     log = log_dir / f"{app.split('.')[1] if app.count('.') >= 1 else app}-{port}.log"
     environ = {**os.environ, **(env or {})}
     environ[TOKEN_VARIABLE] = environ.get(TOKEN_VARIABLE) or new_token()
+    server = [sys.executable, "-m", "services.common.server"]
     with log.open("ab" if append_log else "wb") as sink:
         process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", app, "--host", host, "--port", str(port)],
+            [*server, app, "--host", host, "--port", str(port)],
             cwd=ROOT,
             env=environ,
             stdout=sink,

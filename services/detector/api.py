@@ -38,8 +38,10 @@ State = Annotated[DetectorState, Depends(app_state("detector"))]
 @router.get("/health", response_model=DetectorHealth)
 async def health(state: State) -> DetectorHealth:
     """Liveness, the general model, requests in flight (all models), the general model's
-    inference set-up and batches, and how many scenes' own models serve."""
+    inference set-up and batches, how many scenes' own models serve, and the bytes of decoded
+    images held (now, at most, and the budget)."""
     detector = state.registry.general
+    budget = detector.admission.decode
     return DetectorHealth(
         status="ok",
         service="detector",
@@ -52,6 +54,9 @@ async def health(state: State) -> DetectorHealth:
         batches_run=detector.batcher.stats.batches,
         images_run=detector.batcher.stats.images,
         scene_models=state.registry.serving(),
+        decode_bytes=budget.in_use,
+        decode_bytes_peak=budget.peak,
+        max_decode_bytes=budget.limit_bytes,
     )
 
 

@@ -1,8 +1,8 @@
 """The detector service: ``create_app(settings)`` builds it; ``app`` is the default instance.
 
-Run it with ``uvicorn services.detector.app:app --port 8002``. The general model
-(``COSMOS_DETECTOR_MODEL``, default ``models/detector.onnx``) is loaded at start-up, not at
-import: a missing or malformed model stops the start-up with a
+Run it with ``python -m services.common.server services.detector.app:app --port 8002``. The
+general model (``COSMOS_DETECTOR_MODEL``, default ``models/detector.onnx``) is loaded at
+start-up, not at import: a missing or malformed model stops the start-up with a
 :class:`~services.detector.model.ModelError` naming the file. The scenes' own models are loaded
 then too, but a refused one only is logged (:mod:`services.detector.registry`).
 """

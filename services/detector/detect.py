@@ -3,13 +3,13 @@
 :func:`detections_from_output` is the pure post-processing of one image;
 :class:`Detector` runs requests concurrently (PNG and JPEG decoding and post-processing on worker
 threads, inference through the :class:`~services.detector.batching.MicroBatcher`) and bounds how
-many are in flight.
+many are in flight and the memory their decoded images take
+(:class:`~services.detector.admission.Admission`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Final
@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
-from services.common.errors import ServiceUnavailableError
-from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
+from services.common.images import PPM_MEDIA_TYPE, checked_header, decode_image, media_type_of
+from services.detector.admission import Admission, DecodeBudget
 from services.detector.batching import MicroBatcher
 from services.detector.colour import measure_colour
 from services.detector.letterbox import Letterbox, letterbox
@@ -29,7 +29,6 @@ from services.detector.settings import DetectorSettings
 
 __all__ = [
     "SCENE_CROSS_CLASS_IOU",
-    "Admission",
     "DetectOptions",
     "Detector",
     "detections_from_output",
@@ -111,36 +110,6 @@ def detections_from_output(
     return tuple(detections)
 
 
-class Admission:
-    """Bounds the requests in flight across every model a service runs: each model has its
-    own batcher, but decoding and queueing share the one process."""
-
-    def __init__(self, limit: int) -> None:
-        self.limit = limit
-        self._lock = threading.Lock()
-        self._in_flight = 0
-
-    @property
-    def in_flight(self) -> int:
-        """Requests being decoded, waiting for or in inference, or post-processed."""
-        return self._in_flight
-
-    def admit(self) -> None:
-        """Count one more request in, or refuse it with a 503 when ``limit`` are in."""
-        with self._lock:
-            if self._in_flight >= self.limit:
-                raise ServiceUnavailableError(
-                    f"the detector has {self._in_flight} requests in flight; try again shortly",
-                    slug="detector-busy",
-                    title="Detector busy",
-                )
-            self._in_flight += 1
-
-    def release(self) -> None:
-        with self._lock:
-            self._in_flight -= 1
-
-
 class Detector:
     """Serves detections with one model: admission, decoding, batching, post-processing.
 
@@ -161,7 +130,10 @@ class Detector:
             max_batch=settings.detector_max_batch if fixed is None else fixed,
             window_s=settings.detector_batch_window_ms / 1000.0,
         )
-        self.admission = admission or Admission(settings.detector_max_in_flight)
+        self.admission = admission or Admission(
+            settings.detector_max_in_flight,
+            DecodeBudget(settings.detector_max_decode_bytes, settings.detector_decode_wait_s),
+        )
         self.active = 0
         """This model's requests under way (what :meth:`retire` waits for)."""
 
@@ -204,23 +176,18 @@ class Detector:
         self.admission.admit()
         self.active += 1  # before any await: see retire()
         try:
-            # A binary PPM needs no codec: decoding and letterboxing it here costs less than the
-            # thread hop that keeps a PNG or JPEG decode off the event loop.
-            rgb, tensor, box = (
-                self._prepare(data)
-                if media_type_of(data) == PPM_MEDIA_TYPE
-                else await asyncio.to_thread(self._prepare, data)
+            header = checked_header(
+                data,
+                max_pixels=self.settings.detector_max_image_pixels,
+                max_side=self.settings.detector_max_image_side,
             )
             options = replace(
                 self.options,
                 conf=self.options.conf if conf is None else conf,
                 max_detections=max_detections or self.options.max_detections,
             )
-            classes = self.model.classes
-            detections, run_ms = await self.batcher.submit(
-                tensor,
-                lambda output: detections_from_output(output, box, classes, rgb, options),
-            )
+            async with self.admission.decode.hold(header):
+                detections, box, run_ms = await self._detect(data, options)
         finally:
             self.active -= 1
             self.admission.release()
@@ -230,3 +197,20 @@ class Detector:
             model=self.model.info,
             inference_ms=run_ms,
         )
+
+    async def _detect(
+        self, data: bytes, options: DetectOptions
+    ) -> tuple[tuple[Detection, ...], Letterbox, float]:
+        """Decode, infer, post-process; the decoded pixels are gone when this returns."""
+        # A binary PPM needs no codec: decoding and letterboxing it here costs less than the
+        # thread hop that keeps a PNG or JPEG decode off the event loop.
+        rgb, tensor, box = (
+            self._prepare(data)
+            if media_type_of(data) == PPM_MEDIA_TYPE
+            else await asyncio.to_thread(self._prepare, data)
+        )
+        classes = self.model.classes
+        detections, run_ms = await self.batcher.submit(
+            tensor, lambda output: detections_from_output(output, box, classes, rgb, options)
+        )
+        return detections, box, run_ms

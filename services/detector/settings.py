@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from services.common.auth import ServiceTokenSettings
 from services.common.catalog import BUILTIN_SCENES_DIR
@@ -48,6 +48,12 @@ class DetectorSettings(ServiceTokenSettings):
     are still batched: the wait cost every search's detection ~1.5 ms, cosmos bench)."""
     detector_max_in_flight: Annotated[int, Field(ge=1, le=10_000)] = 64
     """Requests being decoded, queued or run at once; more get 503."""
+    detector_max_decode_bytes: Annotated[int, Field(ge=1 << 20)] = 256 << 20
+    """Decoded image bytes the requests in flight hold at once (each holds its image's width x
+    height x max(3, channels x bytes per sample), from its header, from the decode until it is
+    answered); more wait, and an image that alone needs more gets 413."""
+    detector_decode_wait_s: Annotated[float, Field(ge=0.0, le=60.0, allow_inf_nan=False)] = 5.0
+    """How long a request waits for decode bytes before it gets 503; 0 refuses at once."""
     detector_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
     """Request body limit (the multipart body, so a little over the image itself)."""
     detector_max_image_pixels: Annotated[int, Field(ge=64, le=HARD_MAX_IMAGE_PIXELS)] = 4096 * 4096
@@ -55,6 +61,17 @@ class DetectorSettings(ServiceTokenSettings):
     detector_max_image_side: Annotated[int, Field(ge=8, le=65_535)] = 16_384
     detector_colour: bool = True
     """Measure each detection's colour (``Detection.color``); off leaves it null."""
+
+    @model_validator(mode="after")
+    def _an_image_of_the_largest_size_fits_the_decode_budget(self) -> DetectorSettings:
+        smallest = self.detector_max_image_pixels * 3  # 8-bit RGB
+        if self.detector_max_decode_bytes < smallest:
+            raise ValueError(
+                f"COSMOS_DETECTOR_MAX_DECODE_BYTES ({self.detector_max_decode_bytes}) is less than "
+                f"one 8-bit RGB image of COSMOS_DETECTOR_MAX_IMAGE_PIXELS "
+                f"({self.detector_max_image_pixels}) takes: {smallest} bytes"
+            )
+        return self
 
     def scene_directories(self) -> list[Path]:
         """The directories searched for scene files, in order."""

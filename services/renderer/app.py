@@ -1,6 +1,7 @@
 """The renderer service: ``create_app(settings)`` builds it; ``app`` is the default instance.
 
-Run it with ``uvicorn services.renderer.app:app --port 8001``.
+Run it with ``python -m services.common.server services.renderer.app:app --port 8001`` (uvicorn
+with a request head limit and deadline).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
             settings.renderer_mitsuba_variant,
             settings.renderer_scene_cache,
             settings.renderer_max_queue,
+            slice_samples=settings.renderer_slice_samples,
         )
         await asyncio.to_thread(engine.start)
         app.state.renderer = RendererState(settings=settings, catalog=catalog, engine=engine)

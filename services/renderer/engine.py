@@ -5,6 +5,13 @@ Mitsuba is not safe across arbitrary threads, so the variant is set and every Mi
 a single worker thread; a process scales by running more processes. Each (scene, film size) is
 loaded once; moving the camera only rewrites the sensor transform through ``mi.traverse``, so the
 JIT variant reuses its compiled kernels (spp and seed are opaque too).
+
+The worker is shared in slices (:mod:`services.renderer.scheduler`): a render of more than
+``slice_samples`` samples runs as several sample passes over the whole film, each with its own
+seed, averaged with weights by their spp (the film's box filter makes that the very estimator of
+one render with all the samples); the ground truth runs one silhouette per slice. Between slices,
+more urgent work (a search view) goes first. A render within one slice is one Mitsuba call, as
+before, pixel for pixel.
 """
 
 from __future__ import annotations
@@ -16,7 +23,6 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, ParamSpec, TypeVar
 
@@ -32,14 +38,39 @@ from services.renderer.annotate import silhouettes
 from services.renderer.imaging import linear_to_srgb8
 from services.renderer.pool import lower_worker_priority
 from services.renderer.scene_builder import build_object_scene, build_scene, object_index_of
+from services.renderer.scheduler import DEFAULT_SLICE_SAMPLES, Job, Scheduler, single_slice
 from services.renderer.variant import SCALAR_VARIANT, VariantChoice, VariantRequest, choose_variant
 
-__all__ = ["RenderEngine", "RenderedImage"]
+__all__ = ["RenderEngine", "RenderedImage", "pass_seed", "sample_passes"]
 
 _log = logging.getLogger("cosmos.renderer")
 FROZEN_RECORDINGS = 16  # frozen render recordings kept (scenes x film sizes x spp in use)
+_SEED_STEP = 0x9E3779B9  # odd, so the passes of one render get distinct 32-bit seeds
 P = ParamSpec("P")
 T = TypeVar("T")
+
+
+def sample_passes(pixels: int, spp: int, slice_samples: int) -> list[int]:
+    """The spp of each sample pass of a render: as few passes as keep each within
+    ``slice_samples`` samples (but at least one sample per pixel each), spp split evenly.
+
+    >>> sample_passes(320 * 240, 8, 1 << 22)
+    [8]
+    >>> sample_passes(2048 * 2048, 16, 1 << 22)
+    [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    >>> sample_passes(1024 * 1024, 10, 1 << 22)
+    [4, 3, 3]
+    """
+    if pixels < 1 or spp < 1 or slice_samples < 1:
+        raise ValueError("pixels, spp and slice_samples must be positive")
+    count = min(spp, max(1, -(-pixels * spp // slice_samples)))
+    base, extra = divmod(spp, count)
+    return [base + 1] * extra + [base] * (count - extra)
+
+
+def pass_seed(seed: int, index: int) -> int:
+    """The seed of sample pass ``index`` of a render seeded ``seed``; pass 0 keeps ``seed``."""
+    return (seed + index * _SEED_STEP) & 0xFFFFFFFF
 
 
 @dataclass(frozen=True)
@@ -68,7 +99,8 @@ class RenderEngine:
 
     Sync methods (:meth:`render`, :meth:`annotate`) block the caller; the ``*_async`` variants
     await the worker without blocking an event loop. At most ``max_queue`` calls may wait or run
-    at once; more raise :class:`ServiceUnavailableError`.
+    at once; more raise :class:`ServiceUnavailableError`. Work is done in slices of at most
+    ``slice_samples`` samples (see the module's docstring).
     """
 
     def __init__(
@@ -78,15 +110,17 @@ class RenderEngine:
         max_queue: int = 32,
         *,
         freeze: bool = True,
+        slice_samples: int = DEFAULT_SLICE_SAMPLES,
     ) -> None:
-        if cache_size < 1 or max_queue < 1:
-            raise ValueError("cache_size and max_queue must be at least 1")
+        if cache_size < 1 or max_queue < 1 or slice_samples < 1:
+            raise ValueError("cache_size, max_queue and slice_samples must be at least 1")
         self._choice: VariantChoice = choose_variant(variant)
         self._cache_size = cache_size
         self._max_queue = max_queue
         self._freeze = freeze
+        self._slice_samples = slice_samples
         self._workers_niced = False
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mitsuba")
+        self._scheduler = Scheduler(thread_name="mitsuba")
         self._lock = threading.Lock()
         self._in_flight = 0
         self._cache: OrderedDict[tuple[str, int, int, int], _Loaded] = OrderedDict()
@@ -101,12 +135,12 @@ class RenderEngine:
 
     def start(self) -> None:
         """Set the Mitsuba variant on the worker thread (falls back to scalar if LLVM fails)."""
-        self._executor.submit(self._init_worker).result()
+        self._scheduler.submit(single_slice(self._init_worker), 0).result()
         _log.info("mitsuba variant %s (%s)", self.variant, self.variant_reason)
 
     def close(self) -> None:
-        """Finish queued work and stop the worker thread."""
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        """Finish the slice under way, cancel the rest, and stop the worker thread."""
+        self._scheduler.close()
         self._cache.clear()
 
     def _init_worker(self) -> None:
@@ -164,18 +198,25 @@ class RenderEngine:
             self._in_flight -= 1
 
     def call(self, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
-        """Run ``fn`` on the Mitsuba worker thread and wait for its result."""
-        self._admit()
-        try:
-            return self._executor.submit(fn, *args, **kwargs).result()
-        finally:
-            self._release()
+        """Run ``fn`` on the Mitsuba worker thread (as one slice, before queued work) and wait
+        for its result."""
+        return self._run(single_slice(fn, *args, **kwargs), 0)
 
     async def call_async(self, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
         """Like :meth:`call`, awaited without blocking the event loop."""
+        return await self._run_async(single_slice(fn, *args, **kwargs), 0)
+
+    def _run(self, job: Job[T], cost: int) -> T:
         self._admit()
         try:
-            return await asyncio.wrap_future(self._executor.submit(fn, *args, **kwargs))
+            return self._scheduler.submit(job, cost).result()
+        finally:
+            self._release()
+
+    async def _run_async(self, job: Job[T], cost: int) -> T:
+        self._admit()
+        try:
+            return await asyncio.wrap_future(self._scheduler.submit(job, cost))
         finally:
             self._release()
 
@@ -185,31 +226,36 @@ class RenderEngine:
         self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int = 0
     ) -> RenderedImage:
         """Render ``scene`` from ``pose`` (blocking)."""
-        return self.call(self._render, scene, pose, width, height, spp, seed)
+        job = self._render(scene, pose, width, height, spp, seed)
+        return self._run(job, width * height * spp)
 
     async def render_async(
         self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int = 0
     ) -> RenderedImage:
         """Render ``scene`` from ``pose`` on the worker."""
-        return await self.call_async(self._render, scene, pose, width, height, spp, seed)
+        job = self._render(scene, pose, width, height, spp, seed)
+        return await self._run_async(job, width * height * spp)
 
     def annotate(
         self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
     ) -> RenderAnnotations:
         """Ground truth of the view (blocking)."""
-        return self.call(self._annotate, scene, pose, width, height, grid_index)
+        job = self._annotate(scene, pose, width, height, grid_index)
+        return self._run(job, width * height * (len(scene.spec.objects) + 1))
 
     async def annotate_async(
         self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
     ) -> RenderAnnotations:
         """Ground truth of the view on the worker."""
-        return await self.call_async(self._annotate, scene, pose, width, height, grid_index)
+        job = self._annotate(scene, pose, width, height, grid_index)
+        return await self._run_async(job, width * height * (len(scene.spec.objects) + 1))
 
     def object_map(
         self, scene: LoadedScene, pose: Pose, width: int, height: int
     ) -> NDArray[np.int64]:
         """Per-pixel index of the object seen through each pixel centre, -1 where none."""
-        return self.call(self._object_map, scene, pose, width, height)
+        job = single_slice(self._object_map, scene, pose, width, height)
+        return self._run(job, width * height)
 
     # -- worker-side ------------------------------------------------------------------------
 
@@ -285,18 +331,44 @@ class RenderEngine:
 
     def _render(
         self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int
-    ) -> RenderedImage:
+    ) -> Job[RenderedImage]:
+        """A render in sample passes (:func:`sample_passes`), one slice each."""
+        passes = sample_passes(width * height, spp, self._slice_samples)
+        total: NDArray[np.float32] | None = None
+        render_ms = 0.0
+        for index, pass_spp in enumerate(passes):
+            yield width * height * pass_spp
+            linear, ms = self._render_pass(
+                scene, pose, width, height, pass_spp, pass_seed(seed, index)
+            )
+            render_ms += ms
+            if len(passes) == 1:
+                total = linear  # one pass: the very pixels of one render
+            elif total is None:
+                total = linear * np.float32(pass_spp)
+            else:
+                total += linear * np.float32(pass_spp)
+        if total is None:  # sample_passes gives at least one pass
+            raise RuntimeError("no sample pass was rendered")
+        if len(passes) > 1:
+            total /= np.float32(spp)
+        if not self._workers_niced:  # the pool starts with the first launch
+            self._workers_niced = lower_worker_priority() > 0
+        return RenderedImage(rgb=linear_to_srgb8(total), render_ms=render_ms)
+
+    def _render_pass(
+        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int
+    ) -> tuple[NDArray[np.float32], float]:
+        """One Mitsuba render: linear RGB ``(H, W, 3)`` and how long it took in ms."""
         loaded = self.loaded(scene, width, height)
+        # Placed on every pass: another job's slice may have moved this cached camera.
         self._place(loaded.params, "camera.to_world", pose, scene.spec.camera.radius)
         started = time.perf_counter()
         # The seed as a JIT value, so that a new seed does not need a new recording.
         jit_seed = seed if self.variant == SCALAR_VARIANT else self._mi.UInt32(seed)
         image = self._render_view(loaded.scene, loaded.camera_sensor, jit_seed, spp)
         linear = np.asarray(image, dtype=np.float32).reshape(height, width, -1)[..., :3]
-        render_ms = (time.perf_counter() - started) * 1000.0
-        if not self._workers_niced:  # the pool starts with the first launch
-            self._workers_niced = lower_worker_priority() > 0
-        return RenderedImage(rgb=linear_to_srgb8(linear), render_ms=render_ms)
+        return linear, (time.perf_counter() - started) * 1000.0
 
     def _shape_ids(self, scene: Any, sensor: Any, width: int, height: int) -> NDArray[np.int64]:
         """Per-pixel 1-based shape positions (0 = no hit), one ray through each pixel centre."""
@@ -307,15 +379,18 @@ class RenderEngine:
 
     def _annotate(
         self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
-    ) -> RenderAnnotations:
+    ) -> Job[RenderAnnotations]:
+        """The ground truth in slices: the object map, then each object's own silhouette."""
         spec = scene.spec
-        loaded = self.loaded(scene, width, height)
         radius = spec.camera.radius
         count = len(spec.objects)
+        yield width * height
+        loaded = self.loaded(scene, width, height)
         visible = silhouettes(self._object_map(scene, pose, width, height), count)
         full_pixels = np.zeros(count, dtype=np.int64)
         full_boxes: list[tuple[float, float, float, float] | None] = []
         for index in range(count):
+            yield width * height
             alone, params = self._object_scene(loaded, scene, index, width, height)
             self._place(params, "mask_camera.to_world", pose, radius)
             mask = self._shape_ids(alone, alone.sensors()[0], width, height) > 0

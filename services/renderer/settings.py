@@ -10,6 +10,7 @@ from pydantic import Field
 from services.common.auth import ServiceTokenSettings
 from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.settings import split_paths
+from services.renderer.scheduler import DEFAULT_SLICE_SAMPLES
 from services.renderer.variant import VariantRequest
 
 __all__ = ["RendererSettings"]
@@ -46,6 +47,9 @@ class RendererSettings(ServiceTokenSettings):
     renderer_max_samples: Annotated[int, Field(ge=1024)] = 2**26
     renderer_max_queue: Annotated[int, Field(ge=1, le=10_000)] = 32
     """Renders waiting or running at once; one more gets 503."""
+    renderer_slice_samples: Annotated[int, Field(ge=4096)] = DEFAULT_SLICE_SAMPLES
+    """Samples per slice of work: a larger render runs as sample passes of at most this many
+    (but at least one per pixel), and more urgent requests (search views) go between them."""
     renderer_scene_cache: Annotated[int, Field(ge=1, le=256)] = 8
     """Loaded Mitsuba scenes kept (one per scene and film size)."""
     renderer_max_body_bytes: Annotated[int, Field(ge=1024)] = 64 * 1024

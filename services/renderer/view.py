@@ -108,11 +108,13 @@ def resolve_view(catalog: SceneCatalog, settings: RendererSettings, request: Ren
             title="Too many samples",
         )
     if width * height * spp > settings.renderer_max_samples:
+        # The cost of a render is its samples (pixels x spp); this caps one request's.
         raise UnprocessableError(
             f"{width}x{height} at {spp} spp is {width * height * spp} samples, over the limit of "
-            f"{settings.renderer_max_samples}",
+            f"{settings.renderer_max_samples} samples per render (COSMOS_RENDERER_MAX_SAMPLES)",
             field="spp",
             slug="too-many-samples",
             title="Too many samples",
+            extra={"limit": settings.renderer_max_samples},
         )
     return View(scene, pose, index, width, height, spp, request.seed)

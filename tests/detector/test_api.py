@@ -274,6 +274,66 @@ async def test_too_many_requests_in_flight_is_503(model_dir):
         assert (await client.get("/health")).json()["in_flight"] == 0
 
 
+def rgba16_png(side: int) -> bytes:
+    """A ``side`` x ``side`` 16-bit RGBA PNG: a few KB that decode to ``side**2 * 3`` bytes and
+    state ``side**2 * 8`` bytes of samples."""
+    image = np.zeros((side, side, 4), np.uint16)
+    image[::7, ::5] = 40_000
+    ok, buffer = cv2.imencode(".png", image)
+    assert ok
+    return buffer.tobytes()
+
+
+async def test_concurrent_uploads_hold_no_more_decoded_bytes_than_the_budget(model_dir):
+    """Twelve 16-bit RGBA images at once, each holding 2 MiB while decoded, against a 5 MB
+    budget: all are answered, never more than two held at once."""
+    data = rgba16_png(512)
+    held = 512 * 512 * 8
+    settings = settings_for(
+        model_dir / "constant.onnx", detector_max_decode_bytes=5_000_000, detector_max_batch=1
+    )
+    async for client in serve(settings):
+        responses = await asyncio.gather(*(detect(client, data, raw=True) for _ in range(12)))
+        assert [r.status_code for r in responses] == [200] * 12
+        health = (await client.get("/health")).json()
+        assert health["max_decode_bytes"] == 5_000_000
+        assert health["decode_bytes_peak"] == 2 * held
+        assert health["decode_bytes"] == 0
+
+
+async def test_uploads_that_wait_too_long_for_decode_bytes_get_503(model_dir):
+    settings = settings_for(
+        model_dir / "constant.onnx",
+        detector_max_decode_bytes=3_000_000,
+        detector_decode_wait_s=0.0,
+        detector_batch_window_ms=100.0,
+    )
+    async for client in serve(settings):
+        first = asyncio.create_task(detect(client, rgba16_png(512), raw=True))
+        await asyncio.sleep(0.05)  # the first holds its bytes through its batching window
+        second = await detect(client, rgba16_png(512), raw=True)
+        assert second.status_code == 503
+        assert second.headers["retry-after"] == "1"
+        assert "COSMOS_DETECTOR_MAX_DECODE_BYTES" in second.json()["detail"]
+        assert (await first).status_code == 200
+
+
+async def test_an_image_that_alone_exceeds_the_decode_budget_is_413(model_dir):
+    settings = settings_for(model_dir / "constant.onnx", detector_max_decode_bytes=3_000_000)
+    async for client in serve(settings):
+        response = await detect(client, rgba16_png(700), raw=True)  # 3.9 MB of samples
+        assert response.status_code == 413
+        problem = response.json()
+        assert problem["type"] == "urn:cosmos:problem:image-too-large"
+        assert problem["field"] == "image"
+        assert "3000000 bytes" in problem["detail"]
+
+
+def test_a_decode_budget_too_small_for_one_image_is_refused_at_start_up(model_dir):
+    with pytest.raises(ValueError, match="COSMOS_DETECTOR_MAX_DECODE_BYTES"):
+        settings_for(model_dir / "constant.onnx", detector_max_decode_bytes=2_000_000)
+
+
 # -- start-up ----------------------------------------------------------------------------------
 
 

@@ -266,3 +266,77 @@ def test_importing_the_detector_caps_opencv_before_it_loads(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "capped"  # refused from the header, not a failed decode
+
+
+# -- truncated JPEG scans ----------------------------------------------------------------------
+
+
+def photo(height: int = 96, width: int = 128) -> np.ndarray:
+    """A BGR picture with texture everywhere, so every block has data of its own."""
+    rng = np.random.default_rng(5)
+    return cv2.GaussianBlur(rng.integers(0, 256, (height, width, 3), dtype=np.uint8), (5, 5), 0)
+
+
+JPEG_KINDS = {
+    "baseline-420": [],
+    "baseline-444": [cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444],
+    "progressive": [cv2.IMWRITE_JPEG_PROGRESSIVE, 1],
+}
+
+
+def cuts(data: bytes) -> list[int]:
+    """Where to cut a JPEG: a fifth, half and nine tenths into its data, and for a progressive
+    one, also half-way into each scan but the last."""
+    points = [int(len(data) * keep) for keep in (0.2, 0.5, 0.9)]
+    scans = [i for i in range(len(data) - 1) if data[i : i + 2] == b"\xff\xda"]
+    points += [(a + b) // 2 for a, b in zip(scans, scans[1:], strict=False)]
+    return sorted(p for p in points if p < scans[-1] or len(scans) == 1)
+
+
+@pytest.mark.parametrize("kind", JPEG_KINDS)
+def test_a_truncated_jpeg_with_an_end_marker_appended_is_422(kind):
+    """OpenCV decodes such a file without complaint, the missing blocks grey or the missing
+    scans not applied; it is refused."""
+    data = encode(".jpg", photo(), JPEG_KINDS[kind])
+    for cut in cuts(data):
+        mangled = data[:cut] + b"\xff\xd9"
+        assert cv2.imdecode(np.frombuffer(mangled, np.uint8), cv2.IMREAD_COLOR) is not None
+        problem = problem_of(mangled)
+        assert (problem.status, problem.slug, problem.field) == (422, "invalid-image", "image")
+        assert "truncated" in problem.detail, problem.detail
+
+
+@pytest.mark.parametrize("kind", JPEG_KINDS)
+@pytest.mark.parametrize("shade", [0, 128, 255])
+def test_complete_jpegs_decode_however_they_end(kind, shade):
+    """Whole files decode, also one that really ends in libjpeg's fill grey."""
+    bgr = photo()
+    bgr[-40:, -40:] = shade
+    for image in (bgr, np.full((96, 128, 3), shade, np.uint8)):
+        rgb = decode_image(encode(".jpg", image, JPEG_KINDS[kind]), **LIMITS)
+        assert rgb.shape == (96, 128, 3)
+
+
+@pytest.mark.parametrize(
+    ("ext", "image", "channels", "depth"),
+    [
+        (".png", picture(), 3, 8),
+        (".png", picture()[..., 0], 1, 8),
+        (".png", np.dstack([picture(), picture()[..., :1]]), 4, 8),
+        (".png", picture().astype(np.uint16) * 257, 3, 16),
+        (".png", np.dstack([picture(), picture()[..., :1]]).astype(np.uint16), 4, 16),
+        (".jpg", picture(), 3, 8),
+        (".jpg", picture()[..., 0], 1, 8),
+    ],
+)
+def test_headers_give_the_bytes_a_decode_holds(ext, image, channels, depth):
+    header = read_header(encode(ext, image))
+    assert (header.channels, header.bit_depth) == (channels, depth)
+    assert header.decoded_bytes == 48 * 64 * max(3, channels * depth // 8)
+    assert read_header(encode_ppm(picture())).decoded_bytes == 48 * 64 * 3
+
+
+def test_a_png_of_an_impossible_depth_is_422():
+    ihdr = struct.pack(">IIBBBBB", 10, 10, 16, 3, 0, 0, 0)  # a 16-bit palette
+    data = b"\x89PNG\r\n\x1a\n" + png_chunk(b"IHDR", ihdr) + png_chunk(b"IEND", b"")
+    assert problem_of(data).status == 422

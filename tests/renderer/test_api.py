@@ -177,6 +177,17 @@ async def test_bad_requests_get_problem_details_naming_the_field(client, path, b
     assert problem["field"] == field, problem
 
 
+async def test_a_render_over_the_sample_cap_names_the_limit(client):
+    """A render's cost is its samples (pixels x spp); one request may trace at most 2**26."""
+    body = {"scene": "demo", "pose": {"lat": 0, "lon": 0}, "width": 1024, "height": 1024}
+    response = await client.post("/render", json={**body, "spp": 128})
+    assert response.status_code == 422
+    problem = response.json()
+    assert (problem["type"], problem["field"]) == ("urn:cosmos:problem:too-many-samples", "spp")
+    assert problem["limit"] == 2**26
+    assert "COSMOS_RENDERER_MAX_SAMPLES" in problem["detail"]
+
+
 @pytest.mark.parametrize(
     "content",
     [b"", b"{", b"[]", b"null", b'{"scene": "demo", "pose": {"theta_deg": NaN, "phi_deg": 0}}'],

@@ -86,6 +86,15 @@ class DetectorHealth(FrozenModel):
     scene_models: NonNegInt = Field(
         default=0, description="Scenes whose own model is serving (see GET /models)."
     )
+    decode_bytes: NonNegInt = Field(
+        default=0, description="Bytes of decoded images the requests in flight hold now."
+    )
+    decode_bytes_peak: NonNegInt = Field(
+        default=0, description="The most bytes of decoded images held at once since start."
+    )
+    max_decode_bytes: NonNegInt = Field(
+        default=0, description="The decode budget: more bytes than this are never held at once."
+    )
 
 
 SceneModelState = Literal["serving", "refused", "none"]

@@ -1,0 +1,157 @@
+"""The HTTP server of every service (:mod:`services.common.server`) against real processes: a
+request head over the limit gets 431 at once, and connections that never complete a head are
+closed after the deadline while normal requests are served as usual."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from services.common.launch import ServiceProcess, stop_service, wait_healthy
+from services.common.server import DEFAULT_MAX_HEAD_BYTES
+from tests.support import ROOT, free_port, running_service
+
+pytestmark = pytest.mark.slow
+
+APP = "services.optimizer.app:app"  # the quickest service to start
+HEAD_TIMEOUT_S = 2.0
+HALF_OPEN = 300
+
+
+@pytest.fixture(scope="module")
+def launched(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """A service started the way ``cosmos up`` and the tests start every service."""
+    with running_service(APP, tmp_path_factory.mktemp("server")) as service:
+        yield service
+
+
+@pytest.fixture(scope="module")
+def quick_deadline(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """A service run by the server module with a short head deadline, so the test is short."""
+    port = free_port()
+    log = Path(tmp_path_factory.mktemp("server-deadline")) / "optimizer.log"
+    command = [sys.executable, "-m", "services.common.server", APP, "--port", str(port)]
+    command += ["--head-timeout-s", str(HEAD_TIMEOUT_S)]
+    with log.open("wb") as sink:
+        process = subprocess.Popen(command, cwd=ROOT, stdout=sink, stderr=subprocess.STDOUT)
+    service = ServiceProcess(url=f"http://127.0.0.1:{port}", process=process, log=log)
+    wait_healthy(service)
+    try:
+        yield service
+    finally:
+        stop_service(service)
+
+
+def address(service: ServiceProcess) -> tuple[str, int]:
+    host, port = service.url.removeprefix("http://").split(":")
+    return host, int(port)
+
+
+def read_all(sock: socket.socket, timeout_s: float) -> tuple[bytes, bool]:
+    """What the server sends within ``timeout_s``, and whether it closed the connection."""
+    sock.settimeout(timeout_s)
+    received = b""
+    try:
+        while chunk := sock.recv(65536):
+            received += chunk
+    except TimeoutError:
+        return received, False
+    except ConnectionResetError:
+        pass
+    return received, True
+
+
+def test_a_huge_header_gets_431_at_once(launched):
+    """A header of 64 MB was answered 200 after 7 s; now the server stops reading past the
+    limit and answers 431 with a problem."""
+    started = time.perf_counter()
+    with socket.create_connection(address(launched)) as sock:
+        sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Big: ")
+        sent = 0
+        try:
+            while sent < 64 * 2**20:
+                sock.sendall(b"a" * 65536)
+                sent += 65536
+        except OSError:  # the server closed the connection
+            pass
+        answer, closed = read_all(sock, 10.0)
+    elapsed = time.perf_counter() - started
+    assert answer.startswith(b"HTTP/1.1 431 "), answer[:200]
+    assert closed
+    assert b"application/problem+json" in answer
+    assert b"request-head-too-large" in answer
+    assert sent < 8 * 2**20, sent
+    assert elapsed < 3.0, elapsed
+
+
+@pytest.mark.parametrize(
+    ("header_bytes", "status"),
+    [(DEFAULT_MAX_HEAD_BYTES - 1024, 200), (DEFAULT_MAX_HEAD_BYTES + 1024, 431)],
+)
+def test_a_whole_head_is_measured_too(launched, header_bytes, status):
+    """A head that arrives complete in one write is measured by its parsed parts."""
+    head = b"GET /health HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * header_bytes + b"\r\n\r\n"
+    with socket.create_connection(address(launched)) as sock:
+        sock.sendall(head)
+        answer, _ = read_all(sock, 1.0)
+    assert answer.startswith(f"HTTP/1.1 {status} ".encode()), answer[:200]
+
+
+def test_half_sent_heads_are_closed_after_the_deadline(quick_deadline):
+    """Hundreds of connections that send part of a head, or nothing: normal requests are still
+    answered promptly, and every such connection is closed once the deadline passes."""
+    target = address(quick_deadline)
+    half_open = []
+    try:
+        for i in range(HALF_OPEN):
+            sock = socket.create_connection(target)
+            if i % 10:  # every tenth sends nothing at all
+                sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+            half_open.append(sock)
+        opened = time.monotonic()
+        with httpx.Client(base_url=quick_deadline.url, timeout=5.0) as client:
+            for _ in range(5):
+                started = time.perf_counter()
+                assert client.get("/health").status_code == 200
+                assert time.perf_counter() - started < 0.5
+        for sock in half_open:  # nothing closed before the deadline
+            sock.setblocking(False)
+            with pytest.raises(BlockingIOError):
+                sock.recv(1)
+        time.sleep(max(0.0, opened + HEAD_TIMEOUT_S + 1.0 - time.monotonic()))
+        answers = [read_all(sock, 1.0) for sock in half_open]
+    finally:
+        for sock in half_open:
+            sock.close()
+    assert all(closed for _, closed in answers)
+    for i, (answer, _) in enumerate(answers):
+        # A connection that sent part of a head is told why; one that sent nothing is not.
+        assert answer.startswith(b"HTTP/1.1 408 ") if i % 10 else answer == b"", (i, answer)
+
+
+def test_the_deadline_ends_with_the_head(quick_deadline):
+    """A body that arrives after the head deadline is still read: only the head is timed."""
+    with socket.create_connection(address(quick_deadline)) as sock:
+        sock.sendall(
+            b"POST /next-pose HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            b"Content-Length: 2\r\n\r\n"
+        )
+        time.sleep(HEAD_TIMEOUT_S + 0.5)
+        sock.sendall(b"{}")
+        answer, _ = read_all(sock, 1.0)
+    assert answer.startswith(b"HTTP/1.1 422 "), answer[:200]
+
+
+def test_the_container_runs_every_service_in_this_server():
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    [command] = [line for line in dockerfile.splitlines() if line.startswith("CMD ")]
+    assert "python -m services.common.server services.${SERVICE}.app:app" in command
+    assert f"--max-head-bytes {DEFAULT_MAX_HEAD_BYTES}" in command
+    assert "uvicorn" not in command
