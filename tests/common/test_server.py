@@ -136,12 +136,13 @@ def test_half_sent_heads_are_closed_after_the_deadline(quick_deadline):
         assert answer.startswith(b"HTTP/1.1 408 ") if i % 10 else answer == b"", (i, answer)
 
 
-def test_the_deadline_ends_with_the_head(quick_deadline):
+def test_the_deadline_ends_with_the_head(quick_deadline, service_token):
     """A body that arrives after the head deadline is still read: only the head is timed."""
     with socket.create_connection(address(quick_deadline)) as sock:
         sock.sendall(
             b"POST /next-pose HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
-            b"Content-Length: 2\r\n\r\n"
+            + f"Authorization: Bearer {service_token}\r\n".encode()
+            + b"Content-Length: 2\r\n\r\n"
         )
         time.sleep(HEAD_TIMEOUT_S + 0.5)
         sock.sendall(b"{}")

@@ -63,12 +63,12 @@ def detector(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProces
         yield service
 
 
-def test_a_burst_of_large_uploads_grows_memory_by_at_most_the_budget(detector):
+def test_a_burst_of_large_uploads_grows_memory_by_at_most_the_budget(detector, service_token):
     data = rgba16_png()
     assert len(data) < 200_000  # small uploads, large images: 12.6 MB decoded, 32 MiB stated
 
     def post(client: httpx.Client) -> int:
-        headers = {"content-type": "image/png"}
+        headers = {"content-type": "image/png", "authorization": f"Bearer {service_token}"}
         return client.post("/detect", content=data, headers=headers).status_code
 
     pid = detector.process.pid

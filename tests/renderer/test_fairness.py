@@ -27,8 +27,9 @@ def renderer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProces
         yield s
 
 
-def test_a_small_view_behind_a_large_render_is_answered_first(renderer):
-    with httpx.Client(base_url=renderer.url, timeout=120.0) as client:
+def test_a_small_view_behind_a_large_render_is_answered_first(renderer, service_token):
+    auth = {"Authorization": f"Bearer {service_token}"}
+    with httpx.Client(base_url=renderer.url, timeout=120.0, headers=auth) as client:
         for body in (LARGE, SMALL):  # load the scene at both film sizes, record the kernels
             assert client.post("/render", json=body).status_code == 200
         done: dict[str, float] = {}
