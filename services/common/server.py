@@ -28,6 +28,7 @@ import argparse
 import asyncio
 import json
 import logging
+import os
 from collections.abc import Sequence
 from typing import Any, Final
 
@@ -229,6 +230,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         default=DEFAULT_HEAD_TIMEOUT_S,
         help="seconds a connection has to send a complete request head (default: %(default)s)",
     )
+    parser.add_argument(
+        "--timeout-keep-alive",
+        type=float,
+        default=float(os.environ.get("UVICORN_TIMEOUT_KEEP_ALIVE", "5")),
+        help="seconds an idle kept-alive connection stays open; like uvicorn's own command, "
+        "UVICORN_TIMEOUT_KEEP_ALIVE sets the default (default: %(default)s)",
+    )
     args = parser.parse_args(argv)
     try:
         protocol = guarded_protocol(args.max_head_bytes, args.head_timeout_s)
@@ -240,6 +248,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         port=args.port,
         http=protocol,
         h11_max_incomplete_event_size=args.max_head_bytes,
+        timeout_keep_alive=args.timeout_keep_alive,
     )
 
 
