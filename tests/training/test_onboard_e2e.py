@@ -46,7 +46,7 @@ def test_an_onboarded_scene_is_searched_with_its_own_model(tmp_path):
             target = renderer.render_png(
                 RenderRequest(scene="yard", pose=PoseQuery(lat=2, lon=3), spp=16, seed=5)
             )
-        with ControllerClient(stack.controller) as client:
+        with ControllerClient(stack.controller, api_key=stack.api_key) as client:
             search = client.submit(target, "yard", seed=3, max_iterations=4)
             *_, final = client.follow(search.id, timeout_s=120)
 
