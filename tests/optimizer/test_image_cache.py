@@ -8,7 +8,13 @@ import json
 
 import pytest
 
-from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
+from services.common.contracts.optimize import (
+    ImageDetections,
+    NextPoseRequest,
+    NextPoseResponse,
+    TargetImage,
+    VisitedView,
+)
 from services.common.errors import UnprocessableError
 from services.common.geometry.grid import grid_for
 from services.common.geometry.pose import GridIndex
@@ -195,3 +201,17 @@ def test_a_view_equal_in_content_is_one_entry_whatever_object_carries_it(catalog
     moved["history"][0]["detections"][0]["box"][0] += 0.5
     next_pose(NextPoseRequest.model_validate(moved), ctx)
     assert (ctx.images.hits, ctx.images.misses) == (5, 4)
+
+
+def test_the_key_holds_every_field_of_an_image():
+    """The key names the fields of an image, a detection and a pose it holds; a field added to
+    these messages must be added to the key (or an image differing only there would be found)."""
+    assert (
+        set(ImageDetections.model_fields)
+        == set(TargetImage.model_fields)
+        == {
+            "image_size",
+            "detections",
+        }
+    )
+    assert set(VisitedView.model_fields) == {"image_size", "detections", "pose"}
