@@ -12,6 +12,7 @@ which an observation computes once: a search's requests find their views' observ
 
 from __future__ import annotations
 
+import operator
 import threading
 from collections import OrderedDict
 from collections.abc import Hashable
@@ -25,6 +26,8 @@ from services.optimizer.mapping import MappedObjects, map_exact
 from services.optimizer.observations import Observation
 
 __all__ = ["DEFAULT_VIEW_MAPPINGS", "SHARED_MAPPINGS", "ViewMappings"]
+
+_CAMERA_FIELDS: Final = operator.attrgetter(*CameraSpec.model_fields)
 
 DEFAULT_VIEW_MAPPINGS: Final = 4096
 """Views kept: a search sends a few dozen at most, so this serves ~100 concurrent searches
@@ -54,8 +57,9 @@ class ViewMappings:
         self, observation: Observation, theta_deg: float, phi_deg: float, camera: CameraSpec
     ) -> MappedObjects:
         """The exact mapping of ``observation`` seen from (θ, φ) in degrees, cached."""
-        # The digest covers the kinds too: in identity mode they come from the classes.
-        key = (observation.digest, float(theta_deg), float(phi_deg), camera)
+        # The digest covers the kinds too: in identity mode they come from the classes. The
+        # camera's values, not the model: a pydantic model hashes and compares in Python.
+        key = (observation.digest, float(theta_deg), float(phi_deg), _CAMERA_FIELDS(camera))
         with self._lock:
             found = self._entries.get(key)
             if found is not None:
