@@ -21,12 +21,14 @@ detect per round, so the machine's load falls on all alike):
 * ``build``, ``encode``: the controller making the request from its views (as the search loop
   does) and serialising it (as :meth:`Stages.optimize` does);
 * ``call``: the round trip through the broker to the real optimizer process;
-* ``parse``, ``plan``: in this process, what the optimizer does with the body: FastAPI's
-  ``json.loads`` and validation, then :func:`~services.optimizer.planning.next_pose` with its
-  view cache warm (in a search every view but the newest is cached; here the scoring of the
-  reference view is cached too, which does not grow with k);
-* ``json``: the same body validated by pydantic-core straight from JSON
-  (``model_validate_json``), what a route taking the raw body would pay instead of ``parse``;
+* ``json``, ``plan``: in this process, what the optimizer does with the body: pydantic-core
+  validates it straight from the bytes (``model_validate_json``, as the route does:
+  :mod:`services.optimizer.json_body`), then :func:`~services.optimizer.planning.next_pose`
+  runs with its caches warm (in a search every image but the newest view is found again in
+  its image and view-mapping caches; here the scoring of the reference view is cached too,
+  which does not grow with k);
+* ``parse``: what FastAPI's body parameter paid for the same body (``json.loads`` and
+  validation of the Python objects), the route's cost before it read the raw body;
 * ``extra``: build + encode + call at k minus the same at k = 1, the cost of the resent views;
 * ``step``: render + detect + build + encode + call, one iteration of the search loop;
 * ``share``: extra / step.

@@ -468,10 +468,13 @@ class SearchRunner:
         """Stop the workers; running searches stay 'running' and resume on the next start."""
         for worker in self._workers:
             worker.cancel()
-        for worker in self._workers:
-            with contextlib.suppress(asyncio.CancelledError):
-                await worker
-        self._workers.clear()
+        if self._workers:
+            # wait() leaves the workers' cancellations to them and lets close()'s own through
+            await asyncio.wait(self._workers)
+        workers, self._workers = self._workers, []
+        for worker in workers:
+            if not worker.cancelled():
+                worker.result()  # a worker that failed: its error, not silence
 
     def submit(self, search_id: str, *, recorded: tuple[Search, bytes] | None = None) -> None:
         """Queue a search; a new one hands in its record and target image, already stored, so
@@ -534,6 +537,9 @@ class SearchRunner:
         return search
 
     async def _work(self) -> None:
+        worker = asyncio.current_task()
+        if worker is None:
+            raise RuntimeError("a worker runs as a task")
         while True:
             search_id = await self._queue.get()
             task = asyncio.create_task(self._run(search_id))
@@ -541,7 +547,10 @@ class SearchRunner:
             try:
                 await asyncio.shield(task)
             except asyncio.CancelledError:
-                if task.done() or search_id in self._cancelled:
+                # The shield raises when the search's task is cancelled (before it ran) and
+                # when this worker is (close()), also once the search has just ended: only a
+                # cancellation requested of this worker stops it.
+                if not worker.cancelling():
                     continue  # the search was cancelled, not this worker
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):

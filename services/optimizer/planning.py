@@ -14,6 +14,7 @@ so.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
@@ -36,11 +37,13 @@ from services.common.contracts.optimize import (
     PoseEstimate,
     StrategyName,
     ViewMatch,
+    VisitedView,
 )
 from services.common.errors import UnprocessableError
 from services.common.geometry.grid import GridError, HemisphereGrid
 from services.common.geometry.scene import CameraSpec
 from services.optimizer.calibration import CalibrationStore
+from services.optimizer.image_cache import ImageCache, SeenImage
 from services.optimizer.mapping import map_exact, map_paper
 from services.optimizer.matching import ViewComparison, compare_views
 from services.optimizer.observations import Observation, merge_duplicates
@@ -65,7 +68,9 @@ _BOX_SLACK: Final = 1e-6
 @dataclass(frozen=True)
 class OptimizerContext:
     """What planning needs besides the request: stored coefficients, scenes, limits, and the
-    cache of view mappings that lets a search's later requests map only their new view."""
+    caches that let a search's later requests process and map only their new view (each
+    request resends them all): ``images`` keeps what planning makes of each image
+    (:mod:`.image_cache`), ``mappings`` each view's exact mapping (:mod:`.view_cache`)."""
 
     calibrations: CalibrationStore
     catalog: SceneCatalog | None
@@ -73,6 +78,7 @@ class OptimizerContext:
     max_grid_poses: int = 25_000
     max_history_detections: int = 4_000
     mappings: ViewMappings = field(default_factory=ViewMappings, compare=False, repr=False)
+    images: ImageCache = field(default_factory=ImageCache, compare=False, repr=False)
 
 
 def _invalid(detail: str, field: str, slug: str = "invalid-request") -> UnprocessableError:
@@ -163,13 +169,49 @@ def _observe(
     return Observation.from_detections(image.detections, image.image_size, camera, classes)
 
 
-def _deduplicated(observation: Observation, notes: list[str], what: str) -> Observation:
-    """Shape-class observations without second boxes on one object; notes say what went."""
+def _deduplicated(observation: Observation) -> tuple[Observation, tuple[str, ...]]:
+    """Shape-class observations without second boxes on one object, and a note per box gone."""
     if observation.identity:
-        return observation  # one class per object: overlapping classes are distinct objects
-    kept, merged = merge_duplicates(observation)
-    notes.extend(f"{what}: {note}" for note in merged)
-    return kept
+        return observation, ()  # one class per object: overlapping classes are distinct objects
+    return merge_duplicates(observation)
+
+
+def _seen_target(
+    image: ImageDetections, camera: CameraSpec, classes: Classes, where: str
+) -> SeenImage:
+    """The target checked, in camera pixels and deduplicated (raises naming ``where``'s field)."""
+    _check_image(image, camera, where)
+    return SeenImage(*_deduplicated(_observe(image, camera, classes, where)))
+
+
+def _seen_view(
+    view: VisitedView, camera: CameraSpec, grid: HemisphereGrid, classes: Classes, where: str
+) -> SeenImage:
+    """A visited view checked, found on the grid, in camera pixels and deduplicated (raises
+    naming ``where``'s field)."""
+    _check_image(view, camera, where)
+    index = view.pose.as_index()
+    if index is not None:
+        try:
+            grid.validate(index)
+        except GridError as exc:
+            part = "lat" if index.lat >= grid.ring_count else "lon"
+            raise _invalid(str(exc), f"{where}.pose.{part}", "pose-outside-grid") from exc
+    else:
+        pose = view.pose.as_pose()
+        if pose is None:  # PoseQuery validation makes this unreachable
+            raise _invalid("no pose given", f"{where}.pose")
+        try:
+            index = grid.index_of(pose)
+        except GridError as exc:
+            raise _invalid(
+                f"{exc}; visited poses must be grid poses", f"{where}.pose", "pose-outside-grid"
+            ) from exc
+    flat = grid.flat(index)
+    observation, merged = _deduplicated(_observe(view, camera, classes, where))
+    return SeenImage(
+        observation, merged, flat, float(grid.theta_deg[flat]), float(grid.phi_deg[flat])
+    )
 
 
 def _visits(
@@ -177,6 +219,8 @@ def _visits(
     camera: CameraSpec,
     grid: HemisphereGrid,
     limit: int,
+    images: ImageCache,
+    setting: str,
     classes: Classes = None,
     notes: list[str] | None = None,
 ) -> tuple[Visit, ...]:
@@ -187,37 +231,17 @@ def _visits(
             "history",
             "history-too-large",
         )
-    visits = []
-    for k, view in enumerate(request.history):
-        where = f"history[{k}]"
-        _check_image(view, camera, where)
-        index = view.pose.as_index()
-        if index is not None:
-            try:
-                grid.validate(index)
-            except GridError as exc:
-                part = "lat" if index.lat >= grid.ring_count else "lon"
-                raise _invalid(str(exc), f"{where}.pose.{part}", "pose-outside-grid") from exc
-        else:
-            pose = view.pose.as_pose()
-            if pose is None:  # PoseQuery validation makes this unreachable
-                raise _invalid("no pose given", f"{where}.pose")
-            try:
-                index = grid.index_of(pose)
-            except GridError as exc:
-                raise _invalid(
-                    f"{exc}; visited poses must be grid poses", f"{where}.pose", "pose-outside-grid"
-                ) from exc
-        flat = grid.flat(index)
-        observation = _observe(view, camera, classes, where)
-        if k == len(request.history) - 1:  # earlier views' merges were told in earlier answers
-            observation = _deduplicated(observation, [] if notes is None else notes, "current view")
-        else:
-            observation = _deduplicated(observation, [], where)
-        visits.append(
-            Visit(flat, float(grid.theta_deg[flat]), float(grid.phi_deg[flat]), observation)
+    seen = [
+        images.get(
+            setting,
+            view,
+            functools.partial(_seen_view, view, camera, grid, classes, f"history[{k}]"),
         )
-    return tuple(visits)
+        for k, view in enumerate(request.history)
+    ]
+    if seen and notes is not None:  # earlier views' merges were told in earlier answers
+        notes.extend(f"current view: {note}" for note in seen[-1].merged)
+    return tuple(s.visit for s in seen)
 
 
 def _grid_pose(grid: HemisphereGrid, flat: int) -> GridPose:
@@ -306,11 +330,19 @@ def next_pose(request: NextPoseRequest, context: OptimizerContext) -> NextPoseRe
     """
     strategy: StrategyName = request.strategy or context.default_strategy
     camera, grid = _setup(request, context)
-    _check_image(request.target, camera, "target")
     classes = _classes(request)
-    notes: list[str] = []
-    target = _deduplicated(_observe(request.target, camera, classes, "target"), notes, "target")
-    visits = _visits(request, camera, grid, context.max_history_detections, classes, notes)
+    images = context.images
+    setting = images.setting(camera, grid, classes)
+    seen = images.get(
+        setting,
+        request.target,
+        functools.partial(_seen_target, request.target, camera, classes, "target"),
+    )
+    target = seen.observation
+    notes = [f"target: {note}" for note in seen.merged]
+    visits = _visits(
+        request, camera, grid, context.max_history_detections, images, setting, classes, notes
+    )
     problem = SearchProblem(
         grid=grid,
         camera=camera,

@@ -4,11 +4,15 @@ The optimizer is stateless over HTTP: every request carries the search's whole h
 search's k-th request would map all k views again although only the last one is new. A view's
 exact mapping (:func:`.mapping.map_exact`) depends only on its boxes, their classes, the camera
 and the pose, so those — by value, not by object identity — are the key, and the cached answer
-is exactly the one a fresh mapping would give.
+is exactly the one a fresh mapping would give. The observation enters the key as its
+:attr:`~.observations.Observation.digest` (of its classes, boxes, colours and confidences),
+which an observation computes once: a search's requests find their views' observations again
+(:mod:`.image_cache`), so a lookup costs a dictionary access, not the key's arrays.
 """
 
 from __future__ import annotations
 
+import operator
 import threading
 from collections import OrderedDict
 from collections.abc import Hashable
@@ -23,13 +27,15 @@ from services.optimizer.observations import Observation
 
 __all__ = ["DEFAULT_VIEW_MAPPINGS", "SHARED_MAPPINGS", "ViewMappings"]
 
+_CAMERA_FIELDS: Final = operator.attrgetter(*CameraSpec.model_fields)
+
 DEFAULT_VIEW_MAPPINGS: Final = 4096
 """Views kept: a search sends a few dozen at most, so this serves ~100 concurrent searches
 (a few kB each)."""
 
 
 class ViewMappings:
-    """LRU of :func:`.mapping.map_exact` results per (classes, boxes, pose, camera).
+    """LRU of :func:`.mapping.map_exact` results per (observation digest, pose, camera).
 
     The arrays handed out are read-only: they are shared by every caller that asks for the
     same view.
@@ -51,10 +57,9 @@ class ViewMappings:
         self, observation: Observation, theta_deg: float, phi_deg: float, camera: CameraSpec
     ) -> MappedObjects:
         """The exact mapping of ``observation`` seen from (θ, φ) in degrees, cached."""
-        boxes = np.ascontiguousarray(observation.boxes, dtype=np.float64)
-        # Kinds too: in identity mode they come from the classes, not the labels.
-        kinds = observation.kinds.tobytes()
-        key = (observation.labels, kinds, boxes.tobytes(), float(theta_deg), float(phi_deg), camera)
+        # The digest covers the kinds too: in identity mode they come from the classes. The
+        # camera's values, not the model: a pydantic model hashes and compares in Python.
+        key = (observation.digest, float(theta_deg), float(phi_deg), _CAMERA_FIELDS(camera))
         with self._lock:
             found = self._entries.get(key)
             if found is not None:
@@ -63,6 +68,7 @@ class ViewMappings:
                 return found
             self.misses += 1
         # Mapped outside the lock: two threads may map one view at once, never wait on it.
+        boxes = np.ascontiguousarray(observation.boxes, dtype=np.float64)
         mapped = map_exact(boxes, observation.kinds, camera, theta_deg, phi_deg)
         for field in fields(mapped):
             getattr(mapped, field.name).flags.writeable = False

@@ -24,7 +24,7 @@ from services.common.contracts.optimize import (
     ViewMatch,
 )
 from services.common.contracts.render import SceneDetail
-from services.common.contracts.search import Iteration, Search, StageTimings
+from services.common.contracts.search import TERMINAL_STATUSES, Iteration, Search, StageTimings
 from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
 from services.controller.broker import BrokerError
@@ -605,3 +605,109 @@ def test_only_a_search_an_outage_failed_is_retried(tmp_path, detail):
     with pytest.raises(KeyError):
         runner.retry("nope")
     assert runner.queued == 0
+
+
+async def closed_at_once(runner: SearchRunner) -> None:
+    """Close ``runner``; fail if that takes seconds or leaves a task behind."""
+    closing = asyncio.create_task(runner.close())
+    await asyncio.wait({closing}, timeout=5.0)
+    if not closing.done():
+        closing.cancel()
+        pytest.fail("close() did not return")
+    closing.result()
+    assert asyncio.all_tasks() == {asyncio.current_task()}  # no worker, no search left
+
+
+def test_close_returns_at_once_right_after_a_search_ends(tmp_path, detail):
+    """close() as a search ends, before its worker has resumed: the worker's cancellation is
+    the worker's, not the search's. (The worker took it for the search's and waited for the
+    next search, so close() waited for ever; and close() swallowed its own cancellation, so a
+    timeout around it returned as if it had closed.)"""
+    stages = FakeStages(detail, done_after=2)
+    store = stored(tmp_path, stages)
+    notifier = Notifier()
+    runner = SearchRunner(store, stages, notifier, max_concurrent=2)  # type: ignore[arg-type]
+
+    async def go() -> None:
+        await runner.start()  # resumes s1, left queued
+        with notifier.following("s1"):
+            while True:
+                changed = notifier.current("s1")
+                search = store.get("s1")
+                assert search is not None
+                if search.status in TERMINAL_STATUSES:
+                    break
+                await changed.wait()
+        assert runner.running == 1  # the search has ended; its worker has not resumed yet
+        await closed_at_once(runner)
+
+    asyncio.run(go())
+    final = store.get("s1")
+    assert final is not None
+    assert final.status == "succeeded", final.error
+    assert runner.running == 0
+
+
+def test_close_stops_a_running_search_which_resumes_later(tmp_path, detail):
+    """close() while a search waits for a stage: the worker and the search stop, and the
+    search stays 'running' for the next start to resume."""
+    stages = FakeStages(detail, done_after=3)
+    store = stored(tmp_path, stages)
+    rendering = asyncio.Event()
+    render = stages.render
+
+    async def slow_render(scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+        rendering.set()
+        await asyncio.sleep(60)
+        return await render(scene_id, index, request_id)
+
+    stages.render = slow_render  # type: ignore[method-assign]
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+
+    async def go() -> None:
+        await runner.start()
+        await rendering.wait()
+        await closed_at_once(runner)
+
+    asyncio.run(go())
+    stopped = store.get("s1")
+    assert stopped is not None
+    assert stopped.status == "running"
+    stages.render = render  # type: ignore[method-assign]
+    assert run_stored(store, stages).status == "succeeded"
+
+
+def test_close_cancelled_is_cancelled(tmp_path, detail):
+    """close() cancelled while a search winds down (here: a render that takes its time to
+    stop) stops waiting, and a later close() finishes the job."""
+    stages = FakeStages(detail, done_after=3)
+    store = stored(tmp_path, stages)
+    rendering, release = asyncio.Event(), asyncio.Event()
+
+    async def stubborn_render(scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+        rendering.set()
+        try:
+            await asyncio.sleep(60)
+        finally:
+            await release.wait()
+        raise AssertionError("unreachable")
+
+    stages.render = stubborn_render  # type: ignore[method-assign]
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+
+    async def go() -> None:
+        await runner.start()
+        await rendering.wait()
+        closing = asyncio.create_task(runner.close())
+        await asyncio.sleep(0.05)
+        assert not closing.done()  # the search is still winding down
+        closing.cancel()
+        await asyncio.wait({closing}, timeout=5.0)
+        assert closing.cancelled()
+        release.set()
+        await closed_at_once(runner)
+
+    asyncio.run(go())
+    stopped = store.get("s1")
+    assert stopped is not None
+    assert stopped.status == "running"
