@@ -212,11 +212,14 @@ def test_the_errors_fastapi_answers_itself_are_declared_as_problems(service):
 )
 async def test_a_json_body_that_is_not_text_is_a_400_problem(service, path, service_token):
     app = importlib.import_module(SERVICES[service]).create_app()
-    async with httpx.AsyncClient(
-        transport=httpx.ASGITransport(app=app),
-        base_url="http://test",
-        headers=bearer(service_token),
-    ) as client:
+    async with (
+        LifespanManager(app) as running,
+        httpx.AsyncClient(
+            transport=httpx.ASGITransport(app=running.app),
+            base_url="http://test",
+            headers=bearer(service_token),
+        ) as client,
+    ):
         response = await client.post(
             path, content=b'{"scene": "\xff"}', headers={"Content-Type": "application/json"}
         )
