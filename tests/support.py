@@ -3,12 +3,16 @@ schema-driven fuzzing of a running service."""
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import Any
 
 import httpx
 import schemathesis
+from asgi_lifespan import LifespanManager
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import positive_data_acceptance
+from starlette.types import ASGIApp
 
 from services.common.auth import PROBE_PATHS, bearer, new_token
 from services.common.launch import ROOT, ServiceProcess, free_port, running_service
@@ -113,3 +117,15 @@ def fuzz_service(
 
         fuzz()
     return len(operations)
+
+
+@asynccontextmanager
+async def in_process(app: ASGIApp, base_url: str, token: str) -> AsyncIterator[httpx.AsyncClient]:
+    """An httpx client on ``app`` in this process, its lifespan run, calling as the controller
+    does: with the service token."""
+    async with LifespanManager(app) as manager:
+        transport = httpx.ASGITransport(app=manager.app)
+        async with httpx.AsyncClient(
+            transport=transport, base_url=base_url, headers=bearer(token)
+        ) as client:
+            yield client

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 from asgi_lifespan import LifespanManager
 
-from services.common.auth import bearer
 from services.common.images import encode_ppm, media_type_of
 from services.detector.app import create_app
 from services.detector.letterbox import PAD_VALUE, fit
 from services.detector.model import ModelError
 from services.detector.settings import DetectorSettings
 from services.detector.synthetic import channel_mean_model, constant_model
+from tests.support import in_process
 
 pytestmark = pytest.mark.anyio
 
@@ -89,14 +89,8 @@ def settings_for(model: Path, **overrides) -> DetectorSettings:
 
 
 async def serve(settings: DetectorSettings) -> AsyncIterator[httpx.AsyncClient]:
-    app = create_app(settings)
-    async with LifespanManager(app) as manager:
-        transport = httpx.ASGITransport(app=manager.app)
-        headers = bearer(settings.token())  # as the controller calls it
-        async with httpx.AsyncClient(
-            transport=transport, base_url="http://detector", headers=headers
-        ) as client:
-            yield client
+    async with in_process(create_app(settings), "http://detector", settings.token()) as client:
+        yield client
 
 
 @pytest.fixture(scope="module")

@@ -7,14 +7,13 @@ from collections.abc import AsyncIterator
 
 import httpx
 import pytest
-from asgi_lifespan import LifespanManager
 
-from services.common.auth import bearer
 from services.common.geometry.grid import grid_for
 from services.common.geometry.pose import GridIndex
 from services.optimizer.app import create_app
 from services.optimizer.settings import OptimizerSettings
 from simulation import SceneSimulator
+from tests.support import in_process
 
 pytestmark = pytest.mark.anyio
 
@@ -25,14 +24,8 @@ GRID = {"angle_step_deg": 7.5, "min_theta_deg": 7.5, "max_theta_deg": 82.5}
 @pytest.fixture(scope="module")
 async def client() -> AsyncIterator[httpx.AsyncClient]:
     settings = OptimizerSettings(optimizer_max_body_bytes=200_000, optimizer_max_grid_poses=5000)
-    app = create_app(settings)
-    async with LifespanManager(app) as manager:
-        transport = httpx.ASGITransport(app=manager.app)
-        headers = bearer(settings.token())  # as the controller calls it
-        async with httpx.AsyncClient(
-            transport=transport, base_url="http://optimizer", headers=headers
-        ) as c:
-            yield c
+    async with in_process(create_app(settings), "http://optimizer", settings.token()) as c:
+        yield c
 
 
 @pytest.fixture(scope="module")

@@ -8,14 +8,13 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from asgi_lifespan import LifespanManager
 from pydantic import ValidationError
 
-from services.common.auth import bearer
 from services.common.contracts.render import SceneDetail
 from services.common.images import decode_image
 from services.renderer.app import create_app
 from services.renderer.settings import RendererSettings
+from tests.support import in_process
 
 pytestmark = pytest.mark.anyio
 
@@ -23,14 +22,8 @@ pytestmark = pytest.mark.anyio
 @pytest.fixture(scope="module")
 async def client() -> AsyncIterator[httpx.AsyncClient]:
     settings = RendererSettings(renderer_max_side=1024, renderer_max_body_bytes=4096)
-    app = create_app(settings)
-    async with LifespanManager(app) as manager:
-        transport = httpx.ASGITransport(app=manager.app)
-        headers = bearer(settings.token())  # as the controller calls it
-        async with httpx.AsyncClient(
-            transport=transport, base_url="http://renderer", headers=headers
-        ) as c:
-            yield c
+    async with in_process(create_app(settings), "http://renderer", settings.token()) as c:
+        yield c
 
 
 def decode(png: bytes) -> np.ndarray:
