@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,16 @@ APP = "services.detector.app:app"
 UPLOAD_LIMIT = 200_000
 
 
+def one_sphere_model(directory: Path) -> Path:
+    """A synthetic general model (classes sphere, cube) that always sees one sphere at network
+    input (80, 80)-(120, 160) with confidence 0.9."""
+    return constant_model(
+        directory / "constant.onnx",
+        np.array([[100], [120], [40], [80], [0.9], [0.0]], np.float32),
+        classes=["sphere", "cube"],
+    )
+
+
 @pytest.fixture(scope="module")
 def detector_process(tmp_path_factory) -> Iterator[ServiceProcess]:
     """A real detector serving a synthetic model: one sphere at input (80, 80)-(120, 160); and
@@ -24,11 +35,7 @@ def detector_process(tmp_path_factory) -> Iterator[ServiceProcess]:
     scenes.mkdir()
     add_scene(scenes, "field")
     onboard(scenes, "field")
-    model = constant_model(
-        directory / "constant.onnx",
-        np.array([[100], [120], [40], [80], [0.9], [0.0]], np.float32),
-        classes=["sphere", "cube"],
-    )
+    model = one_sphere_model(directory)
     env = {
         "COSMOS_DETECTOR_MODEL": str(model),
         "COSMOS_DETECTOR_THREADS": "1",

@@ -15,8 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
-from services.detector.synthetic import constant_model
-from tests.detector.conftest import APP
+from tests.detector.conftest import APP, one_sphere_model
 from tests.support import ServiceProcess, running_service
 
 pytestmark = [
@@ -47,11 +46,7 @@ def rgba16_png() -> bytes:
 @pytest.fixture(scope="module")
 def detector(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
     directory = tmp_path_factory.mktemp("detector-memory")
-    model = constant_model(
-        directory / "constant.onnx",
-        np.array([[100], [120], [40], [80], [0.9], [0.0]], np.float32),
-        classes=["sphere", "cube"],
-    )
+    model = one_sphere_model(directory)
     env = {
         "COSMOS_DETECTOR_MODEL": str(model),
         "COSMOS_DETECTOR_THREADS": "1",
