@@ -1,5 +1,6 @@
 """The fault harness's own arithmetic: the nearest-rank p95, what counts as submitted,
-succeeded and lost, which latencies fall in a fault's window, and the memory read from /proc."""
+succeeded and lost, which latencies fall in a fault's window, the memory read from /proc; and
+the uploads scenario's body and what it takes for a good answer."""
 
 from __future__ import annotations
 
@@ -8,18 +9,24 @@ import subprocess
 import sys
 import time
 
+import cv2
+import httpx
+import numpy as np
 import pytest
 
 from services.bench.faults.harness import (
     MIB,
     Outcome,
     RssSampler,
+    Target,
     count,
     latencies,
     memory_of,
     p95,
     percentile,
 )
+from services.bench.faults.scenarios import maximal_upload_body, well_answered
+from services.common.images import decode_image
 
 
 def test_p95_is_the_nearest_rank():
@@ -123,3 +130,36 @@ def test_memory_is_read_from_proc_and_the_peak_counts_from_the_start():
             child.wait()
     assert memory_of(child.pid) is None
     assert memory_of(os.getpid()) is not None
+
+
+def test_a_maximal_upload_is_a_valid_image_just_under_the_limit():
+    ok, png = cv2.imencode(".png", np.full((240, 320, 3), 90, np.uint8))
+    assert ok
+    target = Target(image=png.tobytes(), lat=0, lon=0)
+    limit = 20 * MIB
+    body = maximal_upload_body(target, limit, max_pixels=4096 * 4096, max_side=8192)
+    assert limit - 16 * 1024 < len(body) <= limit
+    image = decode_image(body, max_pixels=4096 * 4096, max_side=8192)
+    height, width = image.shape[:2]
+    assert abs(width / height - 4 / 3) < 0.01  # the target's aspect
+    assert len(body) == len(b"P6\n%d %d\n255\n" % (width, height)) + 3 * width * height
+    capped = maximal_upload_body(target, limit, max_pixels=1000 * 750, max_side=8192)
+    assert decode_image(capped, max_pixels=10**6, max_side=8192).shape[:2] == (750, 1000)
+
+
+@pytest.mark.parametrize(
+    ("status", "headers", "good"),
+    [
+        (202, {"content-type": "application/json"}, True),
+        (413, {"content-type": "application/problem+json"}, True),
+        (413, {"content-type": "text/plain"}, False),  # not a problem
+        (429, {"content-type": "application/problem+json", "retry-after": "5"}, True),
+        (429, {"content-type": "application/problem+json"}, False),  # no Retry-After
+        (503, {"content-type": "application/problem+json", "retry-after": "5"}, True),
+        (503, {"content-type": "application/problem+json"}, False),
+        (500, {"content-type": "application/problem+json"}, False),
+        (200, {"content-type": "application/json"}, False),  # a search is taken with 202
+    ],
+)
+def test_what_counts_as_a_good_answer_to_an_upload(status, headers, good):
+    assert well_answered(httpx.Response(status, headers=headers)) is good

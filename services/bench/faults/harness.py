@@ -232,13 +232,18 @@ class Load:
             self._threads.append(thread)
         return self
 
+    def halt(self, drain_s: float = 60.0) -> None:
+        """Submit nothing more; follow the searches in flight for up to ``drain_s`` more."""
+        if not self._stopping.is_set():
+            self._deadline = time.monotonic() + drain_s
+            self._stopping.set()
+
     def stop(self, drain_s: float = 60.0) -> list[Outcome]:
-        """Submit nothing more; follow the searches in flight for up to ``drain_s``; every
-        outcome."""
-        self._deadline = time.monotonic() + drain_s
-        self._stopping.set()
+        """:meth:`halt`, then wait for the clients to finish; every outcome."""
+        self.halt(drain_s)
+        deadline = self._deadline or time.monotonic()
         for thread in self._threads:
-            thread.join(drain_s + 30.0)
+            thread.join(max(0.0, deadline - time.monotonic()) + 30.0)
         return self.outcomes
 
     @property

@@ -27,7 +27,8 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from contextlib import ExitStack
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Final
 
@@ -73,6 +74,7 @@ __all__ = [
     "run_scenarios",
     "slow_clients",
     "tenants",
+    "well_answered",
 ]
 
 SENTINEL_OPTIONS: Final[Mapping[str, Any]] = {
@@ -318,7 +320,9 @@ class Tenants(ScenarioResult):
 
 
 class _Run:
-    """One scenario's load (and sentinel), memory sampler and fault window."""
+    """One scenario's load (and sentinel), memory sampler and fault window; leaving the block
+    without :meth:`finish` (the scenario raised) stops the load and the sampler at once, so
+    nothing of it goes on into the next scenario."""
 
     def __init__(
         self,
@@ -357,6 +361,22 @@ class _Run:
         self.fault_start = self.fault_end = 0.0
         self.outcomes: list[Outcome] = []
         """The load's and the sentinel's, once :meth:`finish` has run."""
+        self._finished = False
+
+    def __enter__(self) -> _Run:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        if not self._finished:
+            self._finished = True
+            for load in self._loads():
+                load.halt(0.0)
+            for load in self._loads():
+                load.stop(0.0)
+            self.sampler.stop()
+
+    def _loads(self) -> list[Load]:
+        return [self.load] + ([] if self.sentinel is None else [self.sentinel])
 
     def warm(self) -> None:
         """The load before the fault; with a sentinel, until one of its searches is under way."""
@@ -382,9 +402,12 @@ class _Run:
     def finish(self) -> Measured:
         """After ``after_s`` more load, stop it and measure."""
         time.sleep(self.timing.after_s)
+        for load in self._loads():
+            load.halt(self.timing.drain_s)
         sentinel = [] if self.sentinel is None else self.sentinel.stop(self.timing.drain_s)
         outcomes = self.load.stop(self.timing.drain_s)
         peaks = self.sampler.stop()
+        self._finished = True
         self.outcomes = [*outcomes, *sentinel]
         window = (self.fault_start, self.fault_end)
         before = [o for o in outcomes if o.ended_at is not None and o.ended_at < self.fault_start]
@@ -422,24 +445,24 @@ def replica_killed(rig: Rig, timing: Timing) -> ReplicaKilled:
         raise ValueError("killing a replica mid-load needs a stage with two replicas")
     victim = renderers[-1]
     name = "replica-killed-supervised" if rig.supervised else "replica-killed-plain"
-    run = _Run(rig, timing, name, seed=1000)
-    run.warm()
-    started = run.begin()
-    restarts = rig.restarts(victim.url)
-    plan = rig.kill(victim)
-    came_back = True
-    try:
-        if rig.supervised:
-            wait_until(lambda: rig.restarts(victim.url) > restarts, timing.recover_s)
-        else:
-            time.sleep(timing.degraded_s)
-            rig.restart(plan, timing.recover_s)
-        wait_until(lambda: rig.replica_up(victim.url), timing.recover_s, interval_s=0.2)
-    except TimeoutError:
-        came_back = False
-    back = run.end()
-    served_then = rig.served(victim.url)
-    measured = run.finish()
+    with _Run(rig, timing, name, seed=1000) as run:
+        run.warm()
+        started = run.begin()
+        restarts = rig.restarts(victim.url)
+        plan = rig.kill(victim)
+        came_back = True
+        try:
+            if rig.supervised:
+                wait_until(lambda: rig.restarts(victim.url) > restarts, timing.recover_s)
+            else:
+                time.sleep(timing.degraded_s)
+                rig.restart(plan, timing.recover_s)
+            wait_until(lambda: rig.replica_up(victim.url), timing.recover_s, interval_s=0.2)
+        except TimeoutError:
+            came_back = False
+        back = run.end()
+        served_then = rig.served(victim.url)
+        measured = run.finish()
     return ReplicaKilled(
         measured,
         supervised=rig.supervised,
@@ -474,22 +497,22 @@ def detector_outage(rig: Rig, timing: Timing) -> DetectorOutage:
             f"an outage of {timing.outage_s:g} s needs an outage budget longer than it "
             f"(COSMOS_CONTROLLER_OUTAGE_BUDGET_S is {_budget_s(rig):g})"
         )
-    run = _Run(rig, timing, "detector-outage", seed=2000, sentinel=True)
-    run.warm()
-    down = run.begin()
-    plans = [rig.kill(process) for process in rig.replicas("detector")]
-    degraded_seen = False
-    while time.monotonic() < down + timing.outage_s:
-        health = rig.health() or {}
-        if health.get("status") == "degraded" and "detector" in health["unavailable_stages"]:
-            degraded_seen = True
-        time.sleep(0.25)
-    restarted = time.monotonic()
-    for plan in plans:
-        rig.restart(plan, timing.recover_s)
-    wait_until(lambda: (rig.health() or {}).get("status") == "ok", timing.recover_s)
-    back = run.end()
-    measured = run.finish()
+    with _Run(rig, timing, "detector-outage", seed=2000, sentinel=True) as run:
+        run.warm()
+        down = run.begin()
+        plans = [rig.kill(process) for process in rig.replicas("detector")]
+        degraded_seen = False
+        while time.monotonic() < down + timing.outage_s:
+            health = rig.health() or {}
+            if health.get("status") == "degraded" and "detector" in health["unavailable_stages"]:
+                degraded_seen = True
+            time.sleep(0.25)
+        restarted = time.monotonic()
+        for plan in plans:
+            rig.restart(plan, timing.recover_s)
+        wait_until(lambda: (rig.health() or {}).get("status") == "ok", timing.recover_s)
+        back = run.end()
+        measured = run.finish()
     in_flight = _in_flight_at(run.outcomes, down)
     return DetectorOutage(
         measured,
@@ -525,15 +548,15 @@ def controller_killed(rig: Rig, timing: Timing) -> ControllerKilled:
     healthy again."""
     if rig.supervised:
         raise ValueError("this scenario restarts the controller itself, not a supervisor")
-    run = _Run(rig, timing, "controller-killed", seed=3000, sentinel=True)
-    run.warm()
-    killed = run.begin()
-    (controller,) = rig.replicas("controller")
-    plan = rig.kill(controller)
-    time.sleep(timing.controller_down_s)
-    rig.restart(plan, timing.recover_s)
-    back = run.end()
-    measured = run.finish()
+    with _Run(rig, timing, "controller-killed", seed=3000, sentinel=True) as run:
+        run.warm()
+        killed = run.begin()
+        (controller,) = rig.replicas("controller")
+        plan = rig.kill(controller)
+        time.sleep(timing.controller_down_s)
+        rig.restart(plan, timing.recover_s)
+        back = run.end()
+        measured = run.finish()
     in_flight = _in_flight_at(run.outcomes, killed)
     known = {o.search_id for o in run.outcomes}
     orphans = {i: s for i, s in _listed(rig.controller_url, run.key).items() if i not in known}
@@ -563,56 +586,56 @@ def slow_clients(rig: Rig, timing: Timing) -> SlowClients:
         raise ValueError("slow clients are sent to a loopback address only")
     if not 0 < timing.slow_sockets <= MAX_SLOW_SOCKETS:
         raise ValueError(f"slow_sockets must be 1..{MAX_SLOW_SOCKETS}")
-    run = _Run(rig, timing, "slow-clients", seed=4000)
-    run.warm()
-    run.begin()
-    sockets: list[socket.socket] = []
-    checks: list[float | None] = []  # seconds per /health answered 200, None otherwise
-    holding = threading.Event()
-    holding.set()
+    with _Run(rig, timing, "slow-clients", seed=4000) as run:
+        run.warm()
+        run.begin()
+        sockets: list[socket.socket] = []
+        checks: list[float | None] = []  # seconds per /health answered 200, None otherwise
+        holding = threading.Event()
+        holding.set()
 
-    def trickle(slow: list[socket.socket]) -> None:
-        while holding.is_set():
-            for sock in slow:
+        def trickle(slow: list[socket.socket]) -> None:
+            while holding.is_set():
+                for sock in slow:
+                    try:
+                        sock.send(b"a")
+                    except OSError:
+                        pass
+                time.sleep(1.0)
+
+        def probe() -> None:
+            while holding.is_set():
+                asked = time.perf_counter()
                 try:
-                    sock.send(b"a")
-                except OSError:
-                    pass
-            time.sleep(1.0)
+                    ok = httpx.get(f"{rig.controller_url}/health", timeout=5.0).status_code == 200
+                except httpx.TransportError:
+                    ok = False
+                checks.append(time.perf_counter() - asked if ok else None)
+                time.sleep(0.2)
 
-    def probe() -> None:
-        while holding.is_set():
-            asked = time.perf_counter()
-            try:
-                ok = httpx.get(f"{rig.controller_url}/health", timeout=5.0).status_code == 200
-            except httpx.TransportError:
-                ok = False
-            checks.append(time.perf_counter() - asked if ok else None)
-            time.sleep(0.2)
-
-    try:
-        for i in range(timing.slow_sockets):
-            sock = socket.create_connection((host, port), timeout=5.0)
-            sockets.append(sock)
-            if i % 10:
-                sock.sendall(HALF_HEAD)
-        threads = [
-            threading.Thread(target=trickle, args=(sockets[5::10],), daemon=True),
-            threading.Thread(target=probe, daemon=True),
-        ]
-        for thread in threads:
-            thread.start()
-        time.sleep(timing.slow_hold_s)
-        holding.clear()
-        for thread in threads:
-            thread.join()
-        closed = sum(_closed(sock) for sock in sockets)
-    finally:
-        holding.clear()
-        for sock in sockets:
-            sock.close()
-    run.end()
-    measured = run.finish()
+        try:
+            for i in range(timing.slow_sockets):
+                sock = socket.create_connection((host, port), timeout=5.0)
+                sockets.append(sock)
+                if i % 10:
+                    sock.sendall(HALF_HEAD)
+            threads = [
+                threading.Thread(target=trickle, args=(sockets[5::10],), daemon=True),
+                threading.Thread(target=probe, daemon=True),
+            ]
+            for thread in threads:
+                thread.start()
+            time.sleep(timing.slow_hold_s)
+            holding.clear()
+            for thread in threads:
+                thread.join()
+            closed = sum(_closed(sock) for sock in sockets)
+        finally:
+            holding.clear()
+            for sock in sockets:
+                sock.close()
+        run.end()
+        measured = run.finish()
     answered = [seconds for seconds in checks if seconds is not None]
     return SlowClients(
         measured,
@@ -637,23 +660,26 @@ def _closed(sock: socket.socket) -> bool:
     return True
 
 
-def maximal_upload_body(target: Target, limit_bytes: int, settings: ControllerSettings) -> bytes:
+def maximal_upload_body(target: Target, limit_bytes: int, max_pixels: int, max_side: int) -> bytes:
     """A valid image of the target's view just under ``limit_bytes``: the target scaled up
     (same aspect) to the largest binary PPM that fits, ``P6`` header plus 3 bytes a pixel, so
-    nothing compresses it, and within the controller's pixel and side caps."""
+    nothing compresses it, within the controller's caps of ``max_pixels`` and ``max_side``."""
     rgb = decode_image(target.image, max_pixels=1 << 24, max_side=1 << 14)
     height, width = rgb.shape[:2]
-    pixels = min((limit_bytes - 32) // 3, settings.controller_max_image_pixels)
-    new_width = min(int((pixels * width / height) ** 0.5), settings.controller_max_image_side)
-    new_height = min(pixels // new_width, settings.controller_max_image_side)
-    body = encode_ppm(
-        np.ascontiguousarray(
-            cv2.resize(rgb, (new_width, new_height), interpolation=cv2.INTER_LINEAR)
-        )
-    )
+    pixels = min((limit_bytes - 32) // 3, max_pixels)
+    new_width = min(int((pixels * width / height) ** 0.5), max_side)
+    new_height = min(pixels // new_width, max_side)
+    scaled = cv2.resize(rgb, (new_width, new_height), interpolation=cv2.INTER_LINEAR)
+    body = encode_ppm(np.ascontiguousarray(scaled))
     if len(body) > limit_bytes:
         raise RuntimeError(f"{len(body)} bytes do not fit under {limit_bytes}")
     return body
+
+
+def _controller_setting(rig: Rig, name: str) -> int:
+    """The controller's integer setting ``controller_<name>`` as the rig runs it."""
+    default = ControllerSettings.model_fields[f"controller_{name}"].default
+    return int(rig.setting(f"COSMOS_CONTROLLER_{name.upper()}", str(default)))
 
 
 def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
@@ -663,50 +689,47 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
     the uploads started are cancelled once all are answered (they are not the load). The
     window runs from the first upload to the last answer; the controller's peak memory is the
     figure to watch."""
-    settings = ControllerSettings(
-        controller_max_upload_bytes=int(
-            rig.setting(
-                "COSMOS_CONTROLLER_MAX_UPLOAD_BYTES",
-                str(ControllerSettings.model_fields["controller_max_upload_bytes"].default),
-            )
-        )
+    limit = _controller_setting(rig, "max_upload_bytes")
+    body = maximal_upload_body(
+        rig.targets[0],
+        limit,
+        _controller_setting(rig, "max_image_pixels"),
+        _controller_setting(rig, "max_image_side"),
     )
-    limit = settings.controller_max_upload_bytes
-    body = maximal_upload_body(rig.targets[0], limit, settings)
     uploader = rig.new_key("uploads")
-    run = _Run(rig, timing, "maximal-uploads", seed=5000)
-    run.warm()
-    started = run.begin()
-    ready = threading.Barrier(timing.uploads)
-    answers: list[tuple[int | None, bool, float, str | None]] = []
+    with _Run(rig, timing, "maximal-uploads", seed=5000) as run:
+        run.warm()
+        started = run.begin()
+        ready = threading.Barrier(timing.uploads)
+        answers: list[tuple[int | None, bool, float, str | None]] = []
 
-    with httpx.Client(
-        base_url=rig.controller_url,
-        timeout=httpx.Timeout(timing.upload_timeout_s, connect=10.0),
-        limits=httpx.Limits(max_connections=timing.uploads),
-        headers={**_bearer(uploader), "Content-Type": PPM_MEDIA_TYPE},
-    ) as client:
+        with httpx.Client(
+            base_url=rig.controller_url,
+            timeout=httpx.Timeout(timing.upload_timeout_s, connect=10.0),
+            limits=httpx.Limits(max_connections=timing.uploads),
+            headers={**_bearer(uploader), "Content-Type": PPM_MEDIA_TYPE},
+        ) as client:
 
-        def upload(_: int) -> tuple[int | None, bool, float, str | None]:
-            ready.wait()
-            try:
-                response = client.post("/searches", content=body, params={"scene": "demo"})
-            except httpx.TransportError:
-                return None, False, time.monotonic() - started, None
-            return (
-                response.status_code,
-                _well_answered(response),
-                time.monotonic() - started,
-                response.json().get("id") if response.status_code == 202 else None,
-            )
+            def upload(_: int) -> tuple[int | None, bool, float, str | None]:
+                ready.wait(timeout=timing.upload_timeout_s)
+                try:
+                    response = client.post("/searches", content=body, params={"scene": "demo"})
+                except httpx.TransportError:
+                    return None, False, time.monotonic() - started, None
+                return (
+                    response.status_code,
+                    well_answered(response),
+                    time.monotonic() - started,
+                    response.json().get("id") if response.status_code == 202 else None,
+                )
 
-        with ThreadPoolExecutor(timing.uploads) as pool:
-            answers = list(pool.map(upload, range(timing.uploads)))
-        run.end()
-        for _, _, _, search_id in answers:
-            if search_id is not None:
-                client.delete(f"/searches/{search_id}")
-    measured = run.finish()
+            with ThreadPoolExecutor(timing.uploads) as pool:
+                answers = list(pool.map(upload, range(timing.uploads)))
+            run.end()
+            for _, _, _, search_id in answers:
+                if search_id is not None:
+                    client.delete(f"/searches/{search_id}")
+        measured = run.finish()
     statuses: dict[int, int] = {}
     for status, _, _, _ in answers:
         if status is not None:
@@ -723,7 +746,7 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
     )
 
 
-def _well_answered(response: httpx.Response) -> bool:
+def well_answered(response: httpx.Response) -> bool:
     """202, or a problem (4xx, or 503 with ``Retry-After``; 429 with it too)."""
     status = response.status_code
     if status == 202:
@@ -734,40 +757,54 @@ def _well_answered(response: httpx.Response) -> bool:
     return problem and (status not in {429, 503} or "retry-after" in response.headers)
 
 
+class _Peeker:
+    """One tenant's requests for another's searches, counting those that are not hidden as an
+    unknown id is (a 404 of the same type and title)."""
+
+    def __init__(self, url: str, key: str) -> None:
+        self._client = httpx.Client(base_url=url, timeout=30.0, headers=_bearer(key))
+        unknown = self._client.get("/searches/no-such-search").json()
+        self._unknown = (unknown["type"], unknown["title"])
+        self.requests = 0
+        self.seen = 0
+
+    def __enter__(self) -> _Peeker:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self._client.close()
+
+    def peek(self, search_id: str, *methods: str) -> None:
+        for method in methods:
+            answer = self._client.request(method, f"/searches/{search_id}")
+            body = answer.json()
+            hidden = answer.status_code == 404 and (body.get("type"), body.get("title")) == (
+                self._unknown
+            )
+            self.requests += 1
+            self.seen += not hidden
+
+
 def tenants(rig: Rig, timing: Timing) -> Tenants:
     """Two tenant keys, A (the load) and B (one client of its own), search side by side. Mid-load
     B asks for and tries to cancel A's searches in flight, and A asks for B's; afterwards each
     asks for every search of the other, B tries to cancel each of A's, and both list theirs.
     Every such request must be a 404 like an unknown id's, and no list may hold the other's."""
     key_a, key_b = rig.new_key("tenant-a"), rig.new_key("tenant-b")
-    run = _Run(rig, timing, "tenants", seed=6000, key=key_a)
-    other = Load(rig.controller_url, key_b, rig.targets, concurrency=1, first_seed=6500).start()
-    run.warm()
-    run.begin()
-    checks = b_saw_a = a_saw_b = 0
-    with (
-        httpx.Client(base_url=rig.controller_url, timeout=30.0, headers=_bearer(key_a)) as a,
-        httpx.Client(base_url=rig.controller_url, timeout=30.0, headers=_bearer(key_b)) as b,
-    ):
-        unknown = b.get("/searches/no-such-search").json()
-
-        def hidden(client: httpx.Client, method: str, search_id: str) -> bool:
-            answer = client.request(method, f"/searches/{search_id}")
-            body = answer.json()
-            return answer.status_code == 404 and (body.get("type"), body.get("title")) == (
-                unknown["type"],
-                unknown["title"],
-            )
-
+    with _Run(rig, timing, "tenants", seed=6000, key=key_a) as run, ExitStack() as stack:
+        other = Load(rig.controller_url, key_b, rig.targets, concurrency=1, first_seed=6500)
+        stack.callback(other.halt, 0.0)
+        other.start()
+        b_peeks = stack.enter_context(_Peeker(rig.controller_url, key_b))
+        a_peeks = stack.enter_context(_Peeker(rig.controller_url, key_a))
+        run.warm()
+        run.begin()
         deadline = time.monotonic() + max(timing.after_s, 2.0)
         while time.monotonic() < deadline:  # while searches of both run
             for search_id in run.load.in_flight:
-                checks += 2
-                b_saw_a += not hidden(b, "GET", search_id)
-                b_saw_a += not hidden(b, "DELETE", search_id)
+                b_peeks.peek(search_id, "GET", "DELETE")
             for search_id in other.in_flight:
-                checks += 1
-                a_saw_b += not hidden(a, "GET", search_id)
+                a_peeks.peek(search_id, "GET")
             time.sleep(0.1)
         run.end()
         measured = run.finish()
@@ -775,32 +812,22 @@ def tenants(rig: Rig, timing: Timing) -> Tenants:
         ids_a = {o.search_id for o in run.outcomes if o.search_id is not None}
         ids_b = {o.search_id for o in theirs if o.search_id is not None}
         for search_id in ids_a:
-            checks += 2
-            b_saw_a += not hidden(b, "GET", search_id)
-            b_saw_a += not hidden(b, "DELETE", search_id)
+            b_peeks.peek(search_id, "GET", "DELETE")
         for search_id in ids_b:
-            checks += 1
-            a_saw_b += not hidden(a, "GET", search_id)
+            a_peeks.peek(search_id, "GET")
     listed_a, listed_b = _listed(rig.controller_url, key_a), _listed(rig.controller_url, key_b)
-    checks += 2
-    b_saw_a += len(ids_a & listed_b.keys())
-    a_saw_b += len(ids_b & listed_a.keys())
-    both = count([*run.outcomes, *theirs])
+    everyone = [*run.outcomes, *theirs]
     return Tenants(
-        Measured(
-            name=measured.name,
-            counts=both,
-            peak_rss_mib=measured.peak_rss_mib,
-            p95_s=measured.p95_s,
-            baseline_p95_s=measured.baseline_p95_s,
-            fault_s=measured.fault_s,
-            errors=tuple(sorted({str(o.error) for o in [*run.outcomes, *theirs] if o.lost})),
+        replace(
+            measured,
+            counts=count(everyone),
+            errors=tuple(sorted({str(o.error) for o in everyone if o.lost})),
         ),
         a_searches=len(ids_a),
         b_searches=len(ids_b),
-        checks=checks,
-        b_saw_a=b_saw_a,
-        a_saw_b=a_saw_b,
+        checks=b_peeks.requests + a_peeks.requests + 2,
+        b_saw_a=b_peeks.seen + len(ids_a & listed_b.keys()),
+        a_saw_b=a_peeks.seen + len(ids_b & listed_a.keys()),
         b_lists_own=ids_b <= listed_b.keys(),
     )
 
