@@ -85,16 +85,16 @@ def test_searches_ride_out_the_only_detectors_outage(rig):
     assert_none_lost(result)
     assert result.outage_s >= TIMING.outage_s
     assert result.degraded_seen
-    assert result.in_flight >= 1  # the sentinel, at least
-    assert result.ridden_out == result.in_flight or result.ridden_out >= 1
+    assert result.in_flight >= 1
+    assert result.ridden_out >= 1  # the sentinel, 2 of its 12 iterations done, had to wait
     assert result.measured.counts.refused == 0  # asked again until taken
 
 
 def test_a_killed_controller_is_restarted_and_resumes_its_searches(rig):
     result = controller_killed(rig, TIMING)
     assert_none_lost(result)
-    assert result.in_flight >= 1  # the sentinel, at least
-    assert result.resumed >= 1
+    assert result.in_flight >= 1
+    assert result.resumed >= 1  # the sentinel, at least, finished on the new controller
     assert result.orphans_unfinished == 0
 
 
