@@ -54,7 +54,7 @@ class Rig:
         stack: Stack,
         log_dir: Path,
         *,
-        targets: int = 6,
+        targets: int = 4,
         seed: int = 15,
     ) -> None:
         self.plan = tuple(plan)
@@ -72,8 +72,7 @@ class Rig:
         if stack.api_key is None:
             raise ValueError("the stack has no admin key")
         self.admin_key: str = stack.api_key
-        self.load_key = self.new_key("fault-load")
-        """The tenant key of the normal searches."""
+        """The local admin key (sees every tenant's searches)."""
         self.targets = self._render_targets(targets, seed)
         self.far_target = self._render(*FAR)
 

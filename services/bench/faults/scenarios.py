@@ -124,8 +124,8 @@ class Timing:
         """Shorter loads and faults (the detector down 5 s instead of 20 s)."""
         return cls(
             concurrency=2,
-            warm_s=2.0,
-            after_s=2.0,
+            warm_s=1.5,
+            after_s=1.5,
             drain_s=60.0,
             degraded_s=2.0,
             outage_s=5.0,
