@@ -6,6 +6,7 @@ import asyncio
 import random
 import re
 import uuid
+import weakref
 
 from services.common.contracts.optimize import (
     GridPose,
@@ -25,9 +26,21 @@ __all__ = ["INLINE_WRITE_BYTES", "create_search"]
 
 INLINE_WRITE_BYTES = 1 << 20
 """A target image up to this size is stored on the event loop (a 230 KB one takes ~0.4 ms, less
-than a thread's round trip); a larger one on a thread. Under 50 maximal uploads at once, the
-inserts of their 20 MB images on the loop took 4.4 s of its time (sampled, ``python -m
-benchmarks.uploads``) and stalled it for seconds: the broker's calls timed out meanwhile."""
+than a thread's round trip); a larger one on a thread, one at a time. Under 50 maximal uploads
+at once, the inserts of their 20 MB images on the loop took 4.4 s of its time (sampled, ``python
+-m benchmarks.uploads``) and stalled it for seconds: the broker's calls timed out meanwhile.
+One at a time, because the store has one lock: with several inserts queued on it, the loop's
+next store call waited behind all of them (1.6 s, sampled)."""
+
+_WRITERS: weakref.WeakKeyDictionary[SearchStore, asyncio.Lock] = weakref.WeakKeyDictionary()
+
+
+def _large_writes(store: SearchStore) -> asyncio.Lock:
+    """The lock one large image insert into ``store`` holds at a time."""
+    lock = _WRITERS.get(store)
+    if lock is None:
+        lock = _WRITERS[store] = asyncio.Lock()
+    return lock
 
 
 async def create_search(
@@ -134,7 +147,8 @@ async def create_search(
         if len(image) <= INLINE_WRITE_BYTES:
             store.create(record, image, owner=owner)
         else:
-            await asyncio.to_thread(store.create, record, image, owner=owner)
+            async with _large_writes(store):
+                await asyncio.to_thread(store.create, record, image, owner=owner)
     except BaseException:
         stages.forget_early(search_id)
         raise
