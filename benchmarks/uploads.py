@@ -117,19 +117,27 @@ async def _normal_search(
     """Submit one ordinary search and follow it: (outcome, submission seconds)."""
     headers = {"Authorization": f"Bearer {stack.api_key}", "Content-Type": "image/png"}
     started = time.perf_counter()
-    try:
-        async with session.post(
-            f"{stack.controller}/searches",
-            params={"scene": "demo", "seed": str(seed)},
-            data=target,
-            headers=headers,
-        ) as response:
-            body = await response.json(content_type=None)
-            submitted_s = time.perf_counter() - started
-            if response.status != 202:
-                return f"refused {response.status}", submitted_s
-    except (TimeoutError, aiohttp.ClientError) as exc:
-        return f"refused {type(exc).__name__}", time.perf_counter() - started
+    for attempt in range(2):
+        try:
+            async with session.post(
+                f"{stack.controller}/searches",
+                params={"scene": "demo", "seed": str(seed)},
+                data=target,
+                headers=headers,
+            ) as response:
+                body = await response.json(content_type=None)
+                submitted_s = time.perf_counter() - started
+                if response.status != 202:
+                    return f"refused {response.status}", submitted_s
+                break
+        except aiohttp.ServerDisconnectedError:
+            # A kept-alive connection the controller closed (its keep-alive timeout) just as
+            # it was reused: nothing was answered, so once more, as the controller's own
+            # transport does. Twice is a refusal.
+            if attempt:
+                return "refused ServerDisconnectedError", time.perf_counter() - started
+        except (TimeoutError, aiohttp.ClientError) as exc:
+            return f"refused {type(exc).__name__}", time.perf_counter() - started
     search_id = body["id"]
     while time.perf_counter() - started < deadline_s:
         await asyncio.sleep(0.5)

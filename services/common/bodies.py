@@ -40,7 +40,12 @@ from typing import Final
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from services.common.errors import ProblemDetails, problem_type
+from services.common.errors import (
+    PayloadTooLargeError,
+    ProblemDetails,
+    ServiceUnavailableError,
+    problem_type,
+)
 
 __all__ = [
     "DEFAULT_BODY_TIMEOUT_S",
@@ -392,17 +397,8 @@ class BodyMiddleware:
         return buffer
 
     async def _too_large(self, scope: Scope, send: Send, what: str) -> None:
-        await _answer(
-            send,
-            scope,
-            ProblemDetails(
-                type=problem_type("payload-too-large"),
-                title="Payload too large",
-                status=413,
-                detail=f"{what} exceeds the limit of {self.limits.max_bytes} bytes",
-                instance=scope.get("path"),
-            ),
-        )
+        error = PayloadTooLargeError(f"{what} exceeds the limit of {self.limits.max_bytes} bytes")
+        await _answer(send, scope, error.problem(instance=scope.get("path")))
 
     async def _busy(self, scope: Scope, send: Send, budget: BodyBudget, size: int) -> None:
         _log.warning(
@@ -414,20 +410,14 @@ class BodyMiddleware:
             budget.in_use,
             budget.waiting,
         )
-        await _answer(
-            send,
-            scope,
-            ProblemDetails(
-                type=problem_type("busy"),
-                title="Service busy",
-                status=503,
-                detail=f"the service is receiving as many request bodies as it holds at once "
-                f"and {size} more bytes did not fit within {budget.wait_s:g} s; try again "
-                "shortly",
-                instance=scope.get("path"),
-            ),
-            {"Retry-After": str(max(1, math.ceil(budget.wait_s)))},
+        error = ServiceUnavailableError(
+            f"the service is receiving as many request bodies as it holds at once and {size} "
+            f"more bytes did not fit within {budget.wait_s:g} s; try again shortly",
+            slug="busy",
+            title="Service busy",
         )
+        retry_after = str(max(1, math.ceil(budget.wait_s)))
+        await _answer(send, scope, error.problem(scope.get("path")), {"Retry-After": retry_after})
 
 
 def _replay(body: bytearray, receive: Receive) -> Receive:
