@@ -18,7 +18,8 @@ its event loop was).
 ``--baseline REF`` (default ``main``; ``none`` to skip) measures the same on the code of git
 ``REF`` first: its tree is extracted (``git archive``) into a temporary directory, this file
 copied in, and the measurement run there as a child process, so both figures come from one run
-on the same machine.
+on the same machine. ``7edd34f`` is the code before the body bounds
+(:mod:`services.common.bodies`) and the off-loop image writes.
 """
 
 from __future__ import annotations
@@ -250,6 +251,17 @@ def _baseline(ref: str, target_kind: str, argv: list[str]) -> dict[str, Any]:
         return result
 
 
+def _commit(ref: str) -> str:
+    """``ref`` and the commit it names."""
+    commit = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", ref],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    return ref if ref == commit else f"{ref} {commit}"
+
+
 def _line(name: str, r: dict[str, Any]) -> str:
     normal = ", ".join(f"{k} {v}" for k, v in r["normal"].items())
     uploads = ", ".join(f"{k}: {v}" for k, v in r["uploads"].items())
@@ -257,7 +269,7 @@ def _line(name: str, r: dict[str, Any]) -> str:
     if r["target"] != "controller":
         controller = f"; controller peak {r['controller_peak_mib']:.0f} MiB"
     return (
-        f"  {name:<9} {r['target']} RSS {r['rss_before_mib']:.0f} -> peak "
+        f"  {name:<12} {r['target']} RSS {r['rss_before_mib']:.0f} -> peak "
         f"{r['rss_peak_mib']:.0f} MiB{controller}; uploads answered {{{uploads}}} in "
         f"{r['flood_s']:.1f} s; normal searches: {normal} (submit p50 "
         f"{r['normal_submit_p50_s']:.2f} s, max {r['normal_submit_max_s']:.2f} s); "
@@ -287,7 +299,7 @@ def main() -> None:
     )
     for kind in kinds:
         if args.baseline != "none":
-            print(_line(args.baseline, _baseline(args.baseline, kind, argv)), flush=True)
+            print(_line(_commit(args.baseline), _baseline(args.baseline, kind, argv)), flush=True)
         print(_line("this tree", measure(kind, args)), flush=True)
 
 
