@@ -263,7 +263,16 @@ def _commit(ref: str) -> str:
 
 
 def _line(name: str, r: dict[str, Any]) -> str:
-    normal = ", ".join(f"{k} {v}" for k, v in r["normal"].items())
+    outcomes = Counter(r["normal"])
+    refused = {k: v for k, v in outcomes.items() if k.startswith("refused")}
+    normal = (
+        f"{sum(outcomes.values())} submitted, refused {sum(refused.values())}, failed "
+        f"{outcomes['failed']}, succeeded {outcomes['succeeded']}"
+    )
+    if outcomes["unfinished"]:
+        normal += f", unfinished {outcomes['unfinished']}"
+    if refused:
+        normal += " (" + ", ".join(f"{k} {v}" for k, v in refused.items()) + ")"
     uploads = ", ".join(f"{k}: {v}" for k, v in r["uploads"].items())
     controller = ""
     if r["target"] != "controller":
