@@ -147,6 +147,7 @@ export function showSearch({ view, api }, id) {
   function redraw() {
     const n = iterations.length;
     slider.max = String(Math.max(0, n - 1));
+    slider.value = String(Math.max(0, current));
     slider.disabled = n < 2;
     if (search) showSummary();
     const estimate = estimateNow();
