@@ -18,6 +18,8 @@ const result = await build({
   bundle: true,
   minify: true,
   format: "esm",
+  splitting: true, // three.js in a chunk of its own, loaded after the first paint
+  chunkNames: "[name]-[hash]",
   target: ["es2022"],
   entryNames: "[name]-[hash]",
   outdir: assets,
@@ -28,7 +30,8 @@ const result = await build({
 
 const names = {};
 for (const [file, meta] of Object.entries(result.metafile.outputs)) {
-  if (meta.entryPoint) names[file.endsWith(".css") ? "style" : "app"] = basename(file);
+  if (meta.entryPoint?.endsWith("src/main.js")) names.app = basename(file);
+  if (meta.entryPoint?.endsWith("src/style.css")) names.style = basename(file);
 }
 let html = readFileSync(join(here, "src", "index.html"), "utf8");
 html = html.replace("{{app}}", `/assets/${names.app}`).replace("{{style}}", `/assets/${names.style}`);

@@ -1,7 +1,7 @@
 """Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots.
 
-Every route but ``/health`` (and the OpenAPI documents) wants an API key
-(``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
+Every route but ``/health`` (and the OpenAPI documents, and the web page's files, which hold no
+data) wants an API key (``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
 ``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays open for load balancers and container health
 checks; it tells counts and replica URLs, no search. A key sees and cancels its own searches only
 (another tenant's is a 404, as an unknown one, so ids do not leak); an admin key sees them all.

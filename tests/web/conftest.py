@@ -60,8 +60,11 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         yield running
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser(chromium: str):
+    """Chromium for one test module. Playwright's sync API runs an event loop in this thread
+    while it is open, and anyio's async tests cannot run beside it: it is closed with the
+    module that used it."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:

@@ -2,6 +2,9 @@
 // poses, the visited poses joined in order, the current pose looking at the centre, the estimate,
 // the start and the answer. Turn it with the mouse; a click on a grid pose picks it. It draws
 // only when something changed (no animation loop): a search streaming costs a frame per event.
+// One WebGL renderer serves every view of the page (its context and compiled shaders are made
+// once); a view takes its canvas. Loaded lazily (lazy-hemisphere.js): three.js is most of the
+// page's script and is not needed for the first paint.
 
 import {
   AmbientLight,
@@ -18,7 +21,6 @@ import {
   LineBasicMaterial,
   LineSegments,
   Mesh,
-  MeshBasicMaterial,
   MeshLambertMaterial,
   PerspectiveCamera,
   Points,
@@ -34,8 +36,37 @@ import { gridPoses, poseXYZ } from "./geometry.js";
 
 const COLOURS = { grid: 0x8b949e, path: 0x58a6ff, current: 0x58a6ff, start: 0x3fb950, estimate: 0xf0883e, answer: 0xff4d4f, picked: 0xd2a8ff };
 
-function marker(colour, size) {
-  return new Mesh(new SphereGeometry(size, 16, 12), new MeshBasicMaterial({ color: colour }));
+// Every material is Lambert, LineBasic or Points: the three shader programs the scene's first
+// frame compiles. A new kind of material would be compiled (synchronously, ~0.4 s without a
+// GPU) at the first frame that shows it: in the middle of a streaming search.
+const PATH = new LineBasicMaterial({ color: COLOURS.path });
+const RAY = new LineBasicMaterial({ color: 0x2f5f8f });
+const SIZE_PX = 512; // the drawing buffer's size, whatever the box (CSS scales it): set once
+const BALL = new SphereGeometry(1, 16, 12);
+const CUBE = new BoxGeometry(1, 1, 1);
+const MATERIALS = new Map();
+const basic = (colour) => {
+  if (!MATERIALS.has(colour)) {
+    MATERIALS.set(colour, new MeshLambertMaterial({ color: colour, emissive: colour, emissiveIntensity: 0.7 }));
+  }
+  return MATERIALS.get(colour);
+};
+
+function marker(colour, size, geometry = BALL) {
+  const mesh = new Mesh(geometry, basic(colour));
+  mesh.scale.setScalar(size);
+  return mesh;
+}
+
+let sharedRenderer = null;
+function webgl() {
+  if (!sharedRenderer) {
+    // no antialiasing: without a GPU (SwiftShader) multisampling costs more than the whole frame
+    sharedRenderer = new WebGLRenderer({ antialias: false, alpha: true, powerPreference: "low-power" });
+    sharedRenderer.setPixelRatio(1);
+    sharedRenderer.setSize(SIZE_PX, SIZE_PX, false);
+  }
+  return sharedRenderer;
 }
 
 export class Hemisphere {
@@ -44,13 +75,12 @@ export class Hemisphere {
     this.container = container;
     this.onPick = onPick;
     try {
-      this.renderer = new WebGLRenderer({ antialias: true, alpha: true });
+      this.renderer = webgl();
     } catch (error) {
       container.textContent = `The 3D view needs WebGL, which this browser does not offer (${error.message}).`;
       return;
     }
-    this.renderer.setPixelRatio(Math.min(2, window.devicePixelRatio || 1));
-    container.append(this.renderer.domElement);
+    container.append(this.renderer.domElement); // taken from the previous view, if any
     this.scene = new Scene();
     this.camera = new PerspectiveCamera(40, 1, 0.1, 200);
     this.camera.up.set(0, 0, 1);
@@ -67,10 +97,24 @@ export class Hemisphere {
     this.radius = 8;
     this.poses = [];
     this.frame = 0;
-    new ResizeObserver(() => this.resize()).observe(container);
-    this.renderer.domElement.addEventListener("pointerdown", (e) => (this.down = [e.clientX, e.clientY]));
-    this.renderer.domElement.addEventListener("pointerup", (e) => this.click(e));
+    this.resizing = new ResizeObserver(() => this.resize());
+    this.resizing.observe(container);
+    this.onDown = (e) => (this.down = [e.clientX, e.clientY]);
+    this.onUp = (e) => this.click(e);
+    this.renderer.domElement.addEventListener("pointerdown", this.onDown);
+    this.renderer.domElement.addEventListener("pointerup", this.onUp);
     this.resize();
+  }
+
+  /** Let go of the shared canvas (the next view takes it). */
+  dispose() {
+    if (!this.ok) return;
+    if (this.frame) cancelAnimationFrame(this.frame);
+    this.frame = -1; // draws nothing more
+    this.resizing.disconnect();
+    this.controls.dispose();
+    this.renderer.domElement.removeEventListener("pointerdown", this.onDown);
+    this.renderer.domElement.removeEventListener("pointerup", this.onUp);
   }
 
   get ok() {
@@ -78,11 +122,8 @@ export class Hemisphere {
   }
 
   resize() {
-    if (!this.ok) return;
-    const width = this.container.clientWidth || 400;
-    const height = this.container.clientHeight || width;
-    this.renderer.setSize(width, height, false);
-    this.camera.aspect = width / height;
+    if (!this.ok || this.frame === -1) return;
+    this.camera.aspect = 1; // the boxes are square (CSS), as is the drawing buffer
     this.camera.updateProjectionMatrix();
     this.draw();
   }
@@ -99,6 +140,7 @@ export class Hemisphere {
   /** The scene (`GET /scenes/{id}`): its ground, objects, camera radius and grid. */
   setScene(detail) {
     if (!this.ok) return;
+    this.world.traverse((object) => object.geometry?.dispose());
     this.world.clear();
     const spec = detail.spec;
     this.radius = spec.camera.radius;
@@ -167,20 +209,21 @@ export class Hemisphere {
    */
   setTrack({ visited = [], current = null, estimate = null, answer = null, start = null, picked = null }) {
     if (!this.ok) return;
+    for (const child of this.track.children) if (child.isLine) child.geometry.dispose();
     this.track.clear();
     const r = this.radius;
     if (visited.length > 1) {
       const path = new BufferGeometry();
       path.setAttribute("position", new Float32BufferAttribute(visited.flatMap((p) => poseXYZ(p, r * 1.005)), 3));
-      this.track.add(new Line(path, new LineBasicMaterial({ color: COLOURS.path })));
+      this.track.add(new Line(path, PATH));
     }
     for (const p of visited) this.place(marker(COLOURS.path, 0.09), p);
-    if (start) this.place(new Mesh(new BoxGeometry(0.32, 0.32, 0.32), new MeshBasicMaterial({ color: COLOURS.start })), start);
+    if (start) this.place(marker(COLOURS.start, 0.32, CUBE), start);
     if (current) {
       this.place(marker(COLOURS.current, 0.2), current);
       const ray = new BufferGeometry();
       ray.setAttribute("position", new Float32BufferAttribute([...poseXYZ(current, r), 0, 0, 0], 3));
-      this.track.add(new Line(ray, new LineBasicMaterial({ color: COLOURS.current, transparent: true, opacity: 0.5 })));
+      this.track.add(new Line(ray, RAY));
     }
     if (estimate) this.place(marker(COLOURS.estimate, 0.18), estimate);
     if (answer) this.place(marker(COLOURS.answer, 0.3), answer);

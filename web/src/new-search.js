@@ -4,7 +4,7 @@
 import { Problem, bitmap } from "./api.js";
 import { drawDetections } from "./draw.js";
 import { h, notice } from "./dom.js";
-import { Hemisphere } from "./hemisphere.js";
+import { lazyHemisphere } from "./lazy-hemisphere.js";
 
 const STRATEGIES = [
   ["reprojection", "reprojection (ours, default)"],
@@ -51,7 +51,7 @@ export function showNewSearch({ view, api }, params) {
     ),
   );
   view.replaceChildren(h("h2", { class: "title" }, "New search"), form);
-  const hemisphere = new Hemisphere(hemiBox, { onPick: (pose) => pickPose(pose) });
+  const hemisphere = lazyHemisphere(hemiBox, { onPick: (pose) => pickPose(pose) });
 
   function showTarget(image, text) {
     drawDetections(targetCanvas, image, [], null);
@@ -169,5 +169,8 @@ export function showNewSearch({ view, api }, params) {
     }
   });
 
-  return () => controller.abort();
+  return () => {
+    controller.abort();
+    hemisphere.dispose();
+  };
 }

@@ -6,7 +6,7 @@ import { bitmap, follow } from "./api.js";
 import { drawDetections, drawDistances } from "./draw.js";
 import { h, ms, notice, when } from "./dom.js";
 import { angularDistanceDeg, poseText } from "./geometry.js";
-import { Hemisphere } from "./hemisphere.js";
+import { lazyHemisphere } from "./lazy-hemisphere.js";
 
 const TERMINAL = new Set(["succeeded", "failed", "cancelled"]);
 
@@ -62,7 +62,7 @@ export function showSearch({ view, api }, id) {
   );
   drawDetections(targetCanvas, null, [], null, "loading the target…");
   drawDetections(viewCanvas, null, [], null, "no view yet");
-  const hemisphere = new Hemisphere(hemiBox);
+  const hemisphere = lazyHemisphere(hemiBox);
 
   function estimateNow() {
     if (search?.result) return search.result.refined_pose;
@@ -256,5 +256,8 @@ export function showSearch({ view, api }, id) {
     if (!TERMINAL.has(search.status)) live();
   })();
 
-  return () => controller.abort();
+  return () => {
+    controller.abort();
+    hemisphere.dispose();
+  };
 }
