@@ -254,3 +254,28 @@ def test_the_broker_panel_shows_every_replica_and_keeps_up(page, stack):
     while int(served.inner_text()) <= before and time.monotonic() < deadline:
         page.wait_for_timeout(200)
     assert int(served.inner_text()) > before
+
+
+def test_a_target_made_by_picking_a_pose_on_the_hemisphere_is_found(page, stack):
+    open_new_search(page, stack)
+    hemisphere = page.locator("#pick-hemisphere canvas")
+    hemisphere.wait_for()
+    box = hemisphere.bounding_box()
+    assert box is not None
+    info = page.locator("#target-info")
+    # click across the dome until a click lands on a grid pose (a point drawn on it)
+    for fy in np.linspace(0.12, 0.6, 13):
+        for fx in np.linspace(0.3, 0.7, 9):
+            page.mouse.click(box["x"] + fx * box["width"], box["y"] + fy * box["height"])
+            if info.inner_text().startswith(("Rendering", "Rendered")):
+                break
+        else:
+            continue
+        break
+    expect(info).to_have_text(re.compile(r"^Rendered at lat \d+, lon \d+"), timeout=60_000)
+    lat, lon = (int(v) for v in re.findall(r"lat (\d+), lon (\d+)", info.inner_text())[0])
+    assert colours(page.locator("#target-preview").screenshot()) > 50
+    page.click("#go")
+    page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
+    page.wait_for_selector("#status.succeeded", timeout=TIMEOUT_MS)
+    assert page.inner_text("#result").startswith(f"Found: lat {lat}, lon {lon} ")

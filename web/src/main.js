@@ -50,8 +50,13 @@ function route() {
   }
 }
 
-onKeyNeeded(askForKey);
-document.getElementById("key-button").addEventListener("click", () => askForKey().then(route));
-window.addEventListener("hashchange", route);
-watchBroker(document.getElementById("broker-body"), document.getElementById("broker-badge"));
-route();
+function start() {
+  onKeyNeeded(askForKey);
+  document.getElementById("key-button").addEventListener("click", () => askForKey().then(route));
+  window.addEventListener("hashchange", route);
+  watchBroker(document.getElementById("broker-body"), document.getElementById("broker-badge"));
+  route();
+}
+
+// The skeleton in index.html is painted first; the views are built in the task after that frame.
+requestAnimationFrame(() => setTimeout(start, 0));
