@@ -58,6 +58,18 @@ def submit(page, target_path, *, strategy: str, theta: str = "", phi: str = "", 
     page.fill("#max_iterations", cap)
 
 
+def changes(page, selector: str, before: bytes, timeout_s: float = 20.0) -> bool:
+    """Whether the element's pixels become other than ``before`` (drawing takes a frame or two,
+    and a view's image a request)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        now = page.locator(selector).screenshot()
+        if not np.array_equal(decoded(now), decoded(before)):
+            return True
+        page.wait_for_timeout(100)
+    return False
+
+
 def rows(page) -> int:
     return page.locator("#iterations tbody tr").count()
 
@@ -113,12 +125,8 @@ def test_a_full_search_is_watched_live_then_replayed(page, stack, tmp_path):
     page.locator("#replay").fill("0")
     expect(page.locator("#view-caption")).to_have_text(re.compile(r"^View 0:"))
     assert page.inner_text("#replay-label") == f"iteration 0 of {last}"
-    deadline = time.monotonic() + 20
-    while page.locator("#view-canvas").screenshot() == at_last and time.monotonic() < deadline:
-        page.wait_for_timeout(100)
-    at_first = page.locator("#view-canvas").screenshot()
-    assert not np.array_equal(decoded(at_first), decoded(at_last))
-    assert page.locator("#hemisphere canvas").screenshot() != hemisphere_at_last
+    assert changes(page, "#view-canvas", at_last)  # the first view, fetched and drawn
+    assert changes(page, "#hemisphere canvas", hemisphere_at_last)  # the path up to view 0
     assert page.locator("#iterations tbody tr.current").get_attribute("data-index") == "0"
 
 

@@ -31,7 +31,7 @@ export function showNewSearch({ view, api }, params) {
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
   const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
   const phi = h("input", { name: "start_phi_deg", id: "start_phi_deg", type: "number", step: "any", placeholder: "random" });
-  const maxIterations = h("input", { name: "max_iterations", id: "max_iterations", type: "number", min: 1, max: 500, placeholder: "controller's default" });
+  const maxIterations = h("input", { name: "max_iterations", id: "max_iterations", type: "number", min: 1, max: 500, placeholder: "default" });
   const go = h("button", { type: "submit", id: "go" }, "Search");
   const errors = h("div", { id: "form-errors", "aria-live": "polite" });
   const form = h(
