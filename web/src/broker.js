@@ -7,8 +7,8 @@ import { h } from "./dom.js";
 const EVERY_MS = 2000;
 
 function cell(value) {
-  if (value === true) return "up";
-  if (value === false) return "down";
+  if (value === true) return "yes";
+  if (value === false) return "no";
   if (typeof value === "number") return Number.isInteger(value) ? String(value) : value.toFixed(1);
   if (value && typeof value === "object") {
     const parts = Object.entries(value).map(([k, v]) => `${k} ${typeof v === "number" ? v.toFixed(0) : v} ms`);
@@ -17,7 +17,7 @@ function cell(value) {
   return value === null || value === undefined ? "—" : String(value);
 }
 
-const TITLES = { up: "state", in_flight: "in flight", reported_load: "load", expected_ms: "moving-average task time", served: "served", failed: "failed" };
+const TITLES = { in_flight: "in flight", reported_load: "load", expected_ms: "moving-average task time", served: "served", failed: "failed" };
 
 export function renderHealth(health) {
   const replicas = health.replicas || [];

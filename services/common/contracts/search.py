@@ -16,10 +16,10 @@ from services.common.geometry.pose import Pose
 __all__ = [
     "MAX_ITERATIONS",
     "OUTAGE",
+    "SEARCH_EVENTS",
     "ControllerHealth",
     "Iteration",
     "ReplicaHealth",
-    "SEARCH_EVENTS",
     "Search",
     "SearchOptions",
     "SearchPage",
