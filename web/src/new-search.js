@@ -22,9 +22,9 @@ export function showNewSearch({ view, api }, params) {
   const sceneSelect = h("select", { name: "scene", id: "scene", required: true });
   const sceneInfo = h("p", { class: "muted", id: "scene-info" }, "…");
   const sceneMessage = h("div", { id: "scene-message" });
-  const preview = h("canvas", { id: "preview", class: "image" });
+  const preview = h("canvas", { id: "preview", class: "image", role: "img", "aria-label": "The scene's preview" });
   const fileInput = h("input", { type: "file", id: "target-file", accept: "image/png,image/jpeg,image/x-portable-pixmap,.ppm" });
-  const targetCanvas = h("canvas", { id: "target-preview", class: "image" });
+  const targetCanvas = h("canvas", { id: "target-preview", class: "image", role: "img", "aria-label": "The target image" });
   const targetInfo = h("p", { class: "muted", id: "target-info" }, "No target yet: drop an image here, choose a file, or click a pose on the hemisphere.");
   const drop = h("div", { class: "drop", id: "drop" }, targetCanvas, targetInfo, h("label", { class: "button" }, "Choose an image…", fileInput));
   const hemiBox = h("div", { class: "hemisphere small", id: "pick-hemisphere" });

@@ -25,13 +25,13 @@ export function showSearch({ view, api }, id) {
   const status = h("span", { class: "badge", id: "status" }, "…");
   const summary = h("div", { id: "summary", class: "summary" });
   const cancel = h("button", { type: "button", id: "cancel", class: "danger", hidden: true }, "Cancel");
-  const targetCanvas = h("canvas", { id: "target-canvas", class: "image" });
-  const viewCanvas = h("canvas", { id: "view-canvas", class: "image" });
+  const targetCanvas = h("canvas", { id: "target-canvas", class: "image", role: "img", "aria-label": "The target image with its detections" });
+  const viewCanvas = h("canvas", { id: "view-canvas", class: "image", role: "img", "aria-label": "The current view with its detections" });
   const viewCaption = h("figcaption", { id: "view-caption" }, "Current view");
   const slider = h("input", { type: "range", id: "replay", min: 0, max: 0, value: 0, step: 1, disabled: true, "aria-label": "Iteration" });
   const sliderLabel = h("span", { id: "replay-label", class: "muted" }, "no iteration yet");
-  const hemiBox = h("div", { class: "hemisphere", id: "hemisphere" });
-  const plot = h("canvas", { id: "distance-plot", class: "plot" });
+  const hemiBox = h("div", { class: "hemisphere", id: "hemisphere", role: "img", "aria-label": "The hemisphere of camera poses in 3D" });
+  const plot = h("canvas", { id: "distance-plot", class: "plot", role: "img", "aria-label": "Angle to the estimate per iteration" });
   const rows = h("tbody", {});
   const table = h(
     "table",
