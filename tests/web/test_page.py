@@ -130,47 +130,6 @@ def test_a_full_search_is_watched_live_then_replayed(page, stack, tmp_path):
     assert page.locator("#iterations tbody tr.current").get_attribute("data-index") == "0"
 
 
-def test_past_searches_are_listed_a_page_at_a_time_and_open_as_a_replay(page, stack):
-    blank = cv2.imencode(".png", np.full((240, 320, 3), 128, np.uint8))[1].tobytes()
-    with api(stack) as http:
-        total = http.get("/searches", params={"limit": 1}).json()["total"]
-        for _ in range(max(0, 16 - total)):  # more than one page (15 a page)
-            assert (
-                http.post(
-                    "/searches?scene=demo", content=blank, headers={"Content-Type": "image/png"}
-                ).status_code
-                == 202
-            )
-        listing = http.get("/searches", params={"limit": 200}).json()
-    page.goto(f"{stack.controller}/#/searches")
-    page.wait_for_selector("#searches tbody tr")
-    assert page.locator("#searches tbody tr").count() == 15
-    assert f"of {listing['total']}" in page.inner_text(".pager")
-    newest = listing["items"][0]
-    first_row = page.locator("#searches tbody tr").first.locator("td").all_inner_texts()
-    assert first_row[0] == newest["id"][:12]
-    assert first_row[2:4] == [newest["scene"], newest["strategy"]]
-    page.click("#older")
-    page.wait_for_url(re.compile(r"page=2$"))
-    expect(page.locator("#searches tbody tr")).to_have_count(min(15, listing["total"] - 15))
-    page.click("#newer")
-    page.wait_for_selector("#searches tbody tr >> nth=14")
-    # the newest succeeded search opens as a replay
-    succeeded = next(s for s in listing["items"] if s["status"] == "succeeded")
-    page.goto(f"{stack.controller}/#/searches/{succeeded['id']}")
-    page.wait_for_selector("#status.succeeded")
-    page.wait_for_selector("#result")
-    expect(page.locator("#view-caption")).to_have_text(re.compile(r"^View \d+:"))
-    if page.locator("#iterations tbody tr").count() > 1:
-        page.locator("#replay").fill("1")
-        expect(page.locator("#view-caption")).to_have_text(re.compile(r"^View 1:"))
-    page.wait_for_timeout(500)
-    shoot(page, "past-search")
-    page.goto(f"{stack.controller}/#/searches")
-    page.wait_for_selector("#searches tbody tr")
-    shoot(page, "past-searches")
-
-
 def test_a_garbage_upload_shows_the_problem_detail_and_names_the_field(page, stack, tmp_path):
     garbage = tmp_path / "garbage.png"
     garbage.write_bytes(b"this is no image at all, just words" * 10)
@@ -287,3 +246,55 @@ def test_a_target_made_by_picking_a_pose_on_the_hemisphere_is_found(page, stack)
     page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
     page.wait_for_selector("#status.succeeded", timeout=TIMEOUT_MS)
     assert page.inner_text("#result").startswith(f"Found: lat {lat}, lon {lon} ")
+
+
+def test_past_searches_are_listed_a_page_at_a_time_and_open_as_a_replay(page, stack):
+    """Last of this module: the searches of the tests above (succeeded, failed, cancelled), and
+    as many more as it takes for a search that succeeded and two pages of three."""
+    with api(stack) as http:
+        listing = http.get("/searches", params={"limit": 200}).json()
+        if not any(s["status"] == "succeeded" for s in listing["items"]):
+            target = render_png(stack, "demo", 5, 20)
+            http.post("/searches?scene=demo", content=target, headers={"Content-Type": "image/png"})
+        blank = cv2.imencode(".png", np.full((240, 320, 3), 128, np.uint8))[1].tobytes()
+        for _ in range(4 - listing["total"]):  # nothing to search for in these: they fail at once
+            http.post("/searches?scene=demo", content=blank, headers={"Content-Type": "image/png"})
+        deadline = time.monotonic() + 120
+        while True:  # every search finished: the list does not change under the test
+            listing = http.get("/searches", params={"limit": 200}).json()
+            if all(s["status"] in {"succeeded", "failed", "cancelled"} for s in listing["items"]):
+                break
+            assert time.monotonic() < deadline, listing
+            time.sleep(0.5)
+    total = listing["total"]
+    page.goto(f"{stack.controller}/#/searches?per=3")
+    expect(page.locator("#searches tbody tr")).to_have_count(3)
+    assert f"1–3 of {total} (page 1 of {-(-total // 3)})" in page.inner_text(".pager")
+    newest = listing["items"][0]
+    first_row = page.locator("#searches tbody tr").first.locator("td").all_inner_texts()
+    assert first_row[0] == newest["id"][:12]
+    assert first_row[1:4] == [newest["status"], newest["scene"], newest["strategy"]]
+    assert first_row[4] == (str(newest["result"]["renders"]) if newest["result"] else "—")
+    page.click("#older")
+    page.wait_for_url(re.compile(r"page=2&per=3$"))
+    expect(page.locator("#searches tbody tr")).to_have_count(min(3, total - 3))
+    second_page = page.locator("#searches tbody tr td:first-child").all_inner_texts()
+    assert second_page == [s["id"][:12] for s in listing["items"][3:6]]
+    page.click("#newer")
+    expect(page.locator("#searches tbody tr")).to_have_count(3)
+    page.goto(f"{stack.controller}/#/searches")
+    expect(page.locator("#searches tbody tr")).to_have_count(min(15, total))
+    shoot(page, "past-searches")
+
+    # the succeeded search with the most renders opens as a replay, its slider on a middle step
+    succeeded = [s for s in listing["items"] if s["status"] == "succeeded"]
+    longest = max(succeeded, key=lambda s: s["result"]["renders"])
+    page.locator(f"#searches a[href='#/searches/{longest['id']}']").click()
+    page.wait_for_selector("#status.succeeded")
+    page.wait_for_selector("#result")
+    expect(page.locator("#view-caption")).to_have_text(re.compile(r"^View \d+:"))
+    middle = longest["result"]["renders"] // 2
+    page.locator("#replay").fill(str(middle))
+    expect(page.locator("#view-caption")).to_have_text(re.compile(rf"^View {middle}:"))
+    page.wait_for_timeout(500)
+    shoot(page, "past-search")

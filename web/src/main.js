@@ -43,7 +43,7 @@ function route() {
   const context = { view, api };
   try {
     if (parts[0] === "searches" && parts[1]) leave = showSearch(context, decodeURIComponent(parts[1]));
-    else if (parts[0] === "searches") leave = showSearchList(context, Number(params.get("page") || 1));
+    else if (parts[0] === "searches") leave = showSearchList(context, Number(params.get("page") || 1), Number(params.get("per") || 15));
     else leave = showNewSearch(context, params);
   } catch (error) {
     view.replaceChildren(notice(`The page failed: ${error.message}`, "error"));
