@@ -16,9 +16,10 @@ driven by Playwright; ``scripts/bootstrap.sh`` installs it). The browser's own
   The search walks the ``simple`` strategy from far away, so many iterations stream in.
 
 For scale, a one-line static page's first paint and frame gaps are printed, idle and while the
-same search runs over the API: headless Chromium without a GPU, on a 2-core machine whose cores
-the renderer, detector and optimizer share while a search runs, takes a good part of the paint
-budget for any page and misses frames by itself; a long task is what the page's own script costs.
+same search runs over the API. A long task is what the page's own script costs; a frame gap with
+no long task is paint work (raster and compositing, in software without a GPU) waiting for a core
+while the renderer takes both to render the search's next view: the static page, with nothing to
+paint, keeps its frames meanwhile.
 """
 
 from __future__ import annotations
@@ -262,8 +263,7 @@ def main() -> None:
             )
             print(
                 f"  (the static page idle, for scale: longest frame gap {blank_gap:.1f} ms, "
-                f"median {blank_median:.1f} ms: gaps with no long task are the machine's, not "
-                "the page's)"
+                f"median {blank_median:.1f} ms)"
             )
             browser.close()
 

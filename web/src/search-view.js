@@ -21,6 +21,7 @@ export function showSearch({ view, api }, id) {
   let current = -1;
   let following = true; // the slider stays on the newest iteration
   let pending = 0;
+  let targetDrawn = [];
 
   const status = h("span", { class: "badge", id: "status" }, "…");
   const summary = h("div", { id: "summary", class: "summary" });
@@ -164,7 +165,12 @@ export function showSearch({ view, api }, id) {
       answer: search?.result && current === n - 1 ? search.result.refined_pose : null,
       start: search?.start || null,
     });
-    if (target !== undefined) drawDetections(targetCanvas, target, search?.target_detections || [], search?.target_size);
+    // the target changes twice at most (its image, its detections): not redrawn per iteration
+    const targetNow = [target, search?.target_detections];
+    if (target !== undefined && (targetNow[0] !== targetDrawn[0] || targetNow[1] !== targetDrawn[1])) {
+      drawDetections(targetCanvas, target, search?.target_detections || [], search?.target_size);
+      targetDrawn = targetNow;
+    }
     if (!it) return;
     viewCaption.textContent = `View ${it.index}: ${poseText(it.pose)}, ${it.detections.length} detections${it.match ? `, match ${it.match.score.toFixed(2)}` : ""}`;
     const shown = current;
