@@ -22,6 +22,21 @@ if ! have_libllvm; then
   fi
 fi
 
+# Debian's Chromium for the page's browser tests (tests/web: Playwright drives /usr/bin/chromium;
+# no browser is downloaded). Without it those tests skip, except on CI, where they fail.
+if [[ ! -x /usr/bin/chromium ]]; then
+  if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
+    echo "bootstrap: installing chromium for the page's browser tests"
+    if ! (DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 \
+          || { apt-get update -qq >/dev/null 2>&1 \
+               && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1; }); then
+      echo "bootstrap: could not install chromium; the browser tests (tests/web) cannot run" >&2
+    fi
+  else
+    echo "bootstrap: no /usr/bin/chromium and no way to install it; the browser tests will skip" >&2
+  fi
+fi
+
 PYTHON=${PYTHON:-python3}
 if [[ ! -x .venv/bin/python ]]; then
   "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \

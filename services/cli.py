@@ -327,6 +327,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
         plan, Path(args.logs), host=args.host, api_key=api_key, supervise=True, say=_say
     ) as stack:
         print(f"controller  {stack.controller}")
+        print(f"page        {stack.controller}/ (open it in a browser; it asks for the key once)")
         print(f"API key     {stack.api_key or 'none'} (admin; {where})")
         for name, urls in (
             ("renderer", stack.renderers),

@@ -1,7 +1,7 @@
 """Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots.
 
-Every route but ``/health`` (and the OpenAPI documents) wants an API key
-(``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
+Every route but ``/health`` (and the OpenAPI documents, and the web page's files, which hold no
+data) wants an API key (``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
 ``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays open for load balancers and container health
 checks; it tells counts and replica URLs, no search. A key sees and cancels its own searches only
 (another tenant's is a 404, as an unknown one, so ids do not leak); an admin key sees them all.
@@ -17,13 +17,20 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
+from fastapi import Path as FastApiPath
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from services.common.contracts.base import MAX_SAFE_INTEGER
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
-from services.common.contracts.render import SceneSummary
-from services.common.contracts.search import TERMINAL_STATUSES, ControllerHealth, Search, SearchPage
+from services.common.contracts.render import SceneDetail, SceneSummary
+from services.common.contracts.search import (
+    MAX_ITERATIONS,
+    TERMINAL_STATUSES,
+    ControllerHealth,
+    Search,
+    SearchPage,
+)
 from services.common.errors import (
     ConflictError,
     NotFoundError,
@@ -32,12 +39,21 @@ from services.common.errors import (
     UnprocessableError,
 )
 from services.common.geometry.grid import GridSpec
+from services.common.geometry.pose import GridIndex
 from services.common.http import app_state, problem_responses
 from services.common.upload import read_upload
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
 from services.controller.form import OPENAPI, search_options
 from services.controller.keys import ApiKey, KeyStore
+from services.controller.page import (
+    INDEX,
+    SECURITY_HEADERS,
+    Asset,
+    PageAssets,
+    accepts_gzip,
+    not_modified,
+)
 from services.controller.plots import PlotCache, distance_png, trajectory_png
 from services.controller.quotas import Quotas
 from services.controller.runner import SearchRunner
@@ -46,6 +62,7 @@ from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
 from services.controller.submit import INLINE_WRITE_BYTES, create_search
 from services.controller.transport import StageRequest
+from services.controller.views import UnknownIteration, ViewStore, displayable, iteration_pose
 
 __all__ = ["ControllerState", "router"]
 
@@ -66,7 +83,9 @@ class ControllerState:
     notifier: Notifier
     keys: KeyStore
     quotas: Quotas
+    views: ViewStore
     plots: PlotCache = field(default_factory=PlotCache)
+    page: PageAssets = field(default_factory=PageAssets)
 
 
 State = Annotated[ControllerState, Depends(app_state("controller"))]
@@ -307,18 +326,26 @@ def _sse(event: str, data: str) -> bytes:
     responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(401, 404)},
 )
 async def search_events(search_id: str, state: State, key: Caller) -> StreamingResponse:
-    """Server-sent events: ``iteration`` for each recorded iteration, then one ``end`` with the
-    search without its iterations. The stored JSON documents are sent as they are."""
+    """Server-sent events (:data:`~services.common.contracts.search.SEARCH_EVENTS`): while the
+    search is queued or running, ``search`` with the search without its iterations whenever it
+    changed (its status, its target's detections); ``iteration`` for each recorded iteration;
+    then one ``end`` with the search without its iterations. The stored JSON documents are sent
+    as they are."""
     if state.store.status_doc(search_id, visible_to=_visible_to(key)) is None:
         raise _unknown_search(search_id)
 
     async def stream() -> AsyncIterator[bytes]:
         sent = 0
+        last_doc = ""
         with state.notifier.following(search_id):  # a client that goes away stops following
             while True:
                 changed = state.notifier.current(search_id)
                 # The status before the iterations: a search ends after its last one.
                 status_doc = state.store.status_doc(search_id)
+                if status_doc is not None and status_doc[0] not in TERMINAL_STATUSES:
+                    if status_doc[1] != last_doc:
+                        last_doc = status_doc[1]
+                        yield _sse("search", last_doc)
                 docs = state.store.iteration_docs(search_id, start=sent)
                 for doc in docs:
                     yield _sse("iteration", doc)
@@ -383,3 +410,144 @@ async def distance(search_id: str, state: State, key: Caller) -> Response:
         return await asyncio.to_thread(distance_png, search)
 
     return Response(await state.plots.png(search, "distance", draw), media_type="image/png")
+
+
+def _stage_refusal(exc: StageError, field: str) -> NotFoundError | UnprocessableError:
+    """A renderer's refusal as the page's problem: an unknown scene is a 404, anything else
+    (a grid pose off the grid) a 422 naming the renderer's field."""
+    detail = exc.problem.detail or exc.problem.title
+    if exc.problem.status == 404:
+        return NotFoundError(detail, field=field, slug="unknown-scene", title="Unknown scene")
+    return UnprocessableError(detail, field=exc.problem.field or field)
+
+
+_PNG_ANSWER: dict[int | str, dict[str, Any]] = {200: {"content": {"image/png": {}}}}
+
+
+@router.get(
+    "/scenes/{scene_id}",
+    response_model=SceneDetail,
+    responses=problem_responses(401, 404, 503),
+    dependencies=[Depends(_caller)],
+)
+async def scene(scene_id: str, state: State) -> SceneDetail:
+    """A scene's spec and its hemisphere grid with its rings (the page draws them)."""
+    try:
+        return await state.stages.scene(scene_id)
+    except BrokerError as exc:
+        raise _unavailable(exc.stage, exc) from exc
+    except StageError as exc:
+        raise _stage_refusal(exc, "scene_id") from exc
+
+
+@router.get(
+    "/scenes/{scene_id}/view.png",
+    response_class=Response,
+    responses={**_PNG_ANSWER, **problem_responses(401, 404, 422, 503)},
+    dependencies=[Depends(_caller)],
+)
+async def scene_view(
+    scene_id: str,
+    state: State,
+    lat: Annotated[int, Query(ge=0, le=MAX_SAFE_INTEGER, description="Ring of the grid pose.")],
+    lon: Annotated[int, Query(ge=0, le=MAX_SAFE_INTEGER, description="Pose on the ring.")],
+) -> Response:
+    """The scene seen from grid pose (``lat``, ``lon``), rendered as a search's views are (the
+    page's scene preview, and a target made by picking a pose)."""
+    try:
+        png = await state.views.png(scene_id, GridIndex(lat=lat, lon=lon))
+    except BrokerError as exc:
+        raise _unavailable(exc.stage, exc) from exc
+    except StageError as exc:
+        raise _stage_refusal(exc, "scene_id") from exc
+    return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
+
+
+@router.get(
+    "/searches/{search_id}/target",
+    response_class=Response,
+    responses={
+        200: {"content": {"image/png": {}, "image/jpeg": {}}},
+        **problem_responses(401, 404),
+    },
+)
+async def search_target(search_id: str, state: State, key: Caller) -> Response:
+    """The search's target image as uploaded (a PPM as PNG); 404 once it is no longer held
+    (a failed search's is deleted when it fails)."""
+    _search_or_404(state, key, search_id)
+    try:
+        image = state.store.image(search_id)
+    except KeyError:
+        raise NotFoundError(
+            f"search {search_id} no longer holds its target image (a failed search's is deleted)",
+            field="id",
+            slug="target-gone",
+            title="Target image gone",
+        ) from None
+    body, media_type = await asyncio.to_thread(displayable, image)
+    return Response(body, media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
+
+
+@router.get(
+    "/searches/{search_id}/iterations/{index}/view.png",
+    response_class=Response,
+    responses={**_PNG_ANSWER, **problem_responses(401, 404, 422, 503)},
+)
+async def iteration_view(
+    search_id: str,
+    index: Annotated[int, FastApiPath(ge=0, le=MAX_ITERATIONS, description="Iteration index.")],
+    state: State,
+    key: Caller,
+) -> Response:
+    """The view the search rendered at iteration ``index``: kept from the search, or rendered
+    again, identically (the same scene, grid pose, film and samples, and the renderer's fixed
+    seed). 404 for an iteration not recorded (yet)."""
+    search = _search_or_404(state, key, search_id)
+    try:
+        pose = iteration_pose(search, index)
+        png = await state.views.png(search.scene, pose)
+    except UnknownIteration as exc:
+        raise NotFoundError(
+            str(exc), field="index", slug="unknown-iteration", title="Unknown iteration"
+        ) from exc
+    except BrokerError as exc:
+        raise _unavailable(exc.stage, exc) from exc
+    except StageError as exc:  # the scene file changed or went away since the search
+        raise _stage_refusal(exc, "scene") from exc
+    return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
+
+
+def _file(request: Request, asset: Asset) -> Response:
+    """``asset`` for ``request``: 304 when the client holds it, gzipped when it accepts that."""
+    gzip_ok = accepts_gzip(request.headers.get("accept-encoding", ""))
+    headers = {**asset.headers(gzip_ok=gzip_ok), **SECURITY_HEADERS}
+    if not_modified(asset, request.headers.get("if-none-match", "")):
+        headers.pop("Content-Encoding", None)
+        return Response(status_code=304, headers=headers)
+    body = asset.gzipped if gzip_ok and asset.gzipped is not None else asset.body
+    return Response(body, media_type=asset.media_type, headers=headers)
+
+
+def _page_missing(what: str) -> NotFoundError:
+    return NotFoundError(
+        f"{what} is not built: run `npm ci && npm run build` in web/",
+        slug="page-not-built",
+        title="Page not built",
+    )
+
+
+@router.get("/", response_class=Response, include_in_schema=False)
+async def page(request: Request, state: State) -> Response:
+    """The web page (no key needed to load it: it asks for one and sends it with its calls)."""
+    if state.page.index is None:
+        raise _page_missing(INDEX)
+    return _file(request, state.page.index)
+
+
+@router.get("/assets/{name}", response_class=Response, include_in_schema=False)
+async def page_asset(name: str, request: Request, state: State) -> Response:
+    """A file of the web page (its name carries a hash of its content: cached for good)."""
+    asset = state.page.asset(name)
+    if asset is None:
+        raise NotFoundError(f"no page asset {name!r}", field="name", slug="unknown-asset")
+    return _file(request, asset)

@@ -27,6 +27,7 @@ from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
 from services.controller.store import SearchStore, utcnow
 from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
+from services.controller.views import ViewStore
 from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
@@ -95,6 +96,8 @@ def create_app(
             render_spp=settings.controller_view_spp,
             render_width=settings.controller_view_width,
         )
+        views = ViewStore(stages.render)
+        stages.on_render = views.remember  # the page shows the views the searches rendered
         notifier = Notifier()
         runner = SearchRunner(
             store,
@@ -112,7 +115,7 @@ def create_app(
         await runner.start()
         expiry = asyncio.create_task(_expire(store, settings))
         app.state.controller = ControllerState(
-            settings, store, broker, stages, runner, notifier, keys, quotas
+            settings, store, broker, stages, runner, notifier, keys, quotas, views
         )
         app.state.readiness = ControllerReadiness(store, broker, to_stages)
         try:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlencode
 
@@ -55,6 +56,8 @@ class Stages:
         self.render_width = render_width
         self._scenes: dict[str, SceneDetail] = {}
         self._early: dict[tuple[str, str, int, int], asyncio.Task[bytes]] = {}
+        self.on_render: Callable[[str, GridIndex, bytes], None] | None = None
+        """Told of every view rendered (the page shows them: :mod:`services.controller.views`)."""
 
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
         """The scene's spec and grid from a renderer (cached: scenes are static)."""
@@ -97,7 +100,10 @@ class Stages:
             body["width"] = self.render_width
         headers = {"X-Request-ID": request_id, "Accept": f"{PPM_MEDIA_TYPE}, image/png;q=0.5"}
         request = StageRequest.json("/render", json.dumps(body), headers)
-        return (await self._call("renderer", "render", request)).content
+        image = (await self._call("renderer", "render", request)).content
+        if self.on_render is not None:
+            self.on_render(scene_id, index, image)
+        return image
 
     async def detect(
         self, image: bytes, media_type: str, request_id: str = "", *, scene: str | None = None

@@ -146,7 +146,7 @@ async def test_the_openapi_schema_declares_the_bearer_scheme_on_the_protected_ro
     for key in open_routes:
         assert operations[key].get("security") is None, key
     protected = {key for key in operations if key not in open_routes}
-    assert len(protected) == 9  # with POST /searches/{id}/retry
+    assert len(protected) == 13  # with POST /searches/{id}/retry and the page's views
     for key in protected:
         assert operations[key]["security"] == [{"ApiKey": []}], key
         assert "401" in operations[key]["responses"], key

@@ -16,6 +16,7 @@ from services.common.geometry.pose import Pose
 __all__ = [
     "MAX_ITERATIONS",
     "OUTAGE",
+    "SEARCH_EVENTS",
     "ControllerHealth",
     "Iteration",
     "ReplicaHealth",
@@ -145,6 +146,17 @@ class Search(FrozenModel):
     iterations: tuple[Iteration, ...] = ()
     result: SearchResult | None = None
     error: ProblemDetails | None = None
+
+
+SEARCH_EVENTS: Final[dict[str, type[FrozenModel]]] = {
+    "search": Search,
+    "iteration": Iteration,
+    "end": Search,
+}
+"""What each server-sent event of ``GET /searches/{id}/events`` carries as its data: ``search``,
+the search without its iterations whenever it changed while queued or running (its status, its
+target's detections); ``iteration``, each recorded iteration in order; ``end``, once, the
+finished search without its iterations."""
 
 
 class SearchPage(FrozenModel):

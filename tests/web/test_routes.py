@@ -1,0 +1,157 @@
+"""The controller's routes for the page, over HTTP against the real stack: the page's files with
+their media types and cache headers, a rendered view of any iteration (kept or rendered again,
+the same pixels either way), the target image, any grid pose of a scene, and the ``search``
+events a live page follows."""
+
+from __future__ import annotations
+
+import gzip
+import re
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from services.common.images import encode_ppm
+from services.controller.client import ControllerClient
+from services.controller.settings import ControllerSettings
+from tests.web.conftest import api, render_png
+
+pytestmark = pytest.mark.slow
+
+
+def pixels(png: bytes) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None
+    return image
+
+
+def finished_search(stack, png: bytes, **options):
+    with ControllerClient(stack.controller, api_key=stack.api_key) as client:
+        search = client.submit(png, "demo", **options)
+        for _ in client.follow(search.id, timeout_s=120):
+            pass
+        return client.get(search.id)
+
+
+def test_the_page_is_served_with_its_media_types_and_cache_headers(stack):
+    index = httpx.get(f"{stack.controller}/", headers={"Accept-Encoding": "identity"})
+    assert index.status_code == 200  # no key: the page asks for one
+    assert index.headers["content-type"] == "text/html; charset=utf-8"
+    assert index.headers["cache-control"] == "no-cache"
+    assert "script-src 'self'" in index.headers["content-security-policy"]
+    assert index.headers["x-content-type-options"] == "nosniff"
+    again = httpx.get(f"{stack.controller}/", headers={"If-None-Match": index.headers["etag"]})
+    assert again.status_code == 304
+    assert again.content == b""
+
+    assets = re.findall(r'(?:src|href)="(/assets/[^"]+)"', index.text)
+    assert {a.rsplit(".", 1)[1] for a in assets} == {"js", "css"}
+    for path in assets:
+        plain = httpx.get(f"{stack.controller}{path}", headers={"Accept-Encoding": "identity"})
+        assert plain.status_code == 200
+        assert plain.headers["cache-control"] == "public, max-age=31536000, immutable"
+        media = "text/javascript" if path.endswith(".js") else "text/css"
+        assert plain.headers["content-type"] == f"{media}; charset=utf-8"
+        assert "content-encoding" not in plain.headers
+        zipped = httpx.get(f"{stack.controller}{path}", headers={"Accept-Encoding": "gzip"})
+        assert zipped.headers["content-encoding"] == "gzip"
+        assert zipped.content == plain.content  # httpx inflates it
+        assert int(zipped.headers["content-length"]) < len(plain.content)
+        assert gzip.decompress(gzip.compress(plain.content)) == plain.content
+    # the app loads three.js as a chunk of its own, after the first paint; nothing from elsewhere
+    js = next(a for a in assets if a.endswith(".js"))
+    app = httpx.get(f"{stack.controller}{js}").text
+    chunks = set(re.findall(r"\./([\w-]+\.js)", app))
+    assert any(c.startswith("hemisphere-") for c in chunks), chunks
+    code = app + "".join(httpx.get(f"{stack.controller}/assets/{c}").text for c in chunks)
+    assert "WebGLRenderer" in code
+    assert not re.search(r"""(?:import|from|src=|url\()\s*["']?https?://""", code)
+
+    missing = httpx.get(f"{stack.controller}/assets/nope.js")
+    assert missing.status_code == 404
+    assert missing.headers["content-type"] == "application/problem+json"
+
+
+def test_an_iterations_view_is_the_view_the_search_rendered(stack):
+    target = render_png(stack, "demo", 4, 10)
+    final = finished_search(stack, target, start_theta_deg=60, start_phi_deg=0, seed=1)
+    assert final.status == "succeeded", final.error
+    spp = ControllerSettings.model_fields["controller_view_spp"].default
+    with api(stack) as http:
+        for it in final.iterations:
+            view = http.get(f"/searches/{final.id}/iterations/{it.index}/view.png")
+            assert view.status_code == 200, view.text
+            assert view.headers["content-type"] == "image/png"
+            # the renderer's own answer for that pose, with the controller's view settings
+            direct = render_png(stack, "demo", it.pose.index.lat, it.pose.index.lon, spp=spp)
+            assert np.array_equal(pixels(view.content), pixels(direct))
+            assert pixels(view.content).shape[1::-1] == tuple(it.image_size)
+        beyond = http.get(f"/searches/{final.id}/iterations/{len(final.iterations)}/view.png")
+        assert beyond.status_code == 404
+        assert beyond.json()["field"] == "index"
+        assert http.get("/searches/nope/iterations/0/view.png").status_code == 404
+        assert http.get(f"/searches/{final.id}/target").content == target  # a PNG as it came
+    refused = httpx.get(f"{stack.controller}/searches/{final.id}/iterations/0/view.png")
+    assert refused.status_code == 401
+
+
+def test_a_view_not_kept_is_rendered_again_identically(stack):
+    """Two poses no search visited: rendered on demand, twice the same pixels, and equal to the
+    renderer's answer (the view store keeps few views, so a replay renders them again)."""
+    spp = ControllerSettings.model_fields["controller_view_spp"].default
+    with api(stack) as http:
+        first = http.get("/scenes/demo/view.png", params={"lat": 9, "lon": 3})
+        assert first.status_code == 200, first.text
+        direct = render_png(stack, "demo", 9, 3, spp=spp)
+        assert np.array_equal(pixels(first.content), pixels(direct))
+        second = http.get("/scenes/demo/view.png", params={"lat": 9, "lon": 3})
+        assert second.content == first.content
+        off_grid = http.get("/scenes/demo/view.png", params={"lat": 99, "lon": 0})
+        assert off_grid.status_code == 422, off_grid.text
+        assert off_grid.headers["content-type"] == "application/problem+json"
+        unknown = http.get("/scenes/nowhere/view.png", params={"lat": 0, "lon": 0})
+        assert unknown.status_code == 404
+        assert "nowhere" in unknown.json()["detail"]
+        detail = http.get("/scenes/demo").json()
+        assert detail["grid"]["size"] == sum(ring["count"] for ring in detail["grid"]["rings"])
+        assert http.get("/scenes/nowhere").status_code == 404
+
+
+def test_a_ppm_target_is_shown_as_png(stack):
+    png = render_png(stack, "demo", 5, 20)
+    rgb = np.ascontiguousarray(pixels(png)[..., ::-1])
+    final = finished_search(stack, encode_ppm(rgb), seed=4)
+    with api(stack) as http:
+        shown = http.get(f"/searches/{final.id}/target")
+    assert shown.headers["content-type"] == "image/png"
+    assert np.array_equal(pixels(shown.content), pixels(png))
+
+
+def test_the_openapi_schema_documents_the_view_routes(stack):
+    paths = httpx.get(f"{stack.controller}/openapi.json").json()["paths"]
+    view = paths["/searches/{search_id}/iterations/{index}/view.png"]["get"]
+    assert "image/png" in view["responses"]["200"]["content"]
+    assert {"401", "404", "503"} <= view["responses"].keys()
+    assert view["security"] == [{"ApiKey": []}]
+    assert "image/png" in paths["/scenes/{scene_id}/view.png"]["get"]["responses"]["200"]["content"]
+    assert "/searches/{search_id}/target" in paths
+    assert "/" not in paths
+    assert not any(p.startswith("/assets") for p in paths)
+
+
+def test_a_live_search_announces_its_changes_before_it_ends(stack):
+    target = render_png(stack, "demo", 3, 7)
+    with ControllerClient(stack.controller, api_key=stack.api_key) as client:
+        search = client.submit(
+            target, "demo", strategy="simple", start_theta_deg=75, start_phi_deg=0, seed=2
+        )
+    with api(stack) as http:
+        events = http.get(f"/searches/{search.id}/events", timeout=120).text
+        finished = http.get(f"/searches/{search.id}/events").text
+    names = re.findall(r"^event: (\w+)$", events, re.MULTILINE)
+    assert names[0] == "search", names
+    assert names[-1] == "end", names
+    assert names.count("end") == 1
+    assert "search" not in re.findall(r"^event: (\w+)$", finished, re.MULTILINE)

@@ -1,0 +1,75 @@
+// The broker at a glance: GET /health every few seconds (while the page is visible), each
+// replica's fields as /health reports them, whatever they are.
+
+import { Problem } from "./api.js";
+import { h } from "./dom.js";
+
+const EVERY_MS = 2000;
+
+function cell(value) {
+  if (value === true) return "yes";
+  if (value === false) return "no";
+  if (typeof value === "number") return Number.isInteger(value) ? String(value) : value.toFixed(1);
+  if (value && typeof value === "object") {
+    const parts = Object.entries(value).map(([k, v]) => `${k} ${typeof v === "number" ? v.toFixed(0) : v} ms`);
+    return parts.length ? parts.join(", ") : "—";
+  }
+  return value === null || value === undefined ? "—" : String(value);
+}
+
+const TITLES = { in_flight: "in flight", reported_load: "load", expected_ms: "moving-average task time", served: "served", failed: "failed" };
+
+export function renderHealth(health) {
+  const replicas = health.replicas || [];
+  const keys = [];
+  for (const replica of replicas) for (const key of Object.keys(replica)) if (!keys.includes(key)) keys.push(key);
+  const summary = h(
+    "p",
+    { class: "summary" },
+    h("span", { class: `badge ${health.status}` }, health.status),
+    ` ${health.searches_running} running, ${health.searches_queued} queued · heuristic ${health.broker_heuristic} · ${health.store_searches} searches stored`,
+    health.unavailable_stages?.length ? h("strong", {}, ` · unavailable: ${health.unavailable_stages.join(", ")}`) : null,
+  );
+  const table = h(
+    "table",
+    { class: "replicas" },
+    h("thead", {}, h("tr", {}, keys.map((key) => h("th", {}, TITLES[key] || key.replaceAll("_", " "))))),
+    h(
+      "tbody",
+      {},
+      replicas.map((replica) =>
+        h(
+          "tr",
+          { class: replica.up === false ? "down" : "" },
+          keys.map((key) => h("td", { dataset: { field: key } }, cell(replica[key]))),
+        ),
+      ),
+    ),
+  );
+  return [summary, table];
+}
+
+/** Keep `body` and `badge` showing the controller's /health. */
+export function watchBroker(body, badge) {
+  let timer = 0;
+  async function refresh() {
+    timer = 0;
+    try {
+      const response = await fetch("/health", { headers: { Accept: "application/json" } });
+      if (!response.ok) throw new Problem(response.status, await response.json().catch(() => null));
+      const health = await response.json();
+      body.replaceChildren(...renderHealth(health));
+      badge.textContent = `broker ${health.status}`;
+      badge.className = `badge ${health.status}`;
+    } catch (error) {
+      body.replaceChildren(h("p", { class: "notice error" }, `GET /health failed: ${error.message}`));
+      badge.textContent = "broker ?";
+      badge.className = "badge degraded";
+    }
+    if (!document.hidden) timer = setTimeout(refresh, EVERY_MS);
+  }
+  document.addEventListener("visibilitychange", () => {
+    if (!document.hidden && !timer) refresh();
+  });
+  refresh();
+}

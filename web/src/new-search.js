@@ -1,0 +1,176 @@
+// A new search: a scene (with a preview and its grid size), a target (a dropped or chosen file,
+// or a pose picked on the hemisphere, rendered), a strategy and an optional start; then go.
+
+import { Problem, bitmap } from "./api.js";
+import { drawDetections } from "./draw.js";
+import { h, notice } from "./dom.js";
+import { lazyHemisphere } from "./lazy-hemisphere.js";
+
+const STRATEGIES = [
+  ["reprojection", "reprojection (ours, default)"],
+  ["paper", "paper (optimized search)"],
+  ["simple", "simple (step by step)"],
+];
+
+export function showNewSearch({ view, api }, params) {
+  const controller = new AbortController();
+  const wanted = params.get("scene");
+  let target = null; // { blob, name }
+  let picked = null;
+  let sceneDetail = null;
+
+  const sceneSelect = h("select", { name: "scene", id: "scene", required: true });
+  const sceneInfo = h("p", { class: "muted", id: "scene-info" }, "…");
+  const sceneMessage = h("div", { id: "scene-message" });
+  const preview = h("canvas", { id: "preview", class: "image", role: "img", "aria-label": "The scene's preview" });
+  const fileInput = h("input", { type: "file", id: "target-file", accept: "image/png,image/jpeg,image/x-portable-pixmap,.ppm" });
+  const targetCanvas = h("canvas", { id: "target-preview", class: "image", role: "img", "aria-label": "The target image" });
+  const targetInfo = h("p", { class: "muted", id: "target-info" }, "No target yet: drop an image here, choose a file, or click a pose on the hemisphere.");
+  const drop = h("div", { class: "drop", id: "drop" }, targetCanvas, targetInfo, h("label", { class: "button" }, "Choose an image…", fileInput));
+  const hemiBox = h("div", { class: "hemisphere small", id: "pick-hemisphere" });
+  const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
+  const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
+  const phi = h("input", { name: "start_phi_deg", id: "start_phi_deg", type: "number", step: "any", placeholder: "random" });
+  const maxIterations = h("input", { name: "max_iterations", id: "max_iterations", type: "number", min: 1, max: 500, placeholder: "default" });
+  const go = h("button", { type: "submit", id: "go" }, "Search");
+  const errors = h("div", { id: "form-errors", "aria-live": "polite" });
+  const form = h(
+    "form",
+    { id: "new-search", class: "new-search" },
+    h("section", { class: "panel" }, h("h2", {}, "Scene"), h("label", {}, "Scene ", sceneSelect), sceneInfo, sceneMessage, preview),
+    h("section", { class: "panel" }, h("h2", {}, "Target"), drop, h("h3", {}, "…or pick a pose"), hemiBox),
+    h(
+      "section",
+      { class: "panel" },
+      h("h2", {}, "Search"),
+      h("label", {}, "Strategy ", strategy),
+      h("fieldset", {}, h("legend", {}, "Start (optional, snapped to the grid)"), h("label", {}, "θ° ", theta), h("label", {}, "φ° ", phi)),
+      h("label", {}, "Max iterations ", maxIterations),
+      go,
+      errors,
+    ),
+  );
+  view.replaceChildren(h("h2", { class: "title" }, "New search"), form);
+  const hemisphere = lazyHemisphere(hemiBox, { onPick: (pose) => pickPose(pose) });
+
+  function showTarget(image, text) {
+    drawDetections(targetCanvas, image, [], null);
+    targetInfo.textContent = text;
+  }
+
+  async function useFile(file) {
+    if (!file) return;
+    target = { blob: file, name: file.name };
+    picked = null;
+    hemisphere.setTrack({});
+    let image = null;
+    try {
+      image = await createImageBitmap(file);
+    } catch {
+      // PPM (or not an image): the controller judges it
+    }
+    showTarget(image, `${file.name} (${(file.size / 1024).toFixed(1)} KiB)${image ? `, ${image.width}×${image.height}` : ""}`);
+  }
+
+  async function pickPose(pose) {
+    picked = pose;
+    hemisphere.setTrack({ picked: pose });
+    targetInfo.textContent = `Rendering lat ${pose.lat}, lon ${pose.lon}…`;
+    try {
+      const scene = sceneSelect.value;
+      const blob = await api(`/scenes/${encodeURIComponent(scene)}/view.png?lat=${pose.lat}&lon=${pose.lon}`, { as: "blob", signal: controller.signal });
+      target = { blob, name: `${scene}-lat${pose.lat}-lon${pose.lon}.png` };
+      showTarget(await createImageBitmap(blob), `Rendered at lat ${pose.lat}, lon ${pose.lon} (θ ${pose.theta_deg.toFixed(1)}°, φ ${pose.phi_deg.toFixed(1)}°)`);
+    } catch (error) {
+      if (error.name !== "AbortError") targetInfo.textContent = `Could not render it: ${error.message}`;
+    }
+  }
+
+  async function loadScene(id) {
+    sceneInfo.textContent = "…";
+    try {
+      sceneDetail = await api(`/scenes/${encodeURIComponent(id)}`, { signal: controller.signal });
+      const ring = sceneDetail.grid.rings[Math.floor(sceneDetail.grid.rings.length / 2)];
+      sceneInfo.textContent = `${sceneDetail.spec.objects.length} objects; grid of ${sceneDetail.grid.size} poses, ${sceneDetail.grid.rings.length} rings every ${sceneDetail.grid.angle_step_deg}° (θ ${sceneDetail.grid.min_theta_deg}°–${sceneDetail.grid.max_theta_deg}°)`;
+      hemisphere.setScene(sceneDetail);
+      hemisphere.setTrack({});
+      drawDetections(preview, null, [], [sceneDetail.spec.camera.width, sceneDetail.spec.camera.height], "rendering a preview…");
+      drawDetections(preview, await bitmap(`/scenes/${encodeURIComponent(id)}/view.png?lat=${ring.lat}&lon=0`, controller.signal), [], null);
+    } catch (error) {
+      if (error.name !== "AbortError") sceneInfo.textContent = `Could not load scene ${id}: ${error.message}`;
+    }
+  }
+
+  (async () => {
+    try {
+      const scenes = await api("/scenes", { signal: controller.signal });
+      sceneSelect.replaceChildren(...scenes.map((s) => h("option", { value: s.id }, `${s.id} (${s.grid_size} poses)`)));
+      if (wanted && !scenes.some((s) => s.id === wanted)) {
+        sceneMessage.replaceChildren(
+          notice(`Unknown scene “${wanted}”: the renderers know ${scenes.map((s) => s.id).join(", ") || "no scene"}. Pick one of them.`, "error"),
+        );
+      } else if (wanted) {
+        sceneSelect.value = wanted;
+      }
+      if (scenes.length) loadScene(sceneSelect.value);
+    } catch (error) {
+      if (error.name !== "AbortError") sceneMessage.replaceChildren(notice(`Could not list the scenes: ${error.message}`, "error"));
+    }
+  })();
+
+  sceneSelect.addEventListener("change", () => {
+    sceneMessage.replaceChildren();
+    if (picked) {
+      target = null;
+      picked = null;
+      showTarget(null, "No target yet.");
+    }
+    loadScene(sceneSelect.value);
+  });
+  fileInput.addEventListener("change", () => useFile(fileInput.files[0]));
+  drop.addEventListener("dragover", (e) => {
+    e.preventDefault();
+    drop.classList.add("over");
+  });
+  drop.addEventListener("dragleave", () => drop.classList.remove("over"));
+  drop.addEventListener("drop", (e) => {
+    e.preventDefault();
+    drop.classList.remove("over");
+    useFile(e.dataTransfer.files[0]);
+  });
+
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    errors.replaceChildren();
+    for (const node of form.querySelectorAll(".invalid")) node.classList.remove("invalid");
+    if (!target) {
+      errors.replaceChildren(notice("Give a target first: an image, or a pose picked on the hemisphere.", "error"));
+      return;
+    }
+    const body = new FormData();
+    body.append("image", target.blob, target.name);
+    body.append("scene", sceneSelect.value);
+    body.append("strategy", strategy.value);
+    for (const input of [theta, phi, maxIterations]) if (input.value !== "") body.append(input.name, input.value);
+    go.disabled = true;
+    try {
+      const search = await api("/searches", { method: "POST", body, signal: controller.signal });
+      location.hash = `#/searches/${search.id}`;
+    } catch (error) {
+      if (error.name === "AbortError") return;
+      const field = error instanceof Problem && error.field ? error.field : null;
+      const named = field ? form.querySelector(`[name="${field}"]`) || (field === "image" ? drop : null) : null;
+      if (named) named.classList.add("invalid");
+      errors.replaceChildren(
+        notice(`${error.title ? `${error.title}: ` : ""}${error.detail || error.message}${field ? ` (field: ${field})` : ""}`, "error"),
+      );
+    } finally {
+      go.disabled = false;
+    }
+  });
+
+  return () => {
+    controller.abort();
+    hemisphere.dispose();
+  };
+}

@@ -1,0 +1,269 @@
+// One search, live while it runs (server-sent events, no polling) and replayed once it ended:
+// the target and the current view with their detections, the hemisphere, the distance to the
+// estimate per iteration, the iterations with their stage times, a step slider, a cancel button.
+
+import { bitmap, follow } from "./api.js";
+import { drawDetections, drawDistances } from "./draw.js";
+import { h, ms, notice, when } from "./dom.js";
+import { angularDistanceDeg, poseText } from "./geometry.js";
+import { lazyHemisphere } from "./lazy-hemisphere.js";
+
+const TERMINAL = new Set(["succeeded", "failed", "cancelled"]);
+
+export function showSearch({ view, api }, id) {
+  const controller = new AbortController();
+  const signal = controller.signal;
+  const base = `/searches/${encodeURIComponent(id)}`;
+  let search = null;
+  const iterations = [];
+  const views = new Map(); // index -> Promise<ImageBitmap>
+  let target = null;
+  let current = -1;
+  let following = true; // the slider stays on the newest iteration
+  let pending = 0;
+  let targetDrawn = [];
+
+  const status = h("span", { class: "badge", id: "status" }, "…");
+  const summary = h("div", { id: "summary", class: "summary" });
+  const cancel = h("button", { type: "button", id: "cancel", class: "danger", hidden: true }, "Cancel");
+  const targetCanvas = h("canvas", { id: "target-canvas", class: "image", role: "img", "aria-label": "The target image with its detections" });
+  const viewCanvas = h("canvas", { id: "view-canvas", class: "image", role: "img", "aria-label": "The current view with its detections" });
+  const viewCaption = h("figcaption", { id: "view-caption" }, "Current view");
+  const slider = h("input", { type: "range", id: "replay", min: 0, max: 0, value: 0, step: 1, disabled: true, "aria-label": "Iteration" });
+  const sliderLabel = h("span", { id: "replay-label", class: "muted" }, "no iteration yet");
+  const hemiBox = h("div", { class: "hemisphere", id: "hemisphere", role: "img", "aria-label": "The hemisphere of camera poses in 3D" });
+  const plot = h("canvas", { id: "distance-plot", class: "plot", role: "img", "aria-label": "Angle to the estimate per iteration" });
+  const rows = h("tbody", {});
+  const table = h(
+    "table",
+    { id: "iterations", class: "iterations" },
+    h("thead", {}, h("tr", {}, ["#", "pose", "detections", "match", "confidence", "render ms", "detect ms", "optimize ms", "total ms"].map((t) => h("th", {}, t)))),
+    rows,
+  );
+  const message = h("div", { id: "search-message" });
+  view.replaceChildren(
+    h("div", { class: "search-head" }, h("h2", { class: "title" }, "Search ", h("code", {}, id.slice(0, 12))), status, cancel),
+    message,
+    summary,
+    h(
+      "div",
+      { class: "pair" },
+      h("figure", {}, targetCanvas, h("figcaption", {}, "Target")),
+      h("figure", {}, viewCanvas, viewCaption),
+    ),
+    h("div", { class: "slider" }, slider, sliderLabel),
+    h(
+      "div",
+      { class: "pair" },
+      h("figure", {}, hemiBox, h("figcaption", {}, "The hemisphere: grid poses (grey), visited (blue, in order), start (green), estimate (orange), answer (red). Drag to turn.")),
+      h("figure", {}, plot, h("figcaption", {}, "Angle from each visited pose to the estimate (paper Fig. 8)")),
+    ),
+    h("h3", {}, "Iterations"),
+    table,
+  );
+  drawDetections(targetCanvas, null, [], null, "loading the target…");
+  drawDetections(viewCanvas, null, [], null, "no view yet");
+  const hemisphere = lazyHemisphere(hemiBox);
+
+  function estimateNow() {
+    if (search?.result) return search.result.refined_pose;
+    for (let i = Math.min(current, iterations.length - 1); i >= 0; i--) if (iterations[i]?.estimate) return iterations[i].estimate;
+    return null;
+  }
+
+  function showSummary() {
+    status.textContent = search.status;
+    status.className = `badge ${search.status}`;
+    cancel.hidden = TERMINAL.has(search.status);
+    const parts = [
+      h("span", {}, `scene ${search.scene}`),
+      h("span", {}, `strategy ${search.strategy}`),
+      h("span", {}, `start ${poseText(search.start)}`),
+      h("span", {}, `created ${when(search.created_at)}`),
+    ];
+    if (TERMINAL.has(search.status)) parts.push(h("span", {}, `wall time ${((new Date(search.updated_at) - new Date(search.created_at)) / 1000).toFixed(1)} s`));
+    const children = [h("p", { class: "facts" }, parts)];
+    const result = search.result;
+    if (result) {
+      children.push(
+        h(
+          "p",
+          { id: "result", class: "result" },
+          h("strong", {}, result.confirmed ? "Found: " : "Best match (not confirmed): "),
+          poseText(result.pose),
+          `; refined θ ${result.refined_pose.theta_deg.toFixed(2)}°, φ ${result.refined_pose.phi_deg.toFixed(2)}°`,
+          ` · confidence ${result.confidence.toFixed(2)} · `,
+          h("span", { id: "renders" }, `${result.renders} renders`),
+        ),
+      );
+      if (result.reason) children.push(h("p", { class: "muted" }, result.reason));
+    }
+    if (search.error) children.push(notice(`${search.error.title}: ${search.error.detail || ""}`, "error"));
+    summary.replaceChildren(...children);
+  }
+
+  function addRow(it) {
+    const m = it.match;
+    const row = h(
+      "tr",
+      { dataset: { index: it.index }, onclick: () => select(it.index, false) },
+      h("td", {}, it.index),
+      h("td", {}, `${it.pose.index.lat}, ${it.pose.index.lon}`),
+      h("td", {}, it.detections.length),
+      h("td", {}, m ? m.score.toFixed(2) : "—"),
+      h("td", {}, it.confidence.toFixed(2)),
+      h("td", {}, ms(it.timings.render_ms)),
+      h("td", {}, ms(it.timings.detect_ms)),
+      h("td", {}, ms(it.timings.optimize_ms)),
+      h("td", {}, ms(it.timings.total_ms)),
+    );
+    rows.append(row);
+  }
+
+  function viewOf(index) {
+    if (!views.has(index)) {
+      const loading = bitmap(`${base}/iterations/${index}/view.png`, signal);
+      loading.catch(() => views.delete(index));
+      views.set(index, loading);
+    }
+    return views.get(index);
+  }
+
+  /** Show iteration `index`; `live` keeps following the newest one. */
+  function select(index, live) {
+    following = live || index === iterations.length - 1;
+    current = index;
+    slider.value = String(index);
+    schedule();
+  }
+
+  function schedule() {
+    if (pending) return;
+    pending = requestAnimationFrame(() => {
+      pending = 0;
+      redraw();
+    });
+  }
+
+  function redraw() {
+    const n = iterations.length;
+    slider.max = String(Math.max(0, n - 1));
+    slider.value = String(Math.max(0, current));
+    slider.disabled = n < 2;
+    if (search) showSummary();
+    const estimate = estimateNow();
+    const distances = estimate ? iterations.map((it) => angularDistanceDeg(it.pose, estimate)) : [];
+    drawDistances(plot, distances, current);
+    const it = iterations[current];
+    sliderLabel.textContent = n ? `iteration ${current} of ${n - 1}` : "no iteration yet";
+    for (const row of rows.querySelectorAll("tr.current")) row.classList.remove("current");
+    rows.querySelector(`tr[data-index="${current}"]`)?.classList.add("current");
+    hemisphere.setTrack({
+      visited: iterations.slice(0, current + 1).map((v) => v.pose),
+      current: it?.pose || null,
+      estimate: it?.estimate || null,
+      answer: search?.result && current === n - 1 ? search.result.refined_pose : null,
+      start: search?.start || null,
+    });
+    // the target changes twice at most (its image, its detections): not redrawn per iteration
+    const targetNow = [target, search?.target_detections];
+    if (target !== undefined && (targetNow[0] !== targetDrawn[0] || targetNow[1] !== targetDrawn[1])) {
+      drawDetections(targetCanvas, target, search?.target_detections || [], search?.target_size);
+      targetDrawn = targetNow;
+    }
+    if (!it) return;
+    viewCaption.textContent = `View ${it.index}: ${poseText(it.pose)}, ${it.detections.length} detections${it.match ? `, match ${it.match.score.toFixed(2)}` : ""}`;
+    const shown = current;
+    viewOf(shown)
+      .then((image) => {
+        if (shown === current) drawDetections(viewCanvas, image, it.detections, it.image_size);
+      })
+      .catch((error) => {
+        if (shown === current && error.name !== "AbortError") drawDetections(viewCanvas, null, it.detections, it.image_size, `view unavailable: ${error.message}`);
+      });
+  }
+
+  function take(it) {
+    if (iterations[it.index]) return;
+    iterations[it.index] = it;
+    addRow(it);
+    if (following) current = it.index;
+    schedule();
+  }
+
+  slider.addEventListener("input", () => select(Number(slider.value), false));
+  cancel.addEventListener("click", async () => {
+    cancel.disabled = true;
+    try {
+      search = await api(base, { method: "DELETE", signal });
+      schedule();
+    } catch (error) {
+      if (error.name !== "AbortError") message.replaceChildren(notice(`Could not cancel: ${error.detail || error.message}`, "error"));
+    } finally {
+      cancel.disabled = false;
+    }
+  });
+
+  async function live() {
+    for (let attempt = 0; attempt < 5 && !TERMINAL.has(search.status); attempt++) {
+      try {
+        await follow(
+          `${base}/events`,
+          (name, data) => {
+            if (name === "iteration") take(data);
+            else if (name === "search" || name === "end") {
+              const hadTarget = Boolean(search.target_detections);
+              search = { ...data, iterations: undefined };
+              if (!hadTarget && search.target_detections) schedule();
+              if (name === "end" && following) current = iterations.length - 1;
+              schedule();
+            }
+          },
+          signal,
+        );
+      } catch (error) {
+        if (error.name === "AbortError") return;
+        message.replaceChildren(notice(`Lost the live events (${error.message}); reconnecting…`, "error"));
+      }
+      if (!TERMINAL.has(search.status)) await new Promise((resolve) => setTimeout(resolve, 1000));
+    }
+    message.replaceChildren();
+  }
+
+  (async () => {
+    try {
+      search = await api(base, { signal });
+    } catch (error) {
+      if (error.name === "AbortError") return;
+      view.replaceChildren(
+        h("h2", { class: "title" }, "Search ", h("code", {}, id)),
+        notice(error.status === 404 ? `No search “${id}” (or not one of this key's): ${error.detail}` : `Could not load the search: ${error.detail || error.message}`, "error"),
+      );
+      return;
+    }
+    for (const it of search.iterations) take(it);
+    current = iterations.length - 1;
+    api(`/scenes/${encodeURIComponent(search.scene)}`, { signal })
+      .then((detail) => {
+        hemisphere.setScene(detail);
+        schedule();
+      })
+      .catch(() => {});
+    bitmap(`${base}/target`, signal)
+      .then((image) => {
+        target = image;
+        schedule();
+      })
+      .catch((error) => {
+        if (error.name !== "AbortError") drawDetections(targetCanvas, null, search.target_detections || [], search.target_size, `target image: ${error.detail || error.message}`);
+        target = undefined;
+      });
+    schedule();
+    if (!TERMINAL.has(search.status)) live();
+  })();
+
+  return () => {
+    controller.abort();
+    hemisphere.dispose();
+  };
+}
