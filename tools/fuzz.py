@@ -78,7 +78,8 @@ def run_schemathesis(
     request_timeout_s: float = 60.0,
 ) -> tuple[Path, int]:
     """Run the CLI with ``--checks all`` on ``target``; its NDJSON report and exit status.
-    The CLI's own output goes to ``<workdir>/<service>.txt``."""
+    The CLI's own output goes to ``<workdir>/<service>.txt``, and it runs in ``workdir``, so
+    ``schemathesis replay <test case id>`` reproduces a failure from there."""
     report = workdir / f"{target.service}.ndjson"
     report.unlink(missing_ok=True)
     command = [_schemathesis()]
@@ -113,7 +114,10 @@ def run_schemathesis(
         str(report),
     ]
     with (workdir / f"{target.service}.txt").open("w", encoding="utf-8") as out:
-        done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, check=False)
+        # In the work directory, where the CLI keeps what `st replay <id>` replays.
+        done = subprocess.run(
+            command, stdout=out, stderr=subprocess.STDOUT, cwd=workdir, check=False
+        )
     return report, done.returncode
 
 
