@@ -145,6 +145,7 @@ def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Tar
     """The services asked for, running: the local stack if the controller is one of them,
     else only those stages, with one service token."""
     with ExitStack() as stack:
+        extra: dict[str, Target] = {}  # the controller's, with its key and seeded search
         if "controller" in services:
             running = stack.enter_context(local_stack(workdir / "stack"))
             token = running.service_token
@@ -152,12 +153,11 @@ def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Tar
                 "renderer": running.renderers[0],
                 "detector": running.detectors[0],
                 "optimizer": running.optimizers[0],
-                "controller": running.controller,
             }
             if running.api_key is None:
                 raise RuntimeError("the local stack has no API key")
             search_id = _seed_search(running.controller, urls["renderer"], running.api_key, token)
-            controller = Target(
+            extra["controller"] = Target(
                 "controller",
                 running.controller,
                 f"Bearer {running.api_key}",
@@ -176,10 +176,7 @@ def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Tar
                 ).url
                 for name in services
             }
-        yield [
-            controller if name == "controller" else Target(name, urls[name], f"Bearer {token}")
-            for name in services
-        ]
+        yield [extra.get(name) or Target(name, urls[name], f"Bearer {token}") for name in services]
 
 
 def _check_counts(run: ServiceRun) -> str:
