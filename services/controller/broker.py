@@ -303,7 +303,13 @@ class Broker:
         replica.consecutive_failures += 1
         if replica.consecutive_failures >= self.failure_threshold:
             replica.down_until = time.monotonic() + self.cooldown_s
-            _log.warning("taking %s out for %.1f s (%s)", replica.url, self.cooldown_s, reason)
+            _log.warning(
+                "taking %s (%s) out for %.1f s (%s)",
+                replica.name,
+                replica.url,
+                self.cooldown_s,
+                reason,
+            )
 
     # -- health -------------------------------------------------------------------------------
 
@@ -326,7 +332,7 @@ class Broker:
         load = body.get("in_flight")
         replica.reported_load = float(load) if isinstance(load, int | float) else 0.0
         if not replica.available(time.monotonic()):
-            _log.info("%s answers /health again", replica.url)
+            _log.info("%s (%s) answers /health again", replica.name, replica.url)
         replica.down_until = 0.0
         replica.consecutive_failures = 0
         self._answered(replica.stage)
