@@ -179,8 +179,8 @@ class ReplicaHealth(FrozenModel):
     in_flight: Count = Field(description="Tasks this controller has sent it that are running.")
     reported_load: Number = Field(description="Requests in flight, as its own /health says.")
     expected_ms: dict[str, Number] = Field(
-        description="Per kind of task (`render`, `detect`, ...), the moving average of its "
-        "recent durations in ms (exponential, weight 0.3 on the newest): what placement uses."
+        description="Per kind of task (`render`, `detect`, ...), the exponential moving average "
+        "of its recent durations in ms: what placement uses."
     )
     served: Count
     failed: Count
