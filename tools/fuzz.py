@@ -14,9 +14,11 @@ controller is fuzzed, one real search is submitted and its id given to every ``{
 (a config file's ``[parameters]``), so the search routes answer 200 and their schemas get
 checked, not only their 404s.
 
-It prints a table per service (operations, requests, failed test cases by check, how many of
-those failures ``docs/FUZZING.md`` documents as intended) and every kind of failure, and exits
-with status 1 when a failure is not documented, 2 when a run did not finish.
+It prints a table per service (operations, requests, failures by check, how many of them
+``docs/FUZZING.md`` documents as intended) and every kind of failure with its verdict, and exits
+with status 1 when a failure is not documented, 2 when a run did not finish. A failure is a test
+case that failed a check, counted once per reason a validation problem gives
+(:mod:`tools.fuzz_report`).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from services.common.launch import running_service
 from services.stack import local_stack
 from tools.fuzz_report import DOC_PATH, Intended, ServiceRun, load_intended, read_report
 
-__all__ = ["SERVICES", "Target", "fuzz", "main", "run_schemathesis"]
+__all__ = ["SERVICES", "Target", "fuzz", "main", "report", "run_schemathesis"]
 
 SERVICES = ("renderer", "detector", "optimizer", "controller")
 PHASES = "examples,coverage,fuzzing,stateful"
@@ -190,7 +192,7 @@ def report(runs: dict[str, ServiceRun], intended: list[Intended]) -> tuple[str, 
     """The table of ``runs`` and the number of undocumented kinds of failure."""
     lines = [
         f"{'service':<11} {'operations':>10} {'requests':>9}  {'documented':>10} "
-        f"{'undocumented':>12}  failed test cases by check"
+        f"{'undocumented':>12}  failures by check"
     ]
     undocumented = 0
     details = []
@@ -257,7 +259,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--workdir", type=Path, help="keep reports, CLI output and logs here (default: a temp dir)"
     )
     parser.add_argument(
-        "--doc", type=Path, default=DOC_PATH, help="the document whose table lists the intended"
+        "--doc",
+        type=Path,
+        default=DOC_PATH,
+        help="the document whose table lists the intended failures",
     )
     args = parser.parse_args(argv)
     services = [s.strip() for s in args.services.split(",") if s.strip()]
@@ -281,7 +286,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         table, undocumented = report(runs, intended)
         print(table)
         if broken:
-            print(f"\nthe run on {', '.join(broken)} did not finish; see its output", flush=True)
+            for service in broken:
+                output = (workdir / f"{service}.txt").read_text(errors="replace")
+                print(f"\nthe run on {service} did not finish; its output ends:\n{output[-3000:]}")
             return 2
     if undocumented:
         print(f"\n{undocumented} kind(s) of failure not documented in {args.doc}")
