@@ -9,10 +9,11 @@ each service::
         examples,coverage,fuzzing,stateful --continue-on-failure -H "Authorization: Bearer …"
         --max-examples N --seed S --generation-database none --report ndjson
 
-with the service token for a stage and the stack's admin API key for the controller. Before the
-controller is fuzzed, one real search is submitted and its id given to every ``{search_id}``
-(a config file's ``[parameters]``), so the search routes answer 200 and their schemas get
-checked, not only their 404s.
+with the service token for a stage and the stack's admin API key for the controller, and a
+config file (``--config-file``) that draws half the ``scene`` values from the built-in scenes
+(:data:`SCENES`). Before the controller is fuzzed, one real search is submitted and its id given
+to every ``{search_id}``, so the search routes answer 200 and their schemas get checked, not
+only their 404s.
 
 It prints a table per service (operations, requests, failures by check, how many of them
 ``docs/FUZZING.md`` documents as intended) and every kind of failure with its verdict, and exits
@@ -48,6 +49,26 @@ __all__ = ["SERVICES", "Target", "fuzz", "main", "report", "run_schemathesis"]
 
 SERVICES = ("renderer", "detector", "optimizer", "controller")
 PHASES = "examples,coverage,fuzzing,stateful"
+SCENES = ("demo", "garden")
+"""Built-in scenes: half the generated ``scene`` values are one of them, so requests get past
+"unknown scene" to renders, detections with a scene's model and plans on a scene's grid, and
+their 200 answers are checked against their schemas too."""
+
+
+def _config(parameters: dict[str, str] | None = None) -> str:
+    """schemathesis config (TOML): ``scene`` in a body or query drawn from :data:`SCENES` half
+    the time, and ``parameters`` (path parameters) fixed."""
+    scenes = ", ".join(f'"{scene}"' for scene in SCENES)
+    lines = [
+        "[dictionaries.scenes]",
+        f"values = [{scenes}]",
+        "",
+        "[parameters]",
+        '"body.scene" = { dictionary = "scenes", probability = 0.5 }',
+        '"query.scene" = { dictionary = "scenes", probability = 0.5 }',
+        *(f'{name} = "{value}"' for name, value in (parameters or {}).items()),
+    ]
+    return "\n".join(lines) + "\n"
 
 
 @dataclass(frozen=True)
@@ -163,7 +184,7 @@ def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Tar
                 "controller",
                 running.controller,
                 f"Bearer {running.api_key}",
-                f'[parameters]\nsearch_id = "{search_id}"\n',
+                _config({"search_id": search_id}),
             )
         else:
             token = new_token()
@@ -178,7 +199,10 @@ def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Tar
                 ).url
                 for name in services
             }
-        yield [extra.get(name) or Target(name, urls[name], f"Bearer {token}") for name in services]
+        yield [
+            extra.get(name) or Target(name, urls[name], f"Bearer {token}", _config())
+            for name in services
+        ]
 
 
 def _check_counts(run: ServiceRun) -> str:
