@@ -8,7 +8,8 @@ them and :mod:`.results_md` writes ``docs/RESULTS.md`` from the JSON reports. :m
 measures a search's floor in one process, :mod:`.settings_sweep` the render settings
 (:mod:`.settings_choice` picks one), :mod:`.scenes` generates random scenes that
 :mod:`.random_run` searches with the general and the per-scene detector (:mod:`.random_report`
-its figures), and :mod:`.command` ties them into the command's modes.
+its figures), and :mod:`.command` ties them into the command's modes. :mod:`.faults` is the fault
+suite (``python -m benchmarks.faults``, ``tests/faults/``).
 """
 
 from services.bench.command import BenchConfig, run
