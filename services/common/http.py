@@ -1,5 +1,6 @@
-"""HTTP plumbing shared by the services: problem+json handlers, a request body size limit, the
-service token (:mod:`services.common.auth`) and the liveness and readiness probes.
+"""HTTP plumbing shared by the services: problem+json handlers, request body bounds
+(:mod:`services.common.bodies`), the service token (:mod:`services.common.auth`) and the
+liveness and readiness probes.
 
 Every error leaves a service as ``application/problem+json`` (RFC 9457): domain errors
 (:class:`~services.common.errors.ServiceError`), request validation errors, Starlette's own HTTP
@@ -14,7 +15,6 @@ and the controller's broker.
 from __future__ import annotations
 
 import gc
-import json
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
@@ -25,7 +25,6 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.common.auth import (
     MissingServiceTokenError,
@@ -33,9 +32,9 @@ from services.common.auth import (
     ServiceTokenSettings,
     declare_service_token,
 )
+from services.common.bodies import BodyLimits, BodyMiddleware
 from services.common.contracts.base import FrozenModel
 from services.common.errors import (
-    PayloadTooLargeError,
     ProblemDetails,
     ServiceError,
     ServiceUnavailableError,
@@ -50,7 +49,6 @@ __all__ = [
     "freeze_heap",
     "service_app",
     "single_query_values",
-    "BodySizeLimitMiddleware",
     "Probe",
     "ProblemResponse",
     "Readiness",
@@ -191,84 +189,6 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
     }
 
 
-class BodySizeLimitMiddleware:
-    """Reject request bodies over ``max_bytes`` with 413, by Content-Length or by counting.
-
-    A declared length is checked before the app runs (the server holds the client to it). A
-    streamed (chunked) body is read and counted here, up to the limit, and then replayed to the
-    app; reading inside the app would be too late, since FastAPI turns any error while reading the
-    body into a 400. FastAPI has no body limit of its own.
-    """
-
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
-        self.app = app
-        self.max_bytes = max_bytes
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        declared = _content_length(scope)
-        if declared is not None:
-            if declared > self.max_bytes:
-                await self._reject(scope, send, f"the request body of {declared} bytes")
-                return
-            await self.app(scope, receive, send)
-            return
-        chunks: list[bytes] = []
-        received = 0
-        while True:
-            message = await receive()
-            if message["type"] != "http.request":  # client went away
-                return
-            chunk = message.get("body", b"")
-            received += len(chunk)
-            if received > self.max_bytes:
-                await self._reject(scope, send, "the streamed request body")
-                return
-            chunks.append(chunk)
-            if not message.get("more_body", False):
-                break
-        replayed = False
-
-        async def replay() -> Message:
-            nonlocal replayed
-            if not replayed:
-                replayed = True
-                return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
-            return await receive()
-
-        await self.app(scope, replay, send)
-
-    async def _reject(self, scope: Scope, send: Send, what: str) -> None:
-        problem = PayloadTooLargeError(
-            f"{what} exceeds the limit of {self.max_bytes} bytes"
-        ).problem(instance=scope.get("path"))
-        body = json.dumps(problem.model_dump(mode="json", exclude_none=True)).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 413,
-                "headers": [
-                    (b"content-type", PROBLEM_JSON.encode()),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"connection", b"close"),
-                ],
-            }
-        )
-        await send({"type": "http.response.body", "body": body})
-
-
-def _content_length(scope: Scope) -> int | None:
-    for name, value in scope.get("headers", []):
-        if name == b"content-length":
-            try:
-                return int(value)
-            except ValueError:
-                return None
-    return None
-
-
 def freeze_heap() -> int:
     """Collect garbage once, then exempt everything alive from later collections; how many
     objects that froze.
@@ -350,7 +270,7 @@ def service_app(
     summary: str,
     lifespan: Callable[[FastAPI], AbstractAsyncContextManager[None]],
     router: APIRouter,
-    max_body_bytes: int,
+    body_limits: int | BodyLimits,
     *,
     settings: ServiceTokenSettings,
     guarded: bool,
@@ -358,7 +278,9 @@ def service_app(
 ) -> FastAPI:
     """A COSMOS service app: its routes, the probes (``/livez``; ``/readyz``, which asks
     ``readiness`` once the lifespan has started, or, None, answers yes then), problem+json
-    errors, a request body limit, and no query parameter given twice.
+    errors, request bodies bounded (``body_limits``: a size limit in bytes, with the default
+    deadline and no budget, or :class:`~services.common.bodies.BodyLimits`), and no query
+    parameter given twice.
 
     A ``guarded`` app (a stage) serves only callers with the service token of ``settings``,
     except on the health and probe routes; any app refuses to start without a token unless
@@ -391,7 +313,8 @@ def service_app(
         dependencies=[Depends(single_query_values)],
     )
     install_problem_handlers(app)
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=max_body_bytes)
+    limits = body_limits if isinstance(body_limits, BodyLimits) else BodyLimits(body_limits)
+    app.add_middleware(BodyMiddleware, limits=limits)
     if guarded and settings.service_auth == "token":
         # Added last, so it runs first: a stranger's body is never read. Without a token the
         # app does not start (above); until then the middleware refuses everyone.

@@ -19,7 +19,8 @@ What :class:`HttpProtocol` measures, per connection:
 * the time from the connection's opening, or from the first byte of a later request on it, until
   that request's head is complete. Past ``head_timeout_s`` the connection is closed (with a 408
   if part of a head had arrived). A request body and the app's own time are not counted: the
-  deadline ends with the head.
+  deadline ends with the head. The body has a deadline of its own, scaled by its size, and is
+  bounded by bytes in flight: :mod:`services.common.bodies`.
 """
 
 from __future__ import annotations

@@ -45,7 +45,7 @@ from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
-from services.controller.submit import create_search
+from services.controller.submit import INLINE_WRITE_BYTES, create_search
 from services.controller.transport import StageRequest
 
 __all__ = ["ControllerState", "router"]
@@ -213,6 +213,7 @@ async def submit(request: Request, state: State, key: Caller) -> JSONResponse:
         if key is not None and not key.admin
         else contextlib.nullcontext()
     )
+    idle = state.runner.idle
     try:
         with admitted:
             search = await create_search(
@@ -228,14 +229,17 @@ async def submit(request: Request, state: State, key: Caller) -> JSONResponse:
                 or state.settings.controller_default_max_iterations,
                 max_image_pixels=state.settings.controller_max_image_pixels,
                 max_image_side=state.settings.controller_max_image_side,
-                start_early=state.runner.idle,
+                start_early=idle,
                 owner=None if key is None else key.id,
             )
     except BrokerError as exc:
         raise _unavailable(exc.stage, exc) from exc
     except StageError as exc:
         raise UnprocessableError(str(exc), field="scene") from exc
-    state.runner.submit(search.id, recorded=(search, upload.image))
+    # The runner keeps the image of a search that starts now, or a small one; a large image of
+    # a queued search is read back when it starts (50 maximal uploads queued would hold 1 GB).
+    keep = idle or len(upload.image) <= INLINE_WRITE_BYTES
+    state.runner.submit(search.id, recorded=(search, upload.image) if keep else None)
     return JSONResponse(
         search.model_dump(mode="json"),
         status_code=202,

@@ -136,7 +136,7 @@ def create_app(
         "Runs searches for where a camera stood, over the renderer, detector, optimizer.",
         lifespan,
         router,
-        settings.controller_max_upload_bytes,
+        settings.body_limits(),
         settings=settings,
         guarded=False,  # its public API takes API keys (api.py); it sends the stages the token
         readiness=readiness,

@@ -12,7 +12,10 @@ picks a replica with a configurable heuristic:
 
 A connect error, a timeout or a 5xx answer sends the task to another replica after a short
 backoff; a replica that fails ``failure_threshold`` times in a row is taken out for
-``cooldown_s`` and then probed back through ``/health``. A task fails, with the reasons, only when
+``cooldown_s`` and then probed back through ``/health``. A timeout that this process's event
+loop noticed long after it was due (:attr:`TransportError.loop_was_late`: the loop was busy, and
+the replica's answer may have sat unread) is retried without counting against the replica, and
+never by itself makes the stage unavailable. A task fails, with the reasons, only when
 no replica could serve it. 4xx answers are the caller's problem and are returned as they are.
 
 A stage is *unavailable* (:meth:`Broker.unavailable`, and why: :meth:`Broker.outages`) while it
@@ -260,6 +263,7 @@ class Broker:
         """
         reasons: list[str] = []
         tried: set[str] = set()
+        replicas_failed = False
         for attempt in range(self.max_attempts):
             if attempt:
                 await asyncio.sleep(self.backoff_s * 2 ** (attempt - 1))
@@ -274,6 +278,12 @@ class Broker:
                 )
             except TransportError as exc:
                 reason = f"{replica.url}: {exc}"
+                if exc.loop_was_late:
+                    # Our loop stalled past the timeout: the replica is not to blame. Sent
+                    # again (to the same replica, if it is the best), not counted against it.
+                    _log.warning("%s (noticed %.1f s late: this loop was busy)", reason, exc.late_s)
+                    reasons.append(f"{reason}, noticed {exc.late_s:.1f} s late")
+                    continue
             else:
                 elapsed_ms = (time.perf_counter() - started) * 1000.0
                 if response.status_code < 500:
@@ -283,9 +293,11 @@ class Broker:
             finally:
                 replica.in_flight -= 1
             self._failed(replica, reason)
+            replicas_failed = True
             reasons.append(reason)
             tried.add(replica.url)
-        self._outages.setdefault(stage, time.monotonic())
+        if replicas_failed:  # not when every attempt only met a stall of this loop
+            self._outages.setdefault(stage, time.monotonic())
         raise BrokerError(stage, kind, reasons)
 
     def _succeeded(self, replica: Replica, kind: str, elapsed_ms: float) -> None:
@@ -323,7 +335,11 @@ class Broker:
                 replica.url, StageRequest("GET", "/health"), HEALTH_TIMEOUT_S
             )
             body: Any = response.json() if response.status_code == 200 else None
-        except (TransportError, ValueError):
+        except TransportError as exc:
+            if exc.loop_was_late:
+                return  # this loop stalled, the replica may well have answered: no verdict
+            body = None
+        except ValueError:
             body = None
         if not isinstance(body, dict):
             if replica.available(time.monotonic()):

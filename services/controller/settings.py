@@ -4,9 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from services.common.auth import ServiceTokenSettings
+from services.common.bodies import (
+    DEFAULT_BODY_TIMEOUT_S,
+    DEFAULT_BODY_WAIT_S,
+    DEFAULT_MIN_BYTES_PER_S,
+    BodyLimits,
+)
 from services.controller.broker import Heuristic
 
 __all__ = ["ControllerSettings"]
@@ -74,6 +80,23 @@ class ControllerSettings(ServiceTokenSettings):
     """How long a search waits for a stage that no replica serves to come back before it fails
     (0: it fails at once); a search failed so can be resumed (``POST /searches/{id}/retry``)."""
     controller_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
+    controller_body_budget_bytes: Annotated[int, Field(ge=1024)] | None = None
+    """Request-body bytes held at once (:mod:`services.common.bodies`): a request waits for
+    its declared length before its body is read. Bodies up to 1/16 of the upload limit count in
+    a lane of their own, a quarter of this, so they never wait behind maximal uploads. None:
+    four maximal uploads (80 MiB), which keep the loop and the decoder busy."""
+    controller_body_wait_s: Annotated[float, Field(ge=0, le=300, allow_inf_nan=False)] = (
+        DEFAULT_BODY_WAIT_S
+    )
+    """How long a request waits for its body's bytes before a 503 (``Retry-After``)."""
+    controller_body_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = (
+        DEFAULT_BODY_TIMEOUT_S
+    )
+    controller_body_min_bytes_per_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = (
+        DEFAULT_MIN_BYTES_PER_S
+    )
+    """A body must arrive within ``timeout_s + bytes / min_bytes_per_s`` of its admission, else
+    408 and the connection is closed (a trickling client holds budget no longer)."""
     controller_max_image_pixels: Annotated[int, Field(ge=64)] = 4096 * 4096
     controller_max_image_side: Annotated[int, Field(ge=8)] = 8192
     controller_auth: bool = True
@@ -120,6 +143,21 @@ class ControllerSettings(ServiceTokenSettings):
                     "(https://app.example.org), comma-separated, or *"
                 )
         return value
+
+    @model_validator(mode="after")
+    def _a_maximal_upload_fits_the_body_budget(self) -> ControllerSettings:
+        self.body_limits()  # raises ValueError, naming both numbers, when it does not
+        return self
+
+    def body_limits(self) -> BodyLimits:
+        """How request bodies are bounded: size, bytes in flight, time."""
+        return BodyLimits.for_limit(
+            self.controller_max_upload_bytes,
+            budget_bytes=self.controller_body_budget_bytes,
+            wait_s=self.controller_body_wait_s,
+            timeout_s=self.controller_body_timeout_s,
+            min_bytes_per_s=self.controller_body_min_bytes_per_s,
+        )
 
     def cors_origins(self) -> list[str]:
         """The origins allowed to call the API from a browser (none: no CORS headers at all)."""

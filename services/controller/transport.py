@@ -26,6 +26,7 @@ import aiohttp
 from services.common.auth import bearer
 
 __all__ = [
+    "LATE_S",
     "AiohttpTransport",
     "StageAnswer",
     "StageRequest",
@@ -69,7 +70,27 @@ class StageAnswer:
 
 
 class TransportError(Exception):
-    """The request got no answer: refused, reset, timed out or not HTTP."""
+    """The request got no answer: refused, reset, timed out or not HTTP.
+
+    ``late_s``: how long after it was due a timeout was noticed. An event loop busy elsewhere
+    (a stall of the controller's own) notices a timer late, and meanwhile a connection that
+    the replica accepted at once waits unread, so a timeout noticed seconds late says nothing
+    of the replica (:attr:`loop_was_late`).
+    """
+
+    def __init__(self, message: str, *, late_s: float = 0.0) -> None:
+        super().__init__(message)
+        self.late_s = late_s
+
+    @property
+    def loop_was_late(self) -> bool:
+        """Whether the timeout fired :data:`LATE_S` or more after it was due."""
+        return self.late_s >= LATE_S
+
+
+LATE_S = 0.5
+"""A timeout noticed this late (seconds) is the caller's loop's, not the replica's: a timer on
+an idle loop fires within milliseconds of its time."""
 
 
 class Transport(Protocol):
@@ -105,7 +126,8 @@ class AiohttpTransport:
 
     async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer:
         total_s = request.timeout_s or timeout_s
-        deadline = time.monotonic() + total_s
+        deadline = attempt = time.monotonic()
+        deadline += total_s
         try:
             try:
                 return await self._send(base_url, request, total_s)
@@ -113,9 +135,15 @@ class AiohttpTransport:
                 raise  # not connected at all: nothing was sent
             except (aiohttp.ServerDisconnectedError, aiohttp.ClientOSError):
                 # closed unanswered: once more, in the time that is left
-                return await self._send(base_url, request, deadline - time.monotonic())
+                attempt = time.monotonic()
+                return await self._send(base_url, request, deadline - attempt)
         except TimeoutError as exc:  # before ClientError: aiohttp's timeouts are both
-            raise TransportError(f"timed out ({type(exc).__name__}, {total_s:g} s)") from exc
+            connecting = isinstance(exc, aiohttp.ConnectionTimeoutError)
+            due = attempt + self.connect_timeout_s if connecting else deadline
+            raise TransportError(
+                f"timed out ({type(exc).__name__}, {total_s:g} s)",
+                late_s=max(0.0, time.monotonic() - due),
+            ) from exc
         except aiohttp.ClientError as exc:
             raise TransportError(f"{type(exc).__name__}: {exc}") from exc
 

@@ -65,7 +65,7 @@ def create_app(settings: DetectorSettings | None = None) -> FastAPI:
         "Finds the scene's objects in an image: class, box, confidence and colour.",
         lifespan,
         router,
-        settings.detector_max_upload_bytes,
+        settings.body_limits(),
         settings=settings,
         guarded=True,
         # Ready once started: the general model, all it needs, is loaded by then (a missing or

@@ -8,6 +8,12 @@ from typing import Annotated
 from pydantic import Field, model_validator
 
 from services.common.auth import ServiceTokenSettings
+from services.common.bodies import (
+    DEFAULT_BODY_TIMEOUT_S,
+    DEFAULT_BODY_WAIT_S,
+    DEFAULT_MIN_BYTES_PER_S,
+    BodyLimits,
+)
 from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.settings import split_paths
 from services.detector import HARD_MAX_IMAGE_PIXELS
@@ -56,6 +62,23 @@ class DetectorSettings(ServiceTokenSettings):
     """How long a request waits for decode bytes before it gets 503; 0 refuses at once."""
     detector_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
     """Request body limit (the multipart body, so a little over the image itself)."""
+    detector_body_budget_bytes: Annotated[int, Field(ge=1024)] | None = None
+    """Request-body bytes held at once, before the decode budget applies
+    (:mod:`services.common.bodies`): a request waits for its declared length before its body is
+    read. Bodies up to 1/16 of the upload limit (search views) count in a lane of their own, a
+    quarter of this, so they never wait behind large uploads. None: four maximal uploads."""
+    detector_body_wait_s: Annotated[float, Field(ge=0, le=300, allow_inf_nan=False)] = (
+        DEFAULT_BODY_WAIT_S
+    )
+    """How long a request waits for its body's bytes before a 503 (``Retry-After``)."""
+    detector_body_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = (
+        DEFAULT_BODY_TIMEOUT_S
+    )
+    detector_body_min_bytes_per_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = (
+        DEFAULT_MIN_BYTES_PER_S
+    )
+    """A body must arrive within ``timeout_s + bytes / min_bytes_per_s`` of its admission, else
+    408 and the connection is closed."""
     detector_max_image_pixels: Annotated[int, Field(ge=64, le=HARD_MAX_IMAGE_PIXELS)] = 4096 * 4096
     """Decoded width x height, checked from the file header before anything is decoded."""
     detector_max_image_side: Annotated[int, Field(ge=8, le=65_535)] = 16_384
@@ -71,7 +94,18 @@ class DetectorSettings(ServiceTokenSettings):
                 f"one 8-bit RGB image of COSMOS_DETECTOR_MAX_IMAGE_PIXELS "
                 f"({self.detector_max_image_pixels}) takes: {smallest} bytes"
             )
+        self.body_limits()  # raises ValueError when a maximal upload does not fit the budget
         return self
+
+    def body_limits(self) -> BodyLimits:
+        """How request bodies are bounded: size, bytes in flight, time."""
+        return BodyLimits.for_limit(
+            self.detector_max_upload_bytes,
+            budget_bytes=self.detector_body_budget_bytes,
+            wait_s=self.detector_body_wait_s,
+            timeout_s=self.detector_body_timeout_s,
+            min_bytes_per_s=self.detector_body_min_bytes_per_s,
+        )
 
     def scene_directories(self) -> list[Path]:
         """The directories searched for scene files, in order."""

@@ -365,3 +365,54 @@ async def test_a_wait_for_a_stage_that_answered_meanwhile_returns_at_once():
     await broker.probe()
     assert await asyncio.wait_for(broker.wait_for_replica("renderer", 10.0), 0.01)
     await broker.close()
+
+
+class LateLoop:
+    """A transport whose calls time out as seen by a loop that was blocked ``late_s`` past the
+    timeout, ``times`` times, then answer 200."""
+
+    def __init__(self, late_s: float, times: int) -> None:
+        self.late_s, self.times, self.calls = late_s, times, 0
+
+    async def send(self, base_url: str, request: StageRequest, timeout_s: float) -> StageAnswer:
+        self.calls += 1
+        if self.calls <= self.times:
+            raise TransportError("timed out (ConnectionTimeoutError, 2 s)", late_s=self.late_s)
+        return answer(200, {"ok": True})
+
+    async def close(self) -> None:
+        pass
+
+
+async def test_timeouts_noticed_late_by_this_loop_do_not_take_the_replica_out():
+    broker = Broker(
+        {"renderer": ["http://a"]},
+        transport=LateLoop(late_s=3.0, times=6),
+        backoff_s=0.0,
+        failure_threshold=1,
+        health_interval_s=0,
+    )
+    with pytest.raises(BrokerError) as caught:  # four attempts, each a stall of this loop
+        await broker.call("renderer", "render", work)
+    assert "noticed 3.0 s late" in caught.value.reasons[0]
+    assert broker.stats()[0].up  # not counted against it, though one failure would take it out
+    assert broker.stats()[0].failed == 0
+    assert broker.unavailable() == []  # and the stage is not reported unavailable
+    await broker.probe()  # a probe that stalls too gives no verdict either
+    assert broker.stats()[0].up
+    assert (await broker.call("renderer", "render", work)).status_code == 200
+    await broker.close()
+
+
+async def test_timeouts_on_time_still_count_against_the_replica():
+    broker = Broker(
+        {"renderer": ["http://a"]},
+        transport=LateLoop(late_s=0.01, times=1),
+        backoff_s=0.0,
+        failure_threshold=1,
+        cooldown_s=60.0,
+        health_interval_s=0,
+    )
+    assert (await broker.call("renderer", "render", work)).status_code == 200  # on the retry
+    assert broker.stats()[0].failed == 1
+    await broker.close()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 
@@ -200,3 +201,25 @@ async def test_every_stage_call_carries_the_token():
     assert dict(inner.sent[-1].headers) == {"X-Request-ID": "7", **bearer("t" * 32)}
     await WithServiceToken(inner, None).send("http://r1", StageRequest("GET", "/x"), 1)
     assert dict(inner.sent[-1].headers) == {}  # COSMOS_SERVICE_AUTH=off: nothing to send
+
+
+async def test_a_timeout_noticed_late_says_the_loop_was_busy_not_the_replica():
+    """A replica that answers nothing: its timeout, on an idle loop, fires on time; on a loop
+    that was blocked past it (a stall of the controller's own), it fires late, and says so."""
+    transport = AiohttpTransport(connect_timeout_s=2.0)
+    try:
+        async with scripted(lambda _, __: b"") as (url, _):  # reads, never answers
+            request = StageRequest("POST", "/work", b"x", timeout_s=0.2)
+            with pytest.raises(TransportError) as on_time:
+                await transport.send(url, request, 60.0)
+            assert on_time.value.late_s < 0.1
+            assert not on_time.value.loop_was_late
+            call = asyncio.create_task(transport.send(url, request, 60.0))
+            await asyncio.sleep(0.05)  # sent; now the loop is blocked past the 0.2 s
+            time.sleep(1.0)
+            with pytest.raises(TransportError) as late:
+                await call
+            assert late.value.late_s > 0.6
+            assert late.value.loop_was_late
+    finally:
+        await transport.close()
