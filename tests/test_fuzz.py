@@ -81,7 +81,7 @@ def test_a_row_covers_its_service_operation_check_and_answer_only():
 
 @pytest.mark.slow
 def test_the_cli_on_the_optimizer_finds_no_undocumented_failure(tmp_path):
-    """About 30 s: the optimizer starts in seconds and the run is small. Its deterministic
+    """About 20 s: the optimizer starts in seconds and the run is small. Its deterministic
     coverage phase meets intended failures (boxes outside their image), so the same report
     against an empty table must not pass."""
     done = subprocess.run(
