@@ -23,7 +23,6 @@ __all__ = [
     "assert_token_required",
     "free_port",
     "fuzz_service",
-    "homogeneous_tuples",
     "running_service",
 ]
 
@@ -52,32 +51,6 @@ def assert_token_required(
         assert httpx.get(f"{service.url}{probe}", timeout=10.0).status_code == 200, probe
 
 
-def homogeneous_tuples(node: Any) -> Any:
-    """The schema with every tuple whose items share one schema (``prefixItems: [S, S]`` with
-    ``minItems = maxItems``) written as the equivalent ``items: S``.
-
-    schemathesis 4 rewrites ``prefixItems`` into draft-4 ``items: [...]`` when it prepares a
-    response schema and then checks it with a draft 2020-12 validator, which refuses the result
-    ("Invalid Schema Object in response definition"), so tuple-typed answers (image sizes,
-    boxes) could not be validated at all. The rewrite keeps the meaning.
-    """
-    if isinstance(node, list):
-        return [homogeneous_tuples(item) for item in node]
-    if not isinstance(node, dict):
-        return node
-    out = {key: homogeneous_tuples(value) for key, value in node.items()}
-    prefix = out.get("prefixItems")
-    if (
-        isinstance(prefix, list)
-        and prefix
-        and all(item == prefix[0] for item in prefix)
-        and out.get("minItems") == out.get("maxItems") == len(prefix)
-        and "items" not in out
-    ):
-        out["items"] = out.pop("prefixItems")[0]
-    return out
-
-
 def fuzz_service(
     url: str,
     *,
@@ -95,7 +68,7 @@ def fuzz_service(
     request (an API key: schemathesis also checks that the routes refuse requests without it).
     """
     document = httpx.get(f"{url}/openapi.json", timeout=10.0, headers=headers).json()
-    schema = schemathesis.openapi.from_dict(homogeneous_tuples(document))
+    schema = schemathesis.openapi.from_dict(document)
     operations = [result.ok() for result in schema.get_all_operations()]
     for operation in operations:
 

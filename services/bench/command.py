@@ -212,9 +212,9 @@ def services_info(endpoints: Endpoints, spp: int | None, width: int | None) -> d
         try:
             renderer = http.get(f"{endpoints.renderer}/health").json()
             info["mitsuba_variant"] = renderer.get("variant")
-            controller = http.get(f"{endpoints.controller}/health").json()
-            detectors = [r["url"] for r in controller["replicas"] if r["stage"] == "detector"]
-            model = http.get(f"{detectors[0]}/model").json()
+            # The controller's /health names replicas, never addresses: ask a known detector.
+            detector = endpoints.detectors[0]
+            model = http.get(f"{detector}/model", headers=bearer(endpoints.service_token)).json()
             info["detector_model"] = f"{model['name']} (sha256 {model['sha256'][:12]})"
             info["detector_input"] = "×".join(str(v) for v in model["input_size"])
         except (httpx.HTTPError, KeyError, IndexError, ValueError) as exc:

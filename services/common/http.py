@@ -40,6 +40,7 @@ from services.common.errors import (
     ServiceUnavailableError,
     problem_type,
 )
+from services.common.openapi import publish_plain_schema
 
 __all__ = [
     "PROBLEM_JSON",
@@ -326,6 +327,7 @@ def service_app(
     # problem+json here, not its HTTPValidationError: declared once for all.
     app.include_router(_probes(name, readiness), responses=problem_responses(422))
     app.include_router(router, responses=problem_responses(422))
+    publish_plain_schema(app)  # tuples as every OpenAPI tool reads them
     return app
 
 

@@ -3,7 +3,8 @@
 Every route but ``/health`` (and the OpenAPI documents, and the web page's files, which hold no
 data) wants an API key (``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
 ``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays open for load balancers and container health
-checks; it tells counts and replica URLs, no search. A key sees and cancels its own searches only
+checks; it tells counts and replicas by name (``renderer-1``), no search and no address (those
+are in the controller's log, for every key alike). A key sees and cancels its own searches only
 (another tenant's is a 404, as an unknown one, so ids do not leak); an admin key sees them all.
 """
 
@@ -146,9 +147,10 @@ def _search_or_404(state: ControllerState, key: ApiKey | None, search_id: str) -
 
 @router.get("/health", response_model=ControllerHealth)
 async def health(state: State) -> ControllerHealth:
-    """Liveness, the queue, what the broker knows of every replica (``degraded``, naming the
-    stages, while a stage has no replica available), and the store's size. Open to anyone (no
-    key): health checks have none, and no search is shown."""
+    """Liveness, the queue, what the broker knows of every replica by name (state, tasks in
+    flight, moving-average task times; ``degraded``, naming the stages, while a stage has no
+    replica available), and the store's size. Open to anyone (no key): health checks have
+    none, and no search or internal address is shown."""
     size = state.store.size()
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(

@@ -18,11 +18,15 @@ the replica's answer may have sat unread) is retried without counting against th
 never by itself makes the stage unavailable. A task fails, with the reasons, only when
 no replica could serve it. 4xx answers are the caller's problem and are returned as they are.
 
-A stage is *unavailable* (:meth:`Broker.unavailable`) while it has no replica, while every
-replica is out, or from a task that no replica could serve until a replica serves a task or
-answers ``/health`` again. Who wants to wait for it to come back calls
+A stage is *unavailable* (:meth:`Broker.unavailable`, and why: :meth:`Broker.outages`) while it
+has no replica, while every replica is out, or from a task that no replica could serve until a
+replica serves a task or answers ``/health`` again. Who wants to wait for it to come back calls
 :meth:`Broker.wait_for_replica`: one prober per stage then asks its replicas' ``/health`` every
 ``recovery_probe_s`` (more often than the background probe) until one answers.
+
+Each replica has a public name, its stage and a number (``renderer-1``, ``renderer-2``, in the
+order the broker first met them; a number is never given to another address): what the
+controller's answers show. Its address goes to the log only, once, with its name.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-from services.common.contracts.search import ReplicaHealth
+from services.common.contracts.search import ReplicaHealth, ReplicaState
 from services.controller.transport import (
     AiohttpTransport,
     StageAnswer,
@@ -72,10 +76,12 @@ class BrokerError(RuntimeError):
 
 @dataclass
 class Replica:
-    """One service replica and what the broker knows of it."""
+    """One service replica and what the broker knows of it; ``name`` is what the public sees
+    of it, ``url`` is for the log."""
 
     stage: str
     url: str
+    name: str
     in_flight: int = 0
     reported_load: float = 0.0
     expected_ms: dict[str, float] = field(default_factory=dict)
@@ -90,6 +96,13 @@ class Replica:
 
     def available(self, now: float) -> bool:
         return now >= self.down_until
+
+    def state(self, now: float) -> ReplicaState:
+        """``out`` while taken out after failures, ``failing`` while its last task or probe
+        failed (it still gets tasks), else ``up``."""
+        if not self.available(now):
+            return "out"
+        return "failing" if self.consecutive_failures else "up"
 
 
 class Broker:
@@ -123,6 +136,7 @@ class Broker:
         self._transport = transport or AiohttpTransport(connect_timeout_s)
         self._replicas: dict[str, list[Replica]] = {}
         self._turns: dict[str, itertools.count[int]] = {}
+        self._numbers: dict[str, itertools.count[int]] = {}  # the next replica name per stage
         for stage, urls in pools.items():
             self._replicas[stage] = [self._replica(stage, url) for url in urls]
             self._turns[stage] = itertools.count()
@@ -134,7 +148,10 @@ class Broker:
         self._waiting: Counter[str] = Counter()  # callers in wait_for_replica, per stage
 
     def _replica(self, stage: str, url: str) -> Replica:
-        return Replica(stage=stage, url=url.rstrip("/"))
+        number = next(self._numbers.setdefault(stage, itertools.count(1)))
+        replica = Replica(stage=stage, url=url.rstrip("/"), name=f"{stage}-{number}")
+        _log.info("%s is %s", replica.name, replica.url)
+        return replica
 
     async def set_pool(self, stage: str, urls: Sequence[str]) -> None:
         """Replace a stage's replicas (keeping what is known of those that stay)."""
@@ -171,12 +188,14 @@ class Broker:
         return [r for pool in self._replicas.values() for r in pool]
 
     def stats(self) -> list[ReplicaHealth]:
-        """What is known of every replica, as the controller's ``/health`` reports it."""
+        """What is known of every replica, as the controller's ``/health`` reports it: by
+        name, never by address."""
         now = time.monotonic()
         return [
             ReplicaHealth(
+                name=r.name,
                 stage=r.stage,
-                url=r.url,
+                state=r.state(now),
                 up=r.available(now),
                 in_flight=r.in_flight,
                 reported_load=r.reported_load,
@@ -188,15 +207,23 @@ class Broker:
         ]
 
     def unavailable(self) -> list[str]:
-        """The stages no replica serves now: those without replicas, those whose every replica
-        is out, and those whose last task no replica could serve, until a replica serves a task
-        or answers ``/health`` again."""
+        """The stages no replica serves now (:meth:`outages`)."""
+        return list(self.outages())
+
+    def outages(self) -> dict[str, str]:
+        """Why each stage no replica serves now cannot be served, in public words: it has no
+        replica, every replica is out, or its last task no replica could serve (until a replica
+        serves a task or answers ``/health`` again)."""
         now = time.monotonic()
-        return [
-            stage
-            for stage, pool in self._replicas.items()
-            if stage in self._outages or not any(r.available(now) for r in pool)
-        ]
+        why: dict[str, str] = {}
+        for stage, pool in self._replicas.items():
+            if not pool:
+                why[stage] = "it has no replica"
+            elif not any(r.available(now) for r in pool):
+                why[stage] = "every replica failed repeatedly and is out until it answers again"
+            elif stage in self._outages:
+                why[stage] = "no replica could serve its last task, and none has answered since"
+        return why
 
     # -- placement ----------------------------------------------------------------------------
 
@@ -288,7 +315,13 @@ class Broker:
         replica.consecutive_failures += 1
         if replica.consecutive_failures >= self.failure_threshold:
             replica.down_until = time.monotonic() + self.cooldown_s
-            _log.warning("taking %s out for %.1f s (%s)", replica.url, self.cooldown_s, reason)
+            _log.warning(
+                "taking %s (%s) out for %.1f s (%s)",
+                replica.name,
+                replica.url,
+                self.cooldown_s,
+                reason,
+            )
 
     # -- health -------------------------------------------------------------------------------
 
@@ -315,7 +348,7 @@ class Broker:
         load = body.get("in_flight")
         replica.reported_load = float(load) if isinstance(load, int | float) else 0.0
         if not replica.available(time.monotonic()):
-            _log.info("%s answers /health again", replica.url)
+            _log.info("%s (%s) answers /health again", replica.name, replica.url)
         replica.down_until = 0.0
         replica.consecutive_failures = 0
         self._answered(replica.stage)

@@ -1,8 +1,12 @@
-"""Whether the controller can run searches now: its database answers, and every stage has at
-least one replica that says it is ready (``GET /readyz``), asked afresh each time.
+"""Whether the controller can run searches now: its database answers, no stage is in an outage
+as its broker sees it, and every stage has at least one replica that says it is ready
+(``GET /readyz``), asked afresh each time.
 
-What the broker knows of a replica is no answer here: it learns that a replica died only after a
-few failed calls or health probes, and nothing of one it has not called yet.
+Both are asked. The broker's outage state (:meth:`~services.controller.broker.Broker.outages`:
+no replica, every replica out, or a task none could serve) is what refuses new searches with
+503, so while it lasts the controller is not ready, whatever a probe says. But the broker learns
+that a replica died only after a few failed calls or health probes, and nothing of one it has not
+called yet, hence the fresh probes. The reasons name stages, never addresses.
 """
 
 from __future__ import annotations
@@ -48,6 +52,9 @@ class ControllerReadiness:
         return ""
 
     async def _stage(self, stage: str) -> str:
+        outage = self.broker.outages().get(stage)
+        if outage is not None:
+            return f"the {stage} is unavailable: {outage}"
         urls = [replica.url for replica in self.broker.replicas(stage)]
         answers = await asyncio.gather(*(self._ready(url) for url in urls))
         if any(answers):

@@ -198,9 +198,10 @@ async def test_real_replicas_slow_failing_hanging_and_killed(tmp_path):
         served.update(r.json()["replica"] for r in results)
         assert set(served) <= {"fast", "slow"}
         assert served["fast"] > served["slow"]
-        up = {s.url: s.up for s in broker.stats()}
-        assert not up[broken.url]
-        assert not up[stuck.url]
+        names = {r.url: r.name for r in broker.replicas()}
+        up = {s.name: s.up for s in broker.stats()}
+        assert not up[names[broken.url]]
+        assert not up[names[stuck.url]]
 
         slow.process.terminate()  # a replica dies mid-run: the rest carries on
         slow.process.wait(timeout=10)
@@ -227,6 +228,55 @@ async def test_a_new_pool_keeps_what_is_known_of_remaining_replicas():
     await broker.set_pool("renderer", ["http://a", "http://d"])
     assert [r.url for r in broker.replicas("renderer")] == ["http://a", "http://d"]
     assert broker.replicas("renderer")[0].expected_ms == {"render": 42.0}
+    await broker.close()
+
+
+async def test_replicas_are_shown_by_name_and_state_never_by_address():
+    """``renderer-1``.. in the order the broker met them; a replica keeps its name when the pool
+    changes and a new address gets a new number, so a name never means two replicas."""
+    failing = {"b"}
+
+    def behaviour(host, _):
+        if host in failing:
+            raise TransportError("refused")
+        return answer(200)
+
+    broker = mock_broker(behaviour, heuristic=Heuristic.ROUND_ROBIN, failure_threshold=2)
+    for _ in range(3):
+        await broker.call("renderer", "render", work)
+    stats = {s.name: s for s in broker.stats()}
+    assert list(stats) == ["renderer-1", "renderer-2", "renderer-3"]
+    assert stats["renderer-1"].state == "up"
+    assert stats["renderer-2"].state == "failing"  # failed once, still gets tasks
+    assert stats["renderer-1"].expected_ms["render"] >= 0
+    for _ in range(6):
+        await broker.call("renderer", "render", work)
+    assert {s.name: s.state for s in broker.stats()}["renderer-2"] == "out"
+    await broker.set_pool("renderer", ["http://c", "http://d", "http://a"])
+    assert [(s.name, s.stage) for s in broker.stats()] == [
+        ("renderer-3", "renderer"),
+        ("renderer-4", "renderer"),
+        ("renderer-1", "renderer"),
+    ]
+    shown = json.dumps([s.model_dump(mode="json") for s in broker.stats()])
+    assert "http" not in shown
+    await broker.close()
+
+
+async def test_outages_say_why_a_stage_is_unavailable():
+    up = {"a": False, "b": False, "c": False}
+    broker = outage_broker(up)
+    await broker.set_pool("detector", [])
+    with pytest.raises(BrokerError):
+        await broker.call("renderer", "render", work)
+    assert broker.outages() == {
+        "renderer": "no replica could serve its last task, and none has answered since",
+        "detector": "it has no replica",
+    }
+    for replica in broker.replicas("renderer"):
+        replica.down_until = float("inf")
+    assert "every replica failed" in broker.outages()["renderer"]
+    assert broker.unavailable() == ["renderer", "detector"]
     await broker.close()
 
 

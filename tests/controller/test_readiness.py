@@ -7,7 +7,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from services.controller.broker import Broker
+from services.controller.broker import Broker, BrokerError
 from services.controller.readiness import ControllerReadiness
 from services.controller.store import SearchStore
 from services.controller.transport import StageAnswer, StageRequest, TransportError
@@ -89,3 +89,52 @@ async def test_the_controllers_probes(controller, service_token):
     ]
     scenes = await client.get("/scenes")  # through the broker, with the token
     assert scenes.status_code == 200, scenes.text
+
+
+async def test_a_stage_in_an_outage_is_not_ready_whatever_its_probe_says(store):
+    """What refuses new searches (the broker's outage state) makes the controller unready too:
+    a stage whose last task no replica served, until a replica answers the broker again, and a
+    stage left without replicas."""
+    states = {"r1": "down", "r2": "down", "d1": "ready", "o1": "ready"}
+    check, _ = readiness(states, store)
+    with pytest.raises(BrokerError):
+        await check.broker.call("renderer", "render", StageRequest("POST", "/render"))
+    states.update(r1="ready", r2="ready")  # back, but the broker has not heard yet
+    assert await check.unready() == [
+        "the renderer is unavailable: no replica could serve its last task, and none has "
+        "answered since"
+    ]
+    await check.broker.probe()
+    assert await check.unready() == []
+    await check.broker.set_pool("optimizer", [])  # discovery found none
+    assert await check.unready() == ["the optimizer is unavailable: it has no replica"]
+
+
+async def test_the_controllers_health_and_readiness_name_replicas_not_addresses(controller):
+    """The fixture's detector and optimizer answer 503: once a task found no detector, /readyz
+    says so in its problem details and /health is degraded, both without an address."""
+    app, client = controller
+    broker = app.state.controller.broker
+    with pytest.raises(BrokerError):
+        await broker.call("detector", "detect", StageRequest("POST", "/detect"))
+    ready = await client.get("/readyz")
+    assert ready.status_code == 503
+    assert ready.headers["content-type"] == "application/problem+json"
+    assert ready.json()["reasons"] == [
+        "the detector is unavailable: every replica failed repeatedly and is out until it "
+        "answers again",
+        "no optimizer is ready (1 replica asked)",
+    ]
+    health = await client.get("/health", headers={"Authorization": ""})  # open to anyone
+    assert health.status_code == 200
+    body = health.json()
+    assert body["status"] == "degraded"
+    assert body["unavailable_stages"] == ["detector"]
+    assert [(r["name"], r["stage"]) for r in body["replicas"]] == [
+        ("renderer-1", "renderer"),
+        ("detector-1", "detector"),
+        ("optimizer-1", "optimizer"),
+    ]
+    assert [(r["state"], r["up"]) for r in body["replicas"][:2]] == [("up", True), ("out", False)]
+    for text in (health.text, ready.text):
+        assert "://" not in text

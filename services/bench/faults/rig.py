@@ -175,17 +175,33 @@ class Rig:
         body: dict[str, Any] = response.json()
         return body
 
+    def replica_name(self, url: str) -> str:
+        """The name the controller's ``/health`` gives the replica at ``url`` (``renderer-2``;
+        it shows no addresses): its broker numbers a stage's replicas in the order it was given
+        them, which is the stack's."""
+        stages = (
+            ("renderer", self.stack.renderers),
+            ("detector", self.stack.detectors),
+            ("optimizer", self.stack.optimizers),
+        )
+        for stage, urls in stages:
+            if url in urls:
+                return f"{stage}-{urls.index(url) + 1}"
+        raise ValueError(f"{url} is no replica of this stack")
+
     def replica_up(self, url: str) -> bool:
         """Whether the controller's broker counts the replica at ``url`` as up."""
         health = self.health()
+        name = self.replica_name(url)
         return health is not None and any(
-            r["url"] == url and r["up"] for r in health.get("replicas", [])
+            r["name"] == name and r["up"] for r in health.get("replicas", [])
         )
 
     def served(self, url: str) -> int:
         """How many tasks the broker says the replica at ``url`` has served."""
         health = self.health() or {}
-        return sum(int(r["served"]) for r in health.get("replicas", []) if r["url"] == url)
+        name = self.replica_name(url)
+        return sum(int(r["served"]) for r in health.get("replicas", []) if r["name"] == name)
 
     def close(self) -> None:
         """Stop the processes this rig started itself (the stack stops its own)."""

@@ -158,6 +158,13 @@ def _optional_not_null(schema: dict[str, Any]) -> None:
                 del prop["default"]
 
 
+def _next_pose_schema(schema: dict[str, Any]) -> None:
+    """Optional fields as in :func:`_optional_not_null`, and the one rule among them a schema
+    can say: a ``scene``, or both ``camera`` and ``grid``."""
+    _optional_not_null(schema)
+    schema["anyOf"] = [{"required": ["scene"]}, {"required": ["camera", "grid"]}]
+
+
 class NextPoseRequest(FrozenModel):
     """``POST /next-pose``: one stateless planning step.
 
@@ -173,7 +180,7 @@ class NextPoseRequest(FrozenModel):
     classes may still pair, at a cost.
     """
 
-    model_config = ConfigDict(json_schema_extra=_optional_not_null)
+    model_config = ConfigDict(json_schema_extra=_next_pose_schema)
 
     strategy: StrategyName | None = None
     scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)] | None = None

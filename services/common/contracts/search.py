@@ -20,6 +20,7 @@ __all__ = [
     "ControllerHealth",
     "Iteration",
     "ReplicaHealth",
+    "ReplicaState",
     "Search",
     "SearchOptions",
     "SearchPage",
@@ -168,15 +169,31 @@ class SearchPage(FrozenModel):
     offset: Count
 
 
-class ReplicaHealth(FrozenModel):
-    """A stage replica as the controller's broker knows it."""
+ReplicaState = Literal["up", "failing", "out"]
+"""``up``; ``failing``: its last task or health probe failed, it still gets tasks; ``out``: it
+failed repeatedly and gets none until it answers ``/health`` again."""
 
+
+class ReplicaHealth(FrozenModel):
+    """A stage replica as the controller's broker knows it, by name: its address is in the
+    controller's log (``renderer-1 is http://…``), never in an answer."""
+
+    name: str = Field(
+        description="The stage and a number (`renderer-1`), given in the order the controller "
+        "met the replicas; a replica keeps its name while the controller runs."
+    )
     stage: str
-    url: str
-    up: bool
-    in_flight: Count
-    reported_load: Number
-    expected_ms: dict[str, Number]
+    state: ReplicaState = Field(
+        description="`up`; `failing`: its last task or health probe failed, it still gets "
+        "tasks; `out`: it failed repeatedly and gets none until it answers again."
+    )
+    up: bool = Field(description="It gets tasks (`state` is not `out`).")
+    in_flight: Count = Field(description="Tasks this controller has sent it that are running.")
+    reported_load: Number = Field(description="Requests in flight, as its own /health says.")
+    expected_ms: dict[str, Number] = Field(
+        description="Per kind of task (`render`, `detect`, ...), the exponential moving average "
+        "of its recent durations in ms: what placement uses."
+    )
     served: Count
     failed: Count
 
