@@ -34,12 +34,12 @@ import asyncio
 import json
 import logging
 import math
-from collections import deque
 from dataclasses import dataclass
 from typing import Final
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from services.common.byte_budget import ByteBudget
 from services.common.errors import (
     PayloadTooLargeError,
     ProblemDetails,
@@ -134,64 +134,6 @@ class BodyLimits:
         return BodyBudget(self.budget_bytes, self.small_bytes, self.wait_s)
 
 
-class _Lane:
-    """At most ``limit_bytes`` held at once; waiters served in arrival order (a large body is
-    not overtaken for ever by smaller ones). One event loop only."""
-
-    def __init__(self, limit_bytes: int) -> None:
-        self.limit_bytes = limit_bytes
-        self.in_use = 0
-        self.peak = 0
-        self._waiting: deque[tuple[int, asyncio.Future[None]]] = deque()
-
-    @property
-    def waiting(self) -> int:
-        return len(self._waiting)
-
-    async def acquire(self, size: int, wait_s: float) -> bool:
-        """Take ``size`` bytes, waiting up to ``wait_s`` for them; False if they did not come."""
-        if not self._waiting and self.in_use + size <= self.limit_bytes:
-            self._take(size)
-            return True
-        granted = asyncio.get_running_loop().create_future()
-        entry = (size, granted)
-        self._waiting.append(entry)
-        try:
-            # asyncio.wait leaves the future alone on a timeout or a cancellation, so whether
-            # the bytes were granted meanwhile can be told afterwards.
-            await asyncio.wait({granted}, timeout=wait_s)
-        except asyncio.CancelledError:
-            self._abandon(entry)
-            raise
-        if granted.done():
-            return True
-        self._abandon(entry)
-        return False
-
-    def release(self, size: int) -> None:
-        self.in_use -= size
-        self._grant()
-
-    def _abandon(self, entry: tuple[int, asyncio.Future[None]]) -> None:
-        size, granted = entry
-        if granted.done():
-            self.release(size)
-            return
-        granted.cancel()
-        self._waiting.remove(entry)
-        self._grant()  # the ones behind it may fit now
-
-    def _take(self, size: int) -> None:
-        self.in_use += size
-        self.peak = max(self.peak, self.in_use)
-
-    def _grant(self) -> None:
-        while self._waiting and self.in_use + self._waiting[0][0] <= self.limit_bytes:
-            size, granted = self._waiting.popleft()
-            self._take(size)
-            granted.set_result(None)
-
-
 class BodyBudget:
     """Request-body bytes in flight in one process: ``limit_bytes`` for large bodies and a lane
     of ``limit_bytes / 4`` for bodies of at most ``small_bytes``, each first come first served;
@@ -202,8 +144,8 @@ class BodyBudget:
             raise ValueError("limit_bytes must be positive, small_bytes and wait_s not negative")
         self.small_bytes = small_bytes
         self.wait_s = wait_s
-        self._large = _Lane(limit_bytes)
-        self._small = _Lane(max(small_bytes, limit_bytes // SMALL_LANE_FRACTION))
+        self._large = ByteBudget(limit_bytes)
+        self._small = ByteBudget(max(small_bytes, limit_bytes // SMALL_LANE_FRACTION))
 
     @property
     def limit_bytes(self) -> int:
@@ -235,7 +177,7 @@ class BodyBudget:
 class Hold:
     """Bytes a request holds in a :class:`BodyBudget`, until :meth:`release`."""
 
-    def __init__(self, lane: _Lane, size: int) -> None:
+    def __init__(self, lane: ByteBudget, size: int) -> None:
         self._lane = lane
         self.size = size
 

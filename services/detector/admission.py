@@ -12,12 +12,11 @@ do not fit wait their turn, first come first served, for at most ``wait_s``, the
 
 from __future__ import annotations
 
-import asyncio
 import threading
-from collections import deque
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+from services.common.byte_budget import ByteBudget
 from services.common.errors import PayloadTooLargeError, ServiceUnavailableError
 from services.common.images import ImageHeader
 
@@ -37,11 +36,17 @@ class DecodeBudget:
             raise ValueError("limit_bytes must be positive and wait_s not negative")
         self.limit_bytes = limit_bytes
         self.wait_s = wait_s
-        self.in_use = 0
+        self._bytes = ByteBudget(limit_bytes)
+
+    @property
+    def in_use(self) -> int:
         """Bytes held now."""
-        self.peak = 0
+        return self._bytes.in_use
+
+    @property
+    def peak(self) -> int:
         """The most bytes held at once since start."""
-        self._waiting: deque[tuple[int, asyncio.Future[None]]] = deque()
+        return self._bytes.peak
 
     @asynccontextmanager
     async def hold(self, header: ImageHeader) -> AsyncIterator[None]:
@@ -72,54 +77,19 @@ class DecodeBudget:
             self._release(size)
 
     async def _acquire(self, size: int) -> None:
-        if not self._waiting and self.in_use + size <= self.limit_bytes:
-            self._take(size)
+        if await self._bytes.acquire(size, self.wait_s):
             return
-        granted = asyncio.get_running_loop().create_future()
-        entry = (size, granted)
-        self._waiting.append(entry)
-        try:
-            # asyncio.wait leaves the future alone on a timeout or a cancellation, so whether
-            # the bytes were granted meanwhile can be told afterwards.
-            await asyncio.wait({granted}, timeout=self.wait_s)
-        except asyncio.CancelledError:
-            self._abandon(entry)
-            raise
-        if granted.done():
-            return
-        self._abandon(entry)
         raise ServiceUnavailableError(
-            f"the detector holds {self.in_use} bytes of decoded images and {len(self._waiting)} "
-            f"more requests wait; {size} more bytes did not fit its decode budget of "
-            f"{self.limit_bytes} bytes (COSMOS_DETECTOR_MAX_DECODE_BYTES) within "
+            f"the detector holds {self.in_use} bytes of decoded images and "
+            f"{self._bytes.waiting} more requests wait; {size} more bytes did not fit its decode "
+            f"budget of {self.limit_bytes} bytes (COSMOS_DETECTOR_MAX_DECODE_BYTES) within "
             f"{self.wait_s:g} s; try again shortly",
             slug="detector-busy",
             title="Detector busy",
         )
 
-    def _abandon(self, entry: tuple[int, asyncio.Future[None]]) -> None:
-        """A waiter leaves: give back what it was granted, or leave the queue."""
-        size, granted = entry
-        if granted.done():
-            self._release(size)
-            return
-        granted.cancel()
-        self._waiting.remove(entry)
-        self._grant()  # the ones behind it may fit now
-
-    def _take(self, size: int) -> None:
-        self.in_use += size
-        self.peak = max(self.peak, self.in_use)
-
     def _release(self, size: int) -> None:
-        self.in_use -= size
-        self._grant()
-
-    def _grant(self) -> None:
-        while self._waiting and self.in_use + self._waiting[0][0] <= self.limit_bytes:
-            size, granted = self._waiting.popleft()
-            self._take(size)
-            granted.set_result(None)
+        self._bytes.release(size)
 
 
 class Admission:
