@@ -15,6 +15,12 @@ driven by Playwright; ``scripts/bootstrap.sh`` installs it). The browser's own
   the click on *Search* and the first iteration (the switch to the live view) are printed apart.
   The search walks the ``simple`` strategy from far away, so many iterations stream in.
 
+The page runs in the user's browser and the stack on other machines, so by default the
+stack's processes are pinned to one half of this machine's cores and the browser to the other
+(``os.sched_setaffinity``, inherited by the processes each starts): without that, on a 2-core
+machine, every view the renderer makes takes both cores from under the browser, and the frame
+gaps measure the renderer, not the page. ``--shared-cores`` measures that shared case.
+
 For scale, a one-line static page's first paint and frame gaps are printed, idle and while the
 same search runs over the API. A long task is what the page's own script costs; a frame gap with
 no long task is paint work (raster and compositing, in software without a GPU) waiting for a core
@@ -28,6 +34,7 @@ import argparse
 import functools
 import http.server
 import json
+import os
 import statistics
 import tempfile
 import threading
@@ -50,7 +57,11 @@ SEARCH_OPTIONS = {
     "start_theta_deg": "82.5",
     "start_phi_deg": "180",
 }
-ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
+ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--disable-gpu-compositing"]
+"""Chromium as on a desktop without a GPU: WebGL in software (SwiftShader), and the page
+composited in software, as Chromium does where it finds no usable GPU. Compositing through
+SwiftShader's GL instead (headless Chromium's default) cost 130-300 ms frame gaps here, with or
+without the page's WebGL: the browser's set-up, not the page."""
 
 OBSERVE = """
 window.__perf = { paints: {}, longTasks: [], frames: [] };
@@ -217,14 +228,33 @@ def _static_page_during_search(browser: Any, stack: Stack, target: bytes) -> tup
     return gaps[-1], gaps[int(0.99 * (len(gaps) - 1))]
 
 
+def _split_cores(*, shared: bool) -> tuple[set[int], set[int]]:
+    """The cores for the stack and for the browser: this process's cores split in two halves
+    (the stack gets the odd one out), or all of them for both when ``shared`` or only one."""
+    cores = sorted(os.sched_getaffinity(0))
+    if shared or len(cores) < 2:
+        return set(cores), set(cores)
+    half = len(cores) // 2
+    return set(cores[half:]), set(cores[:half])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--loads", type=int, default=5, help="cold loads of / to time")
     parser.add_argument("--searches", type=int, default=2, help="searches to follow live")
+    parser.add_argument(
+        "--shared-cores",
+        action="store_true",
+        help="let the browser and the stack share every core (default: half each)",
+    )
     args = parser.parse_args()
     from playwright.sync_api import sync_playwright
 
+    stack_cores, browser_cores = _split_cores(shared=args.shared_cores)
+    os.sched_setaffinity(0, stack_cores)  # the stack's processes inherit it
     with tempfile.TemporaryDirectory() as tmp, local_stack(Path(tmp)) as stack:
+        os.sched_setaffinity(0, browser_cores)  # Playwright's driver and Chromium inherit it
+        print(f"cores: stack {sorted(stack_cores)}, browser {sorted(browser_cores)}")
         with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
             png = renderer.render_png(RenderRequest(scene="demo", pose=PoseQuery(lat=2, lon=5)))
         target = Path(tmp) / "target.png"

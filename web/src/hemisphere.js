@@ -41,7 +41,10 @@ const COLOURS = { grid: 0x8b949e, path: 0x58a6ff, current: 0x58a6ff, start: 0x3f
 // GPU) at the first frame that shows it: in the middle of a streaming search.
 const PATH = new LineBasicMaterial({ color: COLOURS.path });
 const RAY = new LineBasicMaterial({ color: 0x2f5f8f });
-const SIZE_PX = 512; // the drawing buffer's size, whatever the box (CSS scales it): set once
+// The drawing buffer's size, whatever the box (CSS scales it): set once. Without a GPU each
+// draw is rasterised in software and waited for on the main thread: 512 px cost 50-58 ms tasks
+// while a search streamed, 384 px none over 50 ms (benchmarks/page.py).
+const SIZE_PX = 384;
 const BALL = new SphereGeometry(1, 16, 12);
 const CUBE = new BoxGeometry(1, 1, 1);
 const MATERIALS = new Map();
