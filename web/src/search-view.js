@@ -22,6 +22,7 @@ export function showSearch({ view, api }, id) {
   let following = true; // the slider stays on the newest iteration
   let pending = 0;
   let targetDrawn = [];
+  let summarised = null;
 
   const status = h("span", { class: "badge", id: "status" }, "…");
   const summary = h("div", { id: "summary", class: "summary" });
@@ -150,7 +151,10 @@ export function showSearch({ view, api }, id) {
     slider.max = String(Math.max(0, n - 1));
     slider.value = String(Math.max(0, current));
     slider.disabled = n < 2;
-    if (search) showSummary();
+    if (search && search !== summarised) {
+      showSummary(); // rebuilt only when the search changed: it lays out the page's head again
+      summarised = search;
+    }
     const estimate = estimateNow();
     const distances = estimate ? iterations.map((it) => angularDistanceDeg(it.pose, estimate)) : [];
     drawDistances(plot, distances, current);
