@@ -122,11 +122,11 @@ def answer(sock: socket.socket, timeout_s: float) -> tuple[int, dict[str, str], 
             data += chunk
         head, _, body = data.partition(b"\r\n\r\n")
         length = int(dict(_headers(head)).get("content-length", "0"))
-        while len(body) < length:
+        while len(data) - len(head) - 4 < length:  # the body may come in later segments
             chunk = sock.recv(65536)
             if not chunk:
                 break
-            body += chunk
+            data += chunk
     except TimeoutError:
         return None
     return _parse(data)
