@@ -42,6 +42,7 @@ import cv2
 import httpx
 import numpy as np
 
+from services.bench.faults.harness import memory_of, reset_peak
 from services.stack import Stack, local_stack
 
 MIB = 1 << 20
@@ -66,26 +67,27 @@ def maximal_png(limit: int = UPLOAD_LIMIT, seed: int = 0) -> bytes:
 
 
 class PeakMemory:
-    """A process's resident memory now and its peak since :meth:`reset` (``/proc``)."""
+    """A process's resident memory now and its peak since :meth:`reset` (``/proc``, through
+    the fault suite's :func:`~services.bench.faults.harness.memory_of`)."""
 
     def __init__(self, pid: int) -> None:
         self.pid = pid
 
-    def _status(self, field: str) -> int:
-        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) * 1024
-        raise RuntimeError(f"no {field} for {self.pid}")
+    def _memory(self) -> tuple[int, int]:
+        memory = memory_of(self.pid)
+        if memory is None:
+            raise RuntimeError(f"process {self.pid} is gone")
+        return memory
 
     def rss(self) -> int:
-        return self._status("VmRSS")
+        return self._memory()[0]
 
     def reset(self) -> None:
-        """Start the high-water mark over from the current resident size (clear_refs 5)."""
-        Path(f"/proc/{self.pid}/clear_refs").write_text("5")
+        """Start the high-water mark over from the current resident size."""
+        reset_peak(self.pid)
 
     def peak(self) -> int:
-        return self._status("VmHWM")
+        return self._memory()[1]
 
 
 def _target(stack: Stack) -> bytes:

@@ -46,6 +46,7 @@ __all__ = [
     "count",
     "latencies",
     "memory_of",
+    "reset_peak",
     "p95",
     "percentile",
 ]
@@ -379,7 +380,7 @@ def memory_of(pid: int) -> tuple[int, int] | None:
     return fields["VmRSS"], fields["VmHWM"]
 
 
-def _reset_peak(pid: int) -> bool:
+def reset_peak(pid: int) -> bool:
     """Start the process's ``VmHWM`` over from its current RSS (``clear_refs`` 5, Linux ≥ 4.0);
     False where that is not allowed."""
     try:
@@ -413,7 +414,7 @@ class RssSampler:
 
     def start(self) -> RssSampler:
         for _, pid in self._processes():
-            self._trust_hwm[pid] = _reset_peak(pid)
+            self._trust_hwm[pid] = reset_peak(pid)
         self.sample()
         self._thread = threading.Thread(target=self._run, name="fault-rss", daemon=True)
         self._thread.start()
