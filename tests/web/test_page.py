@@ -234,8 +234,11 @@ def test_a_target_made_by_picking_a_pose_on_the_hemisphere_is_found(page, stack)
     for fy in np.linspace(0.12, 0.6, 13):
         for fx in np.linspace(0.3, 0.7, 9):
             page.mouse.click(box["x"] + fx * box["width"], box["y"] + fy * box["height"])
-            if info.inner_text().startswith(("Rendering", "Rendered")):
-                break
+            try:  # the 3D view's worker says which pose (if any) the click was on
+                expect(info).to_have_text(re.compile(r"^Render"), timeout=300)
+            except AssertionError:
+                continue
+            break
         else:
             continue
         break

@@ -62,9 +62,9 @@ export async function api(path, { method = "GET", body, headers = {}, signal, as
   }
 }
 
-/** An image of the API (PNG, JPEG) as an ImageBitmap. */
-export async function bitmap(path, signal) {
-  return createImageBitmap(await api(path, { as: "blob", signal }));
+/** An image of the API (PNG, JPEG) as an object URL: the caller revokes it when done with it. */
+export async function imageURL(path, signal) {
+  return URL.createObjectURL(await api(path, { as: "blob", signal }));
 }
 
 /**

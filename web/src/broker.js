@@ -52,17 +52,39 @@ export function renderHealth(health) {
 /** Keep `body` and `badge` showing the controller's /health. */
 export function watchBroker(body, badge) {
   let timer = 0;
+  let shape = ""; // the shown table's columns and replicas: while they stay, only changed text is set
+  function show(health) {
+    const [summary, table] = renderHealth(health);
+    const now = `${[...table.querySelectorAll("th")].map((th) => th.textContent)} ${(health.replicas || []).map((r) => r.name)}`;
+    const shown = body.querySelectorAll("p.summary, table.replicas td");
+    if (now !== shape || !shown.length) {
+      body.replaceChildren(summary, table);
+      shape = now;
+      return;
+    }
+    // the same table: set only the text that changed (a rebuilt panel is laid out and painted whole)
+    const fresh = [summary, ...table.querySelectorAll("td")];
+    shown.forEach((node, i) => {
+      if (node.innerHTML !== fresh[i].innerHTML) node.replaceChildren(...fresh[i].childNodes);
+      if (node.className !== fresh[i].className) node.className = fresh[i].className;
+    });
+    const rows = body.querySelectorAll("table.replicas tbody tr");
+    table.querySelectorAll("tbody tr").forEach((row, i) => {
+      if (rows[i].className !== row.className) rows[i].className = row.className;
+    });
+  }
   async function refresh() {
     timer = 0;
     try {
       const response = await fetch("/health", { headers: { Accept: "application/json" } });
       if (!response.ok) throw new Problem(response.status, await response.json().catch(() => null));
       const health = await response.json();
-      body.replaceChildren(...renderHealth(health));
-      badge.textContent = `broker ${health.status}`;
-      badge.className = `badge ${health.status}`;
+      show(health);
+      if (badge.textContent !== `broker ${health.status}`) badge.textContent = `broker ${health.status}`;
+      if (badge.className !== `badge ${health.status}`) badge.className = `badge ${health.status}`;
     } catch (error) {
       body.replaceChildren(h("p", { class: "notice error" }, `GET /health failed: ${error.message}`));
+      shape = "";
       badge.textContent = "broker ?";
       badge.className = "badge degraded";
     }

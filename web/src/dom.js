@@ -21,4 +21,12 @@ export function notice(text, kind = "info") {
 }
 
 export const ms = (value) => (value === undefined || value === null ? "—" : value.toFixed(0));
-export const when = (iso) => new Date(iso).toLocaleString();
+// one formatter for every date: Date.toLocaleString builds a new Intl formatter at each call
+const DATES = new Intl.DateTimeFormat(undefined, { dateStyle: "short", timeStyle: "medium" });
+export const when = (iso) => DATES.format(new Date(iso));
+
+/** Set `node[prop]` only if it differs: an equal text or attribute set again still makes the
+ * browser lay the page out again. */
+export function update(node, prop, value) {
+  if (node[prop] !== value) node[prop] = value;
+}

@@ -1,4 +1,10 @@
-// Canvas 2D drawings: an image with its detections, and the distance-to-estimate plot (Fig. 8).
+// The page's pictures, drawn by the browser rather than on 2D canvases: an image with its
+// detections as boxes over it, and the distance-to-estimate plot (paper Fig. 8) in SVG. A 2D
+// canvas is rasterised by the page's script on the main thread and copied again at each commit
+// (6-12 ms a frame while a search streamed, benchmarks/page.py); an <img> is decoded, and boxes
+// and SVG are rasterised, by the browser's worker threads.
+
+import { h } from "./dom.js";
 
 const PALETTE = ["#e6194b", "#3cb44b", "#4363d8", "#f58231", "#911eb4", "#42d4f4", "#f032e6", "#bfef45", "#469990", "#9a6324"];
 
@@ -12,108 +18,116 @@ function colourOf(detection) {
   return PALETTE[hash % PALETTE.length];
 }
 
-/** Fit a canvas's backing store to its CSS size (device pixels); its 2D context, scaled. */
-function fitted(canvas, aspect) {
-  const width = canvas.clientWidth || 320;
-  const height = aspect ? Math.round(width / aspect) : canvas.clientHeight || 200;
-  const ratio = window.devicePixelRatio || 1;
-  if (canvas.width !== Math.round(width * ratio) || canvas.height !== Math.round(height * ratio)) {
-    canvas.width = Math.round(width * ratio);
-    canvas.height = Math.round(height * ratio);
-  }
-  const ctx = canvas.getContext("2d", { willReadFrequently: true });
-  ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
-  return { ctx, width, height };
+const percent = (value) => `${(100 * value).toFixed(3)}%`;
+
+/** A detection's box, placed in percent of an image of `width` × `height` pixels. */
+function boxOf(detection, width, height) {
+  const [x1, y1, x2, y2] = detection.box;
+  const box = h("div", { class: y1 / height < 0.06 ? "box below" : "box" }, h("span", {}, `${detection.label} ${detection.confidence.toFixed(2)}`));
+  box.style.setProperty("--colour", colourOf(detection));
+  box.style.left = percent(x1 / width);
+  box.style.top = percent(y1 / height);
+  box.style.width = percent((x2 - x1) / width);
+  box.style.height = percent((y2 - y1) / height);
+  return box;
 }
 
-/**
- * `image` (an ImageBitmap, or null for none yet) with each detection's box, label and confidence.
- * Boxes are in the pixels of the image the detector saw (`size`: [width, height]).
- */
-export function drawDetections(canvas, image, detections, size, note = "") {
-  const aspect = image ? image.width / image.height : size ? size[0] / size[1] : 4 / 3;
-  const { ctx, width, height } = fitted(canvas, aspect);
-  ctx.clearRect(0, 0, width, height);
-  ctx.fillStyle = "#1c2128";
-  ctx.fillRect(0, 0, width, height);
-  if (image) ctx.drawImage(image, 0, 0, width, height);
-  const [w, h] = size || (image ? [image.width, image.height] : [width, height]);
-  const sx = width / w;
-  const sy = height / h;
-  ctx.font = "12px system-ui, sans-serif";
-  ctx.lineWidth = 2;
-  for (const d of detections || []) {
-    const [x1, y1, x2, y2] = d.box;
-    const colour = colourOf(d);
-    ctx.strokeStyle = colour;
-    ctx.strokeRect(x1 * sx, y1 * sy, (x2 - x1) * sx, (y2 - y1) * sy);
-    const text = `${d.label} ${d.confidence.toFixed(2)}`;
-    const tw = ctx.measureText(text).width + 6;
-    const ty = y1 * sy > 16 ? y1 * sy - 16 : y2 * sy;
-    ctx.fillStyle = colour;
-    ctx.fillRect(x1 * sx - 1, ty, tw, 16);
-    ctx.fillStyle = "#fff";
-    ctx.fillText(text, x1 * sx + 2, ty + 12);
+/** An image (a URL, or none yet) with each detection's box, label and confidence over it. */
+export class Picture {
+  /** `attrs`: the picture's id and aria-label. */
+  constructor(attrs) {
+    this.img = h("img", { alt: "", hidden: true });
+    this.boxes = h("div", { class: "boxes" });
+    this.note = h("p", { class: "picture-note", hidden: true });
+    this.element = h("div", { class: "picture", role: "img", ...attrs }, this.img, this.boxes, this.note);
+    this.src = null;
   }
-  if (note) {
-    ctx.fillStyle = "#c9d1d9";
-    ctx.fillText(note, 10, height / 2);
+
+  /**
+   * Show `src` (an image URL, or null) with `detections`, whose boxes are in the pixels of the
+   * image the detector saw (`size`: [width, height], else the image's own), and a `note` over it.
+   * A new image replaces the old once it is decoded: the picture never shows blank between two.
+   * Resolves to the image's [width, height] once it is shown; null if it is not (no image, an
+   * image that cannot be shown, or another asked for meanwhile).
+   */
+  show(src, detections = [], size = null, note = "") {
+    this.note.textContent = note;
+    this.note.hidden = !note;
+    if (size) this.element.style.aspectRatio = `${size[0]} / ${size[1]}`;
+    const place = (width, height) => this.boxes.replaceChildren(...(detections || []).map((d) => boxOf(d, width, height)));
+    if (size) place(...size);
+    if (src === this.src) {
+      if (!size && src) place(this.img.naturalWidth, this.img.naturalHeight);
+      return Promise.resolve(src ? [this.img.naturalWidth, this.img.naturalHeight] : null);
+    }
+    this.src = src;
+    if (!src) {
+      this.img.hidden = true;
+      return Promise.resolve(null);
+    }
+    const next = h("img", { alt: "" });
+    next.src = src;
+    return next
+      .decode()
+      .then(() => {
+        if (this.src !== src) return null; // a newer image was asked for meanwhile
+        if (!size) {
+          this.element.style.aspectRatio = `${next.naturalWidth} / ${next.naturalHeight}`;
+          place(next.naturalWidth, next.naturalHeight);
+        }
+        this.img.replaceWith(next);
+        this.img = next;
+        return [next.naturalWidth, next.naturalHeight];
+      })
+      .catch(() => {
+        if (this.src !== src) return null;
+        this.img.hidden = true;
+        if (!note) {
+          this.note.textContent = "This browser cannot show this image.";
+          this.note.hidden = false;
+        }
+        return null;
+      });
   }
 }
 
-/**
- * The angle (degrees) from each visited pose to the estimate, per iteration; `current` (an
- * index or -1) is ringed.
- */
-export function drawDistances(canvas, distances, current) {
-  const { ctx, width, height } = fitted(canvas);
-  const left = 44;
-  const right = 12;
-  const top = 14;
-  const bottom = 30;
-  ctx.clearRect(0, 0, width, height);
-  ctx.font = "11px system-ui, sans-serif";
-  ctx.strokeStyle = "#8b949e";
-  ctx.fillStyle = "#8b949e";
-  ctx.lineWidth = 1;
-  ctx.beginPath();
-  ctx.moveTo(left, top);
-  ctx.lineTo(left, height - bottom);
-  ctx.lineTo(width - right, height - bottom);
-  ctx.stroke();
-  const n = distances.length;
-  const ymax = Math.max(10, ...distances.map((d) => Math.ceil(d / 10) * 10));
-  const x = (i) => left + ((width - left - right) * i) / Math.max(1, n - 1);
-  const y = (d) => height - bottom - ((height - top - bottom) * d) / ymax;
-  for (const tick of [0, ymax / 2, ymax]) {
-    ctx.fillText(`${tick.toFixed(0)}°`, 6, y(tick) + 4);
-    ctx.strokeStyle = "#30363d";
-    ctx.beginPath();
-    ctx.moveTo(left + 1, y(tick));
-    ctx.lineTo(width - right, y(tick));
-    ctx.stroke();
+const SVG = "http://www.w3.org/2000/svg";
+function svg(tag, attrs = {}, text = null) {
+  const node = document.createElementNS(SVG, tag);
+  for (const [name, value] of Object.entries(attrs)) node.setAttribute(name, value);
+  if (text !== null) node.textContent = text;
+  return node;
+}
+
+const [W, H] = [600, 300]; // the plot's units (it scales to its box, keeping this aspect)
+const [LEFT, RIGHT, TOP, BOTTOM] = [44, 12, 14, 30];
+
+/** The angle (degrees) from each visited pose to the estimate, per iteration (paper Fig. 8). */
+export class DistancePlot {
+  /** `attrs`: the plot's id and aria-label. */
+  constructor(attrs) {
+    this.element = svg("svg", { viewBox: `0 0 ${W} ${H}`, class: "plot", role: "img", ...attrs });
   }
-  ctx.fillStyle = "#8b949e";
-  ctx.fillText("iteration (rendered view)", left + 4, height - 8);
-  if (n) ctx.fillText(String(n - 1), x(n - 1) - 8, height - bottom + 14);
-  ctx.fillText("0", left - 3, height - bottom + 14);
-  if (!n) return;
-  ctx.strokeStyle = "#58a6ff";
-  ctx.lineWidth = 2;
-  ctx.beginPath();
-  distances.forEach((d, i) => (i ? ctx.lineTo(x(i), y(d)) : ctx.moveTo(x(i), y(d))));
-  ctx.stroke();
-  ctx.fillStyle = "#58a6ff";
-  distances.forEach((d, i) => {
-    ctx.beginPath();
-    ctx.arc(x(i), y(d), 3, 0, 2 * Math.PI);
-    ctx.fill();
-  });
-  if (current >= 0 && current < n) {
-    ctx.strokeStyle = "#f0883e";
-    ctx.lineWidth = 2;
-    ctx.beginPath();
-    ctx.arc(x(current), y(distances[current]), 7, 0, 2 * Math.PI);
-    ctx.stroke();
+
+  /** Plot `distances` (degrees, one per iteration) with iteration `current` (or -1) ringed. */
+  show(distances, current) {
+    const n = distances.length;
+    const ymax = Math.max(10, ...distances.map((d) => Math.ceil(d / 10) * 10));
+    const x = (i) => LEFT + ((W - LEFT - RIGHT) * i) / Math.max(1, n - 1);
+    const y = (d) => H - BOTTOM - ((H - TOP - BOTTOM) * d) / ymax;
+    const parts = [svg("path", { class: "axis", d: `M${LEFT},${TOP}V${H - BOTTOM}H${W - RIGHT}` })];
+    for (const tick of [0, ymax / 2, ymax]) {
+      parts.push(svg("path", { class: "grid", d: `M${LEFT + 1},${y(tick)}H${W - RIGHT}` }));
+      parts.push(svg("text", { x: 6, y: y(tick) + 4 }, `${tick.toFixed(0)}°`));
+    }
+    parts.push(svg("text", { x: LEFT + 4, y: H - 8 }, "iteration (rendered view)"));
+    parts.push(svg("text", { x: LEFT - 3, y: H - BOTTOM + 14 }, "0"));
+    if (n) {
+      parts.push(svg("text", { x: x(n - 1) - 8, y: H - BOTTOM + 14 }, String(n - 1)));
+      parts.push(svg("polyline", { class: "line", points: distances.map((d, i) => `${x(i)},${y(d)}`).join(" ") }));
+      for (const [i, d] of distances.entries()) parts.push(svg("circle", { class: "point", cx: x(i), cy: y(d), r: 3 }));
+      if (current >= 0 && current < n) parts.push(svg("circle", { class: "current", cx: x(current), cy: y(distances[current]), r: 7 }));
+    }
+    this.element.replaceChildren(...parts);
   }
 }

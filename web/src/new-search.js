@@ -1,10 +1,10 @@
 // A new search: a scene (with a preview and its grid size), a target (a dropped or chosen file,
 // or a pose picked on the hemisphere, rendered), a strategy and an optional start; then go.
 
-import { Problem, bitmap } from "./api.js";
-import { drawDetections } from "./draw.js";
+import { Problem, imageURL } from "./api.js";
+import { Picture } from "./draw.js";
 import { h, notice } from "./dom.js";
-import { lazyHemisphere } from "./lazy-hemisphere.js";
+import { Hemisphere } from "./hemisphere.js";
 
 const STRATEGIES = [
   ["reprojection", "reprojection (ours, default)"],
@@ -22,11 +22,19 @@ export function showNewSearch({ view, api }, params) {
   const sceneSelect = h("select", { name: "scene", id: "scene", required: true });
   const sceneInfo = h("p", { class: "muted", id: "scene-info" }, "…");
   const sceneMessage = h("div", { id: "scene-message" });
-  const preview = h("canvas", { id: "preview", class: "image", role: "img", "aria-label": "The scene's preview" });
+  const preview = new Picture({ id: "preview", "aria-label": "The scene's preview" });
+  const urls = new Set(); // object URLs made here, revoked once no picture shows them
+  function release() {
+    for (const url of urls) {
+      if (url === preview.src || url === targetPicture.src) continue;
+      URL.revokeObjectURL(url);
+      urls.delete(url);
+    }
+  }
   const fileInput = h("input", { type: "file", id: "target-file", accept: "image/png,image/jpeg,image/x-portable-pixmap,.ppm" });
-  const targetCanvas = h("canvas", { id: "target-preview", class: "image", role: "img", "aria-label": "The target image" });
+  const targetPicture = new Picture({ id: "target-preview", "aria-label": "The target image" });
   const targetInfo = h("p", { class: "muted", id: "target-info" }, "No target yet: drop an image here, choose a file, or click a pose on the hemisphere.");
-  const drop = h("div", { class: "drop", id: "drop" }, targetCanvas, targetInfo, h("label", { class: "button" }, "Choose an image…", fileInput));
+  const drop = h("div", { class: "drop", id: "drop" }, targetPicture.element, targetInfo, h("label", { class: "button" }, "Choose an image…", fileInput));
   const hemiBox = h("div", { class: "hemisphere small", id: "pick-hemisphere" });
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
   const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
@@ -37,7 +45,7 @@ export function showNewSearch({ view, api }, params) {
   const form = h(
     "form",
     { id: "new-search", class: "new-search" },
-    h("section", { class: "panel" }, h("h2", {}, "Scene"), h("label", {}, "Scene ", sceneSelect), sceneInfo, sceneMessage, preview),
+    h("section", { class: "panel" }, h("h2", {}, "Scene"), h("label", {}, "Scene ", sceneSelect), sceneInfo, sceneMessage, preview.element),
     h("section", { class: "panel" }, h("h2", {}, "Target"), drop, h("h3", {}, "…or pick a pose"), hemiBox),
     h(
       "section",
@@ -51,11 +59,16 @@ export function showNewSearch({ view, api }, params) {
     ),
   );
   view.replaceChildren(h("h2", { class: "title" }, "New search"), form);
-  const hemisphere = lazyHemisphere(hemiBox, { onPick: (pose) => pickPose(pose) });
+  const hemisphere = new Hemisphere(hemiBox, { onPick: (pose) => pickPose(pose) });
 
-  function showTarget(image, text) {
-    drawDetections(targetCanvas, image, [], null);
+  /** Show the target image at `url` (or none) and `text`, with the image's size once shown. */
+  function showTarget(url, text) {
     targetInfo.textContent = text;
+    if (url) urls.add(url);
+    targetPicture.show(url).then((size) => {
+      if (size && targetPicture.src === url) targetInfo.textContent = `${text}, ${size[0]}×${size[1]}`;
+    });
+    release();
   }
 
   async function useFile(file) {
@@ -63,13 +76,8 @@ export function showNewSearch({ view, api }, params) {
     target = { blob: file, name: file.name };
     picked = null;
     hemisphere.setTrack({});
-    let image = null;
-    try {
-      image = await createImageBitmap(file);
-    } catch {
-      // PPM (or not an image): the controller judges it
-    }
-    showTarget(image, `${file.name} (${(file.size / 1024).toFixed(1)} KiB)${image ? `, ${image.width}×${image.height}` : ""}`);
+    // a PPM (or not an image) is not shown here: the controller judges it
+    showTarget(URL.createObjectURL(file), `${file.name} (${(file.size / 1024).toFixed(1)} KiB)`);
   }
 
   async function pickPose(pose) {
@@ -79,8 +87,9 @@ export function showNewSearch({ view, api }, params) {
     try {
       const scene = sceneSelect.value;
       const blob = await api(`/scenes/${encodeURIComponent(scene)}/view.png?lat=${pose.lat}&lon=${pose.lon}`, { as: "blob", signal: controller.signal });
+      if (picked !== pose) return; // another pose was picked meanwhile
       target = { blob, name: `${scene}-lat${pose.lat}-lon${pose.lon}.png` };
-      showTarget(await createImageBitmap(blob), `Rendered at lat ${pose.lat}, lon ${pose.lon} (θ ${pose.theta_deg.toFixed(1)}°, φ ${pose.phi_deg.toFixed(1)}°)`);
+      showTarget(URL.createObjectURL(blob), `Rendered at lat ${pose.lat}, lon ${pose.lon} (θ ${pose.theta_deg.toFixed(1)}°, φ ${pose.phi_deg.toFixed(1)}°)`);
     } catch (error) {
       if (error.name !== "AbortError") targetInfo.textContent = `Could not render it: ${error.message}`;
     }
@@ -94,8 +103,12 @@ export function showNewSearch({ view, api }, params) {
       sceneInfo.textContent = `${sceneDetail.spec.objects.length} objects; grid of ${sceneDetail.grid.size} poses, ${sceneDetail.grid.rings.length} rings every ${sceneDetail.grid.angle_step_deg}° (θ ${sceneDetail.grid.min_theta_deg}°–${sceneDetail.grid.max_theta_deg}°)`;
       hemisphere.setScene(sceneDetail);
       hemisphere.setTrack({});
-      drawDetections(preview, null, [], [sceneDetail.spec.camera.width, sceneDetail.spec.camera.height], "rendering a preview…");
-      drawDetections(preview, await bitmap(`/scenes/${encodeURIComponent(id)}/view.png?lat=${ring.lat}&lon=0`, controller.signal), [], null);
+      const size = [sceneDetail.spec.camera.width, sceneDetail.spec.camera.height];
+      preview.show(null, [], size, "rendering a preview…");
+      const url = await imageURL(`/scenes/${encodeURIComponent(id)}/view.png?lat=${ring.lat}&lon=0`, controller.signal);
+      urls.add(url);
+      preview.show(url, [], size);
+      release();
     } catch (error) {
       if (error.name !== "AbortError") sceneInfo.textContent = `Could not load scene ${id}: ${error.message}`;
     }
@@ -172,5 +185,6 @@ export function showNewSearch({ view, api }, params) {
   return () => {
     controller.abort();
     hemisphere.dispose();
+    for (const url of urls) URL.revokeObjectURL(url);
   };
 }

@@ -2,11 +2,11 @@
 // the target and the current view with their detections, the hemisphere, the distance to the
 // estimate per iteration, the iterations with their stage times, a step slider, a cancel button.
 
-import { bitmap, follow } from "./api.js";
-import { drawDetections, drawDistances } from "./draw.js";
-import { h, ms, notice, when } from "./dom.js";
+import { follow, imageURL } from "./api.js";
+import { DistancePlot, Picture } from "./draw.js";
+import { h, ms, notice, update, when } from "./dom.js";
 import { angularDistanceDeg, poseText } from "./geometry.js";
-import { lazyHemisphere } from "./lazy-hemisphere.js";
+import { Hemisphere } from "./hemisphere.js";
 
 const TERMINAL = new Set(["succeeded", "failed", "cancelled"]);
 
@@ -16,24 +16,28 @@ export function showSearch({ view, api }, id) {
   const base = `/searches/${encodeURIComponent(id)}`;
   let search = null;
   const iterations = [];
-  const views = new Map(); // index -> Promise<ImageBitmap>
+  const views = new Map(); // index -> Promise<object URL of its view>
   let target = null;
   let current = -1;
   let following = true; // the slider stays on the newest iteration
   let pending = 0;
-  let targetDrawn = [];
-  let summarised = null;
+  let targetDrawn = "";
+  let summarised = "";
+  let tracked = "";
+  let viewShown = -1; // the iteration whose view is shown, or asked for
+  let rowed = 0; // iterations with their table row: the rows are added in the next frame
 
   const status = h("span", { class: "badge", id: "status" }, "…");
   const summary = h("div", { id: "summary", class: "summary" });
   const cancel = h("button", { type: "button", id: "cancel", class: "danger", hidden: true }, "Cancel");
-  const targetCanvas = h("canvas", { id: "target-canvas", class: "image", role: "img", "aria-label": "The target image with its detections" });
-  const viewCanvas = h("canvas", { id: "view-canvas", class: "image", role: "img", "aria-label": "The current view with its detections" });
+  const targetPicture = new Picture({ id: "target-canvas", "aria-label": "The target image with its detections" });
+  const viewPicture = new Picture({ id: "view-canvas", "aria-label": "The current view with its detections" });
   const viewCaption = h("figcaption", { id: "view-caption" }, "Current view");
   const slider = h("input", { type: "range", id: "replay", min: 0, max: 0, value: 0, step: 1, disabled: true, "aria-label": "Iteration" });
   const sliderLabel = h("span", { id: "replay-label", class: "muted" }, "no iteration yet");
   const hemiBox = h("div", { class: "hemisphere", id: "hemisphere", role: "img", "aria-label": "The hemisphere of camera poses in 3D" });
-  const plot = h("canvas", { id: "distance-plot", class: "plot", role: "img", "aria-label": "Angle to the estimate per iteration" });
+  const plot = new DistancePlot({ id: "distance-plot", "aria-label": "Angle to the estimate per iteration" });
+  let plotted = "";
   const rows = h("tbody", {});
   const table = h(
     "table",
@@ -49,22 +53,22 @@ export function showSearch({ view, api }, id) {
     h(
       "div",
       { class: "pair" },
-      h("figure", {}, targetCanvas, h("figcaption", {}, "Target")),
-      h("figure", {}, viewCanvas, viewCaption),
+      h("figure", {}, targetPicture.element, h("figcaption", {}, "Target")),
+      h("figure", {}, viewPicture.element, viewCaption),
     ),
     h("div", { class: "slider" }, slider, sliderLabel),
     h(
       "div",
       { class: "pair" },
       h("figure", {}, hemiBox, h("figcaption", {}, "The hemisphere: grid poses (grey), visited (blue, in order), start (green), estimate (orange), answer (red). Drag to turn.")),
-      h("figure", {}, plot, h("figcaption", {}, "Angle from each visited pose to the estimate (paper Fig. 8)")),
+      h("figure", {}, plot.element, h("figcaption", {}, "Angle from each visited pose to the estimate (paper Fig. 8)")),
     ),
     h("h3", {}, "Iterations"),
     table,
   );
-  drawDetections(targetCanvas, null, [], null, "loading the target…");
-  drawDetections(viewCanvas, null, [], null, "no view yet");
-  const hemisphere = lazyHemisphere(hemiBox);
+  targetPicture.show(null, [], null, "loading the target…");
+  viewPicture.show(null, [], null, "no view yet");
+  const hemisphere = new Hemisphere(hemiBox);
 
   function estimateNow() {
     if (search?.result) return search.result.refined_pose;
@@ -103,9 +107,9 @@ export function showSearch({ view, api }, id) {
     summary.replaceChildren(...children);
   }
 
-  function addRow(it) {
+  function rowOf(it) {
     const m = it.match;
-    const row = h(
+    return h(
       "tr",
       { dataset: { index: it.index }, onclick: () => select(it.index, false) },
       h("td", {}, it.index),
@@ -118,12 +122,11 @@ export function showSearch({ view, api }, id) {
       h("td", {}, ms(it.timings.optimize_ms)),
       h("td", {}, ms(it.timings.total_ms)),
     );
-    rows.append(row);
   }
 
   function viewOf(index) {
     if (!views.has(index)) {
-      const loading = bitmap(`${base}/iterations/${index}/view.png`, signal);
+      const loading = imageURL(`${base}/iterations/${index}/view.png`, signal);
       loading.catch(() => views.delete(index));
       views.set(index, loading);
     }
@@ -148,49 +151,70 @@ export function showSearch({ view, api }, id) {
 
   function redraw() {
     const n = iterations.length;
-    slider.max = String(Math.max(0, n - 1));
-    slider.value = String(Math.max(0, current));
-    slider.disabled = n < 2;
-    if (search && search !== summarised) {
-      showSummary(); // rebuilt only when the search changed: it lays out the page's head again
-      summarised = search;
+    update(slider, "max", String(Math.max(0, n - 1)));
+    update(slider, "value", String(Math.max(0, current)));
+    update(slider, "disabled", n < 2);
+    if (rowed < n) {
+      rows.append(...iterations.slice(rowed).map(rowOf)); // the frame's new rows, in one change
+      rowed = n;
+    }
+    // each part is rebuilt only when what it shows changed (a running search's record changes
+    // at every iteration, its summary seldom): a rebuilt part is laid out and painted again
+    const facts = search && JSON.stringify([search.status, search.result, search.error, search.updated_at && TERMINAL.has(search.status)]);
+    if (search && facts !== summarised) {
+      showSummary();
+      summarised = facts;
     }
     const estimate = estimateNow();
-    const distances = estimate ? iterations.map((it) => angularDistanceDeg(it.pose, estimate)) : [];
-    drawDistances(plot, distances, current);
+    const drawn = `${n} ${current} ${estimate?.theta_deg} ${estimate?.phi_deg}`;
+    if (drawn !== plotted) {
+      plot.show(estimate ? iterations.map((it) => angularDistanceDeg(it.pose, estimate)) : [], current);
+      plotted = drawn;
+    }
     const it = iterations[current];
-    sliderLabel.textContent = n ? `iteration ${current} of ${n - 1}` : "no iteration yet";
-    for (const row of rows.querySelectorAll("tr.current")) row.classList.remove("current");
-    rows.querySelector(`tr[data-index="${current}"]`)?.classList.add("current");
-    hemisphere.setTrack({
-      visited: iterations.slice(0, current + 1).map((v) => v.pose),
-      current: it?.pose || null,
-      estimate: it?.estimate || null,
-      answer: search?.result && current === n - 1 ? search.result.refined_pose : null,
-      start: search?.start || null,
-    });
-    // the target changes twice at most (its image, its detections): not redrawn per iteration
-    const targetNow = [target, search?.target_detections];
-    if (target !== undefined && (targetNow[0] !== targetDrawn[0] || targetNow[1] !== targetDrawn[1])) {
-      drawDetections(targetCanvas, target, search?.target_detections || [], search?.target_size);
+    update(sliderLabel, "textContent", n ? `iteration ${current} of ${n - 1}` : "no iteration yet");
+    const row = rows.children[current];
+    if (row && !row.classList.contains("current")) {
+      for (const old of rows.querySelectorAll("tr.current")) old.classList.remove("current");
+      row.classList.add("current");
+    }
+    const answer = search?.result && current === n - 1 ? search.result.refined_pose : null;
+    const track = `${current} ${n} ${Boolean(answer)} ${Boolean(search?.start)}`;
+    if (track !== tracked) {
+      hemisphere.setTrack({
+        visited: iterations.slice(0, current + 1).map((v) => v.pose),
+        current: it?.pose || null,
+        estimate: it?.estimate || null,
+        answer,
+        start: search?.start || null,
+      });
+      tracked = track;
+    }
+    // the target changes twice at most (its image, then its detections)
+    const targetNow = `${target} ${Boolean(search?.target_detections)}`;
+    if (target !== undefined && targetNow !== targetDrawn) {
+      targetPicture.show(target, search?.target_detections || [], search?.target_size);
       targetDrawn = targetNow;
     }
     if (!it) return;
-    viewCaption.textContent = `View ${it.index}: ${poseText(it.pose)}, ${it.detections.length} detections${it.match ? `, match ${it.match.score.toFixed(2)}` : ""}`;
+    update(viewCaption, "textContent", `View ${it.index}: ${poseText(it.pose)}, ${it.detections.length} detections${it.match ? `, match ${it.match.score.toFixed(2)}` : ""}`);
+    if (current === viewShown) return;
     const shown = current;
+    viewShown = current;
     viewOf(shown)
-      .then((image) => {
-        if (shown === current) drawDetections(viewCanvas, image, it.detections, it.image_size);
+      .then((url) => {
+        if (shown === current) viewPicture.show(url, it.detections, it.image_size);
       })
       .catch((error) => {
-        if (shown === current && error.name !== "AbortError") drawDetections(viewCanvas, null, it.detections, it.image_size, `view unavailable: ${error.message}`);
+        if (shown !== current || error.name === "AbortError") return;
+        viewPicture.show(null, it.detections, it.image_size, `view unavailable: ${error.message}`);
+        viewShown = -1; // asked again at the next change
       });
   }
 
   function take(it) {
     if (iterations[it.index]) return;
     iterations[it.index] = it;
-    addRow(it);
     if (following) current = it.index;
     schedule();
   }
@@ -253,13 +277,13 @@ export function showSearch({ view, api }, id) {
         schedule();
       })
       .catch(() => {});
-    bitmap(`${base}/target`, signal)
-      .then((image) => {
-        target = image;
+    imageURL(`${base}/target`, signal)
+      .then((url) => {
+        target = url;
         schedule();
       })
       .catch((error) => {
-        if (error.name !== "AbortError") drawDetections(targetCanvas, null, search.target_detections || [], search.target_size, `target image: ${error.detail || error.message}`);
+        if (error.name !== "AbortError") targetPicture.show(null, search.target_detections || [], search.target_size, `target image: ${error.detail || error.message}`);
         target = undefined;
       });
     schedule();
@@ -269,5 +293,7 @@ export function showSearch({ view, api }, id) {
   return () => {
     controller.abort();
     hemisphere.dispose();
+    if (target) URL.revokeObjectURL(target);
+    for (const loading of views.values()) loading.then(URL.revokeObjectURL, () => {});
   };
 }
