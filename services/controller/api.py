@@ -457,7 +457,8 @@ async def scene_view(
     """The scene seen from grid pose (``lat``, ``lon``), rendered as a search's views are (the
     page's scene preview, and a target made by picking a pose)."""
     try:
-        png = await state.views.png(scene_id, GridIndex(lat=lat, lon=lon))
+        index = GridIndex(lat=lat, lon=lon)
+        png = await state.views.png(scene_id, index, state.stages.view_settings)
     except BrokerError as exc:
         raise _unavailable(exc.stage, exc) from exc
     except StageError as exc:
@@ -502,12 +503,14 @@ async def iteration_view(
     key: Caller,
 ) -> Response:
     """The view the search rendered at iteration ``index``: kept from the search, or rendered
-    again, identically (the same scene, grid pose, film and samples, and the renderer's fixed
+    again, identically (the same scene, grid pose, and the film and samples the search recorded
+    when it was submitted, whatever the controller's settings now; and the renderer's fixed
     seed). 404 for an iteration not recorded (yet)."""
     search = _search_or_404(state, key, search_id)
     try:
         pose = iteration_pose(search, index)
-        png = await state.views.png(search.scene, pose)
+        settings = state.stages.settings_for(search.view_settings)
+        png = await state.views.png(search.scene, pose, settings)
     except UnknownIteration as exc:
         raise NotFoundError(
             str(exc), field="index", slug="unknown-iteration", title="Unknown iteration"

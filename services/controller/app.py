@@ -96,7 +96,10 @@ def create_app(
             render_spp=settings.controller_view_spp,
             render_width=settings.controller_view_width,
         )
-        views = ViewStore(stages.render)
+        views = ViewStore(
+            lambda scene, index, view: stages.render(scene, index, view_settings=view),
+            settings.controller_view_cache_bytes,
+        )
         stages.on_render = views.remember  # the page shows the views the searches rendered
         notifier = Notifier()
         runner = SearchRunner(

@@ -28,6 +28,10 @@ The target's detection overlaps the start view's render, which a search submitte
 runner had started before its submission was even stored (:meth:`Stages.render_early`: its first
 render time is then the part the search waited for). A pose already rendered in this search is
 never rendered again: its detections are reused.
+Every view is rendered with the settings the search recorded when it was submitted
+(``Search.view_settings``: samples per pixel, film width), so a search resumed by a controller
+started with other settings goes on seeing what it saw; a search stored by an earlier version,
+which recorded none, takes the controller's current ones.
 
 Every iteration is recorded as soon as the next view's render is on its way (the write overlaps
 the render), and before the search ends, fails or is cancelled; a search interrupted by a restart
@@ -647,7 +651,8 @@ class SearchRunner:
         try:
             t0 = time.perf_counter()
             view_image = await self._stage(
-                sid, lambda: self.stages.render(search.scene, pose.index, sid)
+                sid,
+                lambda: self.stages.render(search.scene, pose.index, sid, search.view_settings),
             )
             t1 = time.perf_counter()
             found = await self._detect(view_image, media_type_of(view_image), sid, search.scene)

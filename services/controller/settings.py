@@ -13,6 +13,7 @@ from services.common.bodies import (
     DEFAULT_MIN_BYTES_PER_S,
     BodyLimits,
 )
+from services.common.contracts.search import ViewSpp, ViewWidth
 from services.controller.broker import Heuristic
 
 __all__ = ["ControllerSettings"]
@@ -66,12 +67,17 @@ class ControllerSettings(ServiceTokenSettings):
     controller_discovery_interval_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
     controller_max_concurrent_searches: Annotated[int, Field(ge=1, le=1000)] = 4
     controller_default_max_iterations: Annotated[int, Field(ge=1, le=500)] = 40
-    controller_view_spp: Annotated[int, Field(ge=1, le=1024)] | None = 8
-    """Samples per pixel of the search views (None: the renderer's default). 8 is the cheapest
-    setting at which detection and search success did not drop (docs/RESULTS.md, ``--sweep``)."""
-    controller_view_width: Annotated[int, Field(ge=8, le=8192)] | None = None
-    """Film width of the search views (the renderer keeps the scene's aspect); None: the
-    scene's own. ``cosmos bench --sweep`` measures what detection and searches lose."""
+    controller_view_spp: ViewSpp | None = 8
+    """Samples per pixel of the views of searches submitted from now on (None: the renderer's
+    default); each search records its own (``Search.view_settings``). 8 is the cheapest setting
+    at which detection and search success did not drop (docs/RESULTS.md, ``--sweep``)."""
+    controller_view_width: ViewWidth | None = None
+    """Film width of the views of searches submitted from now on (the renderer keeps the
+    scene's aspect); None: the scene's own. ``cosmos bench --sweep`` measures what detection
+    and searches lose."""
+    controller_view_cache_bytes: Annotated[int, Field(ge=0)] = 64 * 1024 * 1024
+    """Bytes of rendered views kept for the page (:class:`~services.controller.views.ViewStore`,
+    least recently used out; 0: none kept, every view asked for is rendered again)."""
     controller_render_timeout_s: Annotated[float, Field(gt=0, le=600)] = 60.0
     controller_detect_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
     controller_optimize_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0

@@ -3,6 +3,10 @@
 Every call forwards the search's request id (``X-Request-ID``). A 4xx answer from a stage is a
 :class:`StageError` carrying that stage's problem details (the search fails with it); transport
 failures and 5xx answers are the broker's to retry elsewhere.
+
+Views are rendered with a search's own :class:`ViewSettings` (samples per pixel, film width),
+recorded when it was submitted; ``view_settings=None`` (a search stored by an earlier version,
+or a view of no search) means the controller's current ones, :attr:`Stages.view_settings`.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from urllib.parse import urlencode
 from services.common.contracts.detect import DetectResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
 from services.common.contracts.render import SceneDetail
+from services.common.contracts.search import ViewSettings
 from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE
@@ -52,12 +57,18 @@ class Stages:
         self, broker: Broker, *, render_spp: int | None = None, render_width: int | None = None
     ) -> None:
         self.broker = broker
-        self.render_spp = render_spp
-        self.render_width = render_width
+        self.view_settings = ViewSettings(spp=render_spp, width=render_width)
+        """The controller's current view settings: what a search submitted now records."""
         self._scenes: dict[str, SceneDetail] = {}
-        self._early: dict[tuple[str, str, int, int], asyncio.Task[bytes]] = {}
-        self.on_render: Callable[[str, GridIndex, bytes], None] | None = None
-        """Told of every view rendered (the page shows them: :mod:`services.controller.views`)."""
+        self._early: dict[tuple[str, str, int, int, ViewSettings], asyncio.Task[bytes]] = {}
+        self.on_render: Callable[[str, GridIndex, ViewSettings, bytes], None] | None = None
+        """Told of every view rendered, with the settings it was rendered with (the page shows
+        them: :mod:`services.controller.views`)."""
+
+    def settings_for(self, view_settings: ViewSettings | None) -> ViewSettings:
+        """The settings a view is rendered with: ``view_settings`` (a search's own), else the
+        controller's current ones."""
+        return self.view_settings if view_settings is None else view_settings
 
     async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
         """The scene's spec and grid from a renderer (cached: scenes are static)."""
@@ -69,13 +80,23 @@ class Stages:
             self._scenes[scene_id] = SceneDetail.model_validate_json(response.content)
         return self._scenes[scene_id]
 
-    def render_early(self, scene_id: str, index: GridIndex, request_id: str) -> None:
-        """Start rendering ``index`` now: the next :meth:`render` of it for ``request_id`` gets
-        this answer instead of asking again (a search's start view, while its submission is still
-        being checked and stored). :meth:`forget_early` drops what is not taken."""
-        key = (request_id, scene_id, index.lat, index.lon)
+    def render_early(
+        self,
+        scene_id: str,
+        index: GridIndex,
+        request_id: str,
+        view_settings: ViewSettings | None = None,
+    ) -> None:
+        """Start rendering ``index`` now: the next :meth:`render` of it for ``request_id`` with
+        the same settings gets this answer instead of asking again (a search's start view, while
+        its submission is still being checked and stored). :meth:`forget_early` drops what is
+        not taken."""
+        settings = self.settings_for(view_settings)
+        key = (request_id, scene_id, index.lat, index.lon, settings)
         if key not in self._early:
-            self._early[key] = asyncio.create_task(self._render(scene_id, index, request_id))
+            self._early[key] = asyncio.create_task(
+                self._render(scene_id, index, request_id, settings)
+            )
 
     def forget_early(self, request_id: str) -> None:
         """Cancel and drop the early renders of ``request_id`` that nobody took."""
@@ -83,26 +104,36 @@ class Stages:
             # also marks a failure nobody will await as seen: asyncio does not report it
             self._early.pop(key).cancel()
 
-    async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
-        """The scene seen from grid pose ``index``: binary PPM bytes (PNG from a renderer that
-        does not offer PPM). The view only travels on to the detector, so it is not compressed.
-        An early render of it (:meth:`render_early`) is awaited instead of a new one."""
-        early = self._early.pop((request_id, scene_id, index.lat, index.lon), None)
+    async def render(
+        self,
+        scene_id: str,
+        index: GridIndex,
+        request_id: str = "",
+        view_settings: ViewSettings | None = None,
+    ) -> bytes:
+        """The scene seen from grid pose ``index`` with ``view_settings`` (None: the
+        controller's current ones): binary PPM bytes (PNG from a renderer that does not offer
+        PPM). The view only travels on to the detector, so it is not compressed. An early render
+        of it (:meth:`render_early`) is awaited instead of a new one."""
+        settings = self.settings_for(view_settings)
+        early = self._early.pop((request_id, scene_id, index.lat, index.lon, settings), None)
         if early is not None:
             return await early
-        return await self._render(scene_id, index, request_id)
+        return await self._render(scene_id, index, request_id, settings)
 
-    async def _render(self, scene_id: str, index: GridIndex, request_id: str) -> bytes:
+    async def _render(
+        self, scene_id: str, index: GridIndex, request_id: str, settings: ViewSettings
+    ) -> bytes:
         body: dict[str, Any] = {"scene": scene_id, "pose": index.model_dump()}
-        if self.render_spp is not None:
-            body["spp"] = self.render_spp
-        if self.render_width is not None:
-            body["width"] = self.render_width
+        if settings.spp is not None:
+            body["spp"] = settings.spp
+        if settings.width is not None:
+            body["width"] = settings.width
         headers = {"X-Request-ID": request_id, "Accept": f"{PPM_MEDIA_TYPE}, image/png;q=0.5"}
         request = StageRequest.json("/render", json.dumps(body), headers)
         image = (await self._call("renderer", "render", request)).content
         if self.on_render is not None:
-            self.on_render(scene_id, index, image)
+            self.on_render(scene_id, index, settings, image)
         return image
 
     async def detect(

@@ -68,7 +68,8 @@ async def create_search(
     view's render is under way while the pixels are decoded and the search stored
     (:meth:`Stages.render_early`; dropped again if the image turns out broken). ``owner`` is
     the id of the API key that submits it. A large image is written to the store off the event
-    loop (:data:`INLINE_WRITE_BYTES`).
+    loop (:data:`INLINE_WRITE_BYTES`). The search records the controller's current view
+    settings (:attr:`Stages.view_settings`): all its views are rendered with them.
     """
     header = checked_header(image, max_pixels=max_image_pixels, max_side=max_image_side)
     if not 1 <= max_iterations <= MAX_ITERATIONS:
@@ -122,8 +123,9 @@ async def create_search(
         index = grid.unflat(random.Random(seed).randrange(grid.size))
     pose = grid.pose(index)
     search_id = uuid.uuid4().hex
+    view_settings = stages.view_settings  # its views are rendered so from now on, always
     if start_early:
-        stages.render_early(scene_id, index, search_id)
+        stages.render_early(scene_id, index, search_id, view_settings)
         # One turn of the loop puts the render request on the wire (on a kept-alive connection
         # that is the task's first step) before the decode's thread hop: ~0.5 ms sooner.
         await asyncio.sleep(0)
@@ -143,6 +145,7 @@ async def create_search(
             created_at=now,
             updated_at=now,
             target_size=(header.width, header.height),
+            view_settings=view_settings,
         )
         if len(image) <= INLINE_WRITE_BYTES:
             store.create(record, image, owner=owner)

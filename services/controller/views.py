@@ -1,27 +1,38 @@
 """Rendered views for the page: a search's target, the view of any of its iterations, any grid pose.
 
 A search records each iteration's pose and detections, not its image. The image of iteration
-``i`` is the renderer's answer for the search's scene at ``iterations[i].pose`` with the
-controller's view settings (samples per pixel, film width) and the renderer's fixed seed, so it
-is the same pixels whenever it is asked for: :class:`ViewStore` keeps the views the searches
-rendered lately (:meth:`ViewStore.remember`, fed by :class:`~services.controller.stages.Stages`)
-and renders the others again. Browsers do not show binary PPM: views are answered as PNG.
+``i`` is the renderer's answer for the search's scene at ``iterations[i].pose`` with the search's
+view settings (samples per pixel, film width: ``Search.view_settings``, recorded when it was
+submitted) and the renderer's fixed seed, so it is the same pixels whenever it is asked for,
+whatever the controller's settings are by then: :class:`ViewStore` keeps the views rendered
+lately (:meth:`ViewStore.remember`, fed by :class:`~services.controller.stages.Stages`), keyed
+by scene, pose and settings, up to a number of bytes, and renders the others again. Browsers do
+not show binary PPM: views are answered as PNG.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 
 import cv2
 import numpy as np
 
-from services.common.contracts.search import Search
+from services.common.contracts.search import Search, ViewSettings
 from services.common.geometry.pose import GridIndex
 from services.common.images import decode_image, media_type_of
+from services.common.lru import LruCache
 
-__all__ = ["UnknownIteration", "ViewStore", "displayable", "iteration_pose"]
+__all__ = [
+    "Render",
+    "UnknownIteration",
+    "ViewStore",
+    "displayable",
+    "iteration_pose",
+]
+
+Render = Callable[[str, GridIndex, ViewSettings], Awaitable[bytes]]
+"""Renders a view as a search does: the scene, the grid pose, the settings; any image format."""
 
 _PNG = b"\x89PNG\r\n\x1a\n"
 _MAX_PIXELS = 8192 * 8192  # what a stored target or a renderer's answer can be at most
@@ -64,46 +75,64 @@ def iteration_pose(search: Search, index: int) -> GridIndex:
 
 
 class ViewStore:
-    """PNG views of grid poses, the ``capacity`` most recently used kept in memory.
+    """PNG views of grid poses, the most recently used kept in memory up to ``max_bytes``.
 
-    ``render(scene, index)`` renders a view as a search does (any image format); a view the
-    searches rendered is handed in by :meth:`remember` and is not rendered again.
+    A view is keyed by its scene, grid pose and :class:`ViewSettings` (two searches of one pose
+    with other settings saw other pixels). ``render(scene, index, settings)`` renders a view as
+    a search does; a view the searches rendered is handed in by :meth:`remember` and is not
+    rendered again. The settings given are those the view is rendered with, never None: a
+    search's own, or the controller's current ones
+    (:meth:`~services.controller.stages.Stages.settings_for`).
+
+    Storing and eviction are :class:`~services.common.lru.LruCache`'s (``lookup`` / ``put``,
+    each view weighed by its length); its ``get`` computes synchronously, and a render is
+    awaited, so two requests for one view not kept may both render it (the same pixels).
     """
 
-    def __init__(
-        self, render: Callable[[str, GridIndex], Awaitable[bytes]], capacity: int = 64
-    ) -> None:
-        if capacity < 1:
-            raise ValueError("capacity must be at least 1")
+    def __init__(self, render: Render, max_bytes: int) -> None:
         self._render = render
-        self.capacity = capacity
-        self.hits = 0
+        self._views = LruCache[bytes](max_bytes, weigh=len)
         self.renders = 0
-        self._views: OrderedDict[tuple[str, int, int], bytes] = OrderedDict()
 
     def __len__(self) -> int:
         return len(self._views)
 
-    def remember(self, scene: str, index: GridIndex, image: bytes) -> None:
-        """Keep ``image``, the view of ``scene`` at ``index`` as a search rendered it."""
-        self._keep((scene, index.lat, index.lon), image)
+    @property
+    def max_bytes(self) -> int:
+        """The most bytes of views kept (each counts its length and a small overhead)."""
+        return self._views.max_bytes
 
-    def _keep(self, key: tuple[str, int, int], image: bytes) -> None:
-        self._views[key] = image
-        self._views.move_to_end(key)
-        while len(self._views) > self.capacity:
-            self._views.popitem(last=False)
+    @property
+    def nbytes(self) -> int:
+        """Bytes of views kept now."""
+        return self._views.nbytes
 
-    async def png(self, scene: str, index: GridIndex) -> bytes:
-        """The view of ``scene`` at grid pose ``index`` as PNG: kept, else rendered (the
-        renderer's refusals and the broker's errors pass through)."""
-        key = (scene, index.lat, index.lon)
-        image = self._views.get(key)
+    @property
+    def hits(self) -> int:
+        """Views answered from memory."""
+        return self._views.hits
+
+    def remember(self, scene: str, index: GridIndex, settings: ViewSettings, image: bytes) -> None:
+        """Keep ``image``, the view of ``scene`` at ``index`` as a search rendered it with
+        ``settings``."""
+        self._views.put(_key(scene, index, settings), image)
+
+    async def png(self, scene: str, index: GridIndex, settings: ViewSettings) -> bytes:
+        """The view of ``scene`` at grid pose ``index`` rendered with ``settings``, as PNG: kept,
+        else rendered (the renderer's refusals and the broker's errors pass through)."""
+        key = _key(scene, index, settings)
+        image = self._views.lookup(key)
+        rendered = image is None
         if image is None:
-            image = await self._render(scene, index)
+            image = await self._render(scene, index, settings)
             self.renders += 1
-        else:
-            self.hits += 1
         png = image if image.startswith(_PNG) else await asyncio.to_thread(to_png, image)
-        self._keep(key, png)  # smaller than the PPM, and not encoded twice
+        if rendered or png is not image:
+            self._views.put(key, png)  # smaller than the PPM, and not encoded twice
         return png
+
+
+def _key(
+    scene: str, index: GridIndex, settings: ViewSettings
+) -> tuple[str, int, int, int | None, int | None]:
+    return (scene, index.lat, index.lon, settings.spp, settings.width)

@@ -27,7 +27,7 @@ from services.common.contracts.optimize import ImageDetections, VisitedView
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.pose import PoseQuery
 from services.common.geometry.scene import CameraSpec
-from services.optimizer.lru import LruCache, array_nbytes
+from services.common.lru import LruCache, array_nbytes
 from services.optimizer.observations import Observation
 from services.optimizer.problem import Visit
 from services.optimizer.proxies import ProxyKind

@@ -31,10 +31,10 @@ import numpy as np
 
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import CameraSpec
+from services.common.lru import LruCache
 from services.optimizer.calibration import PaperCalibration
 from services.optimizer.geometry import FloatArray
 from services.optimizer.longitude import solve_rotation
-from services.optimizer.lru import LruCache
 from services.optimizer.mapping import map_paper, paper_offsets
 from services.optimizer.matching import COLOUR_GATE, Assignment, assign
 from services.optimizer.observations import ALIKE_COST, Observation, appearance_cost

@@ -24,7 +24,13 @@ from services.common.contracts.optimize import (
     ViewMatch,
 )
 from services.common.contracts.render import SceneDetail
-from services.common.contracts.search import TERMINAL_STATUSES, Iteration, Search, StageTimings
+from services.common.contracts.search import (
+    TERMINAL_STATUSES,
+    Iteration,
+    Search,
+    StageTimings,
+    ViewSettings,
+)
 from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
 from services.controller.broker import BrokerError
@@ -72,6 +78,7 @@ class FakeStages:
         self.waits: list[tuple[str, float]] = []
         self.calls: Counter[str] = Counter()
         self.requests: list[NextPoseRequest] = []
+        self.rendered_with: list[ViewSettings | None] = []
 
     def _call(self, name: str) -> None:
         self.calls[name] += 1
@@ -95,8 +102,15 @@ class FakeStages:
     def forget_early(self, request_id: str) -> None:
         pass
 
-    async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+    async def render(
+        self,
+        scene_id: str,
+        index: GridIndex,
+        request_id: str = "",
+        view_settings: ViewSettings | None = None,
+    ) -> bytes:
         self._call("render")
+        self.rendered_with.append(view_settings)
         return f"P6 {index.lat} {index.lon}".encode()
 
     async def detect(
@@ -157,7 +171,9 @@ class FakeStages:
         )
 
 
-def stored(tmp_path, stages: FakeStages, max_iterations: int = 6) -> SearchStore:
+def stored(
+    tmp_path, stages: FakeStages, max_iterations: int = 6, view_settings=None
+) -> SearchStore:
     """A store holding search ``s1`` as submitted: queued, its target image, nothing else."""
     store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
     now = utcnow()
@@ -172,6 +188,7 @@ def stored(tmp_path, stages: FakeStages, max_iterations: int = 6) -> SearchStore
         created_at=now,
         updated_at=now,
         target_size=(320, 240),
+        view_settings=view_settings,
     )
     store.create(search, PNG)
     return store
@@ -284,6 +301,22 @@ def test_an_interrupted_search_resumes_from_its_recorded_iterations(tmp_path, de
     assert final.result is not None
     assert final.result.pose.index == GridIndex(lat=3, lon=2)
     assert final.result.renders == 4
+
+
+def test_a_resumed_search_renders_with_the_view_settings_it_was_submitted_with(tmp_path, detail):
+    """Its own settings go with every render, before and after the interruption (the stages
+    render with them, not with the controller's current ones: tests/web/test_routes.py)."""
+    own = ViewSettings(spp=2, width=160)
+    first = FakeStages(detail, faults={"render": (2, asyncio.CancelledError())})
+    store = stored(tmp_path, first, max_iterations=4, view_settings=own)
+    with pytest.raises(asyncio.CancelledError):
+        run_stored(store, first)
+    again = FakeStages(detail)
+    final = run_stored(store, again)
+    assert final.status == "succeeded", final.error
+    assert final.view_settings == own
+    assert first.rendered_with == [own, own]
+    assert again.rendered_with == [own, own]
 
 
 def recorded(stages: FakeStages, lon: int, **fields) -> Iteration:
@@ -539,9 +572,15 @@ def test_a_bug_fails_the_search_with_an_internal_error_and_logs_it(tmp_path, det
 class SlowRender(FakeStages):
     """Renders take a moment: the target's detection, started beside the render, ends first."""
 
-    async def render(self, scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+    async def render(
+        self,
+        scene_id: str,
+        index: GridIndex,
+        request_id: str = "",
+        view_settings: ViewSettings | None = None,
+    ) -> bytes:
         await asyncio.sleep(0.02)
-        return await super().render(scene_id, index, request_id)
+        return await super().render(scene_id, index, request_id, view_settings)
 
 
 def test_a_target_detection_that_fails_while_the_render_fails_too_is_not_left_unretrieved(
@@ -656,10 +695,12 @@ def test_close_stops_a_running_search_which_resumes_later(tmp_path, detail):
     rendering = asyncio.Event()
     render = stages.render
 
-    async def slow_render(scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+    async def slow_render(
+        scene_id: str, index: GridIndex, request_id: str = "", view_settings=None
+    ) -> bytes:
         rendering.set()
         await asyncio.sleep(60)
-        return await render(scene_id, index, request_id)
+        return await render(scene_id, index, request_id, view_settings)
 
     stages.render = slow_render  # type: ignore[method-assign]
     runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
@@ -684,7 +725,9 @@ def test_close_cancelled_is_cancelled(tmp_path, detail):
     store = stored(tmp_path, stages)
     rendering, release = asyncio.Event(), asyncio.Event()
 
-    async def stubborn_render(scene_id: str, index: GridIndex, request_id: str = "") -> bytes:
+    async def stubborn_render(
+        scene_id: str, index: GridIndex, request_id: str = "", view_settings=None
+    ) -> bytes:
         rendering.set()
         try:
             await asyncio.sleep(60)

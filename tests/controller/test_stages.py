@@ -16,10 +16,10 @@ from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from services.common.auth import token_from_environment
-from services.common.contracts.search import Search
+from services.common.contracts.search import Search, ViewSettings
 from services.common.errors import UnprocessableError
 from services.common.geometry.pose import GridIndex
-from services.common.images import PPM_MEDIA_TYPE, media_type_of
+from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
 from services.controller.broker import Broker
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
@@ -163,6 +163,41 @@ async def test_an_early_render_is_taken_by_its_search_once(apps):
         await stages.broker.close()
 
 
+def shape_of(image: bytes) -> tuple[int, ...]:
+    return decode_image(image, max_pixels=1 << 20, max_side=4096).shape
+
+
+async def test_a_view_is_rendered_with_a_search_s_settings_else_the_current_ones(apps):
+    """A search's own settings (here a smaller film, 1 spp) go to the renderer and to the view
+    store's hook; none means the controller's current ones (2 spp, the scene's 320 px). An early
+    render is taken only by a render with its settings."""
+    renderer, detector = apps
+    counting = Counting(renderer)
+    stages = stages_over(counting, detector)
+    told: list[tuple[ViewSettings, tuple[int, ...]]] = []
+    stages.on_render = lambda scene, index, settings, image: told.append(
+        (settings, shape_of(image))
+    )
+    start = GridIndex(lat=3, lon=5)
+    small = ViewSettings(spp=1, width=160)
+    try:
+        stages.render_early("demo", start, "search-1", small)
+        current = await stages.render("demo", start, "search-1")  # not with the early settings
+        assert counting.requests == ["/render", "/render"]
+        own = await stages.render("demo", start, "search-1", small)  # the early one
+        assert counting.requests == ["/render", "/render"]
+        assert shape_of(current) == (240, 320, 3)
+        assert shape_of(own) == (120, 160, 3)
+        assert sorted(told, key=lambda t: t[1]) == [
+            (small, (120, 160, 3)),
+            (ViewSettings(spp=2), (240, 320, 3)),
+        ]
+        assert stages.settings_for(None) == ViewSettings(spp=2)
+        assert stages.settings_for(small) is small
+    finally:
+        await stages.broker.close()
+
+
 async def test_a_failed_early_render_nobody_took_is_not_reported(apps):
     """A failure of a dropped early render is retrieved when it is dropped: asyncio would
     otherwise log 'Task exception was never retrieved' when the task is collected."""
@@ -214,8 +249,9 @@ async def test_a_submission_starts_its_start_view_before_it_is_stored(apps):
         search = await _submit(stages, store, _png())
         assert store.get(search.id) is not None
         assert search.target_size == (64, 48)
+        assert search.view_settings == stages.view_settings == ViewSettings(spp=2)
         assert list(stages._early) == [
-            (search.id, "demo", *search.start.index.model_dump().values())
+            (search.id, "demo", *search.start.index.model_dump().values(), search.view_settings)
         ]
         view = await stages.render("demo", search.start.index, search.id)  # the early one
         assert media_type_of(view) == PPM_MEDIA_TYPE

@@ -6,16 +6,27 @@ events a live page follows."""
 from __future__ import annotations
 
 import gzip
+import json
 import re
+import sqlite3
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 import cv2
 import httpx
 import numpy as np
 import pytest
 
+from services.common.auth import TOKEN_VARIABLE
+from services.common.contracts.search import Iteration, Search, StageTimings
 from services.common.images import encode_ppm
+from services.common.launch import spawn_service, stop_service, wait_healthy
 from services.controller.client import ControllerClient
+from services.controller.keys import local_key
 from services.controller.settings import ControllerSettings
+from services.controller.store import SearchStore, utcnow
+from services.stack import Stack
 from tests.web.conftest import api, render_png
 
 pytestmark = pytest.mark.slow
@@ -159,3 +170,127 @@ def test_a_live_search_announces_its_changes_before_it_ends(stack):
     assert names[-1] == "end", names
     assert names.count("end") == 1
     assert "search" not in re.findall(r"^event: (\w+)$", finished, re.MULTILINE)
+
+
+# -- a search's own view settings, whatever the controller's now --------------------------------
+
+
+@contextmanager
+def controller_on(stack: Stack, workdir: Path, **settings: str) -> Iterator[tuple[str, str]]:
+    """A controller process over ``stack``'s stages with its database in ``workdir`` and the
+    view ``settings`` given (``COSMOS_CONTROLLER_VIEW_<NAME>``): its URL and the database's
+    local admin key; stopped when the block ends. Two in turn on one ``workdir`` are one
+    controller restarted with other settings."""
+    database = f"sqlite:///{workdir / 'controller.sqlite3'}"
+    env = {
+        TOKEN_VARIABLE: stack.service_token or "",
+        "COSMOS_CONTROLLER_DATABASE_URL": database,
+        "COSMOS_CONTROLLER_RENDERER_URLS": ",".join(stack.renderers),
+        "COSMOS_CONTROLLER_DETECTOR_URLS": ",".join(stack.detectors),
+        "COSMOS_CONTROLLER_OPTIMIZER_URLS": ",".join(stack.optimizers),
+        **{f"COSMOS_CONTROLLER_VIEW_{name.upper()}": value for name, value in settings.items()},
+    }
+    key = local_key(database)
+    controller = spawn_service("services.controller.app:app", workdir / "logs", env=env)
+    try:
+        wait_healthy(controller, 60.0)
+        yield controller.url, key
+    finally:
+        stop_service(controller)
+
+
+def view_of(controller: tuple[str, str], search_id: str, index: int) -> np.ndarray:
+    """The controller's view of the search's iteration ``index``, as pixels."""
+    url, key = controller
+    view = httpx.get(
+        f"{url}/searches/{search_id}/iterations/{index}/view.png",
+        headers={"Authorization": f"Bearer {key}"},
+        timeout=60,
+    )
+    assert view.status_code == 200, view.text
+    assert view.headers["content-type"] == "image/png"
+    return pixels(view.content)
+
+
+def test_a_past_search_s_view_keeps_its_own_settings_after_a_restart_with_others(stack, tmp_path):
+    """Submitted to a controller that renders views at 4 spp and 160 px, the search records
+    those; the controller restarted with its defaults (8 spp, the scene's 320 px) renders the
+    search's views again with the search's settings, the very pixels the search saw, while a
+    scene view (no search) takes the current ones."""
+    target = render_png(stack, "demo", 4, 10)
+    with controller_on(stack, tmp_path, spp="4", width="160") as (url, key):
+        with ControllerClient(url, api_key=key) as client:
+            search = client.submit(
+                target, "demo", start_theta_deg=60, start_phi_deg=0, max_iterations=3
+            )
+            for _ in client.follow(search.id, timeout_s=120):
+                pass
+            final = client.get(search.id)
+    assert final.status == "succeeded", final.error
+    assert final.view_settings is not None
+    assert (final.view_settings.spp, final.view_settings.width) == (4, 160)
+    assert final.iterations
+    with controller_on(stack, tmp_path) as restarted:
+        for it in final.iterations:
+            index = it.pose.index
+            own = render_png(stack, "demo", index.lat, index.lon, spp=4, width=160)
+            again = view_of(restarted, final.id, it.index)
+            assert np.array_equal(again, pixels(own))
+            assert again.shape[1::-1] == tuple(it.image_size) == (160, 120)
+        url, key = restarted
+        scene_view = httpx.get(
+            f"{url}/scenes/demo/view.png",
+            params={"lat": 4, "lon": 10},
+            headers={"Authorization": f"Bearer {key}"},
+            timeout=60,
+        )
+    now = render_png(stack, "demo", 4, 10, spp=8)  # what the restarted controller renders now
+    assert np.array_equal(pixels(scene_view.content), pixels(now))
+
+
+def test_a_search_stored_by_an_earlier_version_renders_with_the_current_settings(stack, tmp_path):
+    """A search document without ``view_settings`` (an earlier version's) loads, and its
+    views are rendered with the controller's current settings, as before."""
+    store = SearchStore(f"sqlite:///{tmp_path / 'controller.sqlite3'}")
+    now = utcnow()
+    pose = {"index": {"lat": 3, "lon": 5}, "theta_deg": 30.0, "phi_deg": 75.0}
+    search = Search.model_validate(
+        {
+            "id": "old",
+            "status": "succeeded",
+            "scene": "demo",
+            "strategy": "reprojection",
+            "start": pose,
+            "seed": 1,
+            "max_iterations": 1,
+            "created_at": now,
+            "updated_at": now,
+            "target_size": (320, 240),
+        }
+    )
+    iteration = Iteration.model_validate(
+        {
+            "index": 0,
+            "pose": pose,
+            "image_size": (160, 120),
+            "detections": (),
+            "timings": StageTimings(),
+        }
+    )
+    store.create(search, render_png(stack, "demo", 3, 5))
+    store.add_iteration("old", iteration)
+    store.close()
+    with sqlite3.connect(tmp_path / "controller.sqlite3") as db:  # as an earlier version wrote it
+        (doc,) = db.execute("SELECT doc FROM searches WHERE id = 'old'").fetchone()
+        old = json.loads(doc)
+        assert old.pop("view_settings") is None
+        db.execute("UPDATE searches SET doc = ? WHERE id = 'old'", (json.dumps(old),))
+    with controller_on(stack, tmp_path, spp="4", width="160") as controller:
+        url, key = controller
+        with ControllerClient(url, api_key=key) as client:
+            loaded = client.get("old")
+        assert loaded.view_settings is None
+        assert [it.pose.index for it in loaded.iterations] == [iteration.pose.index]
+        again = view_of(controller, "old", 0)
+    current = render_png(stack, "demo", 3, 5, spp=4, width=160)
+    assert np.array_equal(again, pixels(current))

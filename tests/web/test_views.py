@@ -9,8 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
+from services.common.contracts.search import ViewSettings
 from services.common.geometry.pose import GridIndex
 from services.common.images import encode_ppm
+from services.common.lru import ENTRY_OVERHEAD
 from services.controller.page import INDEX, PageAssets, accepts_gzip, not_modified
 from services.controller.views import ViewStore, displayable, to_png
 
@@ -23,29 +25,74 @@ def rgb_of(png: bytes) -> np.ndarray:
     return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
 
 
+CURRENT = ViewSettings(spp=8)
+SMALL = ViewSettings(spp=2, width=16)
+
+
 @pytest.mark.anyio
 async def test_a_view_rendered_once_is_kept_and_answered_as_png():
-    asked: list[tuple[str, int, int]] = []
+    asked: list[tuple[str, int, int, ViewSettings]] = []
 
-    async def render(scene: str, index: GridIndex) -> bytes:
-        asked.append((scene, index.lat, index.lon))
+    async def render(scene: str, index: GridIndex, settings: ViewSettings) -> bytes:
+        asked.append((scene, index.lat, index.lon, settings))
         return encode_ppm(picture(index.lat * 100 + index.lon))
 
-    views = ViewStore(render, capacity=2)
-    first = await views.png("demo", GridIndex(lat=1, lon=2))
+    views = ViewStore(render, max_bytes=10 << 20)
+    first = await views.png("demo", GridIndex(lat=1, lon=2), CURRENT)
     assert np.array_equal(rgb_of(first), picture(102))
-    assert await views.png("demo", GridIndex(lat=1, lon=2)) == first
-    assert (asked, views.renders, views.hits) == ([("demo", 1, 2)], 1, 1)
+    assert await views.png("demo", GridIndex(lat=1, lon=2), CURRENT) == first
+    assert (asked, views.renders, views.hits) == ([("demo", 1, 2, CURRENT)], 1, 1)
 
-    views.remember("demo", GridIndex(lat=3, lon=4), encode_ppm(picture(7)))  # a search's view
-    assert np.array_equal(rgb_of(await views.png("demo", GridIndex(lat=3, lon=4))), picture(7))
+    views.remember("demo", GridIndex(lat=3, lon=4), CURRENT, encode_ppm(picture(7)))  # a search's
+    assert np.array_equal(
+        rgb_of(await views.png("demo", GridIndex(lat=3, lon=4), CURRENT)), picture(7)
+    )
     assert len(asked) == 1  # not rendered: the search's own
-    await views.png("garden", GridIndex(lat=1, lon=2))  # another scene, another view
-    assert len(views) == 2  # the least recently used one went
-    await views.png("demo", GridIndex(lat=1, lon=2))
-    assert asked[-1] == ("demo", 1, 2)  # so it is rendered again
-    with pytest.raises(ValueError, match="capacity"):
-        ViewStore(render, capacity=0)
+
+
+@pytest.mark.anyio
+async def test_views_of_one_pose_with_other_settings_are_other_views():
+    asked: list[ViewSettings] = []
+
+    async def render(scene: str, index: GridIndex, settings: ViewSettings) -> bytes:
+        asked.append(settings)
+        return encode_ppm(picture(settings.width or 0))
+
+    views = ViewStore(render, max_bytes=10 << 20)
+    pose = GridIndex(lat=1, lon=2)
+    views.remember("demo", pose, CURRENT, encode_ppm(picture(1)))
+    small = await views.png("demo", pose, SMALL)  # not the view kept: other pixels
+    assert asked == [SMALL]
+    assert np.array_equal(rgb_of(small), picture(16))
+    assert np.array_equal(rgb_of(await views.png("demo", pose, CURRENT)), picture(1))
+    assert await views.png("demo", pose, ViewSettings(spp=2, width=16)) == small  # equal settings
+    assert (len(views), views.renders, views.hits) == (2, 1, 2)
+
+
+@pytest.mark.anyio
+async def test_the_view_store_is_bounded_by_bytes_least_recently_used_out():
+    asked: list[tuple[int, int]] = []
+
+    async def render(scene: str, index: GridIndex, settings: ViewSettings) -> bytes:
+        asked.append((index.lat, index.lon))
+        return to_png(encode_ppm(picture(index.lat * 100 + index.lon)))
+
+    one = len(await render("demo", GridIndex(lat=0, lon=0), CURRENT)) + ENTRY_OVERHEAD
+    asked.clear()
+    views = ViewStore(render, max_bytes=int(2.5 * one))  # two views fit (the PNGs weigh ~alike)
+    for lon in range(3):
+        await views.png("demo", GridIndex(lat=1, lon=lon), CURRENT)
+    assert len(views) == 2
+    assert views.nbytes <= views.max_bytes
+    await views.png("demo", GridIndex(lat=1, lon=2), CURRENT)  # kept
+    await views.png("demo", GridIndex(lat=1, lon=0), CURRENT)  # the least recently used: gone
+    assert asked == [(1, 0), (1, 1), (1, 2), (1, 0)]
+    assert views.nbytes <= views.max_bytes
+
+    nothing = ViewStore(render, max_bytes=0)  # keeps none: every view is rendered again
+    png = await nothing.png("demo", GridIndex(lat=2, lon=2), CURRENT)
+    assert await nothing.png("demo", GridIndex(lat=2, lon=2), CURRENT) == png
+    assert (len(nothing), nothing.renders) == (0, 2)
 
 
 def test_a_browser_gets_png_or_jpeg_never_ppm():

@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Final, Literal
 
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, Strict
 
 from services.common.contracts.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection, ModelInfo
@@ -28,6 +28,9 @@ __all__ = [
     "SearchStatus",
     "StageTimings",
     "TERMINAL_STATUSES",
+    "ViewSettings",
+    "ViewSpp",
+    "ViewWidth",
 ]
 
 SearchStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
@@ -43,6 +46,26 @@ Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
 Count = Annotated[Integer, Field(ge=0)]
 
 MAX_ITERATIONS: Final = 500
+
+ViewSpp = Annotated[int, Field(ge=1, le=1024)]
+"""Samples per pixel of a search's views (the controller's ``COSMOS_CONTROLLER_VIEW_SPP``)."""
+ViewWidth = Annotated[int, Field(ge=8, le=8192)]
+"""Film width of a search's views in pixels (``COSMOS_CONTROLLER_VIEW_WIDTH``); the height
+follows the scene's aspect."""
+
+
+class ViewSettings(FrozenModel):
+    """How a search's views are rendered, besides its scene and pose (the seed is the
+    renderer's fixed one): recorded when it is submitted, so that every view it renders, and
+    every view of it rendered again later, is the same pixels whatever the controller's
+    settings are by then. None: the renderer's default samples, the scene's own film width."""
+
+    spp: Annotated[ViewSpp, Strict()] | None = Field(
+        default=None, description="Samples per pixel (null: the renderer's default)."
+    )
+    width: Annotated[ViewWidth, Strict()] | None = Field(
+        default=None, description="Film width in pixels (null: the scene's own)."
+    )
 
 
 class SearchOptions(FrozenModel):
@@ -147,6 +170,13 @@ class Search(FrozenModel):
     iterations: tuple[Iteration, ...] = ()
     result: SearchResult | None = None
     error: ProblemDetails | None = None
+    view_settings: ViewSettings | None = Field(
+        default=None,
+        description="How the search's views are rendered, recorded when it was submitted: its "
+        "views, and any of them rendered again (`/searches/{id}/iterations/{n}/view.png`), use "
+        "these whatever the controller's settings are later. Null for a search stored by an "
+        "earlier version: the controller's current settings.",
+    )
 
 
 SEARCH_EVENTS: Final[dict[str, type[FrozenModel]]] = {

@@ -18,7 +18,7 @@ from __future__ import annotations
 from typing import Final
 
 from services.common.geometry.grid import Direction
-from services.optimizer.lru import LruCache
+from services.common.lru import LruCache
 from services.optimizer.matching import compare_views
 from services.optimizer.problem import Plan, SearchProblem, Visit
 from services.optimizer.strategies.done import done_plan

@@ -1,11 +1,15 @@
 """A thread-safe LRU cache bounded by the bytes it holds, counting its hits and misses.
 
-``functools.lru_cache`` bounds the number of entries only, but the optimizer's derived arrays
-grow with the grid and the detections (one view predicted into every pose of a 25,000-pose grid
-weighs megabytes), so a count says little about memory. Here every value is weighed when stored
-(:func:`array_nbytes`, plus :data:`ENTRY_OVERHEAD` for the key and the bookkeeping), the least
-recently used entries go until the total fits ``max_bytes``, and a value heavier than that is
-returned but not kept.
+``functools.lru_cache`` bounds the number of entries only, but what is cached here varies in
+size: the optimizer's derived arrays grow with the grid and the detections (one view predicted
+into every pose of a 25,000-pose grid weighs megabytes), the controller's views with their film.
+So a count says little about memory. Here every value is weighed when stored (``weigh``:
+:func:`array_nbytes` by default, ``len`` for bytes; plus :data:`ENTRY_OVERHEAD` for the key and
+the bookkeeping), the least recently used entries go until the total fits ``max_bytes``, and a
+value heavier than that is returned but not kept.
+
+:meth:`LruCache.get` computes a missing value synchronously; a caller whose values come from a
+coroutine uses :meth:`LruCache.lookup` and :meth:`LruCache.put` around its ``await`` instead.
 """
 
 from __future__ import annotations
@@ -70,20 +74,29 @@ class LruCache(Generic[V]):
         """Bytes held now (never more than ``max_bytes``)."""
         return self._nbytes
 
+    def lookup(self, key: Hashable) -> V | None:
+        """The stored value of ``key`` (now the most recently used), else None; counted as a
+        hit or a miss. (A cache whose values may be None tells them apart with :meth:`get`.)"""
+        found = self._find(key)
+        return None if found is None else found[0]
+
     def get(self, key: Hashable, compute: Callable[[], V]) -> V:
         """The value of ``key``: the stored one, else ``compute()`` (stored when it fits)."""
-        with self._lock:
-            found = self._entries.get(key)
-            if found is not None:
-                self._entries.move_to_end(key)
-                self.hits += 1
-                return found[0]
-            self.misses += 1
+        found = self._find(key)
+        if found is not None:
+            return found[0]
         # Computed outside the lock: two threads may compute one value at once, never wait.
         value = compute()
+        self.put(key, value)
+        return value
+
+    def put(self, key: Hashable, value: V) -> bool:
+        """Store ``value`` as ``key``'s (replacing any), the least recently used entries going
+        until the total fits; False (and nothing stored) when it alone weighs more than
+        ``max_bytes``."""
         size = self._weigh(value) + ENTRY_OVERHEAD
         if size > self.max_bytes:
-            return value
+            return False
         with self._lock:
             old = self._entries.pop(key, None)
             if old is not None:
@@ -93,7 +106,18 @@ class LruCache(Generic[V]):
             while self._nbytes > self.max_bytes:
                 _, (_, dropped) = self._entries.popitem(last=False)
                 self._nbytes -= dropped
-        return value
+        return True
+
+    def _find(self, key: Hashable) -> tuple[V, int] | None:
+        """``key``'s entry, made the most recently used, counting a hit or a miss."""
+        with self._lock:
+            found = self._entries.get(key)
+            if found is None:
+                self.misses += 1
+                return None
+            self._entries.move_to_end(key)
+            self.hits += 1
+            return found
 
     def clear(self) -> None:
         """Forget every value and reset the counters."""
