@@ -124,7 +124,7 @@ Caller = Annotated[ApiKey | None, Depends(_caller)]
 def _wants_key(route: BaseRoute) -> bool:
     """Whether ``route`` checks an API key (depends on :func:`_caller`, directly or not)."""
     if not isinstance(route, APIRoute):
-        return False  # the OpenAPI documents
+        return False  # not a FastAPI route: no dependencies, no key
     pending = [route.dependant]
     while pending:
         dependant = pending.pop()
