@@ -8,7 +8,8 @@
 * ``cosmos up``: the four services as local processes, each started again if it exits (Ctrl-C
   or SIGTERM stops them all), and the local API key, printed and kept beside the controller's
   database (``data/api-key``);
-* ``cosmos search target.png --scene demo``: submit a search, follow it, save its plots;
+* ``cosmos search target.png --scene demo``: submit a search (waiting out a controller that
+  says when to come back, for up to ``--retry-for`` seconds), follow it, save its plots;
 * ``cosmos keys create [--admin] [--name N]``, ``cosmos keys list``, ``cosmos keys revoke ID``:
   the controller's API keys, in its database (``COSMOS_CONTROLLER_DATABASE_URL``);
 * ``cosmos demo``: the whole thing end to end on the demo scene: starts the stack on free ports,
@@ -42,7 +43,12 @@ from services.common.contracts.search import Iteration, Search
 from services.common.errors import ServiceError
 from services.common.geometry.pose import PoseQuery
 from services.common.launch import ROOT
-from services.controller.client import ControllerClient, ControllerError
+from services.controller.client import (
+    DEFAULT_RETRY_BUDGET_S,
+    RETRYABLE_STATUSES,
+    ControllerClient,
+    ControllerError,
+)
 from services.controller.keys import KeyStore, client_key, key_file, local_key, rooted
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
@@ -275,18 +281,44 @@ def _client_key() -> str | None:
     return client_key(_database_url())
 
 
+def _waiting(refusal: ControllerError, wait_s: float) -> None:
+    """Tell the user why the submission waits (a quota, a busy or degraded controller)."""
+    _say(
+        f"the controller cannot take the search yet ({refusal.status}: {refusal.detail}); "
+        f"asking again in {wait_s:g} s"
+    )
+
+
+def _not_taken(refusal: ControllerError, budget_s: float) -> str:
+    """The sentence for a submission the controller refused until the retry budget ran out."""
+    waited = f" after waiting {refusal.waited_s:g} s" if refusal.waited_s else ""
+    return (
+        f"the controller did not take the search{waited} ({refusal.status}: {refusal.detail}); "
+        f"it asks to try again in {refusal.retry_after_s:g} s, beyond --retry-for "
+        f"{budget_s:g} s: try again later, or give --retry-for more seconds"
+    )
+
+
 def _cmd_search(args: argparse.Namespace) -> int:
     image = Path(args.image).read_bytes()
     with ControllerClient(args.url, api_key=_client_key()) as client:
-        search = client.submit(
-            image,
-            args.scene,
-            strategy=args.strategy,
-            start_theta_deg=args.start_theta,
-            start_phi_deg=args.start_phi,
-            seed=args.seed,
-            max_iterations=args.max_iterations,
-        )
+        try:
+            search = client.submit(
+                image,
+                args.scene,
+                retry_budget_s=args.retry_for,
+                on_wait=_waiting,
+                strategy=args.strategy,
+                start_theta_deg=args.start_theta,
+                start_phi_deg=args.start_phi,
+                seed=args.seed,
+                max_iterations=args.max_iterations,
+            )
+        except ControllerError as exc:
+            if exc.status not in RETRYABLE_STATUSES or exc.retry_after_s is None:
+                raise
+            print(f"cosmos: {_not_taken(exc, args.retry_for)}", file=sys.stderr)
+            return 1
         print(
             f"search {search.id} queued: {search.strategy} on {search.scene} from lat "
             f"{search.start.index.lat} lon {search.start.index.lon}"
@@ -586,6 +618,14 @@ def _parser() -> argparse.ArgumentParser:
     search.add_argument("--seed", type=int)
     search.add_argument("--max-iterations", type=int)
     search.add_argument("--out", default="out", help="folder for the trajectory plots")
+    search.add_argument(
+        "--retry-for",
+        type=float,
+        default=DEFAULT_RETRY_BUDGET_S,
+        metavar="SECONDS",
+        help="wait out a controller that answers 429 or 503 with Retry-After for up to this "
+        "many seconds in all (0: give up at once)",
+    )
     search.set_defaults(run=_cmd_search)
 
     bench = commands.add_parser(

@@ -24,6 +24,10 @@ Requests without a body (``GET``) are passed through untouched. The memory bodie
 once is thus ``1.25 · limit_bytes``, each body once (twice while the app turns it into ``bytes``;
 then the copy read here is dropped).
 
+Credentials are checked before any of this, from the request's head: the stages' service token
+(:mod:`services.common.auth`) and the controller's API keys (:mod:`services.controller.auth`)
+refuse a stranger's request before its body is admitted or read.
+
 With the defaults (:meth:`BodyLimits.for_limit`), ``limit_bytes`` is four maximal bodies: for a
 20 MiB upload limit, 80 MiB of large bodies and a 20 MiB lane of bodies up to 1.25 MiB.
 """
@@ -56,6 +60,8 @@ __all__ = [
     "BodyMiddleware",
     "Hold",
     "declared_length",
+    "has_body",
+    "send_problem",
 ]
 
 DEFAULT_BODY_TIMEOUT_S: Final = 10.0
@@ -211,7 +217,13 @@ def _chunked(scope: Scope) -> bool:
     )
 
 
-async def _answer(
+def has_body(scope: Scope) -> bool:
+    """Whether the request declares a body: a positive ``Content-Length``, or a chunked one."""
+    declared = declared_length(scope)
+    return bool(declared) or (declared is None and _chunked(scope))
+
+
+async def send_problem(
     send: Send, scope: Scope, problem: ProblemDetails, headers: dict[str, str] | None = None
 ) -> None:
     """Send ``problem`` as problem+json and have the server close the connection after it (the
@@ -251,11 +263,10 @@ class BodyMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        declared = declared_length(scope)
-        chunked = declared is None and _chunked(scope)
-        if not declared and not chunked:  # no body: nothing to bound
+        if not has_body(scope):  # nothing to bound
             await self.app(scope, receive, send)
             return
+        declared = declared_length(scope)
         if declared is not None and declared > self.limits.max_bytes:
             await self._too_large(scope, send, f"the request body of {declared} bytes")
             return
@@ -319,7 +330,7 @@ class BodyMiddleware:
                 declared if declared is not None else "(streamed)",
                 deadline_s,
             )
-            await _answer(
+            await send_problem(
                 send,
                 scope,
                 ProblemDetails(
@@ -340,7 +351,7 @@ class BodyMiddleware:
 
     async def _too_large(self, scope: Scope, send: Send, what: str) -> None:
         error = PayloadTooLargeError(f"{what} exceeds the limit of {self.limits.max_bytes} bytes")
-        await _answer(send, scope, error.problem(instance=scope.get("path")))
+        await send_problem(send, scope, error.problem(instance=scope.get("path")))
 
     async def _busy(self, scope: Scope, send: Send, budget: BodyBudget, size: int) -> None:
         _log.warning(
@@ -359,7 +370,9 @@ class BodyMiddleware:
             title="Service busy",
         )
         retry_after = str(max(1, math.ceil(budget.wait_s)))
-        await _answer(send, scope, error.problem(scope.get("path")), {"Retry-After": retry_after})
+        await send_problem(
+            send, scope, error.problem(scope.get("path")), {"Retry-After": retry_after}
+        )
 
 
 def _replay(body: bytearray, receive: Receive) -> Receive:

@@ -20,8 +20,12 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi import Path as FastApiPath
 from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.routing import BaseRoute, Match
+from starlette.types import Scope
 
+from services.common.auth import PROBE_PATHS
 from services.common.contracts.base import MAX_SAFE_INTEGER
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
 from services.common.contracts.render import SceneDetail, SceneSummary
@@ -36,13 +40,13 @@ from services.common.errors import (
     ConflictError,
     NotFoundError,
     ServiceUnavailableError,
-    UnauthorizedError,
     UnprocessableError,
 )
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex
 from services.common.http import app_state, problem_responses
 from services.common.upload import read_upload
+from services.controller.auth import authenticate, checked_key
 from services.controller.broker import Broker, BrokerError
 from services.controller.events import Notifier
 from services.controller.form import OPENAPI, search_options
@@ -65,7 +69,7 @@ from services.controller.submit import INLINE_WRITE_BYTES, create_search
 from services.controller.transport import StageRequest
 from services.controller.views import UnknownIteration, ViewStore, displayable, iteration_pose
 
-__all__ = ["ControllerState", "router"]
+__all__ = ["ControllerState", "needs_key", "router"]
 
 router = APIRouter()
 _log = logging.getLogger("cosmos.controller")
@@ -99,32 +103,54 @@ _bearer = HTTPBearer(
 )
 
 
-def _unauthorized(detail: str, challenge: str) -> UnauthorizedError:
-    return UnauthorizedError(detail, headers={"WWW-Authenticate": challenge})
-
-
 async def _caller(
-    state: State, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+    request: Request,
+    state: State,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> ApiKey | None:
-    """The key a request acts for; None when auth is off (everyone's searches, no quotas)."""
+    """The key a request acts for; None when auth is off (everyone's searches, no quotas).
+    ``credentials`` only declares the scheme in the OpenAPI schema: the check is
+    :func:`~services.controller.auth.authenticate`'s, done already for a request with a body."""
     if not state.settings.controller_auth:
         return None
-    if credentials is None:
-        raise _unauthorized(
-            "send an API key as Authorization: Bearer <key>; `cosmos keys create` makes one "
-            "(`cosmos up` prints a local one)",
-            'Bearer realm="cosmos"',
-        )
-    key = state.keys.verify(credentials.credentials)
-    if key is None:
-        raise _unauthorized(
-            "the API key is unknown or was revoked; ask for a new one (cosmos keys create)",
-            'Bearer realm="cosmos", error="invalid_token"',
-        )
-    return key
+    return checked_key(request.scope) or authenticate(
+        state.keys, request.headers.get("authorization")
+    )
 
 
 Caller = Annotated[ApiKey | None, Depends(_caller)]
+
+
+def _wants_key(route: BaseRoute) -> bool:
+    """Whether ``route`` checks an API key (depends on :func:`_caller`, directly or not)."""
+    if not isinstance(route, APIRoute):
+        return False  # not a FastAPI route: no dependencies, no key
+    pending = [route.dependant]
+    while pending:
+        dependant = pending.pop()
+        if dependant.call is _caller:
+            return True
+        pending.extend(dependant.dependencies)
+    return False
+
+
+def needs_key(scope: Scope) -> bool:
+    """Whether a request to ``scope``'s path wants an API key before its body is read: the
+    route of this module that takes it checks one (its method aside, so a wrong method gets
+    its 405 where the path is open), or no route takes the path at all (the probes and the
+    OpenAPI documents are open)."""
+    partial: BaseRoute | None = None
+    for route in router.routes:  # in order, as the app dispatches
+        match, _ = route.matches(scope)
+        if match is Match.FULL:
+            return _wants_key(route)
+        if match is Match.PARTIAL and partial is None:
+            partial = route
+    if partial is not None:
+        return _wants_key(partial)
+    app = scope["app"]
+    documents = {app.openapi_url, app.docs_url, app.redoc_url, app.swagger_ui_oauth2_redirect_url}
+    return scope["path"] not in PROBE_PATHS | documents
 
 
 def _visible_to(key: ApiKey | None) -> str | None:

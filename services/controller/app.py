@@ -13,9 +13,11 @@ from datetime import timedelta
 
 from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
+from starlette.types import Scope
 
 from services.common.http import service_app
-from services.controller.api import ControllerState, router
+from services.controller.api import ControllerState, needs_key, router
+from services.controller.auth import ApiKeyMiddleware
 from services.controller.broker import Broker
 from services.controller.discovery import expand_urls
 from services.controller.events import Notifier
@@ -55,6 +57,12 @@ async def _expire(store: SearchStore, settings: ControllerSettings) -> None:
             if expired:
                 _log.info("expired %d searches finished over %s ago", expired, retention)
         await asyncio.sleep(settings.controller_retention_sweep_s)
+
+
+def _keys_of(scope: Scope) -> KeyStore:
+    """The API keys of the controller app serving ``scope`` (built by its lifespan)."""
+    state: ControllerState = scope["app"].state.controller
+    return state.keys
 
 
 def create_app(
@@ -147,6 +155,10 @@ def create_app(
         guarded=False,  # its public API takes API keys (api.py); it sends the stages the token
         readiness=readiness,
     )
+    if settings.controller_auth:
+        # Added after the body bounds, so it runs before them: a request with a body and no
+        # valid key is refused before its body is admitted or read (auth.py).
+        app.add_middleware(ApiKeyMiddleware, needs_key=needs_key, keys=_keys_of)
     origins = settings.cors_origins()
     if origins:  # none: no CORS headers, so browsers keep other origins' pages out
         app.add_middleware(

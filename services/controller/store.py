@@ -239,6 +239,13 @@ class SearchStore:
                 "INSERT INTO images (search_id, image) VALUES (?, ?)", (search.id, image)
             )
 
+    def discard(self, search_id: str) -> bool:
+        """Delete a search with its image and iterations, as if never recorded (a submission
+        cancelled while it was being stored); whether it was there."""
+        with self._transaction():
+            cursor = self._db.execute("DELETE FROM searches WHERE id = ?", (search_id,))
+        return cursor.rowcount > 0
+
     def get(self, search_id: str, *, visible_to: str | None = None) -> Search | None:
         """The search with its iterations, or None (also when ``visible_to`` does not own it)."""
         row = self._one(

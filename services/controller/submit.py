@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import random
 import re
 import uuid
@@ -32,6 +33,9 @@ at once, the inserts of their 20 MB images on the loop took 4.4 s of its time (s
 One at a time, because the store has one lock: with several inserts queued on it, the loop's
 next store call waited behind all of them (1.6 s, sampled)."""
 
+_log = logging.getLogger("cosmos.controller")
+_UNDOING: set[asyncio.Task[None]] = set()
+"""Undoing cancelled writes (:func:`_store_large`), kept until done."""
 _WRITERS: weakref.WeakKeyDictionary[SearchStore, asyncio.Lock] = weakref.WeakKeyDictionary()
 
 
@@ -41,6 +45,40 @@ def _large_writes(store: SearchStore) -> asyncio.Lock:
     if lock is None:
         lock = _WRITERS[store] = asyncio.Lock()
     return lock
+
+
+async def _store_large(store: SearchStore, record: Search, image: bytes, owner: str | None) -> None:
+    """Record ``record`` with its large ``image`` on a thread, one such write at a time.
+
+    A thread cannot be stopped: when the caller is cancelled meanwhile (its client went away,
+    the server shuts down), the write goes on and commits a search nobody hands to the runner,
+    queued until the next restart. So the write is undone once it has ended
+    (:func:`_undo_write`): a submission that was not answered took nothing, neither a search
+    its client never learnt the id of nor a share of the key's quotas.
+    """
+    async with _large_writes(store):
+        write = asyncio.ensure_future(asyncio.to_thread(store.create, record, image, owner=owner))
+        try:
+            await asyncio.shield(write)
+        except asyncio.CancelledError:
+            undo = asyncio.create_task(_undo_write(store, write, record.id))
+            _UNDOING.add(undo)  # the loop keeps only a weak reference to a task
+            undo.add_done_callback(_UNDOING.discard)
+            raise
+
+
+async def _undo_write(store: SearchStore, write: asyncio.Future[None], search_id: str) -> None:
+    """Once ``write`` has ended, delete the search it recorded (nothing if it failed)."""
+    try:
+        await write
+    except Exception:  # not recorded: nothing to undo
+        return
+    try:
+        await asyncio.to_thread(store.discard, search_id)
+    except Exception:  # left queued: the next start runs it, as before
+        _log.exception("could not discard search %s, whose submission was cancelled", search_id)
+        return
+    _log.info("discarded search %s: its submission was cancelled while it was stored", search_id)
 
 
 async def create_search(
@@ -68,8 +106,10 @@ async def create_search(
     view's render is under way while the pixels are decoded and the search stored
     (:meth:`Stages.render_early`; dropped again if the image turns out broken). ``owner`` is
     the id of the API key that submits it. A large image is written to the store off the event
-    loop (:data:`INLINE_WRITE_BYTES`). The search records the controller's current view
-    settings (:attr:`Stages.view_settings`): all its views are rendered with them.
+    loop (:data:`INLINE_WRITE_BYTES`), and the search deleted again if the caller is cancelled
+    meanwhile (:func:`_store_large`): stored means answered and handed to the runner. The search
+    records the controller's current view settings (:attr:`Stages.view_settings`): all its views
+    are rendered with them.
     """
     header = checked_header(image, max_pixels=max_image_pixels, max_side=max_image_side)
     if not 1 <= max_iterations <= MAX_ITERATIONS:
@@ -150,8 +190,7 @@ async def create_search(
         if len(image) <= INLINE_WRITE_BYTES:
             store.create(record, image, owner=owner)
         else:
-            async with _large_writes(store):
-                await asyncio.to_thread(store.create, record, image, owner=owner)
+            await _store_large(store, record, image, owner)
     except BaseException:
         stages.forget_early(search_id)
         raise

@@ -1,7 +1,8 @@
 """Request bodies bounded by bytes in flight and by time (:mod:`services.common.bodies`): the
 budget's arithmetic, and its behaviour through a real controller process over raw sockets (a
 request waits, then is admitted; waits too long, 503 with ``Retry-After``; a trickling body,
-408 and its bytes released; small requests and GETs do not wait)."""
+408 and its bytes released; small requests and GETs do not wait; an upload without a valid API
+key is refused before its body is admitted or read)."""
 
 from __future__ import annotations
 
@@ -15,13 +16,16 @@ from contextlib import ExitStack
 import pytest
 
 from services.common.bodies import BodyBudget, BodyLimits
-from services.common.launch import ServiceProcess, running_service
+from services.common.launch import ServiceProcess, free_port, running_service
+from services.controller.keys import KeyStore
 
 MIB = 1 << 20
 LIMIT = 1 * MIB  # the upload limit of the process below: its budget holds two of these
 WAIT_S = 1.5
 TIMEOUT_S = 1.5
 RATE = 1 * MIB  # so a maximal body has TIMEOUT_S + 1 s to arrive
+KEY: dict[str, str] = {}
+"""The API key of the controller process below (``key``), made before it starts."""
 
 
 # -- the arithmetic -----------------------------------------------------------------------------
@@ -79,11 +83,20 @@ async def test_large_bodies_queue_in_order_while_small_ones_have_a_lane_of_their
 @pytest.fixture(scope="module")
 def controller(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
     """A controller whose budget holds two bodies of its 1 MiB limit (small: 64 KiB), waits 1.5 s
-    and gives a maximal body 2.5 s to arrive. No stage runs: the requests below get 401 (no
-    API key) once admitted and read, which is what they test."""
+    and gives a maximal body 2.5 s to arrive, with an API key (:data:`KEY`). No stage runs
+    (their addresses are free ports): the requests below, with the key, are refused once
+    admitted and read (:func:`handled`), which is what they test."""
     directory = tmp_path_factory.mktemp("bodies")
+    database = f"sqlite:///{directory}/controller.sqlite3"
+    keys = KeyStore(database)
+    _, KEY["key"] = keys.create("bodies")
+    keys.close()
     env = {
-        "COSMOS_CONTROLLER_DATABASE_URL": f"sqlite:///{directory}/controller.sqlite3",
+        "COSMOS_CONTROLLER_DATABASE_URL": database,
+        **{
+            f"COSMOS_CONTROLLER_{stage}_URLS": f"http://127.0.0.1:{free_port()}"
+            for stage in ("RENDERER", "DETECTOR", "OPTIMIZER")
+        },
         "COSMOS_CONTROLLER_MAX_UPLOAD_BYTES": str(LIMIT),
         "COSMOS_CONTROLLER_BODY_BUDGET_BYTES": str(2 * LIMIT),
         "COSMOS_CONTROLLER_BODY_WAIT_S": str(WAIT_S),
@@ -99,12 +112,17 @@ def connect(service: ServiceProcess) -> socket.socket:
     return socket.create_connection((host, int(port)), timeout=10)
 
 
-def start_upload(service: ServiceProcess, size: int, sent: int) -> socket.socket:
-    """A ``POST /searches`` declaring ``size`` bytes, of which ``sent`` are sent now."""
+def start_upload(
+    service: ServiceProcess, size: int, sent: int, key: str | None = None
+) -> socket.socket:
+    """A ``POST /searches`` declaring ``size`` bytes, of which ``sent`` are sent now, with the
+    API key ``key`` (None: the controller's :data:`KEY`; ``""``: no ``Authorization``)."""
     sock = connect(service)
+    key = KEY["key"] if key is None else key
+    authorization = f"Authorization: Bearer {key}\r\n" if key else ""
     head = (
         f"POST /searches?scene=demo HTTP/1.1\r\nHost: test\r\nContent-Type: image/png\r\n"
-        f"Content-Length: {size}\r\n\r\n"
+        f"{authorization}Content-Length: {size}\r\n\r\n"
     )
     sock.sendall(head.encode() + b"\0" * sent)
     return sock
@@ -130,6 +148,17 @@ def answer(sock: socket.socket, timeout_s: float) -> tuple[int, dict[str, str], 
     except TimeoutError:
         return None
     return _parse(data)
+
+
+HANDLED = {
+    "urn:cosmos:problem:unsupported-image-format",  # its zeros are no image
+    "urn:cosmos:problem:stage-unavailable",  # once the broker found no stage (none runs)
+}
+
+
+def handled(reply: tuple[int, dict[str, str], bytes] | None) -> bool:
+    """Whether ``reply`` is the app's answer to an upload it read (not the body bounds')."""
+    return reply is not None and json.loads(reply[2]).get("type") in HANDLED
 
 
 def _headers(head: bytes) -> list[tuple[str, str]]:
@@ -167,11 +196,10 @@ def test_a_request_waits_for_bytes_and_is_admitted_once_they_are_free(controller
         waiting = stack.enter_context(start_upload(controller, LIMIT, LIMIT))
         assert answer(waiting, 0.4) is None  # not admitted: its body is not read
         first.sendall(b"\0" * (LIMIT - LIMIT // 2))
-        assert answer(first, 5.0)[0] == 401  # read, handed to the app: no API key
-        status, _, _ = answer(waiting, WAIT_S)
-        assert status == 401  # admitted when the first's bytes came free, then read
+        assert handled(answer(first, 5.0))  # read, handed to the app
+        assert handled(answer(waiting, WAIT_S))  # admitted when the first's bytes came free
         second.sendall(b"\0" * (LIMIT - LIMIT // 2))
-        assert answer(second, 5.0)[0] == 401
+        assert handled(answer(second, 5.0))
 
 
 @pytest.mark.slow
@@ -207,7 +235,7 @@ def test_a_trickling_body_gets_408_and_its_bytes_are_released(controller):
         # Their bytes are free again: a maximal upload is admitted and read at once.
         started = time.monotonic()
         fresh = stack.enter_context(start_upload(controller, LIMIT, LIMIT))
-        assert answer(fresh, 2.0)[0] == 401
+        assert handled(answer(fresh, 2.0))
         assert time.monotonic() - started < 1.0
 
 
@@ -219,12 +247,37 @@ def test_small_requests_and_gets_do_not_wait_behind_large_uploads(controller):
         for _ in range(3):
             started = time.monotonic()
             small = stack.enter_context(start_upload(controller, 30_000, 30_000))
-            assert answer(small, 1.0)[0] == 401  # read and handled while the large one waits
+            assert handled(answer(small, 1.0))  # read and handled while the large one waits
             probe = stack.enter_context(connect(controller))
             probe.sendall(b"GET /livez HTTP/1.1\r\nHost: test\r\n\r\n")
             assert answer(probe, 1.0)[0] == 200
             assert time.monotonic() - started < 0.5
         assert answer(waiting, 0.05) is None  # still waiting for large bytes
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("key", ["", "cosmos_not-a-key-of-this-controller"])
+def test_an_upload_without_a_valid_key_is_refused_before_its_body_is_admitted_or_read(
+    controller, key
+):
+    with ExitStack() as stack:
+        first, _ = fill_budget(controller, stack)  # a keyed upload would now wait 1.5 s
+        started = time.monotonic()
+        stranger = stack.enter_context(start_upload(controller, LIMIT, 1000, key=key))
+        status, headers, body = answer(stranger, 1.0)  # the rest of its body is never sent
+        assert time.monotonic() - started < 0.5  # not in line for the budget
+        assert status == 401
+        assert headers["content-type"] == "application/problem+json"
+        assert headers["www-authenticate"].startswith("Bearer")
+        assert json.loads(body)["type"] == "urn:cosmos:problem:unauthorized"
+        assert closed(stranger)  # the server reads no more of it
+        # It held no bytes: once one holder's upload is done, a keyed one is admitted at once.
+        first.sendall(b"\0" * (LIMIT - LIMIT // 2))
+        assert handled(answer(first, 5.0))
+        started = time.monotonic()
+        fresh = stack.enter_context(start_upload(controller, LIMIT, LIMIT))
+        assert handled(answer(fresh, 2.0))
+        assert time.monotonic() - started < 1.0
 
 
 def test_the_test_sizes_are_large_and_small_as_intended():

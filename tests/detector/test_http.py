@@ -4,6 +4,8 @@ trained model ships) detection quality on renders of the built-in scenes."""
 
 from __future__ import annotations
 
+import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -56,6 +58,29 @@ def test_the_detector_detects_for_holders_of_the_service_token_only(detector_pro
     assert_token_required(
         detector_process, "POST", "/detect", {"Content-Type": "image/png"}, content=png
     )
+
+
+@pytest.mark.parametrize("token", ["", "a-token-of-another-stack-0123456789"])
+def test_a_strangers_upload_is_refused_before_its_body_is_read(detector_process, token):
+    """The service token is checked from the head, before the body bounds: a stranger's large
+    upload gets its 401 with only a part of its body sent, and the connection is closed."""
+    host, port = detector_process.url.removeprefix("http://").split(":")
+    authorization = f"Authorization: Bearer {token}\r\n" if token else ""
+    head = (
+        f"POST /detect HTTP/1.1\r\nHost: test\r\nContent-Type: image/png\r\n{authorization}"
+        f"Content-Length: {UPLOAD_LIMIT}\r\n\r\n"
+    )
+    with socket.create_connection((host, int(port)), timeout=2.0) as sock:
+        started = time.monotonic()
+        sock.sendall(head.encode() + b"\0" * 1000)  # the rest is never sent
+        received = b""
+        while chunk := sock.recv(65536):  # the server closes after its answer
+            received += chunk
+        assert time.monotonic() - started < 1.0
+    status_line, _, rest = received.partition(b"\r\n")
+    assert status_line.split()[1] == b"401"
+    assert b"www-authenticate: bearer" in rest.lower()
+    assert b"urn:cosmos:problem:unauthorized" in rest
 
 
 def multipart(data: bytes, boundary: str = "cosmos-boundary") -> tuple[bytes, str]:

@@ -52,8 +52,10 @@ __all__ = [
 ]
 
 MIB = 1 << 20
-RETRYABLE = frozenset({429, 503})
-"""Refusals that mean "not now" (quota, a stage unavailable): the load asks again."""
+
+
+class _Halted(Exception):
+    """The load stopped while a submission waited to be asked again."""
 
 
 def percentile(values: Iterable[float], q: float) -> float | None:
@@ -185,7 +187,8 @@ class Load:
     ``concurrency`` clients (threads), each with the API key ``api_key``, submit a search of the
     next target (a new seed each time, so starts differ; ``options`` for the rest), poll
     ``GET /searches/{id}`` every ``poll_s`` until it ends, pause ``think_s`` and go on, until
-    :meth:`stop`. A 429/503 answer is asked again after ``refused_wait_s``, a request without an
+    :meth:`stop`. A 429/503 answer (with ``Retry-After``) is asked again after its
+    ``Retry-After``, at most ``refused_wait_s`` (the client's own retrying), a request without an
     answer (controller down) after ``poll_s``; polls that get no answer go on polling. After
     :meth:`stop`, a search in flight is followed until ``drain_s`` has passed, then given up as
     unfinished.
@@ -277,21 +280,40 @@ class Load:
             deadline is not None and now > deadline
         )
 
+    def _pause(self, seconds: float) -> None:
+        """Wait ``seconds`` between submission attempts; :class:`_Halted` once the load stops."""
+        if self._stopping.wait(seconds):
+            raise _Halted
+
     def _search(self, client: ControllerClient, target: Target, seed: int) -> Outcome | None:
         started = time.monotonic()
         refusals = unanswered = 0
+
+        def refused(refusal: ControllerError, wait_s: float) -> None:
+            nonlocal refusals
+            refusals += 1
+
         while True:
             if self._stopping.is_set():  # never taken: nothing to follow
                 if refusals == 0 and unanswered == 0:
                     return None
                 return Outcome(started, refusals=refusals, unanswered=unanswered)
             try:
-                search = client.submit(target.image, target.scene, seed=seed, **self._options)
+                # The client waits out "not now" (429/503 with Retry-After) itself, asking again
+                # every min(Retry-After, refused_wait_s) until the load stops.
+                search = client.submit(
+                    target.image,
+                    target.scene,
+                    retry_budget_s=math.inf,
+                    max_wait_s=self._refused_wait_s,
+                    on_wait=refused,
+                    sleep=self._pause,
+                    seed=seed,
+                    **self._options,
+                )
+            except _Halted:
+                continue  # the stopping branch above records it
             except ControllerError as exc:
-                if exc.status in RETRYABLE:
-                    refusals += 1
-                    self._stopping.wait(self._refused_wait_s)
-                    continue
                 return Outcome(
                     started,
                     ended_at=time.monotonic(),

@@ -1,0 +1,94 @@
+"""The controller's API key check, once for the routes and once before a request body is read.
+
+:func:`authenticate` is the check: ``Authorization: Bearer <key>`` must carry a key of the
+:class:`~services.controller.keys.KeyStore`, not revoked, else :class:`UnauthorizedError` (401
+problem details with ``WWW-Authenticate: Bearer``). The routes call it through their ``Caller``
+dependency (:mod:`services.controller.api`).
+
+:class:`ApiKeyMiddleware` calls it from the request's head, in front of the body bounds
+(:class:`~services.common.bodies.BodyMiddleware`): a request with a body, to a route that wants a
+key, is refused at once when its key is missing or wrong, before its body is admitted to the
+budget of bytes in flight or read, so a stranger's upload costs neither (its connection is
+closed, the body unread). A key it accepts is handed on in the scope (:func:`checked_key`), so
+the route does not look it up again. Requests without a body go on to the route, whose check
+answers the same.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Final
+
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from services.common.bodies import has_body, send_problem
+from services.common.errors import UnauthorizedError
+from services.controller.keys import ApiKey, KeyStore
+
+__all__ = ["ApiKeyMiddleware", "authenticate", "checked_key"]
+
+_SCOPE_KEY: Final = "cosmos.api_key"
+"""Where :class:`ApiKeyMiddleware` leaves the key it accepted, in the request's scope."""
+
+
+def _unauthorized(detail: str, challenge: str) -> UnauthorizedError:
+    return UnauthorizedError(detail, headers={"WWW-Authenticate": challenge})
+
+
+def authenticate(keys: KeyStore, authorization: str | None) -> ApiKey:
+    """The key an ``Authorization`` header value carries (``Bearer <key>``, the scheme in any
+    case), or :class:`UnauthorizedError` when there is none or it is unknown or revoked."""
+    scheme, _, given = (authorization or "").strip().partition(" ")
+    given = given.strip()
+    if scheme.lower() != "bearer" or not given:
+        raise _unauthorized(
+            "send an API key as Authorization: Bearer <key>; `cosmos keys create` makes one "
+            "(`cosmos up` prints a local one)",
+            'Bearer realm="cosmos"',
+        )
+    key = keys.verify(given)
+    if key is None:
+        raise _unauthorized(
+            "the API key is unknown or was revoked; ask for a new one (cosmos keys create)",
+            'Bearer realm="cosmos", error="invalid_token"',
+        )
+    return key
+
+
+def checked_key(scope: Scope) -> ApiKey | None:
+    """The key :class:`ApiKeyMiddleware` accepted for this request (None: it did not check)."""
+    key = scope.get(_SCOPE_KEY)
+    return key if isinstance(key, ApiKey) else None
+
+
+class ApiKeyMiddleware:
+    """Refuse a request with a body to a route that wants a key (``needs_key(scope)``) with 401,
+    before its body is read, unless its key passes :func:`authenticate` against
+    ``keys(scope)``."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        needs_key: Callable[[Scope], bool],
+        keys: Callable[[Scope], KeyStore],
+    ) -> None:
+        self.app = app
+        self._needs_key = needs_key
+        self._keys = keys
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or not has_body(scope) or not self._needs_key(scope):
+            await self.app(scope, receive, send)
+            return
+        given = next((v for k, v in scope["headers"] if k == b"authorization"), None)
+        try:
+            key = authenticate(
+                self._keys(scope), None if given is None else given.decode("latin-1")
+            )
+        except UnauthorizedError as exc:
+            # The body is never read: the server closes the connection after the answer.
+            await send_problem(send, scope, exc.problem(scope.get("path")), exc.headers)
+            return
+        scope[_SCOPE_KEY] = key
+        await self.app(scope, receive, send)
