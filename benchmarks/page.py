@@ -14,6 +14,8 @@ driven by Playwright; ``scripts/bootstrap.sh`` installs it). The browser's own
   longest gap between two animation frames; the goal is no long task. The long tasks between
   the click on *Search* and the first iteration (the switch to the live view) are printed apart.
   The search walks the ``simple`` strategy from far away, so many iterations stream in.
+  Each animation frame over 50 ms (the browser's Long Animation Frames) is printed with its
+  parts: the rendering steps' time (style, layout, paint, commit) and the scripts that ran.
 
 The page runs in the user's browser and the stack on other machines, so by default the
 stack's processes are pinned to one half of this machine's cores and the browser to the other
@@ -64,13 +66,20 @@ SwiftShader's GL instead (headless Chromium's default) cost 130-300 ms frame gap
 without the page's WebGL: the browser's set-up, not the page."""
 
 OBSERVE = """
-window.__perf = { paints: {}, longTasks: [], frames: [] };
+window.__perf = { paints: {}, longTasks: [], frames: [], frames50: [] };
 new PerformanceObserver((list) => {
   for (const e of list.getEntries()) window.__perf.paints[e.name] = e.startTime;
 }).observe({ type: "paint", buffered: true });
 new PerformanceObserver((list) => {
   for (const e of list.getEntries()) window.__perf.longTasks.push([e.startTime, e.duration]);
 }).observe({ type: "longtask", buffered: true });
+new PerformanceObserver((list) => {
+  for (const e of list.getEntries()) {
+    const scripts = e.scripts.map((s) => `${s.invoker || s.sourceFunctionName || "?"} ${s.duration.toFixed(0)} ms`);
+    const render = e.startTime + e.duration - e.renderStart;
+    window.__perf.frames50.push([e.startTime, e.duration, render, e.styleAndLayoutStart ? e.startTime + e.duration - e.styleAndLayoutStart : 0, scripts.join("; ")]);
+  }
+}).observe({ type: "long-animation-frame", buffered: true });
 (function frame(t) { window.__perf.frames.push(t); requestAnimationFrame(frame); })(0);
 """
 
@@ -140,6 +149,7 @@ def _stream(browser: Any, stack: Stack, target: Path) -> dict[str, Any]:
     context.close()
     switch = [d for s, d in perf["longTasks"] if clicked <= s < streaming]
     tasks = [d for s, d in perf["longTasks"] if streaming <= s <= ended]
+    slow = [f for f in perf["frames50"] if streaming <= f[0] <= ended]
     frames = [t for t in perf["frames"] if streaming <= t <= ended]
     gaps = [b - a for a, b in zip(frames, frames[1:], strict=False)]
     return {
@@ -148,6 +158,8 @@ def _stream(browser: Any, stack: Stack, target: Path) -> dict[str, Any]:
         "switch_tasks": switch,
         "long_tasks": len(tasks),
         "longest_task_ms": max(tasks, default=0.0),
+        "slow_frames": slow,
+        "streaming": streaming,
         "frames": len(frames),
         "longest_frame_gap_ms": max(gaps, default=float("nan")),
         "p99_frame_gap_ms": sorted(gaps)[int(0.99 * (len(gaps) - 1))] if gaps else float("nan"),
@@ -284,6 +296,11 @@ def main() -> None:
                     f"{s['frames']} frames, longest frame gap {s['longest_frame_gap_ms']:.1f} ms, "
                     f"p99 {s['p99_frame_gap_ms']:.1f} ms"
                 )
+                for at, total, render, layout, scripts in s["slow_frames"]:
+                    print(
+                        f"      a {total:.0f} ms frame at {(at - s['streaming']) / 1000:.1f} s: rendering {render:.0f} ms (style and "
+                        f"layout on {layout:.0f} ms), scripts: {scripts or 'none'}"
+                    )
                 switch = ", ".join(f"{d:.0f}" for d in s["switch_tasks"]) or "none"
                 print(f"      before the first iteration (switching to the live view): {switch} ms")
             during_gap, during_p99 = _static_page_during_search(browser, stack, png)

@@ -138,9 +138,13 @@ export class HemisphereScene {
     });
   }
 
-  dispose() {
+  /** Show nothing (a new view takes the canvas; its scene comes next). */
+  clear() {
     this.world.traverse((object) => object.geometry?.dispose());
-    this.renderer.dispose();
+    this.world.clear();
+    this.setTrack({});
+    this.gridPoints = null;
+    this.poses = [];
   }
 
   /** The scene (`GET /scenes/{id}`): its ground, objects, camera radius and grid. */
