@@ -75,9 +75,12 @@ new PerformanceObserver((list) => {
 }).observe({ type: "longtask", buffered: true });
 new PerformanceObserver((list) => {
   for (const e of list.getEntries()) {
-    const scripts = e.scripts.map((s) => `${s.invoker || s.sourceFunctionName || "?"} ${s.duration.toFixed(0)} ms`);
-    const render = e.startTime + e.duration - e.renderStart;
-    window.__perf.frames50.push([e.startTime, e.duration, render, e.styleAndLayoutStart ? e.startTime + e.duration - e.styleAndLayoutStart : 0, scripts.join("; ")]);
+    const scripts = e.scripts.map(
+      (s) => `${s.invoker || s.sourceFunctionName || "?"} ${s.duration.toFixed(0)} ms`);
+    const end = e.startTime + e.duration;
+    const layout = e.styleAndLayoutStart ? end - e.styleAndLayoutStart : 0;
+    window.__perf.frames50.push(
+      [e.startTime, e.duration, end - e.renderStart, layout, scripts.join("; ")]);
   }
 }).observe({ type: "long-animation-frame", buffered: true });
 (function frame(t) { window.__perf.frames.push(t); requestAnimationFrame(frame); })(0);
@@ -298,8 +301,9 @@ def main() -> None:
                 )
                 for at, total, render, layout, scripts in s["slow_frames"]:
                     print(
-                        f"      a {total:.0f} ms frame at {(at - s['streaming']) / 1000:.1f} s: rendering {render:.0f} ms (style and "
-                        f"layout on {layout:.0f} ms), scripts: {scripts or 'none'}"
+                        f"      a {total:.0f} ms frame at {(at - s['streaming']) / 1000:.1f} s: "
+                        f"rendering {render:.0f} ms (style and layout on {layout:.0f} ms), "
+                        f"scripts: {scripts or 'none'}"
                     )
                 switch = ", ".join(f"{d:.0f}" for d in s["switch_tasks"]) or "none"
                 print(f"      before the first iteration (switching to the live view): {switch} ms")

@@ -22,11 +22,8 @@ from __future__ import annotations
 import argparse
 import json
 import select
-import shutil
 import socket
 import statistics
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -34,13 +31,13 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from benchmarks.baseline import describe, measure_at
 from services.common.launch import free_port, running_service
 from services.controller.keys import KeyStore
 
 MIB = 1 << 20
 UPLOAD_LIMIT = 20 * MIB  # the controller's default body limit
 PIECE = 256 * 1024
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _upload(host: str, port: int, key: str, body: bytes, out: list[tuple[str, float, int]]) -> None:
@@ -126,32 +123,7 @@ def measure(strangers: int, keyed: int) -> dict[str, Any]:
 
 def _baseline(ref: str, argv: list[str]) -> dict[str, Any]:
     """:func:`measure` run on git ``ref``'s tree, in a child process."""
-    with tempfile.TemporaryDirectory() as tree:
-        archive = subprocess.run(
-            ["git", "-C", str(ROOT), "archive", ref], check=True, capture_output=True
-        ).stdout
-        subprocess.run(["tar", "-x", "-C", tree], input=archive, check=True)
-        shutil.copy(Path(__file__), Path(tree) / "benchmarks" / "strangers.py")
-        child = subprocess.run(
-            [sys.executable, "-m", "benchmarks.strangers", *argv, "--worker"],
-            cwd=tree,
-            capture_output=True,
-            text=True,
-        )
-        if child.returncode != 0:
-            raise RuntimeError(f"the {ref} measurement failed:\n{child.stderr[-4000:]}")
-        result: dict[str, Any] = json.loads(child.stdout.strip().splitlines()[-1])
-        return result
-
-
-def _commit(ref: str) -> str:
-    commit = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--short", ref],
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout.strip()
-    return ref if ref == commit else f"{ref} {commit}"
+    return measure_at(ref, Path(__file__), [*argv, "--worker"])
 
 
 def _line(name: str, r: dict[str, Any]) -> str:
@@ -179,7 +151,7 @@ def main() -> None:
     argv = ["--strangers", str(args.strangers), "--keyed", str(args.keyed)]
     print(f"{args.strangers} maximal uploads with a wrong key, then {args.keyed} with a valid one:")
     if args.baseline != "none":
-        print(_line(_commit(args.baseline), _baseline(args.baseline, argv)), flush=True)
+        print(_line(describe(args.baseline), _baseline(args.baseline, argv)), flush=True)
     print(_line("this tree", measure(args.strangers, args.keyed)), flush=True)
 
 

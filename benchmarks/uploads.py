@@ -28,9 +28,6 @@ import argparse
 import asyncio
 import json
 import math
-import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from collections import Counter
@@ -42,12 +39,12 @@ import cv2
 import httpx
 import numpy as np
 
+from benchmarks.baseline import describe, measure_at
 from services.bench.faults.harness import memory_of, reset_peak
 from services.stack import Stack, local_stack
 
 MIB = 1 << 20
 UPLOAD_LIMIT = 20 * 1024 * 1024  # the controller's and the detector's default body limit
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def maximal_png(limit: int = UPLOAD_LIMIT, seed: int = 0) -> bytes:
@@ -235,33 +232,7 @@ def measure(target_kind: str, args: argparse.Namespace) -> dict[str, Any]:
 
 def _baseline(ref: str, target_kind: str, argv: list[str]) -> dict[str, Any]:
     """:func:`measure` run on git ``ref``'s tree, in a child process."""
-    with tempfile.TemporaryDirectory() as tree:
-        archive = subprocess.run(
-            ["git", "-C", str(ROOT), "archive", ref], check=True, capture_output=True
-        ).stdout
-        subprocess.run(["tar", "-x", "-C", tree], input=archive, check=True)
-        shutil.copy(Path(__file__), Path(tree) / "benchmarks" / "uploads.py")
-        child = subprocess.run(
-            [sys.executable, "-m", "benchmarks.uploads", *argv, "--worker", target_kind],
-            cwd=tree,
-            capture_output=True,
-            text=True,
-        )
-        if child.returncode != 0:
-            raise RuntimeError(f"the {ref} measurement failed:\n{child.stderr[-4000:]}")
-        result: dict[str, Any] = json.loads(child.stdout.strip().splitlines()[-1])
-        return result
-
-
-def _commit(ref: str) -> str:
-    """``ref`` and the commit it names."""
-    commit = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--short", ref],
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout.strip()
-    return ref if ref == commit else f"{ref} {commit}"
+    return measure_at(ref, Path(__file__), [*argv, "--worker", target_kind])
 
 
 def _line(name: str, r: dict[str, Any]) -> str:
@@ -310,7 +281,7 @@ def main() -> None:
     )
     for kind in kinds:
         if args.baseline != "none":
-            print(_line(_commit(args.baseline), _baseline(args.baseline, kind, argv)), flush=True)
+            print(_line(describe(args.baseline), _baseline(args.baseline, kind, argv)), flush=True)
         print(_line("this tree", measure(kind, args)), flush=True)
 
 
