@@ -1,11 +1,12 @@
 """Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots.
 
-Every route but ``/health`` (and the OpenAPI documents, and the web page's files, which hold no
-data) wants an API key (``Authorization: Bearer <key>``, :mod:`services.controller.keys`) unless
-``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays open for load balancers and container health
-checks; it tells counts and replicas by name (``renderer-1``), no search and no address (those
-are in the controller's log, for every key alike). A key sees and cancels its own searches only
-(another tenant's is a 404, as an unknown one, so ids do not leak); an admin key sees them all.
+Every route but ``/health`` and ``/health/events`` (and the OpenAPI documents, and the web
+page's files, which hold no data) wants an API key (``Authorization: Bearer <key>``,
+:mod:`services.controller.keys`) unless ``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays
+open for load balancers and container health checks; it tells counts and replicas by name
+(``renderer-1``), no search and no address (those are in the controller's log, for every key
+alike). A key sees and cancels its own searches only (another tenant's is a 404, as an unknown
+one, so ids do not leak); an admin key sees them all.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
-from typing import Annotated, Any
+from typing import Annotated, Any, Final
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi import Path as FastApiPath
@@ -177,6 +178,46 @@ async def health(state: State) -> ControllerHealth:
     flight, moving-average task times; ``degraded``, naming the stages, while a stage has no
     replica available), and the store's size. Open to anyone (no key): health checks have
     none, and no search or internal address is shown."""
+    return _health_of(state)
+
+
+HEALTH_EVENTS_EVERY_S: Final = 1.0
+"""How often ``GET /health/events`` looks whether the health changed."""
+HEALTH_KEEP_ALIVE_S: Final = 15.0
+
+
+@router.get(
+    "/health/events",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/event-stream": {}}}},
+)
+async def health_events(state: State) -> StreamingResponse:
+    """Server-sent events: ``health``, the body ``GET /health`` answers, at once and then
+    whenever it changed (looked at every second), until the client leaves; a comment every 15 s
+    while nothing changed keeps proxies from closing the stream. The web page's broker panel
+    follows it. Open to anyone, as ``/health`` is."""
+
+    async def stream() -> AsyncIterator[bytes]:
+        last = ""
+        quiet_s = 0.0
+        while True:
+            doc = _health_of(state).model_dump_json()
+            if doc != last:
+                last = doc
+                quiet_s = 0.0
+                yield _sse("health", doc)
+            elif quiet_s >= HEALTH_KEEP_ALIVE_S:
+                quiet_s = 0.0
+                yield b": keep-alive\n\n"
+            await asyncio.sleep(HEALTH_EVENTS_EVERY_S)
+            quiet_s += HEALTH_EVENTS_EVERY_S
+
+    return StreamingResponse(
+        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
+    )
+
+
+def _health_of(state: ControllerState) -> ControllerHealth:
     size = state.store.size()
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(

@@ -9,6 +9,7 @@ import gzip
 import json
 import re
 import sqlite3
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,7 +20,7 @@ import numpy as np
 import pytest
 
 from services.common.auth import TOKEN_VARIABLE
-from services.common.contracts.search import Iteration, Search, StageTimings
+from services.common.contracts.search import ControllerHealth, Iteration, Search, StageTimings
 from services.common.images import encode_ppm
 from services.common.launch import spawn_service, stop_service, wait_healthy
 from services.controller.client import ControllerClient
@@ -294,3 +295,41 @@ def test_a_search_stored_by_an_earlier_version_renders_with_the_current_settings
         again = view_of(controller, "old", 0)
     current = render_png(stack, "demo", 3, 5, spp=4, width=160)
     assert np.array_equal(again, pixels(current))
+
+
+def _next_health(lines: Iterator[str], within_s: float = 30.0) -> dict:
+    """The data of the next ``health`` event (keep-alive comments skipped), within ``within_s``."""
+    event = ""
+    deadline = time.monotonic() + within_s
+    for line in lines:
+        assert time.monotonic() < deadline, "no health event came"
+        if line.startswith("event: "):
+            event = line[len("event: ") :]
+        elif line.startswith("data: ") and event == "health":
+            return json.loads(line[len("data: ") :])
+    raise AssertionError("the health events ended")
+
+
+def test_health_events_push_the_health_at_once_and_when_it_changes_to_anyone(stack):
+    blank = cv2.imencode(".png", np.full((240, 320, 3), 128, np.uint8))[1].tobytes()
+    with (
+        httpx.Client(base_url=stack.controller, timeout=20.0) as anyone,  # no key: as /health
+        anyone.stream("GET", "/health/events") as events,
+    ):
+        assert events.status_code == 200
+        assert events.headers["content-type"].startswith("text/event-stream")
+        lines = events.iter_lines()
+        first = ControllerHealth.model_validate(_next_health(lines))
+        polled = httpx.get(f"{stack.controller}/health").json()
+        assert [r.name for r in first.replicas] == [r["name"] for r in polled["replicas"]]
+        with api(stack) as http:  # a search that fails at once (nothing to detect) is stored
+            refused = http.post(
+                "/searches?scene=demo", content=blank, headers={"Content-Type": "image/png"}
+            )
+            assert refused.status_code in {202, 422}, refused.text
+        for _ in range(20):  # pushed without asking again, within the read timeout
+            now = ControllerHealth.model_validate(_next_health(lines))
+            if now.store_searches != first.store_searches or now.replicas != first.replicas:
+                break
+        else:
+            raise AssertionError("no health event showed the search")

@@ -1,10 +1,10 @@
-// The broker at a glance: GET /health every few seconds (while the page is visible), each
-// replica's fields as /health reports them, whatever they are.
+// The broker at a glance, live: the controller's GET /health/events pushes its health whenever
+// it changes (no polling); each replica's fields as /health reports them, whatever they are.
 
-import { Problem } from "./api.js";
+import { follow } from "./api.js";
 import { h } from "./dom.js";
 
-const EVERY_MS = 2000;
+const RETRY_MS = 2000; // before following the events again, once they broke off
 
 function cell(value) {
   if (value === true) return "yes";
@@ -49,9 +49,8 @@ export function renderHealth(health) {
   return [summary, table];
 }
 
-/** Keep `body` and `badge` showing the controller's /health. */
+/** Keep `body` and `badge` showing the controller's /health, as its events push it. */
 export function watchBroker(body, badge) {
-  let timer = 0;
   let shape = ""; // the shown table's columns and replicas: while they stay, only changed text is set
   function show(health) {
     const [summary, table] = renderHealth(health);
@@ -60,38 +59,38 @@ export function watchBroker(body, badge) {
     if (now !== shape || !shown.length) {
       body.replaceChildren(summary, table);
       shape = now;
-      return;
+    } else {
+      // the same table: set only the text that changed (a rebuilt panel is laid out and painted whole)
+      const fresh = [summary, ...table.querySelectorAll("td")];
+      shown.forEach((node, i) => {
+        if (node.innerHTML !== fresh[i].innerHTML) node.replaceChildren(...fresh[i].childNodes);
+        if (node.className !== fresh[i].className) node.className = fresh[i].className;
+      });
+      const rows = body.querySelectorAll("table.replicas tbody tr");
+      table.querySelectorAll("tbody tr").forEach((row, i) => {
+        if (rows[i].className !== row.className) rows[i].className = row.className;
+      });
     }
-    // the same table: set only the text that changed (a rebuilt panel is laid out and painted whole)
-    const fresh = [summary, ...table.querySelectorAll("td")];
-    shown.forEach((node, i) => {
-      if (node.innerHTML !== fresh[i].innerHTML) node.replaceChildren(...fresh[i].childNodes);
-      if (node.className !== fresh[i].className) node.className = fresh[i].className;
-    });
-    const rows = body.querySelectorAll("table.replicas tbody tr");
-    table.querySelectorAll("tbody tr").forEach((row, i) => {
-      if (rows[i].className !== row.className) rows[i].className = row.className;
-    });
+    if (badge.textContent !== `broker ${health.status}`) badge.textContent = `broker ${health.status}`;
+    if (badge.className !== `badge ${health.status}`) badge.className = `badge ${health.status}`;
   }
-  async function refresh() {
-    timer = 0;
-    try {
-      const response = await fetch("/health", { headers: { Accept: "application/json" } });
-      if (!response.ok) throw new Problem(response.status, await response.json().catch(() => null));
-      const health = await response.json();
-      show(health);
-      if (badge.textContent !== `broker ${health.status}`) badge.textContent = `broker ${health.status}`;
-      if (badge.className !== `badge ${health.status}`) badge.className = `badge ${health.status}`;
-    } catch (error) {
-      body.replaceChildren(h("p", { class: "notice error" }, `GET /health failed: ${error.message}`));
-      shape = "";
-      badge.textContent = "broker ?";
-      badge.className = "badge degraded";
+
+  function lost(message) {
+    body.replaceChildren(h("p", { class: "notice error" }, message));
+    shape = "";
+    badge.textContent = "broker ?";
+    badge.className = "badge degraded";
+  }
+
+  (async () => {
+    for (;;) {
+      try {
+        await follow("/health/events", (name, data) => name === "health" && show(data));
+        lost("The controller closed its health events; asking again…");
+      } catch (error) {
+        lost(`GET /health/events failed: ${error.detail || error.message}; asking again…`);
+      }
+      await new Promise((resolve) => setTimeout(resolve, RETRY_MS));
     }
-    if (!document.hidden) timer = setTimeout(refresh, EVERY_MS);
-  }
-  document.addEventListener("visibilitychange", () => {
-    if (!document.hidden && !timer) refresh();
-  });
-  refresh();
+  })();
 }
