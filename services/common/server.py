@@ -21,6 +21,10 @@ What :class:`HttpProtocol` measures, per connection:
   if part of a head had arrived). A request body and the app's own time are not counted: the
   deadline ends with the head. The body has a deadline of its own, scaled by its size, and is
   bounded by bytes in flight: :mod:`services.common.bodies`.
+
+And when asked to stop, the server sets :data:`~services.common.stopping.STOPPING` (the
+endless event streams end themselves), then gives the responses still in flight
+``--timeout-graceful-shutdown`` seconds.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import json
 import logging
 import os
 from collections.abc import Sequence
+from types import FrameType
 from typing import Any, Final
 
 import uvicorn
@@ -39,8 +44,10 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.server import ServerState
 
 from services.common.errors import ProblemDetails, problem_type
+from services.common.stopping import STOPPING
 
 __all__ = [
+    "DEFAULT_GRACEFUL_SHUTDOWN_S",
     "DEFAULT_HEAD_TIMEOUT_S",
     "DEFAULT_MAX_HEAD_BYTES",
     "HttpProtocol",
@@ -52,6 +59,10 @@ DEFAULT_MAX_HEAD_BYTES: Final = 64 * 1024
 """Request line and headers; a real request of these services sends a few hundred bytes."""
 DEFAULT_HEAD_TIMEOUT_S: Final = 10.0
 """A head arrives in one packet on loopback and a LAN; ten seconds is generous for any client."""
+DEFAULT_GRACEFUL_SHUTDOWN_S: Final = 8.0
+"""What a stopping server gives the responses in flight (a render, a detection) before it
+cancels them: the app's own shutdown (a controller's searches checkpointed) still fits in the
+10 s Docker waits before it kills a container (15 s for the local launcher)."""
 
 _log = logging.getLogger("cosmos.server")
 
@@ -210,6 +221,15 @@ def guarded_protocol(
     )
 
 
+class _Server(uvicorn.Server):
+    """uvicorn's server, which sets :data:`~services.common.stopping.STOPPING` when asked to
+    stop."""
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        STOPPING.set()
+        super().handle_exit(sig, frame)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Serve ``APP`` (``module:attribute``) with uvicorn and :class:`HttpProtocol`."""
     parser = argparse.ArgumentParser(
@@ -238,19 +258,28 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="seconds an idle kept-alive connection stays open; like uvicorn's own command, "
         "UVICORN_TIMEOUT_KEEP_ALIVE sets the default (default: %(default)s)",
     )
+    parser.add_argument(
+        "--timeout-graceful-shutdown",
+        type=float,
+        default=DEFAULT_GRACEFUL_SHUTDOWN_S,
+        help="seconds a stopping server waits for the responses in flight before it cancels "
+        "them (default: %(default)s)",
+    )
     args = parser.parse_args(argv)
     try:
         protocol = guarded_protocol(args.max_head_bytes, args.head_timeout_s)
     except ValueError as exc:
         parser.error(str(exc))
-    uvicorn.run(
+    config = Config(
         args.app,
         host=args.host,
         port=args.port,
         http=protocol,
         h11_max_incomplete_event_size=args.max_head_bytes,
         timeout_keep_alive=args.timeout_keep_alive,
+        timeout_graceful_shutdown=args.timeout_graceful_shutdown,
     )
+    _Server(config).run()
 
 
 if __name__ == "__main__":

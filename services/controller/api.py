@@ -46,6 +46,7 @@ from services.common.errors import (
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex
 from services.common.http import app_state, problem_responses
+from services.common.stopping import STOPPING
 from services.common.upload import read_upload
 from services.controller.auth import authenticate, checked_key
 from services.controller.broker import Broker, BrokerError
@@ -183,7 +184,19 @@ async def health(state: State) -> ControllerHealth:
 
 HEALTH_EVENTS_EVERY_S: Final = 1.0
 """How often ``GET /health/events`` looks whether the health changed."""
-HEALTH_KEEP_ALIVE_S: Final = 15.0
+_KEEP_ALIVE_S: Final = 15.0
+"""A comment sent on an event stream after this long without an event."""
+_STOP_CHECK_S: Final = 1.0
+"""How often a waiting event stream looks whether the server is stopping (:data:`STOPPING`)."""
+
+
+async def _set_within(event: asyncio.Event, timeout_s: float) -> bool:
+    """Whether ``event`` is set within ``timeout_s``."""
+    try:
+        await asyncio.wait_for(event.wait(), timeout=timeout_s)
+    except TimeoutError:
+        return False
+    return True
 
 
 @router.get(
@@ -193,20 +206,20 @@ HEALTH_KEEP_ALIVE_S: Final = 15.0
 )
 async def health_events(state: State) -> StreamingResponse:
     """Server-sent events: ``health``, the body ``GET /health`` answers, at once and then
-    whenever it changed (looked at every second), until the client leaves; a comment every 15 s
-    while nothing changed keeps proxies from closing the stream. The web page's broker panel
-    follows it. Open to anyone, as ``/health`` is."""
+    whenever it changed (looked at every second), until the client leaves or the server stops;
+    a comment every 15 s while nothing changed keeps proxies from closing the stream. The web
+    page's broker panel follows it. Open to anyone, as ``/health`` is."""
 
     async def stream() -> AsyncIterator[bytes]:
         last = ""
         quiet_s = 0.0
-        while True:
+        while not STOPPING.is_set():
             doc = _health_of(state).model_dump_json()
             if doc != last:
                 last = doc
                 quiet_s = 0.0
                 yield _sse("health", doc)
-            elif quiet_s >= HEALTH_KEEP_ALIVE_S:
+            elif quiet_s >= _KEEP_ALIVE_S:
                 quiet_s = 0.0
                 yield b": keep-alive\n\n"
             await asyncio.sleep(HEALTH_EVENTS_EVERY_S)
@@ -399,7 +412,7 @@ async def search_events(search_id: str, state: State, key: Caller) -> StreamingR
     search is queued or running, ``search`` with the search without its iterations whenever it
     changed (its status, its target's detections); ``iteration`` for each recorded iteration;
     then one ``end`` with the search without its iterations. The stored JSON documents are sent
-    as they are."""
+    as they are. A server that stops ends the stream (the client follows again, elsewhere)."""
     if state.store.status_doc(search_id, visible_to=_visible_to(key)) is None:
         raise _unknown_search(search_id)
 
@@ -424,10 +437,14 @@ async def search_events(search_id: str, state: State, key: Caller) -> StreamingR
                 if status_doc[0] in TERMINAL_STATUSES:
                     yield _sse("end", status_doc[1])
                     return
-                try:
-                    await asyncio.wait_for(changed.wait(), timeout=15.0)
-                except TimeoutError:
-                    yield b": keep-alive\n\n"
+                quiet_s = 0.0
+                while not await _set_within(changed, _STOP_CHECK_S):
+                    if STOPPING.is_set():
+                        return  # the server is stopping: the client follows again elsewhere
+                    quiet_s += _STOP_CHECK_S
+                    if quiet_s >= _KEEP_ALIVE_S:
+                        quiet_s = 0.0
+                        yield b": keep-alive\n\n"
 
     return StreamingResponse(
         stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}

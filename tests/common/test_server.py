@@ -4,9 +4,11 @@ closed after the deadline while normal requests are served as usual."""
 
 from __future__ import annotations
 
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -156,3 +158,43 @@ def test_the_container_runs_every_service_in_this_server():
     assert "python -m services.common.server services.${SERVICE}.app:app" in command
     assert f"--max-head-bytes {DEFAULT_MAX_HEAD_BYTES}" in command
     assert "uvicorn" not in command
+
+
+def test_a_stopping_server_ends_its_event_streams_and_exits_cleanly(tmp_path):
+    """SIGTERM with a health stream open (a browser left on the page): the stream ends as a
+    complete response and the process exits by itself. Without the server's stop flag, uvicorn
+    waits for the endless response until its graceful timeout cancels it mid-stream (the client
+    reads a broken response), or the launcher kills the process."""
+    env = {
+        "COSMOS_CONTROLLER_DATABASE_URL": f"sqlite:///{tmp_path}/controller.sqlite3",
+        "COSMOS_CONTROLLER_AUTH": "off",
+        **{
+            f"COSMOS_CONTROLLER_{stage}_URLS": f"http://127.0.0.1:{free_port()}"
+            for stage in ("RENDERER", "DETECTOR", "OPTIMIZER")
+        },
+    }
+    with running_service("services.controller.app:app", tmp_path / "logs", env) as service:
+        following = threading.Event()
+        outcome: list[str] = []
+
+        def follow() -> None:
+            try:
+                with (
+                    httpx.Client(timeout=30.0) as client,
+                    client.stream("GET", f"{service.url}/health/events") as events,
+                ):
+                    for line in events.iter_lines():
+                        if line.startswith("event: health"):
+                            following.set()
+                outcome.append("ended")
+            except httpx.HTTPError as exc:
+                outcome.append(f"broken: {exc!r}")
+
+        thread = threading.Thread(target=follow, daemon=True)
+        thread.start()
+        assert following.wait(30), "no health event came"
+        stop_service(service, timeout_s=30.0)
+        thread.join(30)
+        assert outcome == ["ended"]
+        # by itself: uvicorn raises the signal it caught again once it shut down, not killed
+        assert service.process.returncode in {0, -signal.SIGTERM}
