@@ -24,7 +24,7 @@ import cv2
 import httpx
 import numpy as np
 
-from services.common.launch import running_service
+from cosmos.launch import running_service
 from services.detector.synthetic import constant_model
 
 MIB = 1 << 20

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from cosmos.launch import running_service
 from services.common.contracts.detect import DetectResponse
-from services.common.launch import running_service
 from services.detector.client import DetectorClient
 from services.detector.detect import Detector
 from services.detector.model import DetectorModel

@@ -26,7 +26,7 @@ from typing import Any
 
 import httpx
 
-from services.common.launch import running_service
+from cosmos.launch import running_service
 
 POSE = {"theta_deg": 40.0, "phi_deg": 30.0}
 ONE_PASS = 1 << 62

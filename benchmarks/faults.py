@@ -4,15 +4,15 @@ replica dies, the only detector is away, the controller is killed, slow clients 
 
 Run: ``.venv/bin/python -m benchmarks.faults [--quick] [--only NAME ...] [--workdir DIR]``
 
-Each scenario (:mod:`services.bench.faults.scenarios`) runs a background load of normal searches
+Each scenario (:mod:`cosmos.bench.faults.scenarios`) runs a background load of normal searches
 while it injects its fault, and prints one row: searches submitted, succeeded and lost (what
-counts is defined in :mod:`services.bench.faults.harness`; lost must be 0), each service's peak
+counts is defined in :mod:`cosmos.bench.faults.harness`; lost must be 0), each service's peak
 resident memory in MiB (the most over its replicas and restarts), the p95 latency in seconds of
 the normal searches during the fault (from the first submission attempt to the end, refusals
 and waits included) beside the p95 of those that ended before it, the fault's window in seconds,
 and notes with the scenario's own facts. ``--quick`` shortens the loads and faults (the detector
 away 5 s instead of 20 s). Every scenario runs on one local stack (2 renderers, 1 detector), in
-the order of :data:`~services.bench.faults.scenarios.SCENARIOS`; the exit status is 1 when a
+the order of :data:`~cosmos.bench.faults.scenarios.SCENARIOS`; the exit status is 1 when a
 search was lost or a scenario could not run to its end.
 """
 
@@ -25,7 +25,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.bench.faults.scenarios import (
+from cosmos.bench.faults.scenarios import (
     SCENARIOS,
     ScenarioFailure,
     ScenarioResult,

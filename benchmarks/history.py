@@ -53,7 +53,7 @@ import numpy as np
 import uvloop
 
 from benchmarks.local import Controller, StageUrls, Target, stage_processes
-from services.bench.runner import TARGET_SPP
+from cosmos.bench.runner import TARGET_SPP
 from services.common.catalog import SceneCatalog
 from services.common.contracts.optimize import (
     NextPoseRequest,

@@ -15,10 +15,10 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cosmos.launch import spawn_service, stop_service, wait_healthy
 from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.contracts.optimize import StrategyName
 from services.common.contracts.search import TERMINAL_STATUSES
-from services.common.launch import spawn_service, stop_service, wait_healthy
 from services.controller.broker import Broker
 from services.controller.events import Notifier
 from services.controller.runner import SearchRunner

@@ -46,11 +46,11 @@ from typing import Any
 
 import httpx
 
+from cosmos.launch import free_port
+from cosmos.stack import Stack, local_stack
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
-from services.common.launch import free_port
 from services.renderer.client import RendererClient
-from services.stack import Stack, local_stack
 
 CHROMIUM = "/usr/bin/chromium"
 SEARCH_OPTIONS = {

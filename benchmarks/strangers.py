@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.baseline import describe, measure_at
-from services.common.launch import free_port, running_service
+from cosmos.launch import free_port, running_service
 from services.controller.keys import KeyStore
 
 MIB = 1 << 20

@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python -m benchmarks.uploads [--uploads 50] [--normal 12] [--target both]
 [--baseline main]``
 
-A real local stack (renderer, detector, optimizer, controller; :func:`services.stack.local_stack`)
+A real local stack (renderer, detector, optimizer, controller; :func:`cosmos.stack.local_stack`)
 is sent ``--uploads`` valid PNGs of random pixels just under the upload limit (20 MiB), all at
 once, while ``--normal`` ordinary searches (a 320x240 render of the demo scene) are submitted one
 every ``--every-s`` seconds from the flood's start and followed to their end. ``--target``
@@ -40,8 +40,8 @@ import httpx
 import numpy as np
 
 from benchmarks.baseline import describe, measure_at
-from services.bench.faults.harness import memory_of, reset_peak
-from services.stack import Stack, local_stack
+from cosmos.bench.faults.harness import memory_of, reset_peak
+from cosmos.stack import Stack, local_stack
 
 MIB = 1 << 20
 UPLOAD_LIMIT = 20 * 1024 * 1024  # the controller's and the detector's default body limit
@@ -65,7 +65,7 @@ def maximal_png(limit: int = UPLOAD_LIMIT, seed: int = 0) -> bytes:
 
 class PeakMemory:
     """A process's resident memory now and its peak since :meth:`reset` (``/proc``, through
-    the fault suite's :func:`~services.bench.faults.harness.memory_of`)."""
+    the fault suite's :func:`~cosmos.bench.faults.harness.memory_of`)."""
 
     def __init__(self, pid: int) -> None:
         self.pid = pid

@@ -23,11 +23,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cosmos.launch import spawn_service, stop_service, wait_healthy
 from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.contracts.optimize import searchable_grid
 from services.common.contracts.search import ViewSettings
 from services.common.geometry.pose import GridIndex
-from services.common.launch import spawn_service, stop_service, wait_healthy
 from services.controller.broker import Broker
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages

@@ -1,4 +1,4 @@
-"""Test support: paths, real service processes (see :mod:`services.common.launch`), and
+"""Test support: paths, real service processes (see :mod:`cosmos.launch`), and
 schema-driven fuzzing of a running service."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import positive_data_acceptance
 from starlette.types import ASGIApp
 
+from cosmos.launch import ROOT, ServiceProcess, free_port, running_service
 from services.common.auth import PROBE_PATHS, bearer, new_token
-from services.common.launch import ROOT, ServiceProcess, free_port, running_service
 
 __all__ = [
     "ROOT",

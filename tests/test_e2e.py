@@ -21,16 +21,16 @@ import httpx
 import numpy as np
 import pytest
 
+from cosmos.launch import free_port, spawn_service, stop_service, wait_healthy
+from cosmos.stack import Stack, local_stack, plan_local_stack, plan_stack, running_stack
 from services.common.auth import bearer
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search
 from services.common.geometry.pose import PoseQuery
 from services.common.images import encode_ppm
-from services.common.launch import free_port, spawn_service, stop_service, wait_healthy
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
 from services.renderer.client import RendererClient
-from services.stack import Stack, local_stack, plan_local_stack, plan_stack, running_stack
 from tests.support import fuzz_service
 
 pytestmark = pytest.mark.slow

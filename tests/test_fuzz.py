@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from services.common.launch import ROOT
+from cosmos.launch import ROOT
 from tools.fuzz_report import Failure, Intended, load_intended, read_report
 
 CHECKS = {

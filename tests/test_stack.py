@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from cosmos.launch import free_port, spawn_service, stop_service, wait_healthy
+from cosmos.stack import ServicePlan, Supervisor, plan_stack, restart_delay
 from services.common.auth import TOKEN_VARIABLE, new_token
-from services.common.launch import free_port, spawn_service, stop_service, wait_healthy
-from services.stack import ServicePlan, Supervisor, plan_stack, restart_delay
 
 FAKE = "tests.controller.fake_replica:app"
 

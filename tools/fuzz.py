@@ -38,11 +38,11 @@ from pathlib import Path
 
 import httpx
 
+from cosmos.launch import running_service
+from cosmos.stack import local_stack
 from services.common.auth import TOKEN_VARIABLE, bearer, new_token
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
-from services.common.launch import running_service
-from services.stack import local_stack
 from tools.fuzz_report import DOC_PATH, Intended, ServiceRun, load_intended, read_report
 
 __all__ = ["SERVICES", "Target", "fuzz", "main", "report", "run_schemathesis"]

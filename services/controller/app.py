@@ -15,6 +15,7 @@ from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 from starlette.types import Scope
 
+from cosmos.environment import from_environment
 from services.common.http import service_app
 from services.controller.api import ControllerState, needs_key, router
 from services.controller.auth import ApiKeyMiddleware
@@ -30,7 +31,6 @@ from services.controller.stages import Stages
 from services.controller.store import SearchStore, utcnow
 from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
 from services.controller.views import ViewStore
-from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
 

@@ -16,6 +16,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from cosmos.environment import from_environment
 from services.common.catalog import SceneCatalog
 from services.common.http import service_app
 from services.detector.api import DetectorState, router
@@ -23,7 +24,6 @@ from services.detector.detect import Detector
 from services.detector.model import DetectorModel
 from services.detector.registry import ModelRegistry
 from services.detector.settings import DetectorSettings
-from services.environment import from_environment
 
 __all__ = ["app", "create_app"]
 

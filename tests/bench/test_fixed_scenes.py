@@ -16,19 +16,19 @@ import cv2
 import numpy as np
 import pytest
 
-from services.bench.runner import IterationRecord, SearchRecord
-from services.bench.settings_choice import choose_setting
-from services.bench.settings_sweep import _match
-from services.bench.stats import eq9_rows, percentile, summarize
-from services.bench.tables import markdown_tables, text_tables
-from services.bench.variants import (
+from cosmos.bench.runner import IterationRecord, SearchRecord
+from cosmos.bench.settings_choice import choose_setting
+from cosmos.bench.settings_sweep import _match
+from cosmos.bench.stats import eq9_rows, percentile, summarize
+from cosmos.bench.tables import markdown_tables, text_tables
+from cosmos.bench.variants import (
     JPEG_QUALITY,
     NOISE_SIGMA,
     OFFGRID_FRACTION,
     degrade,
     draw_pose,
 )
-from services.cli import main
+from cosmos.cli import main
 from services.common.contracts.detect import Detection
 from services.common.contracts.render import ObjectAnnotation
 from services.common.geometry.grid import angular_distance_deg, grid_for

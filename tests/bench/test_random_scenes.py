@@ -11,20 +11,20 @@ import cv2
 import numpy as np
 import pytest
 
-from services.bench.altered import INTENSITY_RANGE, MOVE_RANGE, alter_scene
-from services.bench.random_report import (
+from cosmos.bench.altered import INTENSITY_RANGE, MOVE_RANGE, alter_scene
+from cosmos.bench.random_report import (
     BANDS,
     band_cells,
     band_table,
     goal_checks,
     theta_band,
 )
-from services.bench.results_md import section_of_random
-from services.bench.runner import SearchRecord
-from services.bench.scenes import generate_scene
-from services.bench.traces import failure_trace
-from services.bench.variants import degrade, photo_finish
-from services.cli import main
+from cosmos.bench.results_md import section_of_random
+from cosmos.bench.runner import SearchRecord
+from cosmos.bench.scenes import generate_scene
+from cosmos.bench.traces import failure_trace
+from cosmos.bench.variants import degrade, photo_finish
+from cosmos.cli import main
 from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.contracts.search import Search
 from services.common.geometry.pose import GridIndex
@@ -357,7 +357,7 @@ def test_a_ci_sized_random_scene_bench_through_the_real_stack(tmp_path, capsys):
 
 
 def test_without_training_only_the_general_arm_runs(monkeypatch):
-    from services.bench import random_run
+    from cosmos.bench import random_run
 
     def missing(name):
         raise ModuleNotFoundError(f"No module named {name!r}")
@@ -371,7 +371,7 @@ def test_without_training_only_the_general_arm_runs(monkeypatch):
 def test_the_onboard_preset_reaches_onboard_scene(monkeypatch, tmp_path):
     from types import SimpleNamespace
 
-    from services.bench import random_run
+    from cosmos.bench import random_run
 
     calls = []
 
@@ -399,9 +399,9 @@ def test_the_onboard_preset_reaches_onboard_scene(monkeypatch, tmp_path):
 
 
 def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, tmp_path):
-    from services.bench import random_run
-    from services.bench.command import BenchConfig, Endpoints
-    from services.bench.runner import Target
+    from cosmos.bench import random_run
+    from cosmos.bench.command import BenchConfig, Endpoints
+    from cosmos.bench.runner import Target
     from services.common.geometry.pose import Pose
 
     pose = Pose(theta_deg=30.0, phi_deg=0.0)
@@ -453,7 +453,7 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
 def test_model_status_reads_get_models(monkeypatch):
     import httpx
 
-    from services.bench import random_run
+    from cosmos.bench import random_run
 
     body = {
         "general": {},
@@ -483,7 +483,7 @@ def test_the_scene_arm_runs_with_a_model_the_detector_picks_up_without_restart(
     """Onboarding stood in for by a model that finds one object of the scene's first class
     everywhere, installed as onboarding installs one: the running detector must serve it, and
     the same targets run again labelled ``scene``."""
-    from services.bench import random_run
+    from cosmos.bench import random_run
     from services.common.scene_models import object_classes
     from services.detector.synthetic import constant_model
     from tests.scene_model_support import onboard as install

@@ -1,4 +1,4 @@
-"""The bench's random scenes (services/bench/scenes.py): seeded, valid, varied, renderable."""
+"""The bench's random scenes (cosmos/bench/scenes.py): seeded, valid, varied, renderable."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from services.bench.scenes import MESH_KINDS, footprint, generate_scene, make_mesh, mesh_extent
+from cosmos.bench.scenes import MESH_KINDS, footprint, generate_scene, make_mesh, mesh_extent
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import MeshObject, load_scene
 from services.common.scene_models import model_dir, object_classes

@@ -15,8 +15,8 @@ from contextlib import ExitStack
 
 import pytest
 
+from cosmos.launch import ServiceProcess, free_port, running_service
 from services.common.bodies import BodyBudget, BodyLimits
-from services.common.launch import ServiceProcess, free_port, running_service
 from services.controller.keys import KeyStore
 
 MIB = 1 << 20

@@ -16,7 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.common.launch import ServiceProcess, stop_service, wait_healthy
+from cosmos.launch import ServiceProcess, stop_service, wait_healthy
 from services.common.server import DEFAULT_MAX_HEAD_BYTES
 from tests.support import ROOT, free_port, running_service
 

@@ -14,11 +14,8 @@ from typing import Any
 import pytest
 from pydantic import SecretStr
 
-from services import cli
-from services.controller.app import create_app as create_controller
-from services.controller.broker import Heuristic
-from services.detector.app import create_app as create_detector
-from services.environment import (
+from cosmos import cli
+from cosmos.environment import (
     OLD_NAMES,
     OTHER_READERS,
     READERS,
@@ -26,10 +23,13 @@ from services.environment import (
     SHARED,
     unknown_variables,
 )
+from cosmos.stack import plan_stack
+from services.controller.app import create_app as create_controller
+from services.controller.broker import Heuristic
+from services.detector.app import create_app as create_detector
 from services.optimizer.app import create_app as create_optimizer
 from services.renderer.app import create_app as create_renderer
 from services.renderer.settings import RendererSettings
-from services.stack import plan_stack
 
 SAMPLES: dict[str, tuple[str, Any]] = {
     "COSMOS_SCENES_DIR": ("/srv/scenes", "/srv/scenes"),
@@ -147,7 +147,7 @@ APPS = {
 }
 SETTINGS_LOG = "services.common.settings"
 ROOT = Path(__file__).resolve().parents[2]
-ENVIRONMENT_LOG = "services.environment"
+ENVIRONMENT_LOG = "cosmos.environment"
 
 
 def field(variable: str) -> str:

@@ -11,7 +11,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from services.common.launch import running_service
+from cosmos.launch import running_service
 from services.controller.broker import Broker, BrokerError, Heuristic
 from services.controller.transport import StageAnswer, StageRequest, TransportError
 

@@ -19,14 +19,14 @@ import cv2
 import numpy as np
 import pytest
 
-from services import cli
-from services.bench.faults.harness import Load, Target
+from cosmos import cli
+from cosmos.bench.faults.harness import Load, Target
+from cosmos.stack import Stack, local_stack
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
 from services.controller.client import ControllerClient, ControllerError, retry_after_s
 from services.controller.keys import KeyStore
 from services.renderer.client import RendererClient
-from services.stack import Stack, local_stack
 
 pytestmark = pytest.mark.slow
 

@@ -9,7 +9,7 @@ import stat
 
 import pytest
 
-from services import cli
+from cosmos import cli
 from services.controller.keys import (
     KeyStore,
     client_key,

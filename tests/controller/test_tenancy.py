@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from services import cli
+from cosmos import cli
 from tests.controller.clients import key_client, key_id, new_key
 from tests.controller.test_api import png_bytes, record
 

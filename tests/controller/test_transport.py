@@ -12,8 +12,8 @@ from contextlib import asynccontextmanager
 
 import pytest
 
+from cosmos.launch import running_service
 from services.common.auth import bearer
-from services.common.launch import running_service
 from services.controller.transport import (
     AiohttpTransport,
     StageAnswer,

@@ -1,6 +1,6 @@
 """The fault suite of issue 15 through the real processes of one local stack (2 renderers,
 1 detector, the optimizer and the controller, on loopback): each scenario of
-:mod:`services.bench.faults.scenarios` with short loads and faults (``Timing.quick``: the
+:mod:`cosmos.bench.faults.scenarios` with short loads and faults (``Timing.quick``: the
 detector away 5 s, with an outage budget of 20 s), asserting that no normal search is lost,
 that those that should succeed do, and each scenario's own facts. ``python -m
 benchmarks.faults`` runs the same scenarios at full length and prints their figures.
@@ -14,8 +14,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from services.bench.faults.rig import Rig, fault_rig
-from services.bench.faults.scenarios import (
+from cosmos.bench.faults.rig import Rig, fault_rig
+from cosmos.bench.faults.scenarios import (
     ScenarioResult,
     Timing,
     controller_killed,

@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
-from services.bench.faults.harness import (
+from cosmos.bench.faults.harness import (
     MIB,
     Outcome,
     RssSampler,
@@ -25,7 +25,7 @@ from services.bench.faults.harness import (
     p95,
     percentile,
 )
-from services.bench.faults.scenarios import maximal_upload_body, well_answered
+from cosmos.bench.faults.scenarios import maximal_upload_body, well_answered
 from services.common.images import decode_image
 
 

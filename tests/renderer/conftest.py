@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from services.common.launch import ServiceProcess, running_service
+from cosmos.launch import ServiceProcess, running_service
 
 
 @pytest.fixture(scope="session")

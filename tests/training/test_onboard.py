@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.cli import main
+from cosmos.cli import main
 from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.geometry.scene import SceneFileError, load_scene
 from services.common.scene_models import (

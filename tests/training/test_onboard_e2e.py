@@ -8,8 +8,8 @@ import json
 
 import pytest
 
-from services.bench.runner import local_stack
-from services.bench.scenes import generate_scene
+from cosmos.bench.runner import local_stack
+from cosmos.bench.scenes import generate_scene
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
 from services.common.geometry.scene import load_scene

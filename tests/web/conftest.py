@@ -18,10 +18,10 @@ from pathlib import Path
 import httpx
 import pytest
 
+from cosmos.stack import Stack, local_stack
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
 from services.renderer.client import RendererClient
-from services.stack import Stack, local_stack
 
 CHROMIUM = Path("/usr/bin/chromium")
 SCREENSHOTS = Path(__file__).resolve().parents[2] / "docs" / "screenshots"

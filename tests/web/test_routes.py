@@ -19,15 +19,15 @@ import httpx
 import numpy as np
 import pytest
 
+from cosmos.launch import spawn_service, stop_service, wait_healthy
+from cosmos.stack import Stack
 from services.common.auth import TOKEN_VARIABLE
 from services.common.contracts.search import ControllerHealth, Iteration, Search, StageTimings
 from services.common.images import encode_ppm
-from services.common.launch import spawn_service, stop_service, wait_healthy
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
 from services.controller.settings import ControllerSettings
 from services.controller.store import SearchStore, utcnow
-from services.stack import Stack
 from tests.web.conftest import api, render_png
 
 pytestmark = pytest.mark.slow

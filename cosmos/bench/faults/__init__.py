@@ -8,9 +8,9 @@ function each. ``python -m benchmarks.faults`` runs them and prints the table;
 ``tests/faults/`` asserts on them.
 """
 
-from services.bench.faults.harness import Counts, Load, Outcome, RssSampler, count, p95
-from services.bench.faults.rig import Rig, fault_rig
-from services.bench.faults.scenarios import (
+from cosmos.bench.faults.harness import Counts, Load, Outcome, RssSampler, count, p95
+from cosmos.bench.faults.rig import Rig, fault_rig
+from cosmos.bench.faults.scenarios import (
     SCENARIOS,
     ScenarioFailure,
     ScenarioResult,

@@ -15,12 +15,12 @@ Six variants, reported separately:
     which need not be the grid pose it was drawn around.
 ``photo``
     "A photo, not a render": a grid pose rendered from a copy of the scene whose point light is
-    moved and scaled (:mod:`services.bench.altered`), then finished as a camera would
+    moved and scaled (:mod:`cosmos.bench.altered`), then finished as a camera would
     (:func:`photo_finish`): exposure ×[0.7, 1.4] in linear light, a display gamma
     ``v' = v^γ``, γ ∈ [0.8, 1.25], and a Gaussian blur of σ ∈ [0.4, 0.9] px.
 ``changed``
     "The scene changed": a grid pose rendered from a copy of the scene with one object moved by
-    0.5–1.5 units on the ground or left out (:mod:`services.bench.altered`). The search runs in
+    0.5–1.5 units on the ground or left out (:mod:`cosmos.bench.altered`). The search runs in
     the original scene.
 
 Every draw comes from a :class:`numpy.random.Generator` the caller seeds, so a bench run is

@@ -36,7 +36,7 @@ import cv2
 import httpx
 import numpy as np
 
-from services.bench.faults.harness import (
+from cosmos.bench.faults.harness import (
     Counts,
     Load,
     Outcome,
@@ -46,7 +46,7 @@ from services.bench.faults.harness import (
     latencies,
     p95,
 )
-from services.bench.faults.rig import Rig, fault_rig, wait_until
+from cosmos.bench.faults.rig import Rig, fault_rig, wait_until
 from services.common.contracts.search import TERMINAL_STATUSES
 from services.common.http import PROBLEM_JSON
 from services.common.images import PPM_MEDIA_TYPE, decode_image, encode_ppm

@@ -1,10 +1,10 @@
-"""The stack under fault: a local stack (:mod:`services.stack`) on free loopback ports with its
+"""The stack under fault: a local stack (:mod:`cosmos.stack`) on free loopback ports with its
 processes as they run now, the means to kill and start them again, API keys of its tenants, and
 the target images its normal searches look for.
 
 The stack runs as plain processes: a killed one stays dead until :meth:`Rig.restart` starts it
 again on its port, as an orchestrator would. Within :meth:`Rig.supervising` it runs as ``cosmos
-up`` runs it: the same :class:`~services.stack.Supervisor` starts every process that exits
+up`` runs it: the same :class:`~cosmos.stack.Supervisor` starts every process that exits
 again, on its port, after its backoff. One stack serves every scenario, so the suite pays for
 one start-up.
 """
@@ -23,13 +23,13 @@ from typing import Any
 import httpx
 import numpy as np
 
-from services.bench.faults.harness import Target
+from cosmos.bench.faults.harness import Target
+from cosmos.launch import ServiceProcess, spawn_service, stop_service, wait_healthy
+from cosmos.stack import ServicePlan, Stack, Supervisor, plan_local_stack, running_stack
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
-from services.common.launch import ServiceProcess, spawn_service, stop_service, wait_healthy
 from services.controller.keys import KeyStore, local_key
 from services.renderer.client import RendererClient
-from services.stack import ServicePlan, Stack, Supervisor, plan_local_stack, running_stack
 
 __all__ = ["FAR", "RIG_ENV", "Rig", "fault_rig", "wait_until"]
 

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.bench.runner import SearchRecord
-from services.bench.stats import STRATEGY_ORDER, ranked
-from services.bench.variants import VARIANTS
+from cosmos.bench.runner import SearchRecord
+from cosmos.bench.stats import STRATEGY_ORDER, ranked
+from cosmos.bench.variants import VARIANTS
 
 __all__ = ["write_plots"]
 

@@ -8,7 +8,7 @@ import math
 from collections.abc import Sequence
 from typing import Final
 
-from services.bench.stats import (
+from cosmos.bench.stats import (
     PAPER_EQ9,
     PAPER_OPTIMISED_STEPS,
     PAPER_SIMPLE_STEPS,

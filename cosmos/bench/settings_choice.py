@@ -22,7 +22,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from services.bench.runner import SearchRecord
+from cosmos.bench.runner import SearchRecord
 
 __all__ = ["CHOICE_RULE", "choose_setting"]
 

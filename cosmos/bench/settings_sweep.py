@@ -18,7 +18,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from services.bench.profile import InProcess
+from cosmos.bench.profile import InProcess
 from services.common.contracts.detect import Detection
 from services.common.contracts.render import ObjectAnnotation
 from services.detector.letterbox import Letterbox, fit

@@ -1,6 +1,6 @@
 """``cosmos bench --random-scenes N``: generated scenes, the general detector, then their own.
 
-1. N scenes from :func:`services.bench.scenes.generate_scene` (scene ``i`` from the seed
+1. N scenes from :func:`cosmos.bench.scenes.generate_scene` (scene ``i`` from the seed
    ``(seed, i)``) go into ``<scenes-out>/scenes/``, a folder the local stack reads
    (``COSMOS_SCENES_DIR``).
 2. The bench's targets (``--n`` per scene and variant, random starts) are searched with the
@@ -12,7 +12,7 @@
 4. The same targets, from the same starts, are searched again with the scene's own model.
 
 Report: ``random.json`` (records labelled by ``arm``: general / scene), and its section of
-``docs/RESULTS.md`` (:mod:`services.bench.random_report`, :mod:`services.bench.results_md`).
+``docs/RESULTS.md`` (:mod:`cosmos.bench.random_report`, :mod:`cosmos.bench.results_md`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import Any, Final
 import httpx
 import numpy as np
 
-from services.bench.command import (
+from cosmos.bench.command import (
     BenchConfig,
     Endpoints,
     load_at_end,
@@ -39,10 +39,10 @@ from services.bench.command import (
     services_info,
     write_report,
 )
-from services.bench.machine import machine_info
-from services.bench.random_report import GOALS, band_cells, band_table, goal_checks
-from services.bench.runner import SearchRecord, Target, run_searches
-from services.bench.scenes import generate_scene, scene_summary
+from cosmos.bench.machine import machine_info
+from cosmos.bench.random_report import GOALS, band_cells, band_table, goal_checks
+from cosmos.bench.runner import SearchRecord, Target, run_searches
+from cosmos.bench.scenes import generate_scene, scene_summary
 from services.common.auth import bearer
 from services.common.geometry.scene import load_scene
 

@@ -14,7 +14,7 @@
   the controller's API keys, in its database (``COSMOS_CONTROLLER_DATABASE_URL``);
 * ``cosmos demo``: the whole thing end to end on the demo scene: starts the stack on free ports,
   renders a target from a random grid pose, searches for it, prints the true and found poses;
-* ``cosmos bench``: the paper's evaluation through the real services (:mod:`services.bench`).
+* ``cosmos bench``: the paper's evaluation through the real services (:mod:`cosmos.bench`).
 
 The commands that call a running controller (``search``, ``bench --url``) send the key in
 ``COSMOS_API_KEY``, else the one ``cosmos up`` keeps beside the controller's database; ``demo``
@@ -36,13 +36,14 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
+from cosmos.launch import ROOT
+from cosmos.stack import local_stack, plan_stack, running_stack
 from services.common.auth import TOKEN_VARIABLE, token_from_environment
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.common.contracts.search import Iteration, Search
 from services.common.errors import ServiceError
 from services.common.geometry.pose import PoseQuery
-from services.common.launch import ROOT
 from services.controller.client import (
     DEFAULT_RETRY_BUDGET_S,
     RETRYABLE_STATUSES,
@@ -52,7 +53,6 @@ from services.controller.client import (
 from services.controller.keys import KeyStore, client_key, key_file, local_key, rooted
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
-from services.stack import local_stack, plan_stack, running_stack
 
 __all__ = ["main"]
 
@@ -332,7 +332,7 @@ def _say(message: str) -> None:
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
-    from services.environment import report_unknown_variables
+    from cosmos.environment import report_unknown_variables
 
     report_unknown_variables()  # each service warns too, but into its log file
     database_url = _database_url(args.database_url)
@@ -481,7 +481,7 @@ def _csv(value: str) -> tuple[str, ...]:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from services.bench import VARIANTS, BenchConfig, run
+    from cosmos.bench import VARIANTS, BenchConfig, run
 
     # Random scenes: the project's strategy on every variant; otherwise the paper's comparison.
     random = args.random_scenes > 0

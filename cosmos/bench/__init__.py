@@ -12,8 +12,8 @@ its figures), and :mod:`.command` ties them into the command's modes. :mod:`.fau
 suite (``python -m benchmarks.faults``, ``tests/faults/``).
 """
 
-from services.bench.command import BenchConfig, run
-from services.bench.runner import SearchRecord, Target
-from services.bench.variants import VARIANTS, Variant
+from cosmos.bench.command import BenchConfig, run
+from cosmos.bench.runner import SearchRecord, Target
+from cosmos.bench.variants import VARIANTS, Variant
 
 __all__ = ["VARIANTS", "BenchConfig", "SearchRecord", "Target", "Variant", "run"]

@@ -30,8 +30,8 @@ from typing import Final
 
 import numpy as np
 
-from services.bench.runner import SearchRecord
-from services.bench.variants import VARIANTS
+from cosmos.bench.runner import SearchRecord
+from cosmos.bench.variants import VARIANTS
 
 __all__ = [
     "PAPER_EQ9",

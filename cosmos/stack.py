@@ -21,14 +21,14 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from services.common.auth import TOKEN_VARIABLE, new_token
-from services.common.launch import (
+from cosmos.launch import (
     ServiceProcess,
     free_port,
     spawn_service,
     stop_service,
     wait_healthy,
 )
+from services.common.auth import TOKEN_VARIABLE, new_token
 from services.controller.keys import local_key
 
 __all__ = [

@@ -11,9 +11,9 @@ bench's cost, not the stack's. Every strategy gets the same targets and start po
 strategies are compared pairwise.
 
 ``photo`` and ``changed`` targets are rendered from a modified copy of the scene written by
-:func:`services.bench.altered.alter_scene` into a folder the renderer reads
+:func:`cosmos.bench.altered.alter_scene` into a folder the renderer reads
 (``COSMOS_SCENES_DIR``); their searches run in the original scene. Every search that misses its
-target, or answers without confirming, carries a :class:`~services.bench.traces.FailureTrace`.
+target, or answers without confirming, carries a :class:`~cosmos.bench.traces.FailureTrace`.
 """
 
 from __future__ import annotations
@@ -33,9 +33,11 @@ import aiohttp
 import numpy as np
 from pydantic import Field
 
-from services.bench.altered import AlteredScene, alter_scene
-from services.bench.traces import FailureTrace, confirmed_of, failure_trace
-from services.bench.variants import SCENE_VARIANTS, VARIANTS, Variant, degrade, draw_pose
+from cosmos.bench.altered import AlteredScene, alter_scene
+from cosmos.bench.traces import FailureTrace, confirmed_of, failure_trace
+from cosmos.bench.variants import SCENE_VARIANTS, VARIANTS, Variant, degrade, draw_pose
+from cosmos.stack import Stack
+from cosmos.stack import local_stack as services_stack
 from services.common.contracts.base import FrozenModel
 from services.common.contracts.optimize import StrategyName
 from services.common.contracts.render import RenderRequest
@@ -45,8 +47,6 @@ from services.common.geometry.pose import GridIndex, Pose, PoseQuery
 from services.common.geometry.scene import LoadedScene
 from services.common.images import media_type_of
 from services.renderer.client import RendererClient
-from services.stack import Stack
-from services.stack import local_stack as services_stack
 
 __all__ = [
     "IterationRecord",

@@ -6,7 +6,7 @@ every report there:
 * the bench (default): ``n`` seeded targets per scene and variant, each searched by every
   strategy from the same random start, through a local stack started on free ports (or a running
   one at ``--url``); tables, eq. 9, plots; with ``--profile`` also the floor of a search
-  (:mod:`services.bench.profile`). Report: ``bench.json``.
+  (:mod:`cosmos.bench.profile`). Report: ``bench.json``.
 * ``--sweep 4,8,16``: render settings by measurement. Detection against the renderer's exact
   ground truth at each spp and film width, in one process; then the bench's searches through a
   stack whose controller renders at each spp. Report: ``sweep.json``.
@@ -14,7 +14,7 @@ every report there:
   renderer and detector, then to one with ``--renderers``/``--detectors`` replicas; searches
   per minute. Report: ``throughput.json``.
 * ``--random-scenes N``: N generated scenes, searched with the general detector, then again with
-  each scene's own after onboarding it (:mod:`services.bench.random_run`). Report:
+  each scene's own after onboarding it (:mod:`cosmos.bench.random_run`). Report:
   ``random.json``.
 """
 
@@ -35,14 +35,14 @@ from typing import Any, Literal
 
 import httpx
 
-from services.bench.machine import machine_info
-from services.bench.plots import write_plots
-from services.bench.profile import profile_searches, profile_summary
-from services.bench.results_md import write_results_md
-from services.bench.runner import SearchRecord, Target, local_stack, make_targets, run_searches
-from services.bench.stats import percentile, summarize
-from services.bench.tables import text_tables
-from services.bench.variants import Variant
+from cosmos.bench.machine import machine_info
+from cosmos.bench.plots import write_plots
+from cosmos.bench.profile import profile_searches, profile_summary
+from cosmos.bench.results_md import write_results_md
+from cosmos.bench.runner import SearchRecord, Target, local_stack, make_targets, run_searches
+from cosmos.bench.stats import percentile, summarize
+from cosmos.bench.tables import text_tables
+from cosmos.bench.variants import Variant
 from services.common.auth import bearer, token_from_environment
 from services.common.catalog import SceneCatalog
 from services.common.contracts.optimize import StrategyName
@@ -404,7 +404,7 @@ def _profile_sample(targets: Sequence[Target], config: BenchConfig) -> list[Targ
 
 def run_sweep(config: BenchConfig) -> int:
     """Render settings by measurement: detection quality per (spp, width), searches per spp."""
-    from services.bench.settings_sweep import detection_sweep
+    from cosmos.bench.settings_sweep import detection_sweep
 
     started = time.perf_counter()
     say(f"detection against ground truth: {config.sweep_poses} poses per scene")
@@ -519,7 +519,7 @@ def run(config: BenchConfig) -> int:
     if config.n < 1:
         raise ValueError("--n must be at least 1")
     if config.random_scenes:
-        from services.bench.random_run import run_random
+        from cosmos.bench.random_run import run_random
 
         return run_random(config)
     if config.sweep:

@@ -27,10 +27,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from services.bench.runner import SearchRecord
-from services.bench.stats import percentile, ranked
-from services.bench.tables import md_table, plain_table
-from services.bench.variants import SCENE_VARIANTS, VARIANTS
+from cosmos.bench.runner import SearchRecord
+from cosmos.bench.stats import percentile, ranked
+from cosmos.bench.tables import md_table, plain_table
+from cosmos.bench.variants import SCENE_VARIANTS, VARIANTS
 
 __all__ = [
     "ALL",

@@ -30,8 +30,8 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from services.bench.runner import SearchRecord, Target, run_searches
-from services.bench.stats import percentile
+from cosmos.bench.runner import SearchRecord, Target, run_searches
+from cosmos.bench.stats import percentile
 from services.common.catalog import SceneCatalog
 from services.common.contracts.detect import Detection
 from services.common.contracts.optimize import (

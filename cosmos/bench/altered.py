@@ -1,7 +1,7 @@
 """Modified copies of a scene, for targets of a scene that is not quite the one searched.
 
 ``photo`` moves the point light and scales its intensity; ``changed`` moves one object on the
-ground or leaves it out (:mod:`services.bench.variants` says what each variant is for). A copy is
+ground or leaves it out (:mod:`cosmos.bench.variants` says what each variant is for). A copy is
 written as its own scene, ``<folder>/<id>.yaml``, with the source's assets copied once into
 ``<folder>/<source id>.assets/`` (an asset path may not leave its scene's folder), so that a
 renderer whose ``COSMOS_SCENES_DIR`` includes ``folder`` renders it by id. Camera and search
@@ -23,8 +23,8 @@ from typing import Any, Final
 import numpy as np
 from pydantic import ValidationError
 
-from services.bench.scenes import GAP, footprint, write_scene_yaml
-from services.bench.variants import Variant
+from cosmos.bench.scenes import GAP, footprint, write_scene_yaml
+from cosmos.bench.variants import Variant
 from services.common.geometry.scene import LoadedScene, SceneSpec
 
 __all__ = ["LEAVE_OUT_SHARE", "MOVE_RANGE", "AlteredScene", "alter_scene", "changed", "photo"]
