@@ -15,8 +15,8 @@ from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 from starlette.types import Scope
 
-from cosmos.environment import from_environment
 from services.common.http import service_app
+from services.common.settings import from_environment
 from services.controller.api import ControllerState, needs_key, router
 from services.controller.auth import ApiKeyMiddleware
 from services.controller.broker import Broker

@@ -30,33 +30,7 @@ class ControllerSettings(ServiceTokenSettings):
     ``COSMOS_CONTROLLER_OPTIMIZER_URLS``; ``COSMOS_CONTROLLER_DATABASE_URL`` (``sqlite:///path``).
     ``COSMOS_CONTROLLER_AUTH`` (default on: every route but ``/health`` and the docs wants an
     API key; ``off`` for development only), ``COSMOS_CONTROLLER_CORS_ORIGINS`` (none by default),
-    ``COSMOS_CONTROLLER_QUOTA_…`` per key, ``COSMOS_CONTROLLER_RETENTION_S``.
-
-    The old names in ``renamed`` are still read for one more release, with a warning:
-    ``COSMOS_RENDER_SPP`` meant something else to the renderer too, ``COSMOS_RENDERER_URLS``
-    and its kin named a stage that does not read them, the rest had no service's name.
-    """
-
-    renamed = {
-        "COSMOS_RENDERER_URLS": "controller_renderer_urls",
-        "COSMOS_DETECTOR_URLS": "controller_detector_urls",
-        "COSMOS_OPTIMIZER_URLS": "controller_optimizer_urls",
-        "COSMOS_DATABASE_URL": "controller_database_url",
-        "COSMOS_BROKER_HEURISTIC": "controller_broker_heuristic",
-        "COSMOS_DISCOVER_REPLICAS": "controller_discover_replicas",
-        "COSMOS_DISCOVERY_INTERVAL_S": "controller_discovery_interval_s",
-        "COSMOS_MAX_CONCURRENT_SEARCHES": "controller_max_concurrent_searches",
-        "COSMOS_DEFAULT_MAX_ITERATIONS": "controller_default_max_iterations",
-        "COSMOS_RENDER_SPP": "controller_view_spp",
-        "COSMOS_RENDER_WIDTH": "controller_view_width",
-        "COSMOS_RENDER_TIMEOUT_S": "controller_render_timeout_s",
-        "COSMOS_DETECT_TIMEOUT_S": "controller_detect_timeout_s",
-        "COSMOS_OPTIMIZE_TIMEOUT_S": "controller_optimize_timeout_s",
-        "COSMOS_CONNECT_TIMEOUT_S": "controller_connect_timeout_s",
-        "COSMOS_MAX_UPLOAD_BYTES": "controller_max_upload_bytes",
-        "COSMOS_MAX_IMAGE_PIXELS": "controller_max_image_pixels",
-        "COSMOS_MAX_IMAGE_SIDE": "controller_max_image_side",
-    }
+    ``COSMOS_CONTROLLER_QUOTA_…`` per key, ``COSMOS_CONTROLLER_RETENTION_S``."""
 
     controller_renderer_urls: str = "http://127.0.0.1:8001"
     controller_detector_urls: str = "http://127.0.0.1:8002"

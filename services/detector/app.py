@@ -16,9 +16,9 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from cosmos.environment import from_environment
 from services.common.catalog import SceneCatalog
 from services.common.http import service_app
+from services.common.settings import from_environment
 from services.detector.api import DetectorState, router
 from services.detector.detect import Detector
 from services.detector.model import DetectorModel

@@ -11,9 +11,9 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from cosmos.environment import from_environment
 from services.common.catalog import SceneCatalog
 from services.common.http import service_app
+from services.common.settings import from_environment
 from services.optimizer.api import OptimizerState, router
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.planning import OptimizerContext

@@ -20,19 +20,7 @@ class OptimizerSettings(ServiceTokenSettings):
     """``COSMOS_OPTIMIZER_DEFAULT_STRATEGY`` picks the strategy of requests that name none;
     ``COSMOS_OPTIMIZER_PAPER_CALIBRATION`` is the JSON file of the paper mapping's coefficients;
     ``COSMOS_SCENES_DIR`` adds scene directories for requests that name a ``scene``
-    (as for the renderer); the rest bound what one request may ask for.
-
-    The old names in ``renamed`` are still read for one more release, with a warning:
-    ``COSMOS_MAX_BODY_BYTES`` meant something else to the renderer too, the rest had no
-    service's name."""
-
-    renamed = {
-        "COSMOS_DEFAULT_STRATEGY": "optimizer_default_strategy",
-        "COSMOS_PAPER_CALIBRATION": "optimizer_paper_calibration",
-        "COSMOS_MAX_GRID_POSES": "optimizer_max_grid_poses",
-        "COSMOS_MAX_HISTORY_DETECTIONS": "optimizer_max_history_detections",
-        "COSMOS_MAX_BODY_BYTES": "optimizer_max_body_bytes",
-    }
+    (as for the renderer); the rest bound what one request may ask for."""
 
     optimizer_default_strategy: StrategyName = "reprojection"
     optimizer_paper_calibration: Path = DEFAULT_CALIBRATION_FILE

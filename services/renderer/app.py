@@ -12,9 +12,9 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from cosmos.environment import from_environment
 from services.common.catalog import SceneCatalog
 from services.common.http import service_app
+from services.common.settings import from_environment
 from services.renderer.api import RendererState, router
 from services.renderer.engine import RenderEngine
 from services.renderer.settings import RendererSettings

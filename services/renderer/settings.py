@@ -19,23 +19,7 @@ __all__ = ["RendererSettings"]
 class RendererSettings(ServiceTokenSettings):
     """``COSMOS_SCENES_DIR`` adds scene directories (os.pathsep-separated, searched before the
     built-in ``scenes/``); the rest, ``COSMOS_RENDERER_…``, pick the Mitsuba variant and bound
-    what one request may ask for.
-
-    The old names in ``renamed`` are still read for one more release, with a warning:
-    ``COSMOS_RENDER_SPP`` and ``COSMOS_MAX_BODY_BYTES`` meant something else to other services
-    too, the rest had no service's name."""
-
-    renamed = {
-        "COSMOS_MITSUBA_VARIANT": "renderer_mitsuba_variant",
-        "COSMOS_RENDER_SPP": "renderer_default_spp",
-        "COSMOS_RENDER_MAX_SPP": "renderer_max_spp",
-        "COSMOS_RENDER_MAX_SIDE": "renderer_max_side",
-        "COSMOS_RENDER_MAX_PIXELS": "renderer_max_pixels",
-        "COSMOS_RENDER_MAX_SAMPLES": "renderer_max_samples",
-        "COSMOS_RENDER_MAX_QUEUE": "renderer_max_queue",
-        "COSMOS_RENDER_SCENE_CACHE": "renderer_scene_cache",
-        "COSMOS_MAX_BODY_BYTES": "renderer_max_body_bytes",
-    }
+    what one request may ask for."""
 
     scenes_dir: str = ""
     renderer_mitsuba_variant: VariantRequest = "auto"

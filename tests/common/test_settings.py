@@ -1,7 +1,7 @@
 """Each service reads its own ``COSMOS_<SERVICE>_`` variables (and the shared
-``COSMOS_SCENES_DIR``, ``COSMOS_SERVICE_TOKEN`` and ``COSMOS_SERVICE_AUTH``); the old names
-still work for one release, with a warning naming the new one; a ``COSMOS_`` variable that
-nothing reads is reported at start-up, one another service reads is not."""
+``COSMOS_SCENES_DIR``, ``COSMOS_SERVICE_TOKEN`` and ``COSMOS_SERVICE_AUTH``); a ``COSMOS_``
+variable that nothing reads is reported at start-up, with the likeliest name meant, and one
+under another service's prefix is left to that service."""
 
 from __future__ import annotations
 
@@ -15,15 +15,9 @@ import pytest
 from pydantic import SecretStr
 
 from cosmos import cli
-from cosmos.environment import (
-    OLD_NAMES,
-    OTHER_READERS,
-    READERS,
-    SERVICE_SETTINGS,
-    SHARED,
-    unknown_variables,
-)
+from cosmos.environment import READERS, SERVICE_SETTINGS, SHARED, unknown_variables
 from cosmos.stack import plan_stack
+from services.common.settings import CLIENT_VARIABLES, SERVICE_PREFIXES
 from services.controller.app import create_app as create_controller
 from services.controller.broker import Heuristic
 from services.detector.app import create_app as create_detector
@@ -104,41 +98,6 @@ SAMPLES: dict[str, tuple[str, Any]] = {
 }
 """A valid value of every variable a service reads, other than its default, and what it reads as."""
 
-RENAMED: dict[str, tuple[str, ...]] = {
-    "COSMOS_MITSUBA_VARIANT": ("COSMOS_RENDERER_MITSUBA_VARIANT",),
-    "COSMOS_RENDER_SPP": ("COSMOS_RENDERER_DEFAULT_SPP", "COSMOS_CONTROLLER_VIEW_SPP"),
-    "COSMOS_RENDER_MAX_SPP": ("COSMOS_RENDERER_MAX_SPP",),
-    "COSMOS_RENDER_MAX_SIDE": ("COSMOS_RENDERER_MAX_SIDE",),
-    "COSMOS_RENDER_MAX_PIXELS": ("COSMOS_RENDERER_MAX_PIXELS",),
-    "COSMOS_RENDER_MAX_SAMPLES": ("COSMOS_RENDERER_MAX_SAMPLES",),
-    "COSMOS_RENDER_MAX_QUEUE": ("COSMOS_RENDERER_MAX_QUEUE",),
-    "COSMOS_RENDER_SCENE_CACHE": ("COSMOS_RENDERER_SCENE_CACHE",),
-    "COSMOS_MAX_BODY_BYTES": ("COSMOS_RENDERER_MAX_BODY_BYTES", "COSMOS_OPTIMIZER_MAX_BODY_BYTES"),
-    "COSMOS_DEFAULT_STRATEGY": ("COSMOS_OPTIMIZER_DEFAULT_STRATEGY",),
-    "COSMOS_PAPER_CALIBRATION": ("COSMOS_OPTIMIZER_PAPER_CALIBRATION",),
-    "COSMOS_MAX_GRID_POSES": ("COSMOS_OPTIMIZER_MAX_GRID_POSES",),
-    "COSMOS_MAX_HISTORY_DETECTIONS": ("COSMOS_OPTIMIZER_MAX_HISTORY_DETECTIONS",),
-    "COSMOS_RENDERER_URLS": ("COSMOS_CONTROLLER_RENDERER_URLS",),
-    "COSMOS_DETECTOR_URLS": ("COSMOS_CONTROLLER_DETECTOR_URLS",),
-    "COSMOS_OPTIMIZER_URLS": ("COSMOS_CONTROLLER_OPTIMIZER_URLS",),
-    "COSMOS_DATABASE_URL": ("COSMOS_CONTROLLER_DATABASE_URL",),
-    "COSMOS_BROKER_HEURISTIC": ("COSMOS_CONTROLLER_BROKER_HEURISTIC",),
-    "COSMOS_DISCOVER_REPLICAS": ("COSMOS_CONTROLLER_DISCOVER_REPLICAS",),
-    "COSMOS_DISCOVERY_INTERVAL_S": ("COSMOS_CONTROLLER_DISCOVERY_INTERVAL_S",),
-    "COSMOS_MAX_CONCURRENT_SEARCHES": ("COSMOS_CONTROLLER_MAX_CONCURRENT_SEARCHES",),
-    "COSMOS_DEFAULT_MAX_ITERATIONS": ("COSMOS_CONTROLLER_DEFAULT_MAX_ITERATIONS",),
-    "COSMOS_RENDER_WIDTH": ("COSMOS_CONTROLLER_VIEW_WIDTH",),
-    "COSMOS_RENDER_TIMEOUT_S": ("COSMOS_CONTROLLER_RENDER_TIMEOUT_S",),
-    "COSMOS_DETECT_TIMEOUT_S": ("COSMOS_CONTROLLER_DETECT_TIMEOUT_S",),
-    "COSMOS_OPTIMIZE_TIMEOUT_S": ("COSMOS_CONTROLLER_OPTIMIZE_TIMEOUT_S",),
-    "COSMOS_CONNECT_TIMEOUT_S": ("COSMOS_CONTROLLER_CONNECT_TIMEOUT_S",),
-    "COSMOS_MAX_UPLOAD_BYTES": ("COSMOS_CONTROLLER_MAX_UPLOAD_BYTES",),
-    "COSMOS_MAX_IMAGE_PIXELS": ("COSMOS_CONTROLLER_MAX_IMAGE_PIXELS",),
-    "COSMOS_MAX_IMAGE_SIDE": ("COSMOS_CONTROLLER_MAX_IMAGE_SIDE",),
-}
-"""The names of the last release that still work for this one, and what replaced each."""
-
-RENAMES = [(old, new) for old, names in RENAMED.items() for new in names]
 APPS = {
     "renderer": create_renderer,
     "detector": create_detector,
@@ -147,7 +106,6 @@ APPS = {
 }
 SETTINGS_LOG = "services.common.settings"
 ROOT = Path(__file__).resolve().parents[2]
-ENVIRONMENT_LOG = "cosmos.environment"
 
 
 def field(variable: str) -> str:
@@ -166,7 +124,7 @@ def clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_every_variable_a_service_reads_has_a_sample():
-    services = {name for name in READERS if name not in OTHER_READERS}
+    services = {name for name in READERS if name not in CLIENT_VARIABLES}
     assert set(SAMPLES) == services
     for name, (_, expected) in SAMPLES.items():
         for settings in readers(name):
@@ -197,69 +155,81 @@ def test_a_service_reads_its_own_prefix_and_the_shared_variables_only():
         assert len(who) == 1 or name in SHARED, f"{name} is read by {who}"
 
 
-@pytest.mark.parametrize(("old", "new"), RENAMES)
-def test_an_old_name_still_works_with_a_warning_naming_the_new_one(monkeypatch, caplog, old, new):
-    value, expected = SAMPLES[new]
-    monkeypatch.setenv(old, value)
-    [settings] = readers(new)
-    with caplog.at_level(logging.WARNING, logger=SETTINGS_LOG):
-        assert getattr(settings(), field(new)) == expected
-    [message] = caplog.messages
-    assert message.startswith(f"{old} is deprecated")
-    assert f"set {new} instead" in message
-
-
-@pytest.mark.parametrize(("old", "new"), RENAMES)
-def test_a_new_name_wins_over_the_old_one(monkeypatch, caplog, old, new):
-    value, expected = SAMPLES[new]
-    monkeypatch.setenv(new, value)
-    monkeypatch.setenv(old, "not-a-valid-value")  # read, it would fail or differ
-    [settings] = readers(new)
-    with caplog.at_level(logging.WARNING, logger=SETTINGS_LOG):
-        assert getattr(settings(), field(new)) == expected
-    assert caplog.messages == [f"{old} is ignored: {new} is set. Unset {old}."]
-
-
-def test_the_old_names_are_known_as_old_names_only():
-    assert dict(OLD_NAMES) == RENAMED
-    assert not set(OLD_NAMES) & set(READERS), "an old name is a current name"
-
-
 def test_settings_given_in_code_win_over_the_environment(monkeypatch):
-    monkeypatch.setenv("COSMOS_RENDER_SPP", "3")
     monkeypatch.setenv("COSMOS_RENDERER_DEFAULT_SPP", "5")
     assert RendererSettings(renderer_default_spp=7).renderer_default_spp == 7
 
 
+TYPOS = {
+    "renderer": ("COSMOS_RENDERER_DEFALT_SPP", "COSMOS_RENDERER_DEFAULT_SPP"),
+    "detector": ("COSMOS_DETECTOR_CONFF", "COSMOS_DETECTOR_CONF"),
+    "optimizer": ("COSMOS_OPTIMIZER_DEFALT_STRATEGY", "COSMOS_OPTIMIZER_DEFAULT_STRATEGY"),
+    "controller": ("COSMOS_CONTROLLER_DATABSE_URL", "COSMOS_CONTROLLER_DATABASE_URL"),
+}
+"""A typo of one of each service's variables, and the variable meant."""
+
+
+def _warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
 @pytest.mark.parametrize("service", APPS)
 def test_an_unknown_variable_is_reported_at_start_up(monkeypatch, caplog, service):
-    monkeypatch.setenv("COSMOS_RENDERER_DEFALT_SPP", "32")
+    typo, meant = TYPOS[service]
+    monkeypatch.setenv(typo, "32")
     monkeypatch.setenv("COSMOS_NOBODY", "1")
-    with caplog.at_level(logging.WARNING, logger=ENVIRONMENT_LOG):
+    with caplog.at_level(logging.WARNING, logger=SETTINGS_LOG):
         APPS[service]()
-    assert [(r.name, r.levelno) for r in caplog.records] == [(ENVIRONMENT_LOG, logging.WARNING)] * 2
-    nobody, typo = caplog.messages
+    assert [(r.name, r.levelno) for r in caplog.records] == [(SETTINGS_LOG, logging.WARNING)] * 2
+    nobody, mistyped = sorted(caplog.messages, key=lambda m: not m.startswith("COSMOS_NOBODY"))
     assert nobody.startswith("COSMOS_NOBODY is ignored: no COSMOS 3D Search service reads it.")
-    assert typo.startswith(
-        "COSMOS_RENDERER_DEFALT_SPP is ignored: no COSMOS 3D Search service reads it "
-        "(did you mean COSMOS_RENDERER_DEFAULT_SPP?)."
+    assert mistyped.startswith(
+        f"{typo} is ignored: no COSMOS 3D Search service reads it (did you mean {meant}?)."
     )
+
+
+@pytest.mark.parametrize("service", APPS)
+def test_a_mistyped_service_prefix_is_reported_with_the_name_meant(monkeypatch, caplog, service):
+    monkeypatch.setenv("COSMOS_RENDRER_MAX_SPP", "32")
+    with caplog.at_level(logging.WARNING, logger=SETTINGS_LOG):
+        APPS[service]()
+    [message] = _warnings(caplog)
+    assert message.startswith(
+        "COSMOS_RENDRER_MAX_SPP is ignored: no COSMOS 3D Search service reads it "
+        "(did you mean COSMOS_RENDERER_MAX_SPP?)."
+    )
+
+
+@pytest.mark.parametrize(
+    "old", ["COSMOS_RENDER_SPP", "COSMOS_DATABASE_URL", "COSMOS_MAX_BODY_BYTES"]
+)
+def test_the_old_names_of_the_last_release_are_unknown_now(monkeypatch, old):
+    monkeypatch.setenv(old, "8")
+    assert unknown_variables() == [old]
 
 
 @pytest.mark.parametrize("service", APPS)
 def test_another_services_variable_is_not_reported(monkeypatch, caplog, service):
     others = {name for name, who in READERS.items() if service not in who}
-    others |= {
-        old
-        for old, names in OLD_NAMES.items()
-        if not any(service in READERS[name] for name in names)
-    }
-    assert {"COSMOS_TRAINING", "COSMOS_DATABASE_URL"} & others
+    assert {"COSMOS_TRAINING", "COSMOS_API_KEY"} < others
     for name in others:
         monkeypatch.setenv(name, SAMPLES.get(name, ("1",))[0])
+    # under another service's prefix, even a typo is that service's to report
+    others_typos = [typo for other, (typo, _) in TYPOS.items() if other != service]
+    for typo in others_typos:
+        monkeypatch.setenv(typo, "1")
     with caplog.at_level(logging.DEBUG):
         APPS[service]()
-    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+    assert _warnings(caplog) == []
+
+
+def test_a_service_knows_every_prefix_and_no_other_services_variables():
+    assert set(SERVICE_PREFIXES) == set(SERVICE_SETTINGS)
+    for service, settings in SERVICE_SETTINGS.items():
+        assert all(
+            name in SHARED or name.startswith(SERVICE_PREFIXES[service])
+            for name in settings.variables()
+        )
 
 
 def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, caplog, tmp_path):
@@ -270,7 +240,7 @@ def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, capl
     monkeypatch.setenv("COSMOS_NOBODY", "1")
     # cosmos up makes its local key before it starts anything: not in the repository's data/
     monkeypatch.setenv("COSMOS_CONTROLLER_DATABASE_URL", f"sqlite:///{tmp_path}/c.sqlite3")
-    with caplog.at_level(logging.WARNING, logger=ENVIRONMENT_LOG):
+    with caplog.at_level(logging.WARNING, logger=SETTINGS_LOG):
         assert cli.main(["up"]) == 1
     [message] = caplog.messages
     assert message.startswith("COSMOS_NOBODY is ignored")
