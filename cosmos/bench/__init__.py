@@ -8,12 +8,13 @@ them and :mod:`.results_md` writes ``docs/RESULTS.md`` from the JSON reports. :m
 measures a search's floor in one process, :mod:`.settings_sweep` the render settings
 (:mod:`.settings_choice` picks one), :mod:`.scenes` generates random scenes that
 :mod:`.random_run` searches with the general and the per-scene detector (:mod:`.random_report`
-its figures), and :mod:`.command` ties them into the command's modes. :mod:`.faults` is the fault
-suite (``python -m benchmarks.faults``, ``tests/faults/``).
+its figures); :mod:`.session` is what the command's modes share and :mod:`.command` runs them.
+:mod:`.faults` is the fault suite (``python -m benchmarks.faults``, ``tests/faults/``).
 """
 
-from cosmos.bench.command import BenchConfig, run
+from cosmos.bench.command import run
 from cosmos.bench.runner import SearchRecord, Target
+from cosmos.bench.session import BenchConfig
 from cosmos.bench.variants import VARIANTS, Variant
 
 __all__ = ["VARIANTS", "BenchConfig", "SearchRecord", "Target", "Variant", "run"]

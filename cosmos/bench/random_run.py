@@ -28,7 +28,11 @@ from typing import Any, Final
 import httpx
 import numpy as np
 
-from cosmos.bench.command import (
+from cosmos.bench.machine import machine_info
+from cosmos.bench.random_report import GOALS, band_cells, band_table, goal_checks
+from cosmos.bench.runner import SearchRecord, Target, run_searches
+from cosmos.bench.scenes import generate_scene, scene_summary
+from cosmos.bench.session import (
     BenchConfig,
     Endpoints,
     load_at_end,
@@ -39,10 +43,6 @@ from cosmos.bench.command import (
     services_info,
     write_report,
 )
-from cosmos.bench.machine import machine_info
-from cosmos.bench.random_report import GOALS, band_cells, band_table, goal_checks
-from cosmos.bench.runner import SearchRecord, Target, run_searches
-from cosmos.bench.scenes import generate_scene, scene_summary
 from services.common.auth import bearer
 from services.common.geometry.scene import load_scene
 

@@ -400,8 +400,8 @@ def test_the_onboard_preset_reaches_onboard_scene(monkeypatch, tmp_path):
 
 def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, tmp_path):
     from cosmos.bench import random_run
-    from cosmos.bench.command import BenchConfig, Endpoints
     from cosmos.bench.runner import Target
+    from cosmos.bench.session import BenchConfig, Endpoints
     from services.common.geometry.pose import Pose
 
     pose = Pose(theta_deg=30.0, phi_deg=0.0)
