@@ -38,7 +38,7 @@ from cosmos.bench.traces import FailureTrace, confirmed_of, failure_trace
 from cosmos.bench.variants import SCENE_VARIANTS, VARIANTS, Variant, degrade, draw_pose
 from cosmos.stack import Stack
 from cosmos.stack import local_stack as services_stack
-from services.common.contracts.base import FrozenModel
+from services.common.base import FrozenModel
 from services.common.contracts.optimize import StrategyName
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search

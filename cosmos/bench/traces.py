@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from services.common.contracts.base import FrozenModel
+from services.common.base import FrozenModel
 from services.common.geometry.pose import GridIndex
 
 __all__ = ["FailureTrace", "confirmed_of", "failure_trace"]

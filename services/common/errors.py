@@ -10,7 +10,7 @@ from typing import Any
 
 from pydantic import ConfigDict
 
-from services.common.contracts.base import FrozenModel
+from services.common.base import FrozenModel
 
 __all__ = [
     "BadRequestError",

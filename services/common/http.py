@@ -32,8 +32,8 @@ from services.common.auth import (
     ServiceTokenSettings,
     declare_service_token,
 )
+from services.common.base import FrozenModel
 from services.common.bodies import BodyLimits, BodyMiddleware
-from services.common.contracts.base import FrozenModel
 from services.common.errors import (
     ProblemDetails,
     ServiceError,

@@ -25,7 +25,7 @@ from typing import Annotated, Final, Literal
 
 from pydantic import Field
 
-from services.common.contracts.base import FrozenModel
+from services.common.base import FrozenModel
 from services.common.geometry.scene import (
     ConeObject,
     CubeObject,

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from pydantic import BaseModel, ValidationError
 
-from services.common.contracts.base import MAX_SAFE_INTEGER
+from services.common.base import MAX_SAFE_INTEGER
 from services.common.contracts.detect import Detection, DetectResponse
 from services.common.contracts.optimize import MapRequest, NextPoseRequest
 from services.common.contracts.render import RenderRequest

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.common.contracts.base import MAX_SAFE_INTEGER
+from services.common.base import MAX_SAFE_INTEGER
 from services.common.contracts.optimize import GridPose
 from services.common.contracts.search import Search, SearchStatus
 from services.common.geometry.pose import GridIndex

@@ -3,7 +3,6 @@
 ========================  =================================================================
 Module                    Messages
 ========================  =================================================================
-:mod:`.base`              :class:`~.base.FrozenModel` and the constrained types all share
 :mod:`.render`            the renderer's: render requests, annotations, scene summaries
 :mod:`.detect`            the detector's: detections, model descriptions, health
 :mod:`.optimize`          the optimizer's: next-pose requests and answers, object mapping
@@ -11,6 +10,7 @@ Module                    Messages
 ========================  =================================================================
 
 Poses, the grid, the pinhole camera and the scene file are geometry, shared by all stages:
-:mod:`services.common.geometry`. This package re-exports nothing, so importing one stage's
-messages never imports another's.
+:mod:`services.common.geometry`. :class:`~services.common.base.FrozenModel` and the constrained
+types all messages share are :mod:`services.common.base`, below both. This package re-exports
+nothing, so importing one stage's messages never imports another's.
 """

@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from services.common.contracts.base import BoxXYXY, FrozenModel, Integer, NonNegInt, Number
+from services.common.base import BoxXYXY, FrozenModel, Integer, NonNegInt, Number
 
 __all__ = [
     "DetectResponse",

@@ -2,7 +2,7 @@
 
 The optimizer knows no scenes: a request carries the grid and the camera (or names a scene whose
 camera and grid the service looks up), the target image's detections and the visited poses with
-theirs. Every model is frozen and rejects unknown keys (:class:`~.base.FrozenModel`).
+theirs. Every model is frozen and rejects unknown keys (:class:`~services.common.base.FrozenModel`).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Annotated, Any, Final, Literal
 
 from pydantic import BeforeValidator, ConfigDict, Field, field_validator
 
-from services.common.contracts.base import FrozenModel, Integer, Number
+from services.common.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery

@@ -6,7 +6,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_serializer, field_validator
 
-from services.common.contracts.base import BoxXYXY, FrozenModel, Integer, NonNegInt, Number
+from services.common.base import BoxXYXY, FrozenModel, Integer, NonNegInt, Number
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery

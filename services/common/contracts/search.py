@@ -7,7 +7,7 @@ from typing import Annotated, Final, Literal
 
 from pydantic import ConfigDict, Field, Strict
 
-from services.common.contracts.base import FrozenModel, Integer, Number
+from services.common.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection, ModelInfo
 from services.common.contracts.optimize import GridPose, StrategyName, ViewMatch
 from services.common.errors import ProblemDetails, problem_type

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 
-from services.common.contracts.base import FrozenModel
+from services.common.base import FrozenModel
 from services.common.geometry.pose import Pose
 
 __all__ = [

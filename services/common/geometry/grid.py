@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, model_validator
 
-from services.common.contracts.base import FrozenModel, Integer, NonNegInt, Number, ThetaDeg
+from services.common.base import FrozenModel, Integer, NonNegInt, Number, ThetaDeg
 from services.common.geometry.pose import GridIndex, Pose
 
 __all__ = [

@@ -10,7 +10,7 @@ from typing import Any
 
 from pydantic import ConfigDict, field_validator, model_validator
 
-from services.common.contracts.base import Angle, FrozenModel, NonNegInt, ThetaDeg
+from services.common.base import Angle, FrozenModel, NonNegInt, ThetaDeg
 
 __all__ = ["GridIndex", "Pose", "PoseQuery"]
 

@@ -19,7 +19,7 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
-from services.common.contracts.base import FrozenModel, Integer, Number
+from services.common.base import FrozenModel, Integer, Number
 from services.common.geometry.grid import GridSpec
 
 __all__ = [
