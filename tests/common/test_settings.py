@@ -15,6 +15,7 @@ import pytest
 from pydantic import SecretStr
 
 from cosmos import cli
+from cosmos.cli import up
 from cosmos.environment import READERS, SERVICE_SETTINGS, SHARED, unknown_variables
 from cosmos.stack import plan_stack
 from services.common.settings import CLIENT_VARIABLES, SERVICE_PREFIXES
@@ -236,7 +237,7 @@ def test_cosmos_up_reports_an_unknown_variable_on_its_terminal(monkeypatch, capl
     def no_stack(*args: object, **kwargs: object) -> None:
         raise RuntimeError("not starting services in this test")
 
-    monkeypatch.setattr(cli, "running_stack", no_stack)
+    monkeypatch.setattr(up, "running_stack", no_stack)
     monkeypatch.setenv("COSMOS_NOBODY", "1")
     # cosmos up makes its local key before it starts anything: not in the repository's data/
     monkeypatch.setenv("COSMOS_CONTROLLER_DATABASE_URL", f"sqlite:///{tmp_path}/c.sqlite3")

@@ -10,6 +10,8 @@ import stat
 import pytest
 
 from cosmos import cli
+from cosmos.cli import search
+from services.controller.client import ControllerClient, ControllerError
 from services.controller.keys import (
     KeyStore,
     client_key,
@@ -124,12 +126,12 @@ def test_cosmos_search_sends_the_local_key(url, monkeypatch, tmp_path):
     local = local_key(url)
     sent: list[str | None] = []
 
-    class Refusing(cli.ControllerClient):
+    class Refusing(ControllerClient):
         def submit(self, image, scene, **options):
             sent.append(self._http.headers.get("Authorization"))
-            raise cli.ControllerError("controller", 401, "refused in this test")
+            raise ControllerError("controller", 401, "refused in this test")
 
-    monkeypatch.setattr(cli, "ControllerClient", Refusing)
+    monkeypatch.setattr(search, "ControllerClient", Refusing)
     image = tmp_path / "t.png"
     image.write_bytes(b"\x89PNG")
     assert cli.main(["search", str(image), "--scene", "demo"]) == 1

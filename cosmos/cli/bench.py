@@ -1,0 +1,141 @@
+"""``cosmos bench``: the paper's evaluation through the real services (:mod:`cosmos.bench`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from cosmos.cli.common import Commands, client_api_key
+
+__all__ = ["register", "run"]
+
+
+def _csv(value: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in value.split(",") if part.strip())
+
+
+def run(args: argparse.Namespace) -> int:
+    from cosmos.bench import VARIANTS, BenchConfig, run
+
+    # Random scenes: the project's strategy on every variant; otherwise the paper's comparison.
+    random = args.random_scenes > 0
+    strategies = _csv(
+        args.strategies or ("reprojection" if random else "simple,paper,reprojection")
+    )
+    variants = _csv(args.variants or (",".join(VARIANTS) if random else "clean,jpeg,noise,offgrid"))
+    for name, given, allowed in (
+        ("strategy", strategies, ("simple", "paper", "reprojection")),
+        ("variant", variants, VARIANTS),
+    ):
+        unknown = [v for v in given if v not in allowed]
+        if unknown or not given:
+            raise ValueError(f"unknown {name} {unknown or given}; choose from {', '.join(allowed)}")
+    config = BenchConfig(
+        n=args.n,
+        scenes=_csv(args.scenes),
+        strategies=strategies,  # type: ignore[arg-type]
+        variants=variants,  # type: ignore[arg-type]
+        seed=args.seed,
+        out=Path(args.out),
+        results_md=Path(args.results_md) if args.results_md else None,
+        url=args.url,
+        api_key=client_api_key() if args.url else None,
+        renderer_url=args.renderer_url,
+        spp=args.spp,
+        width=args.width,
+        concurrency=args.concurrency,
+        max_iterations=args.max_iterations,
+        profile=args.profile,
+        profile_n=args.profile_n,
+        sweep=tuple(int(v) for v in _csv(args.sweep)) if args.sweep else (),
+        sweep_widths=tuple(int(v) for v in _csv(args.sweep_widths)) if args.sweep_widths else (),
+        sweep_poses=args.sweep_poses,
+        throughput=args.throughput,
+        throughput_searches=args.throughput_searches,
+        renderers=args.renderers,
+        detectors=args.detectors,
+        max_concurrent_searches=args.max_concurrent_searches,
+        random_scenes=args.random_scenes,
+        onboard=args.onboard,  # argparse checked the choice
+        scenes_out=Path(args.scenes_out) if args.scenes_out else None,
+        regenerate=args.regenerate,
+        verbose=args.verbose,
+        notes=tuple(args.note or ()),
+    )
+    return run(config)
+
+
+def register(commands: Commands) -> None:
+    """Add the command's parser to ``commands``."""
+    bench = commands.add_parser(
+        "bench",
+        help="the paper's evaluation: many seeded searches through the real services",
+        description="Runs N seeded searches per scene, strategy and target variant against a "
+        "local stack started on free ports (or --url), prints the tables and writes the JSON "
+        "report, the plots and docs/RESULTS.md.",
+    )
+    bench.add_argument("--n", type=int, default=60, help="targets per scene and variant")
+    bench.add_argument("--scenes", default="demo,garden", help="comma-separated scene ids")
+    bench.add_argument(
+        "--strategies", help="default simple,paper,reprojection (reprojection with --random-scenes)"
+    )
+    bench.add_argument(
+        "--variants",
+        help="of clean,jpeg,noise,offgrid,photo,changed; default the first four (all six with "
+        "--random-scenes)",
+    )
+    bench.add_argument("--seed", type=int, default=2024)
+    bench.add_argument("--out", default="docs/results", help="folder for the JSON and plots")
+    bench.add_argument(
+        "--results-md", default="docs/RESULTS.md", help="regenerated from --out ('' skips it)"
+    )
+    bench.add_argument("--url", help="a running controller instead of a local stack")
+    bench.add_argument("--renderer-url", help="with --url: the renderer that renders targets")
+    bench.add_argument("--spp", type=int, help="samples per pixel of the searches' views")
+    bench.add_argument("--width", type=int, help="film width of the searches' views")
+    bench.add_argument("--concurrency", type=int, default=1, help="searches in flight")
+    bench.add_argument("--max-iterations", type=int, default=60)
+    bench.add_argument(
+        "--profile", action="store_true", help="also measure the floor of a search in-process"
+    )
+    bench.add_argument("--profile-n", type=int, default=20, help="profiled targets per scene")
+    bench.add_argument("--sweep", help="render settings by measurement at these spp (e.g. 4,8,16)")
+    bench.add_argument("--sweep-widths", help="with --sweep: also these view widths (e.g. 320,160)")
+    bench.add_argument("--sweep-poses", type=int, default=24, help="poses per scene (detection)")
+    bench.add_argument(
+        "--throughput",
+        action="store_true",
+        help="searches per minute with one replica per stage and with --renderers/--detectors",
+    )
+    bench.add_argument("--throughput-searches", type=int, default=20)
+    bench.add_argument("--renderers", type=int, default=2)
+    bench.add_argument("--detectors", type=int, default=2)
+    bench.add_argument(
+        "--max-concurrent-searches",
+        type=int,
+        help="the controller's COSMOS_CONTROLLER_MAX_CONCURRENT_SEARCHES",
+    )
+    bench.add_argument(
+        "--random-scenes",
+        type=int,
+        default=0,
+        metavar="N",
+        help="search N generated scenes with the general detector, then with each one's own",
+    )
+    bench.add_argument(
+        "--onboard",
+        choices=["none", "tiny", "default"],
+        default="default",
+        help="with --random-scenes: the onboarding preset of the per-scene models (none: skip)",
+    )
+    bench.add_argument(
+        "--scenes-out", help="with --random-scenes: keep the scenes and models here (default: temp)"
+    )
+    bench.add_argument(
+        "--regenerate",
+        action="store_true",
+        help="only rewrite --results-md from the JSON reports in --out (no searches)",
+    )
+    bench.add_argument("--note", action="append", help="a line for the report (repeatable)")
+    bench.add_argument("-v", "--verbose", action="store_true", help="one line per search")
+    bench.set_defaults(run=run)

@@ -1,0 +1,88 @@
+"""``cosmos search target.png --scene demo``: submit a search (waiting out a controller that says
+when to come back, for up to ``--retry-for`` seconds), follow it, save its plots."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from cosmos.cli.common import Commands, client_api_key, say
+from cosmos.cli.follow import follow
+from services.controller.client import (
+    DEFAULT_RETRY_BUDGET_S,
+    RETRYABLE_STATUSES,
+    ControllerClient,
+    ControllerError,
+)
+
+__all__ = ["register", "run"]
+
+
+def _waiting(refusal: ControllerError, wait_s: float) -> None:
+    """Tell the user why the submission waits (a quota, a busy or degraded controller)."""
+    say(
+        f"the controller cannot take the search yet ({refusal.status}: {refusal.detail}); "
+        f"asking again in {wait_s:g} s"
+    )
+
+
+def _not_taken(refusal: ControllerError, budget_s: float) -> str:
+    """The sentence for a submission the controller refused until the retry budget ran out."""
+    waited = f" after waiting {refusal.waited_s:g} s" if refusal.waited_s else ""
+    return (
+        f"the controller did not take the search{waited} ({refusal.status}: {refusal.detail}); "
+        f"it asks to try again in {refusal.retry_after_s:g} s, beyond --retry-for "
+        f"{budget_s:g} s: try again later, or give --retry-for more seconds"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    image = Path(args.image).read_bytes()
+    with ControllerClient(args.url, api_key=client_api_key()) as client:
+        try:
+            search = client.submit(
+                image,
+                args.scene,
+                retry_budget_s=args.retry_for,
+                on_wait=_waiting,
+                strategy=args.strategy,
+                start_theta_deg=args.start_theta,
+                start_phi_deg=args.start_phi,
+                seed=args.seed,
+                max_iterations=args.max_iterations,
+            )
+        except ControllerError as exc:
+            if exc.status not in RETRYABLE_STATUSES or exc.retry_after_s is None:
+                raise
+            print(f"cosmos: {_not_taken(exc, args.retry_for)}", file=sys.stderr)
+            return 1
+        print(
+            f"search {search.id} queued: {search.strategy} on {search.scene} from lat "
+            f"{search.start.index.lat} lon {search.start.index.lon}"
+        )
+        final = follow(client, search, Path(args.out))
+    return 0 if final.status == "succeeded" else 3
+
+
+def register(commands: Commands) -> None:
+    """Add the command's parser to ``commands``."""
+    search = commands.add_parser("search", help="search for where an image was taken")
+    search.add_argument("image", help="the target image (PNG or JPEG)")
+    search.add_argument("--scene", required=True)
+    search.add_argument("--url", default="http://127.0.0.1:8000", help="the controller")
+    search.add_argument("--strategy", choices=["reprojection", "paper", "simple"])
+    search.add_argument("--start-theta", type=float)
+    search.add_argument("--start-phi", type=float)
+    search.add_argument("--seed", type=int)
+    search.add_argument("--max-iterations", type=int)
+    search.add_argument("--out", default="out", help="folder for the trajectory plots")
+    search.add_argument(
+        "--retry-for",
+        type=float,
+        default=DEFAULT_RETRY_BUDGET_S,
+        metavar="SECONDS",
+        help="wait out a controller that answers 429 or 503 with Retry-After for up to this "
+        "many seconds in all (0: give up at once)",
+    )
+    search.set_defaults(run=run)
