@@ -25,7 +25,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from cosmos.bench.faults.scenarios import (
+from cosmos.bench.faults import (
     SCENARIOS,
     ScenarioFailure,
     ScenarioResult,

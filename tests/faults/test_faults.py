@@ -14,18 +14,16 @@ from collections.abc import Iterator
 
 import pytest
 
+from cosmos.bench.faults.clients import maximal_uploads, slow_clients, tenants
+from cosmos.bench.faults.results import ScenarioResult
 from cosmos.bench.faults.rig import Rig, fault_rig
 from cosmos.bench.faults.scenarios import (
-    ScenarioResult,
-    Timing,
     controller_killed,
     detector_outage,
-    maximal_uploads,
     replica_killed,
     replica_killed_supervised,
-    slow_clients,
-    tenants,
 )
+from cosmos.bench.faults.under_load import Timing
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 

@@ -14,6 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
+from cosmos.bench.faults.clients import maximal_upload_body, well_answered
 from cosmos.bench.faults.harness import (
     MIB,
     Outcome,
@@ -25,7 +26,6 @@ from cosmos.bench.faults.harness import (
     p95,
     percentile,
 )
-from cosmos.bench.faults.scenarios import maximal_upload_body, well_answered
 from services.common.images import decode_image
 
 
