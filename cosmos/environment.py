@@ -98,8 +98,8 @@ def report_unknown_variables(environ: Mapping[str, str] | None = None) -> list[s
         close = difflib.get_close_matches(name, READERS, n=1, cutoff=0.8)
         hint = f" (did you mean {close[0]}?)" if close else ""
         log.warning(
-            "%s is ignored: no COSMOS 3D Search service reads it%s. The README's settings "
-            "table lists the variables and who reads each.",
+            "%s is ignored: no COSMOS 3D Search service reads it%s. docs/SETTINGS.md lists "
+            "the variables and who reads each.",
             name,
             hint,
         )

@@ -19,8 +19,11 @@ log = logging.getLogger(__name__)
 
 
 def settings_config() -> SettingsConfigDict:
-    """The configuration every service's ``BaseSettings`` uses: ``COSMOS_`` variables, frozen."""
-    return SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", frozen=True)
+    """The configuration every service's ``BaseSettings`` uses: ``COSMOS_`` variables, frozen, and
+    each field's docstring as its description (``docs/SETTINGS.md`` is written from them)."""
+    return SettingsConfigDict(
+        env_prefix=ENV_PREFIX, extra="ignore", frozen=True, use_attribute_docstrings=True
+    )
 
 
 class RenamedVariables(PydanticBaseSettingsSource):
