@@ -1,6 +1,8 @@
-"""The fault suite of issue 15 through real processes: what normal searches go through when a
-replica dies, the only detector is away, the controller is killed, slow clients hold sockets,
-50 maximal uploads arrive at once, and two tenants share the stack.
+"""The fault suite on a local stack: prints searches lost, peak MiB and p95 s per fault scenario.
+
+What normal searches go through (issue 15), on real processes, when a replica dies, the only
+detector is away, the controller is killed, slow clients hold sockets, 50 maximal uploads
+arrive at once, and two tenants share the stack.
 
 Run: ``.venv/bin/python -m benchmarks.faults [--quick] [--only NAME ...] [--workdir DIR]``
 

@@ -1,4 +1,6 @@
-"""What resending the whole history to the stateless optimizer costs, against a step's work.
+"""Resending a search's history to the optimizer: prints bytes and ms per request at k views.
+
+What resending the whole history to the stateless optimizer costs, against a step's work.
 
 Run: ``.venv/bin/python -m benchmarks.history [--scene demo] [--views 40] [--reps 40]``
 

@@ -1,4 +1,6 @@
-"""Object mapping accuracy: the paper's method (eq. 2–7) against ours (exact back-projection).
+"""Object mapping, paper (eq. 2–7) vs exact: prints ground-position error per scene and class.
+
+The paper's method (eq. 2–7) against ours (exact back-projection).
 
 Run: ``.venv/bin/python -m benchmarks.mapping [--every 2] [--scene demo --scene garden]``
 

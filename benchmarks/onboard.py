@@ -1,4 +1,4 @@
-"""Benchmark onboarding: wall time per stage and held-out accuracy of a scene's own detector.
+"""Onboarding a scene: prints minutes per stage and its own detector's held-out precision, recall.
 
 Run ``python -m benchmarks.onboard`` (the garden scene, copied to a temporary folder so that the
 shipped ``scenes/garden.detector/`` stays as it is) or ``python -m benchmarks.onboard --scene

@@ -1,4 +1,4 @@
-"""The page's speed in a real browser: first paint on loopback, and frames while a search streams.
+"""The page in Chromium: prints first paint ms, long tasks and frame gaps while a search streams.
 
 Run: ``.venv/bin/python -m benchmarks.page [--loads 5] [--searches 2]``
 

@@ -1,4 +1,4 @@
-"""Render throughput at 320x240: cold and warm, spp 4 and 16, and update-in-place vs rebuild.
+"""Render throughput at 320x240: prints renders/s cold and warm, spp 4 and 16, in place vs rebuilt.
 
 Run: ``.venv/bin/python -m benchmarks.render [--renders 40] [--scene demo]``
 

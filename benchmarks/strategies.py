@@ -1,4 +1,4 @@
-"""Next-best-pose strategies in the offline simulator: success and iterations, and paper eq. 9.
+"""Next-pose strategies in the simulator: prints success, moves per search and paper eq. 9.
 
 Run: ``.venv/bin/python -m benchmarks.strategies [--scene demo] [--starts 8] [--noise]``
 

@@ -1,5 +1,5 @@
 """Every ``COSMOS_`` variable the project reads and who reads it: the operator's full table
-(the README's settings table, ``cosmos up``'s check of its environment).
+(docs/SETTINGS.md, ``cosmos up``'s check of its environment).
 
 A service checks only its own variables at start-up
 (:func:`services.common.settings.from_environment`); ``cosmos``, above the services, knows all

@@ -80,7 +80,8 @@ class ServiceTokenSettings(ServiceSettings):
     the controller sends. ``service_auth="off"`` lets the stages serve anyone (development)."""
 
     service_token: SecretStr | None = None
-    """The shared secret; at least :data:`MIN_TOKEN_CHARS` characters."""
+    """The stack's shared secret, at least 16 characters (:data:`MIN_TOKEN_CHARS`): the stages
+    serve only requests that carry it, and the controller sends it on every stage call."""
     service_auth: Literal["token", "off"] = "token"
     """``off``: the stages ask no token of their callers."""
 

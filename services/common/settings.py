@@ -59,8 +59,11 @@ log = logging.getLogger(__name__)
 
 
 def settings_config() -> SettingsConfigDict:
-    """The configuration every service's ``BaseSettings`` uses: ``COSMOS_`` variables, frozen."""
-    return SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", frozen=True)
+    """The configuration every service's ``BaseSettings`` uses: ``COSMOS_`` variables, frozen, and
+    each field's docstring as its description (``docs/SETTINGS.md`` is written from them)."""
+    return SettingsConfigDict(
+        env_prefix=ENV_PREFIX, extra="ignore", frozen=True, use_attribute_docstrings=True
+    )
 
 
 class ServiceSettings(BaseSettings):
@@ -126,8 +129,8 @@ def report_unknown_variables(
     unknown = unknown_variables(readers, environ)
     for name in unknown:
         log.warning(
-            "%s is ignored: no COSMOS 3D Search service reads it%s. The README's settings "
-            "table lists the variables and who reads each.",
+            "%s is ignored: no COSMOS 3D Search service reads it%s. docs/SETTINGS.md lists "
+            "the variables and who reads each.",
             name,
             _hint(name, known),
         )

@@ -33,14 +33,23 @@ class ControllerSettings(ServiceTokenSettings):
     ``COSMOS_CONTROLLER_QUOTA_…`` per key, ``COSMOS_CONTROLLER_RETENTION_S``."""
 
     controller_renderer_urls: str = "http://127.0.0.1:8001"
+    """The renderer's replicas, comma-separated."""
     controller_detector_urls: str = "http://127.0.0.1:8002"
+    """The detector's replicas, comma-separated."""
     controller_optimizer_urls: str = "http://127.0.0.1:8003"
+    """The optimizer's replicas, comma-separated."""
     controller_database_url: str = "sqlite:///data/controller.sqlite3"
+    """The searches' database (``sqlite:///path``)."""
     controller_broker_heuristic: Heuristic = Heuristic.SHORTEST_EXPECTED
+    """How the broker picks a stage's replica for a task."""
     controller_discover_replicas: bool = False
+    """Resolve each replica URL's host to one URL per address (``--scale``)."""
     controller_discovery_interval_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    """Seconds between two resolutions of the replicas' host names."""
     controller_max_concurrent_searches: Annotated[int, Field(ge=1, le=1000)] = 4
+    """Searches run at once; the others wait in the queue."""
     controller_default_max_iterations: Annotated[int, Field(ge=1, le=500)] = 40
+    """Iterations of a search that gives no ``max_iterations``."""
     controller_view_spp: ViewSpp | None = 8
     """Samples per pixel of the views of searches submitted from now on (None: the renderer's
     default); each search records its own (``Search.view_settings``). 8 is the cheapest setting
@@ -53,13 +62,18 @@ class ControllerSettings(ServiceTokenSettings):
     """Bytes of rendered views kept for the page (:class:`~services.controller.views.ViewStore`,
     least recently used out; 0: none kept, every view asked for is rendered again)."""
     controller_render_timeout_s: Annotated[float, Field(gt=0, le=600)] = 60.0
+    """Seconds per call to a renderer."""
     controller_detect_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    """Seconds per call to a detector."""
     controller_optimize_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    """Seconds per call to an optimizer."""
     controller_connect_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    """Seconds to connect to a stage's replica."""
     controller_outage_budget_s: Annotated[float, Field(ge=0, le=3600)] = 60.0
     """How long a search waits for a stage that no replica serves to come back before it fails
     (0: it fails at once); a search failed so can be resumed (``POST /searches/{id}/retry``)."""
     controller_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
+    """Request body limit of a submitted target, in bytes."""
     controller_body_budget_bytes: Annotated[int, Field(ge=1024)] | None = None
     """Request-body bytes held at once (:mod:`services.common.bodies`): a request waits for
     its declared length before its body is read. Bodies up to 1/16 of the upload limit count in
@@ -72,13 +86,16 @@ class ControllerSettings(ServiceTokenSettings):
     controller_body_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = (
         DEFAULT_BODY_TIMEOUT_S
     )
+    """Seconds a body may take to arrive, plus its bytes at the rate below."""
     controller_body_min_bytes_per_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = (
         DEFAULT_MIN_BYTES_PER_S
     )
     """A body must arrive within ``timeout_s + bytes / min_bytes_per_s`` of its admission, else
     408 and the connection is closed (a trickling client holds budget no longer)."""
     controller_max_image_pixels: Annotated[int, Field(ge=64)] = 4096 * 4096
+    """Decoded width x height of a target, read from its header before decoding."""
     controller_max_image_side: Annotated[int, Field(ge=8)] = 8192
+    """The longest side of a target image, in pixels."""
     controller_auth: bool = True
     """Whether the public API wants an API key (``Authorization: Bearer``). Off (``off``,
     ``false``, ``0``), anyone may submit, see and cancel every search: for development only."""

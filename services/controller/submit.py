@@ -28,8 +28,8 @@ __all__ = ["INLINE_WRITE_BYTES", "create_search"]
 INLINE_WRITE_BYTES = 1 << 20
 """A target image up to this size is stored on the event loop (a 230 KB one takes ~0.4 ms, less
 than a thread's round trip); a larger one on a thread, one at a time. Under 50 maximal uploads
-at once, the inserts of their 20 MB images on the loop took 4.4 s of its time (sampled, ``python
--m benchmarks.uploads``) and stalled it for seconds: the broker's calls timed out meanwhile.
+at once, the inserts of their 20 MB images on the loop took 4.4 s of its time (sampled; the
+uploads run in docs/HISTORY.md) and stalled it for seconds: the broker's calls timed out meanwhile.
 One at a time, because the store has one lock: with several inserts queued on it, the loop's
 next store call waited behind all of them (1.6 s, sampled)."""
 

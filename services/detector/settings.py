@@ -33,7 +33,9 @@ class DetectorSettings(ServiceTokenSettings):
     rest tune inference and bound what one request may send."""
 
     detector_model: Path = DEFAULT_MODEL
+    """The general ONNX model; class names from its metadata or ``<model>.json``."""
     scenes_dir: str = ""
+    """Extra scene directories (as the renderer's), where scenes' own models are found."""
     detector_scene_check_s: Annotated[float, Field(ge=0.0, le=3600.0, allow_inf_nan=False)] = 1.0
     """How often at most a scene's model files are looked at for a new model (a request naming
     the scene, or ``GET /models``, looks); 0 looks every time."""
@@ -42,6 +44,7 @@ class DetectorSettings(ServiceTokenSettings):
     detector_iou: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.5
     """Per-class NMS: a box overlapping a better one of its class by IoU above this is dropped."""
     detector_max_detections: Annotated[int, Field(ge=1, le=1000)] = 100
+    """Boxes answered per image when a request gives no ``max_detections``."""
     detector_max_candidates: Annotated[int, Field(ge=1, le=100_000)] = 5000
     """Boxes over the threshold kept (best first) before NMS, which bounds its cost."""
     detector_threads: Annotated[int, Field(ge=0, le=256)] = 2
@@ -74,6 +77,7 @@ class DetectorSettings(ServiceTokenSettings):
     detector_body_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = (
         DEFAULT_BODY_TIMEOUT_S
     )
+    """Seconds a body may take to arrive, plus its bytes at the rate below."""
     detector_body_min_bytes_per_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = (
         DEFAULT_MIN_BYTES_PER_S
     )
@@ -82,6 +86,7 @@ class DetectorSettings(ServiceTokenSettings):
     detector_max_image_pixels: Annotated[int, Field(ge=64, le=HARD_MAX_IMAGE_PIXELS)] = 4096 * 4096
     """Decoded width x height, checked from the file header before anything is decoded."""
     detector_max_image_side: Annotated[int, Field(ge=8, le=65_535)] = 16_384
+    """The longest side of an uploaded image, in pixels, read from its header."""
     detector_colour: bool = True
     """Measure each detection's colour (``Detection.color``); off leaves it null."""
 

@@ -23,11 +23,17 @@ class OptimizerSettings(ServiceTokenSettings):
     (as for the renderer); the rest bound what one request may ask for."""
 
     optimizer_default_strategy: StrategyName = "reprojection"
+    """The strategy of a request that names none."""
     optimizer_paper_calibration: Path = DEFAULT_CALIBRATION_FILE
+    """The paper mapping's fitted coefficients (``python -m tools.fit_paper_mapping``)."""
     scenes_dir: str = ""
+    """Extra scene directories (as the renderer's), for requests that name a ``scene``."""
     optimizer_max_grid_poses: Annotated[int, Field(ge=1, le=100_000)] = 25_000
+    """The largest grid one request may have scored, in poses."""
     optimizer_max_history_detections: Annotated[int, Field(ge=1, le=1_000_000)] = 4_000
+    """Detections of the visited views one request may carry."""
     optimizer_max_body_bytes: Annotated[int, Field(ge=1024)] = 2 * 1024 * 1024
+    """Request body limit, in bytes."""
 
     def scene_directories(self) -> list[Path]:
         """The directories searched for scene files, in order."""

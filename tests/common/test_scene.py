@@ -59,6 +59,10 @@ def example() -> dict[str, Any]:
     return data
 
 
+def test_the_readme_shows_the_example_verbatim():
+    assert EXAMPLE_YAML in (ROOT / "README.md").read_text()
+
+
 def dump(data: Any) -> str:
     return yaml.safe_dump(data, sort_keys=False)
 

@@ -251,30 +251,6 @@ def test_names_are_matched_as_the_settings_read_them_regardless_of_case():
     assert unknown_variables(environ) == ["COSMOS_NOBODY"]
 
 
-def readme_table() -> dict[str, tuple[str, ...]]:
-    """The README's settings table: each ``COSMOS_`` variable (``_X`` after a first name is
-    that service's ``COSMOS_<SERVICE>_X``) and its "read by" column."""
-    readme = (ROOT / "README.md").read_text()
-    section = readme.split("### Configuration (environment)")[1].split("\n## ")[0]
-    table: dict[str, tuple[str, ...]] = {}
-    for row in section.splitlines():
-        cells = [cell.strip() for cell in row.strip("|").split("|")]
-        if not row.startswith("| `COSMOS_"):
-            continue
-        first, *rest = re.findall(r"`([A-Z_]+)`", cells[0])
-        service = re.match(r"COSMOS_[A-Z]+", first)
-        assert service, first
-        readers = tuple(part.strip(" `") for part in cells[1].split(","))
-        for name in [first, *(f"{service.group()}{suffix}" for suffix in rest)]:
-            assert name not in table, f"{name} is in the README twice"
-            table[name] = readers
-    return table
-
-
-def test_the_readme_lists_every_variable_and_who_reads_it():
-    assert readme_table() == dict(READERS)
-
-
 def test_the_stack_and_the_containers_use_current_names_only():
     plan = plan_stack(database_url="sqlite:///x.db", env={})
     names = {name for service in plan for name in service.env}

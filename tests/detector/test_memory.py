@@ -92,7 +92,7 @@ def test_a_burst_of_large_uploads_grows_memory_by_at_most_the_budget(detector, s
     assert health["decode_bytes_peak"] <= BUDGET
     assert health["decode_bytes"] == 0
     # Without the budget all 16 decoded images (12 MiB each) were held at once: RSS grew by
-    # 191 MiB (python -m benchmarks.decode_memory --side 2048 --budget-mib 40). With it, one
+    # 191 MiB (the retired benchmarks.decode_memory, docs/HISTORY.md). With it, one
     # at a time, plus what the allocator keeps of freed arrays.
     decoded = SIDE * SIDE * 3
     assert peak - before < BUDGET + 2 * decoded, (before, peak)
