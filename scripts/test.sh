@@ -3,8 +3,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
-.venv/bin/ruff check services cosmos simulation tests tools benchmarks training
-.venv/bin/ruff format --check services cosmos simulation tests tools benchmarks training
+.venv/bin/ruff check services cosmos simulation scene_assets tests tools benchmarks training
+.venv/bin/ruff format --check services cosmos simulation scene_assets tests tools benchmarks training
 .venv/bin/mypy
 if .venv/bin/python -c "import torch" 2>/dev/null; then .venv/bin/mypy training; fi
 .venv/bin/python -m tools.export_schema --check
