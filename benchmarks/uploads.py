@@ -40,7 +40,7 @@ import httpx
 import numpy as np
 
 from benchmarks.baseline import describe, measure_at
-from cosmos.bench.faults.harness import memory_of, reset_peak
+from cosmos.bench.memory import memory_of, reset_peak
 from cosmos.stack import Stack, local_stack
 
 MIB = 1 << 20

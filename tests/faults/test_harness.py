@@ -21,11 +21,11 @@ from cosmos.bench.faults.harness import (
     Target,
     count,
     latencies,
-    memory_of,
     p95,
     percentile,
 )
 from cosmos.bench.faults.scenarios import maximal_upload_body, well_answered
+from cosmos.bench.memory import memory_of
 from services.common.images import decode_image
 
 

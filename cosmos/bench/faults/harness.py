@@ -28,11 +28,11 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import httpx
 
+from cosmos.bench.memory import memory_of, reset_peak
 from services.common.contracts.search import TERMINAL_STATUSES, Search
 from services.controller.client import ControllerClient, ControllerError
 
@@ -45,8 +45,6 @@ __all__ = [
     "Target",
     "count",
     "latencies",
-    "memory_of",
-    "reset_peak",
     "p95",
     "percentile",
 ]
@@ -383,33 +381,6 @@ class Load:
             refusals=refusals,
             unanswered=unanswered,
         )
-
-
-def memory_of(pid: int) -> tuple[int, int] | None:
-    """The process's resident memory now and its high-water mark, in bytes (``VmRSS`` and
-    ``VmHWM`` of ``/proc/<pid>/status``); None once it is gone."""
-    try:
-        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
-    except OSError:
-        return None
-    fields = {}
-    for line in lines:
-        name, _, value = line.partition(":")
-        if name in {"VmRSS", "VmHWM"}:
-            fields[name] = int(value.split()[0]) * 1024  # kB
-    if len(fields) < 2:  # a zombie has no memory left
-        return None
-    return fields["VmRSS"], fields["VmHWM"]
-
-
-def reset_peak(pid: int) -> bool:
-    """Start the process's ``VmHWM`` over from its current RSS (``clear_refs`` 5, Linux ≥ 4.0);
-    False where that is not allowed."""
-    try:
-        Path(f"/proc/{pid}/clear_refs").write_text("5")
-    except OSError:
-        return False
-    return True
 
 
 class RssSampler:
