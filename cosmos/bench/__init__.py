@@ -13,7 +13,8 @@ suite (``python -m benchmarks.faults``, ``tests/faults/``).
 """
 
 from cosmos.bench.command import BenchConfig, run
-from cosmos.bench.runner import SearchRecord, Target
+from cosmos.bench.runner import BenchTarget, SearchRecord
+from cosmos.bench.target import Target
 from cosmos.bench.variants import VARIANTS, Variant
 
-__all__ = ["VARIANTS", "BenchConfig", "SearchRecord", "Target", "Variant", "run"]
+__all__ = ["VARIANTS", "BenchConfig", "BenchTarget", "SearchRecord", "Target", "Variant", "run"]

@@ -39,7 +39,7 @@ from cosmos.bench.machine import machine_info
 from cosmos.bench.plots import write_plots
 from cosmos.bench.profile import profile_searches, profile_summary
 from cosmos.bench.results_md import write_results_md
-from cosmos.bench.runner import SearchRecord, Target, local_stack, make_targets, run_searches
+from cosmos.bench.runner import BenchTarget, SearchRecord, local_stack, make_targets, run_searches
 from cosmos.bench.stats import percentile, summarize
 from cosmos.bench.tables import text_tables
 from cosmos.bench.variants import Variant
@@ -276,7 +276,7 @@ def search_all(
     endpoints: Endpoints,
     variants: Sequence[Variant],
     strategies: Sequence[StrategyName],
-) -> tuple[list[Target], list[SearchRecord]]:
+) -> tuple[list[BenchTarget], list[SearchRecord]]:
     targets = make_targets(
         endpoints.renderer,
         config.scenes,
@@ -390,9 +390,9 @@ def run_main(config: BenchConfig) -> int:
     return 1 if errors else 0
 
 
-def _profile_sample(targets: Sequence[Target], config: BenchConfig) -> list[Target]:
+def _profile_sample(targets: Sequence[BenchTarget], config: BenchConfig) -> list[BenchTarget]:
     """The first ``profile_n`` clean on-grid targets of each scene."""
-    sample: list[Target] = []
+    sample: list[BenchTarget] = []
     for scene in config.scenes:
         clean = [t for t in targets if t.scene == scene and t.variant == "clean"]
         sample.extend(clean[: config.profile_n])
@@ -461,7 +461,7 @@ def run_throughput(config: BenchConfig) -> int:
             targets = make_targets(
                 ep.renderer, scenes, ("clean",), per_scene, config.seed, token=ep.service_token
             )
-            jobs: list[tuple[Target, StrategyName]] = [(t, "reprojection") for t in targets]
+            jobs: list[tuple[BenchTarget, StrategyName]] = [(t, "reprojection") for t in targets]
             jobs = jobs[: config.throughput_searches]
             ep.warm(scenes)
             run_searches(

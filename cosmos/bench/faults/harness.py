@@ -33,6 +33,7 @@ from typing import Any
 import httpx
 
 from cosmos.bench.memory import memory_of, reset_peak
+from cosmos.bench.target import Target
 from services.common.contracts.search import TERMINAL_STATUSES, Search
 from services.controller.client import ControllerClient, ControllerError
 
@@ -42,7 +43,6 @@ __all__ = [
     "Load",
     "Outcome",
     "RssSampler",
-    "Target",
     "count",
     "latencies",
     "p95",
@@ -72,16 +72,6 @@ def percentile(values: Iterable[float], q: float) -> float | None:
 def p95(values: Iterable[float]) -> float | None:
     """The nearest-rank 95th percentile (:func:`percentile`)."""
     return percentile(values, 95.0)
-
-
-@dataclass(frozen=True)
-class Target:
-    """A target image of ``scene`` rendered at the grid pose (``lat``, ``lon``)."""
-
-    image: bytes
-    lat: int
-    lon: int
-    scene: str = "demo"
 
 
 @dataclass(frozen=True)
@@ -370,7 +360,7 @@ class Load:
             result = seen.result
         correct = None
         if status == "succeeded" and result is not None:
-            correct = (result.pose.index.lat, result.pose.index.lon) == (target.lat, target.lon)
+            correct = result.pose.index == target.truth
         return Outcome(
             started,
             search_id,

@@ -41,12 +41,12 @@ from cosmos.bench.faults.harness import (
     Load,
     Outcome,
     RssSampler,
-    Target,
     count,
     latencies,
     p95,
 )
 from cosmos.bench.faults.rig import Rig, fault_rig, wait_until
+from cosmos.bench.target import Target
 from services.common.contracts.search import TERMINAL_STATUSES
 from services.common.http import PROBLEM_JSON
 from services.common.images import PPM_MEDIA_TYPE, decode_image, encode_ppm
