@@ -54,8 +54,9 @@ from typing import Any
 import numpy as np
 import uvloop
 
-from benchmarks.local import Controller, StageUrls, Target, stage_processes
+from benchmarks.local import Controller, StageUrls, stage_processes
 from cosmos.bench.runner import TARGET_SPP
+from cosmos.bench.target import Target
 from services.common.catalog import SceneCatalog
 from services.common.contracts.optimize import (
     NextPoseRequest,
@@ -231,14 +232,14 @@ async def run(args: argparse.Namespace, urls: StageUrls, workdir: Path) -> None:
         image = await asyncio.to_thread(renderer.render_png, render)
     begin, end = grid.pose(start), grid.pose(truth)
     apart = float(angular_distance_deg((begin.theta_deg, begin.phi_deg), end))
-    target = Target(image, begin.theta_deg, begin.phi_deg, seed=0, scene=args.scene)
+    target = Target(args.scene, image, truth, end)
     controller = Controller(urls, None, workdir / "history.sqlite3", RecordingStages)
     stages = controller.stages
     if not isinstance(stages, RecordingStages):
         raise TypeError("the controller must record its requests")
     await controller.start()
     try:
-        await controller.search(target, "simple")
+        await controller.search(target, "simple", start=begin, seed=0)
         searched = len(stages.requests[-1].history)
         full = await extended(stages, args.scene, stages.requests[-1], args.views)
         added = len(full.history) - searched

@@ -15,10 +15,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cosmos.bench.target import Target
 from cosmos.launch import spawn_service, stop_service, wait_healthy
 from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.contracts.optimize import StrategyName
 from services.common.contracts.search import TERMINAL_STATUSES
+from services.common.geometry.pose import Pose
 from services.controller.broker import Broker
 from services.controller.events import Notifier
 from services.controller.runner import SearchRunner
@@ -28,7 +30,7 @@ from services.controller.store import SearchStore
 from services.controller.submit import create_search
 from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
 
-__all__ = ["SCENE", "Controller", "StageUrls", "Target", "stage_processes"]
+__all__ = ["SCENE", "Controller", "StageUrls", "stage_processes"]
 
 SCENE = "demo"
 STAGES = ("renderer", "detector", "optimizer")
@@ -66,17 +68,6 @@ def stage_processes(workdir: Path) -> Iterator[StageUrls]:
     finally:
         for process in started:
             stop_service(process)
-
-
-@dataclass(frozen=True)
-class Target:
-    """A target image to search for, and where its search starts."""
-
-    image: bytes
-    start_theta_deg: float
-    start_phi_deg: float
-    seed: int
-    scene: str = SCENE
 
 
 class Controller:
@@ -119,8 +110,11 @@ class Controller:
                     return
                 await changed.wait()
 
-    async def search(self, target: Target, strategy: StrategyName) -> tuple[float, int]:
-        """One search as ``POST /searches`` runs it: wall milliseconds and stage calls."""
+    async def search(
+        self, target: Target, strategy: StrategyName, *, start: Pose, seed: int
+    ) -> tuple[float, int]:
+        """One search for ``target`` from ``start`` as ``POST /searches`` runs it: wall
+        milliseconds and stage calls."""
         t0 = time.perf_counter()
         record = await create_search(
             self.store,
@@ -128,9 +122,9 @@ class Controller:
             image=target.image,
             scene_id=target.scene,
             strategy=strategy,
-            start_theta_deg=target.start_theta_deg,
-            start_phi_deg=target.start_phi_deg,
-            seed=target.seed,
+            start_theta_deg=start.theta_deg,
+            start_phi_deg=start.phi_deg,
+            seed=seed,
             max_iterations=self.settings.controller_default_max_iterations,
             max_image_pixels=self.settings.controller_max_image_pixels,
             max_image_side=self.settings.controller_max_image_side,

@@ -4,8 +4,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
-.venv/bin/ruff check services cosmos simulation tests tools benchmarks training
-.venv/bin/ruff format --check services cosmos simulation tests tools benchmarks training
+.venv/bin/ruff check services cosmos simulation scene_assets tests tools benchmarks training
+.venv/bin/ruff format --check services cosmos simulation scene_assets tests tools benchmarks training
 .venv/bin/mypy
 .venv/bin/lint-imports --no-logo  # the layers and no cycle: .importlinter
 if .venv/bin/python -c "import torch" 2>/dev/null; then .venv/bin/mypy training; fi

@@ -14,7 +14,7 @@ from simulation.detections import (
     SimulatedViews,
 )
 from simulation.search import SearchOutcome, run_search
-from simulation.surfaces import read_ply_vertices, srgb8
+from simulation.surfaces import srgb8
 
 __all__ = [
     "CLASSES",
@@ -23,7 +23,6 @@ __all__ = [
     "SceneSimulator",
     "SearchOutcome",
     "SimulatedViews",
-    "read_ply_vertices",
     "run_search",
     "srgb8",
 ]

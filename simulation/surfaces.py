@@ -13,8 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
-from plyfile import PlyData, PlyParseError
 
+from scene_assets import read_ply_vertices
 from services.common.geometry.scene import (
     ConeObject,
     CubeObject,
@@ -24,7 +24,7 @@ from services.common.geometry.scene import (
 )
 from services.optimizer.geometry import FloatArray
 
-__all__ = ["read_ply_vertices", "srgb8", "surface_points", "texture_colour"]
+__all__ = ["srgb8", "surface_points", "texture_colour"]
 
 
 def srgb8(linear: ArrayLike) -> FloatArray:
@@ -32,26 +32,6 @@ def srgb8(linear: ArrayLike) -> FloatArray:
     c = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
     srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1.0 / 2.4) - 0.055)
     return srgb * 255.0
-
-
-def read_ply_vertices(path: Path) -> FloatArray:
-    """The ``x, y, z`` of a PLY file's vertices ``(V, 3)`` (ASCII or binary, read by plyfile).
-
-    Raises
-    ------
-    ValueError
-        The file is not PLY, or has no scalar ``x, y, z`` vertex properties.
-    """
-    try:
-        data = PlyData.read(str(path))
-    except PlyParseError as exc:
-        raise ValueError(f"{path}: not a PLY file ({exc})") from exc
-    try:
-        vertex = data["vertex"]
-        xyz = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")], -1)
-    except (KeyError, ValueError, TypeError) as exc:  # no such element or property, or lists
-        raise ValueError(f"{path}: no vertex positions") from exc
-    return xyz
 
 
 def _fibonacci_sphere(count: int) -> FloatArray:
@@ -118,7 +98,7 @@ def surface_points(obj: SceneObject, mesh_file: Path | None) -> FloatArray:
         return solid
     if mesh_file is None:
         raise ValueError(f"{obj.name}: a mesh needs its PLY file")
-    vertices = read_ply_vertices(mesh_file)
+    vertices = read_ply_vertices(mesh_file).astype(np.float64)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     bottom_centre = np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]])
     mesh: FloatArray = _yaw((vertices - bottom_centre) * obj.scale, obj.yaw_deg) + offset

@@ -45,7 +45,7 @@ from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
 from tools.fuzz_report import DOC_PATH, Intended, ServiceRun, load_intended, read_report
 
-__all__ = ["SERVICES", "Target", "fuzz", "main", "report", "run_schemathesis"]
+__all__ = ["SERVICES", "FuzzedService", "fuzz", "main", "report", "run_schemathesis"]
 
 SERVICES = ("renderer", "detector", "optimizer", "controller")
 PHASES = "examples,coverage,fuzzing,stateful"
@@ -72,7 +72,7 @@ def _config(parameters: dict[str, str] | None = None) -> str:
 
 
 @dataclass(frozen=True)
-class Target:
+class FuzzedService:
     """A running service to fuzz: its URL, what its requests carry, and schemathesis config
     (TOML text, may be empty)."""
 
@@ -94,7 +94,7 @@ def _schemathesis() -> str:
 
 
 def run_schemathesis(
-    target: Target,
+    fuzzed: FuzzedService,
     workdir: Path,
     *,
     max_examples: int,
@@ -102,26 +102,26 @@ def run_schemathesis(
     phases: str = PHASES,
     request_timeout_s: float = 60.0,
 ) -> tuple[Path, int]:
-    """Run the CLI with ``--checks all`` on ``target``; its NDJSON report and exit status.
+    """Run the CLI with ``--checks all`` on ``fuzzed``; its NDJSON report and exit status.
     The CLI's own output goes to ``<workdir>/<service>.txt``, and it runs in ``workdir``, so
     ``schemathesis replay <test case id>`` reproduces a failure from there."""
-    report = workdir / f"{target.service}.ndjson"
+    report = workdir / f"{fuzzed.service}.ndjson"
     report.unlink(missing_ok=True)
     command = [_schemathesis()]
-    if target.config:
-        config = workdir / f"{target.service}.toml"
-        config.write_text(target.config, encoding="utf-8")
+    if fuzzed.config:
+        config = workdir / f"{fuzzed.service}.toml"
+        config.write_text(fuzzed.config, encoding="utf-8")
         command += ["--config-file", str(config)]
     command += [
         "run",
-        f"{target.url}/openapi.json",
+        f"{fuzzed.url}/openapi.json",
         "--checks",
         "all",
         "--phases",
         phases,
         "--continue-on-failure",
         "--header",
-        f"Authorization: {target.authorization}",
+        f"Authorization: {fuzzed.authorization}",
         "--max-examples",
         str(max_examples),
         "--seed",
@@ -138,9 +138,9 @@ def run_schemathesis(
         "--report-ndjson-path",
         str(report),
     ]
-    for path in target.skip_paths:
+    for path in fuzzed.skip_paths:
         command += ["--exclude-path", path]
-    with (workdir / f"{target.service}.txt").open("w", encoding="utf-8") as out:
+    with (workdir / f"{fuzzed.service}.txt").open("w", encoding="utf-8") as out:
         # In the work directory, where the CLI keeps what `st replay <id>` replays.
         done = subprocess.run(
             command, stdout=out, stderr=subprocess.STDOUT, cwd=workdir, check=False
@@ -168,11 +168,11 @@ def _seed_search(controller: str, renderer: str, api_key: str, token: str | None
 
 
 @contextmanager
-def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Target]]:
+def running_services(services: Sequence[str], workdir: Path) -> Iterator[list[FuzzedService]]:
     """The services asked for, running: the local stack if the controller is one of them,
     else only those stages, with one service token."""
     with ExitStack() as stack:
-        extra: dict[str, Target] = {}  # the controller's, with its key and seeded search
+        extra: dict[str, FuzzedService] = {}  # the controller's, with its key and seeded search
         if "controller" in services:
             running = stack.enter_context(local_stack(workdir / "stack"))
             token = running.service_token
@@ -184,7 +184,7 @@ def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Tar
             if running.api_key is None:
                 raise RuntimeError("the local stack has no API key")
             search_id = _seed_search(running.controller, urls["renderer"], running.api_key, token)
-            extra["controller"] = Target(
+            extra["controller"] = FuzzedService(
                 "controller",
                 running.controller,
                 f"Bearer {running.api_key}",
@@ -206,7 +206,7 @@ def running_targets(services: Sequence[str], workdir: Path) -> Iterator[list[Tar
                 for name in services
             }
         yield [
-            extra.get(name) or Target(name, urls[name], f"Bearer {token}", _config())
+            extra.get(name) or FuzzedService(name, urls[name], f"Bearer {token}", _config())
             for name in services
         ]
 
@@ -257,21 +257,21 @@ def fuzz(
     run did not finish (no report, or a status other than 0 or 1)."""
     runs: dict[str, ServiceRun] = {}
     broken: list[str] = []
-    with running_targets(services, workdir) as targets:
-        for target in targets:
+    with running_services(services, workdir) as running:
+        for fuzzed in running:
             started = time.perf_counter()
             path, status = run_schemathesis(
-                target, workdir, max_examples=max_examples, seed=seed, phases=phases
+                fuzzed, workdir, max_examples=max_examples, seed=seed, phases=phases
             )
             print(
-                f"{target.service}: schemathesis exited {status} after "
-                f"{time.perf_counter() - started:.0f} s (output: {workdir / target.service}.txt)",
+                f"{fuzzed.service}: schemathesis exited {status} after "
+                f"{time.perf_counter() - started:.0f} s (output: {workdir / fuzzed.service}.txt)",
                 flush=True,
             )
             if status not in (0, 1) or not path.exists():
-                broken.append(target.service)
+                broken.append(fuzzed.service)
                 continue
-            runs[target.service] = read_report(path)
+            runs[fuzzed.service] = read_report(path)
     return runs, broken
 
 

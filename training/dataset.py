@@ -26,9 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
+from scene_assets import value_noise
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.contracts.render import ObjectAnnotation, RenderAnnotations
 from services.common.geometry.pose import Pose
@@ -141,8 +141,7 @@ def random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
             np.float32
         )
     else:
-        coarse = rng.random((8, 8)).astype(np.float32)
-        t = cv2.resize(coarse, (size, size), interpolation=cv2.INTER_CUBIC).clip(0, 1)
+        t = value_noise(rng, (size, size), (8, 8))
     image = a[None, None, :] * (1 - t[..., None]) + b[None, None, :] * t[..., None]
     image += rng.normal(0, 6, image.shape).astype(np.float32)
     out: np.ndarray = np.clip(image, 0, 255).astype(np.uint8)

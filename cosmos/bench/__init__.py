@@ -13,8 +13,9 @@ its figures); :mod:`.session` is what the command's modes share and :mod:`.comma
 """
 
 from cosmos.bench.command import run
-from cosmos.bench.runner import SearchRecord, Target
+from cosmos.bench.runner import BenchTarget, SearchRecord
 from cosmos.bench.session import BenchConfig
+from cosmos.bench.target import Target
 from cosmos.bench.variants import VARIANTS, Variant
 
-__all__ = ["VARIANTS", "BenchConfig", "SearchRecord", "Target", "Variant", "run"]
+__all__ = ["VARIANTS", "BenchConfig", "BenchTarget", "SearchRecord", "Target", "Variant", "run"]

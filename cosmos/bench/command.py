@@ -28,7 +28,7 @@ from cosmos.bench.machine import machine_info
 from cosmos.bench.plots import write_plots
 from cosmos.bench.profile import profile_searches, profile_summary
 from cosmos.bench.results_md import write_results_md
-from cosmos.bench.runner import Target, make_targets, run_searches
+from cosmos.bench.runner import BenchTarget, make_targets, run_searches
 from cosmos.bench.session import (
     BenchConfig,
     load_at_end,
@@ -105,9 +105,9 @@ def run_main(config: BenchConfig) -> int:
     return 1 if errors else 0
 
 
-def _profile_sample(targets: Sequence[Target], config: BenchConfig) -> list[Target]:
+def _profile_sample(targets: Sequence[BenchTarget], config: BenchConfig) -> list[BenchTarget]:
     """The first ``profile_n`` clean on-grid targets of each scene."""
-    sample: list[Target] = []
+    sample: list[BenchTarget] = []
     for scene in config.scenes:
         clean = [t for t in targets if t.scene == scene and t.variant == "clean"]
         sample.extend(clean[: config.profile_n])
@@ -176,7 +176,7 @@ def run_throughput(config: BenchConfig) -> int:
             targets = make_targets(
                 ep.renderer, scenes, ("clean",), per_scene, config.seed, token=ep.service_token
             )
-            jobs: list[tuple[Target, StrategyName]] = [(t, "reprojection") for t in targets]
+            jobs: list[tuple[BenchTarget, StrategyName]] = [(t, "reprojection") for t in targets]
             jobs = jobs[: config.throughput_searches]
             ep.warm(scenes)
             run_searches(

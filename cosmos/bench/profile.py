@@ -30,7 +30,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from cosmos.bench.runner import SearchRecord, Target, run_searches
+from cosmos.bench.runner import BenchTarget, SearchRecord, run_searches
 from cosmos.bench.stats import percentile
 from services.common.catalog import SceneCatalog
 from services.common.contracts.detect import Detection
@@ -239,7 +239,7 @@ class InProcess:
 
 def profile_searches(
     controller_url: str,
-    targets: Sequence[Target],
+    targets: Sequence[BenchTarget],
     *,
     strategy: StrategyName = "reprojection",
     render_spp: int | None = None,

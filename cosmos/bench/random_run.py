@@ -30,7 +30,7 @@ import numpy as np
 
 from cosmos.bench.machine import machine_info
 from cosmos.bench.random_report import GOALS, band_cells, band_table, goal_checks
-from cosmos.bench.runner import SearchRecord, Target, run_searches
+from cosmos.bench.runner import BenchTarget, SearchRecord, run_searches
 from cosmos.bench.scenes import generate_scene, scene_summary
 from cosmos.bench.session import (
     BenchConfig,
@@ -138,7 +138,7 @@ def _wait_for_model(endpoints: Endpoints, scene: str, image: bytes) -> dict[str,
 def _scene_arm(
     config: BenchConfig,
     endpoints: Endpoints,
-    targets: Sequence[Target],
+    targets: Sequence[BenchTarget],
     scene_dir: Path,
     work_root: Path,
     onboard: Onboard,

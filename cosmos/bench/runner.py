@@ -25,7 +25,7 @@ import time
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -34,6 +34,7 @@ import numpy as np
 from pydantic import Field
 
 from cosmos.bench.altered import AlteredScene, alter_scene
+from cosmos.bench.target import Target
 from cosmos.bench.traces import FailureTrace, confirmed_of, failure_trace
 from cosmos.bench.variants import SCENE_VARIANTS, VARIANTS, Variant, degrade, draw_pose
 from cosmos.stack import Stack
@@ -51,7 +52,7 @@ from services.renderer.client import RendererClient
 __all__ = [
     "IterationRecord",
     "SearchRecord",
-    "Target",
+    "BenchTarget",
     "local_stack",
     "make_targets",
     "run_searches",
@@ -61,20 +62,15 @@ TARGET_SPP = 16
 """Samples per pixel of the targets (the renderer's default): a user's image, not the bench's."""
 
 
-@dataclass(frozen=True)
-class Target:
-    """One target image and where its search starts."""
+@dataclass(frozen=True, kw_only=True)
+class BenchTarget(Target):
+    """A target of the evaluation: where its search starts, its seed, and where it came from."""
 
-    scene: str
-    variant: Variant
-    number: int
-    pose: Pose
-    truth: GridIndex
-    truth_pose: Pose
     start: GridIndex
     start_pose: Pose
     seed: int
-    image: bytes = field(repr=False)
+    variant: Variant
+    number: int
     rendered_scene: str | None = None
     """The modified copy the target was rendered from (``photo``, ``changed``)."""
     change: str = ""
@@ -173,7 +169,7 @@ def make_targets(
     scene_of: Callable[[str], LoadedScene] | None = None,
     altered_dir: Path | None = None,
     token: str | None = None,
-) -> list[Target]:
+) -> list[BenchTarget]:
     """``n`` seeded targets per scene and variant, rendered by the renderer at ``renderer_url``
     (``token``: the stack's service token).
 
@@ -191,7 +187,7 @@ def make_targets(
             )
         return alter_scene(scene_of(scene), variant, rng, altered_dir, f"{scene}_{variant}{number}")
 
-    targets: list[Target] = []
+    targets: list[BenchTarget] = []
     with RendererClient(renderer_url, token=token) as renderer:
         for scene in scenes:
             grid = renderer.scene(scene).grid.grid()
@@ -214,13 +210,12 @@ def make_targets(
                         RenderRequest(scene=rendered, pose=query, spp=TARGET_SPP, seed=render_seed)
                     )
                     targets.append(
-                        Target(
+                        BenchTarget(
                             scene=scene,
                             variant=variant,
                             number=number,
                             pose=where.pose,
                             truth=where.truth,
-                            truth_pose=grid.pose(where.truth),
                             start=start,
                             start_pose=grid.pose(start),
                             seed=search_seed,
@@ -235,7 +230,7 @@ def make_targets(
 
 
 def record_of(
-    target: Target,
+    target: BenchTarget,
     strategy: StrategyName,
     search: Search,
     wall_ms: float,
@@ -302,7 +297,7 @@ def record_of(
 
 
 def _failed(
-    target: Target, strategy: StrategyName, detail: str, wall_ms: float, arm: str
+    target: BenchTarget, strategy: StrategyName, detail: str, wall_ms: float, arm: str
 ) -> SearchRecord:
     return SearchRecord(
         scene=target.scene,
@@ -323,7 +318,9 @@ def _failed(
     )
 
 
-def _search_query(target: Target, strategy: StrategyName, max_iterations: int) -> dict[str, str]:
+def _search_query(
+    target: BenchTarget, strategy: StrategyName, max_iterations: int
+) -> dict[str, str]:
     return {
         "scene": target.scene,
         "strategy": strategy,
@@ -337,7 +334,7 @@ def _search_query(target: Target, strategy: StrategyName, max_iterations: int) -
 async def _one_search(
     http: aiohttp.ClientSession,
     base_url: str,
-    target: Target,
+    target: BenchTarget,
     strategy: StrategyName,
     max_iterations: int,
     arm: str,
@@ -379,7 +376,7 @@ async def _one_search(
 
 async def _run(
     controller_url: str,
-    jobs: Sequence[tuple[Target, StrategyName]],
+    jobs: Sequence[tuple[BenchTarget, StrategyName]],
     concurrency: int,
     max_iterations: int,
     progress: Callable[[int, SearchRecord], None] | None,
@@ -416,7 +413,7 @@ async def _run(
 
 def run_searches(
     controller_url: str,
-    jobs: Sequence[tuple[Target, StrategyName]],
+    jobs: Sequence[tuple[BenchTarget, StrategyName]],
     *,
     concurrency: int = 1,
     max_iterations: int = 60,

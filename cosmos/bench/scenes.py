@@ -1,6 +1,6 @@
 """Random scenes for the bench, made as the training set never makes them.
 
-:func:`generate_scene` writes one scene YAML and its assets (PLY meshes via plyfile, PNG textures)
+:func:`generate_scene` writes one scene YAML and its assets (PLY meshes, PNG textures)
 into a folder, from a seeded :class:`numpy.random.Generator`. Unlike ``training.dataset``'s
 ``random_scene`` it uses meshes of shapes the detector never saw in training — extruded star,
 L and random star-shaped polygons, lumpy blobs, tapered towers — never the shipped duck or arch;
@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 import yaml
 from numpy.typing import NDArray
-from plyfile import PlyData, PlyElement
 
+from scene_assets import read_ply_vertices, value_noise, write_ply
 from services.common.geometry.scene import (
     ConeObject,
     CubeObject,
@@ -54,7 +54,6 @@ __all__ = [
     "make_mesh",
     "mesh_extent",
     "scene_summary",
-    "write_ply",
     "write_scene_yaml",
 ]
 
@@ -202,19 +201,6 @@ def make_mesh(kind: str, rng: np.random.Generator) -> tuple[Vertices, Faces]:
     return _prism(outlines[kind](rng), float(rng.uniform(0.4, 1.6)))
 
 
-def write_ply(path: Path, vertices: Vertices, faces: Faces) -> None:
-    """A binary little-endian PLY of the triangles (what Mitsuba's ``ply`` loader reads)."""
-    vertex = np.empty(len(vertices), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
-    vertex["x"], vertex["y"], vertex["z"] = vertices.T
-    face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
-    face["vertex_indices"] = faces
-    data = PlyData(
-        [PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=False
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data.write(str(path))
-
-
 @dataclass(frozen=True)
 class MeshExtent:
     """A mesh's size as the renderer places it (bounding box bottom centre at the origin):
@@ -226,8 +212,7 @@ class MeshExtent:
 
 def mesh_extent(path: Path) -> MeshExtent:
     """:class:`MeshExtent` of the PLY file at ``path``."""
-    vertex = PlyData.read(str(path))["vertex"]
-    xyz = np.column_stack([vertex["x"], vertex["y"], vertex["z"]]).astype(np.float64)
+    xyz = read_ply_vertices(path).astype(np.float64)
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     centre = (lo[:2] + hi[:2]) / 2.0
     return MeshExtent(
@@ -276,20 +261,6 @@ def _near(colour: tuple[float, ...], rng: np.random.Generator) -> tuple[float, .
     return tuple(float(round(c, 4)) for c in moved)
 
 
-def _value_noise(rng: np.random.Generator, size: int, octaves: int) -> NDArray[np.float32]:
-    """Multi-octave value noise in [0, 1]: random grids of 4, 8, 16… cells, bicubically upscaled,
-    amplitudes halving per octave."""
-    total = np.zeros((size, size), np.float32)
-    weight = 0.0
-    for o in range(octaves):
-        cells = 4 * 2**o
-        grid = rng.random((cells, cells)).astype(np.float32)
-        total += 0.5**o * cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
-        weight += 0.5**o
-    out: NDArray[np.float32] = np.clip(total / weight, 0.0, 1.0)
-    return out
-
-
 def ground_texture(rng: np.random.Generator, size: int = 256) -> NDArray[np.uint8]:
     """An RGB ground texture: "grass" (value noise), bricks, concentric rings or cells, in two
     random colours with grain."""
@@ -298,7 +269,7 @@ def ground_texture(rng: np.random.Generator, size: int = 256) -> NDArray[np.uint
     y, x = np.mgrid[0:size, 0:size].astype(np.float32) / size
     kind = int(rng.integers(4))
     if kind == 0:
-        t = _value_noise(rng, size, 4)
+        t = value_noise(rng, (size, size), (4, 4), octaves=4)
     elif kind == 1:
         rows = int(rng.integers(4, 12))
         row = np.floor(y * rows)

@@ -22,7 +22,7 @@ from typing import Any, Literal
 import httpx
 
 from cosmos.bench.results_md import write_results_md
-from cosmos.bench.runner import SearchRecord, Target, local_stack, make_targets, run_searches
+from cosmos.bench.runner import BenchTarget, SearchRecord, local_stack, make_targets, run_searches
 from cosmos.bench.variants import Variant
 from services.common.auth import bearer, token_from_environment
 from services.common.catalog import SceneCatalog
@@ -256,7 +256,7 @@ def search_all(
     endpoints: Endpoints,
     variants: Sequence[Variant],
     strategies: Sequence[StrategyName],
-) -> tuple[list[Target], list[SearchRecord]]:
+) -> tuple[list[BenchTarget], list[SearchRecord]]:
     targets = make_targets(
         endpoints.renderer,
         config.scenes,

@@ -400,14 +400,17 @@ def test_the_onboard_preset_reaches_onboard_scene(monkeypatch, tmp_path):
 
 def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, tmp_path):
     from cosmos.bench import random_run
-    from cosmos.bench.runner import Target
+    from cosmos.bench.runner import BenchTarget
     from cosmos.bench.session import BenchConfig, Endpoints
     from services.common.geometry.pose import Pose
 
     pose = Pose(theta_deg=30.0, phi_deg=0.0)
     index = GridIndex(lat=1, lon=0)
     targets = [
-        Target(s, "clean", 0, pose, index, pose, index, pose, 1, b"png") for s in ("a", "b", "c")
+        BenchTarget(
+            s, b"png", index, pose, start=index, start_pose=pose, seed=1, variant="clean", number=0
+        )
+        for s in ("a", "b", "c")
     ]
 
     def onboard(path, work_dir):

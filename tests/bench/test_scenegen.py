@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from plyfile import PlyData
 
 from cosmos.bench.scenes import MESH_KINDS, footprint, generate_scene, make_mesh, mesh_extent
+from scene_assets import read_ply
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import MeshObject, load_scene
 from services.common.scene_models import model_dir, object_classes
@@ -72,16 +72,15 @@ def test_objects_stand_on_the_ground_apart_and_the_camera_clears_them(scenes):
                 assert math.hypot(x - ox, y - oy) >= reach + oreach, scene.id
 
 
-def test_meshes_are_new_shapes_readable_with_plyfile(scenes):
+def test_meshes_are_new_shapes_readable_as_ply(scenes):
     meshes = [(s, o) for s in scenes for o in s.spec.objects if isinstance(o, MeshObject)]
     assert meshes
     for scene, obj in meshes:
         assert "duck" not in obj.file
         assert "arch" not in obj.file
-        ply = PlyData.read(str(scene.directory / obj.file))
-        faces = np.stack(ply["face"]["vertex_indices"])
-        assert faces.shape[1] == 3
-        assert faces.max() < ply["vertex"].count
+        mesh = read_ply(scene.directory / obj.file)
+        assert mesh.faces.shape[1] == 3
+        assert mesh.faces.max() < len(mesh.vertices)
         assert mesh_extent(scene.directory / obj.file).height > 0
 
 

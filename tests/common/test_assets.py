@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from scene_assets import read_ply
 from tools.make_assets import ASSET_PATHS, write_assets
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
@@ -25,13 +26,12 @@ def _mitsuba() -> Any:
 
 
 def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex table (x y z nx ny nz u v) and triangles, parsed independently of the writer."""
-    plyfile = pytest.importorskip("plyfile")
-    ply = plyfile.PlyData.read(str(path))
-    vertex = ply["vertex"].data
-    table = np.stack([vertex[name] for name in ("x", "y", "z", "nx", "ny", "nz", "u", "v")], 1)
-    faces = np.stack(ply["face"].data["vertex_indices"]).astype(np.int64)
-    return table.astype(np.float64), faces
+    """Vertex table (x y z nx ny nz u v) and triangles."""
+    mesh = read_ply(path)
+    assert mesh.normals is not None
+    assert mesh.uvs is not None
+    table = np.concatenate([mesh.vertices, mesh.normals, mesh.uvs], axis=1)
+    return table.astype(np.float64), mesh.faces.astype(np.int64)
 
 
 def test_regenerated_assets_are_byte_identical(tmp_path):

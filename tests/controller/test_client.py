@@ -20,10 +20,11 @@ import numpy as np
 import pytest
 
 from cosmos import cli
-from cosmos.bench.faults.harness import Load, Target
+from cosmos.bench.faults.harness import Load
+from cosmos.bench.target import Target
 from cosmos.stack import Stack, local_stack
 from services.common.contracts.render import RenderRequest
-from services.common.geometry.pose import PoseQuery
+from services.common.geometry.pose import GridIndex, PoseQuery
 from services.controller.client import ControllerClient, ControllerError, retry_after_s
 from services.controller.keys import KeyStore
 from services.renderer.client import RendererClient
@@ -178,12 +179,14 @@ def test_cosmos_search_says_the_controller_did_not_take_the_search(
     assert "beyond --retry-for 3 s: try again later, or give --retry-for more seconds" in said
 
 
-def test_the_fault_loads_refusals_are_the_clients_waits_and_stop_with_the_load(rig):
+def test_the_fault_loads_refusals_are_the_clients_waits_and_stop_with_the_load(rig, catalog):
     at_quota(rig)
+    truth = GridIndex(lat=3, lon=5)
+    pose = catalog.get("demo").spec.search.grid().pose(truth)
     load = Load(
         rig.stack.controller,
         rig.tenant,
-        [Target(rig.target, lat=3, lon=5)],
+        [Target("demo", rig.target, truth, pose)],
         concurrency=1,
         refused_wait_s=0.3,  # the cap of each wait: the minute's Retry-After is far longer
         options={"max_iterations": 3},

@@ -8,13 +8,13 @@ import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import cv2
 import httpx
 import numpy as np
 import pytest
 
+from cosmos.bench.memory import memory_of
 from tests.detector.conftest import APP, one_sphere_model
 from tests.support import ServiceProcess, running_service
 
@@ -29,10 +29,10 @@ BURST = 16
 
 
 def rss_bytes(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise RuntimeError("no VmRSS")
+    memory = memory_of(pid)
+    if memory is None:
+        raise RuntimeError(f"no memory for process {pid}")
+    return memory.rss_bytes
 
 
 def rgba16_png() -> bytes:

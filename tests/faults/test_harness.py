@@ -19,13 +19,14 @@ from cosmos.bench.faults.harness import (
     MIB,
     Outcome,
     RssSampler,
-    Target,
     count,
     latencies,
-    memory_of,
     p95,
     percentile,
 )
+from cosmos.bench.memory import memory_of
+from cosmos.bench.target import Target
+from services.common.geometry.pose import GridIndex, Pose
 from services.common.images import decode_image
 
 
@@ -135,7 +136,9 @@ def test_memory_is_read_from_proc_and_the_peak_counts_from_the_start():
 def test_a_maximal_upload_is_a_valid_image_just_under_the_limit():
     ok, png = cv2.imencode(".png", np.full((240, 320, 3), 90, np.uint8))
     assert ok
-    target = Target(image=png.tobytes(), lat=0, lon=0)
+    target = Target(
+        "demo", png.tobytes(), GridIndex(lat=0, lon=0), Pose(theta_deg=0.0, phi_deg=0.0)
+    )
     limit = 20 * MIB
     body = maximal_upload_body(target, limit, max_pixels=4096 * 4096, max_side=8192)
     assert limit - 16 * 1024 < len(body) <= limit

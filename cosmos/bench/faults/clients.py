@@ -18,13 +18,13 @@ import numpy as np
 
 from cosmos.bench.faults.harness import (
     Load,
-    Target,
     count,
     p95,
 )
 from cosmos.bench.faults.results import MaximalUploads, SlowClients, Tenants
 from cosmos.bench.faults.rig import Rig
 from cosmos.bench.faults.under_load import Timing, UnderLoad, listed
+from cosmos.bench.target import Target
 from services.common.auth import bearer
 from services.common.http import PROBLEM_JSON
 from services.common.images import PPM_MEDIA_TYPE, decode_image, encode_ppm

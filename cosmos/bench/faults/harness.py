@@ -28,11 +28,12 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import httpx
 
+from cosmos.bench.memory import memory_of, reset_peak
+from cosmos.bench.target import Target
 from services.common.contracts.search import TERMINAL_STATUSES, Search
 from services.controller.client import ControllerClient, ControllerError
 
@@ -42,11 +43,8 @@ __all__ = [
     "Load",
     "Outcome",
     "RssSampler",
-    "Target",
     "count",
     "latencies",
-    "memory_of",
-    "reset_peak",
     "p95",
     "percentile",
 ]
@@ -74,16 +72,6 @@ def percentile(values: Iterable[float], q: float) -> float | None:
 def p95(values: Iterable[float]) -> float | None:
     """The nearest-rank 95th percentile (:func:`percentile`)."""
     return percentile(values, 95.0)
-
-
-@dataclass(frozen=True)
-class Target:
-    """A target image of ``scene`` rendered at the grid pose (``lat``, ``lon``)."""
-
-    image: bytes
-    lat: int
-    lon: int
-    scene: str = "demo"
 
 
 @dataclass(frozen=True)
@@ -372,7 +360,7 @@ class Load:
             result = seen.result
         correct = None
         if status == "succeeded" and result is not None:
-            correct = (result.pose.index.lat, result.pose.index.lon) == (target.lat, target.lon)
+            correct = result.pose.index == target.truth
         return Outcome(
             started,
             search_id,
@@ -383,33 +371,6 @@ class Load:
             refusals=refusals,
             unanswered=unanswered,
         )
-
-
-def memory_of(pid: int) -> tuple[int, int] | None:
-    """The process's resident memory now and its high-water mark, in bytes (``VmRSS`` and
-    ``VmHWM`` of ``/proc/<pid>/status``); None once it is gone."""
-    try:
-        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
-    except OSError:
-        return None
-    fields = {}
-    for line in lines:
-        name, _, value = line.partition(":")
-        if name in {"VmRSS", "VmHWM"}:
-            fields[name] = int(value.split()[0]) * 1024  # kB
-    if len(fields) < 2:  # a zombie has no memory left
-        return None
-    return fields["VmRSS"], fields["VmHWM"]
-
-
-def reset_peak(pid: int) -> bool:
-    """Start the process's ``VmHWM`` over from its current RSS (``clear_refs`` 5, Linux ≥ 4.0);
-    False where that is not allowed."""
-    try:
-        Path(f"/proc/{pid}/clear_refs").write_text("5")
-    except OSError:
-        return False
-    return True
 
 
 class RssSampler:

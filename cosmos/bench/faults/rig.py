@@ -23,11 +23,11 @@ from typing import Any
 import httpx
 import numpy as np
 
-from cosmos.bench.faults.harness import Target
+from cosmos.bench.target import Target
 from cosmos.launch import ServiceProcess, spawn_service, stop_service, wait_healthy
 from cosmos.stack import ServicePlan, Stack, Supervisor, plan_local_stack, running_stack
 from services.common.contracts.render import RenderRequest
-from services.common.geometry.pose import PoseQuery
+from services.common.geometry.pose import GridIndex, PoseQuery
 from services.controller.keys import KeyStore, local_key
 from services.renderer.client import RendererClient
 
@@ -212,8 +212,10 @@ class Rig:
 
     def _render(self, lat: int, lon: int) -> Target:
         with RendererClient(self.stack.renderers[0], token=self.stack.service_token) as client:
+            grid = client.scene(SCENE).grid.grid()
             image = client.render_png(RenderRequest(scene=SCENE, pose=PoseQuery(lat=lat, lon=lon)))
-        return Target(image=image, lat=lat, lon=lon, scene=SCENE)
+        index = GridIndex(lat=lat, lon=lon)
+        return Target(scene=SCENE, image=image, truth=index, pose=grid.pose(index))
 
     def _render_targets(self, count: int, seed: int) -> list[Target]:
         with RendererClient(self.stack.renderers[0], token=self.stack.service_token) as client:
