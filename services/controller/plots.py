@@ -24,7 +24,8 @@ from matplotlib.figure import Figure  # noqa: E402
 
 from services.common.caches import LruFront, SharedLru  # noqa: E402
 from services.common.contracts.search import TERMINAL_STATUSES, Search  # noqa: E402
-from services.common.geometry.grid import HemisphereGrid, angular_distance_deg  # noqa: E402
+from services.common.geometry.grid import HemisphereGrid  # noqa: E402
+from services.common.geometry.sphere import angular_distance_deg  # noqa: E402
 
 __all__ = ["PlotCache", "distance_png", "trajectory_png"]
 
