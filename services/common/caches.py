@@ -18,7 +18,9 @@ caller, and nothing else:
 
 A caller whose values a coroutine computes uses :meth:`SharedLru.lookup` and
 :meth:`SharedLru.put` around its ``await``; two requests for one key not kept may then both
-compute it (no single flight: the callers' values are the same either way).
+compute it (no single flight: the callers' values are the same either way). A domain cache
+that answers in its own terms (the optimizer's view mappings, the controller's view store)
+derives from :class:`LruFront`, which forwards the counters and the size.
 """
 
 from __future__ import annotations
