@@ -65,8 +65,9 @@ from services.common.contracts.optimize import (
     searchable_grid,
 )
 from services.common.contracts.render import RenderRequest
-from services.common.geometry.grid import HemisphereGrid, angular_distance_deg
+from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.pose import GridIndex, PoseQuery
+from services.common.geometry.sphere import angular_distance_deg
 from services.common.images import media_type_of
 from services.controller.broker import Broker
 from services.controller.stages import Stages

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
-from services.common.geometry.grid import HemisphereGrid, grid_for, pose_to_cartesian
+from services.common.geometry.grid import HemisphereGrid, grid_for
 from services.common.geometry.scene import LoadedScene
+from services.common.geometry.sphere import pose_to_cartesian
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.problem import Plan
 from services.optimizer.strategies import STRATEGIES

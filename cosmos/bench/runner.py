@@ -43,9 +43,9 @@ from services.common.base import FrozenModel
 from services.common.contracts.optimize import StrategyName
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search
-from services.common.geometry.grid import angular_distance_deg
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery
 from services.common.geometry.scene import LoadedScene
+from services.common.geometry.sphere import angular_distance_deg
 from services.common.images import media_type_of
 from services.renderer.client import RendererClient
 

@@ -1,11 +1,12 @@
 """A small synchronous client of the controller: submit a search, follow it, fetch its plots.
 
-Submitting waits out the controller's refusals that say when to come back: a 429 (a quota of the
-key) or a 503 (the body budget full, a stage unavailable) with ``Retry-After`` is asked again
-after ``min(Retry-After, max_wait_s)`` seconds (at least 0.5 s), while the total wait stays within
-``retry_budget_s``; a refusal whose ``Retry-After`` falls beyond the budget ends the submission at
-once, with the controller's own problem detail. Any other error (a 4xx, a 5xx without
-``Retry-After``) ends it at once: asking again would get the same answer.
+Submitting waits out the controller's refusals that say when to come back (with tenacity): a
+429 (a quota of the key) or a 503 (the body budget full, a stage unavailable) with
+``Retry-After`` is asked again after ``min(Retry-After, max_wait_s)`` seconds (at least 0.5 s),
+while the total wait stays within ``retry_budget_s``; a refusal whose ``Retry-After`` falls
+beyond the budget ends the submission at once, with the controller's own problem detail. Any
+other error (a 4xx, a 5xx without ``Retry-After``) ends it at once: asking again would get the
+same answer.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from email.utils import parsedate_to_datetime
 from typing import Any, Final
 
 import httpx
+import tenacity
 
 from services.common.client import ServiceCallError, ServiceClient
 from services.common.contracts.search import Iteration, Search
@@ -74,6 +76,28 @@ def retry_after_s(value: str | None, now: datetime | None = None) -> float | Non
     return max(0.0, (when - (now or datetime.now(UTC))).total_seconds())
 
 
+def _waitable(error: BaseException) -> bool:
+    """Whether ``error`` is a refusal that says when to come back."""
+    return (
+        isinstance(error, ControllerError)
+        and error.retry_after_s is not None
+        and error.status in RETRYABLE_STATUSES
+    )
+
+
+def _refusal(state: tenacity.RetryCallState) -> ControllerError:
+    """The refusal that ended the attempt of ``state`` (only waitable ones are retried)."""
+    error = state.outcome.exception() if state.outcome is not None else None
+    if not isinstance(error, ControllerError):
+        raise TypeError(f"not a refusal of the controller: {error!r}")
+    return error
+
+
+def _after_s(state: tenacity.RetryCallState) -> float:
+    """Seconds the last refusal asks to wait, at least :data:`MIN_WAIT_S` (never a busy loop)."""
+    return max(_refusal(state).retry_after_s or 0.0, MIN_WAIT_S)
+
+
 class ControllerClient(ServiceClient):
     """Calls the controller at ``base_url`` with explicit timeouts, sending ``api_key`` as
     ``Authorization: Bearer`` (:func:`services.controller.keys.client_key` finds the local one)."""
@@ -110,31 +134,38 @@ class ControllerClient(ServiceClient):
         if retry_budget_s < 0 or not max_wait_s > 0:
             raise ValueError("retry_budget_s must not be negative and max_wait_s positive")
         query = {k: str(v) for k, v in options.items() if v is not None}
-        waited_s = 0.0
-        while True:
-            try:
-                response = self._check(
-                    self._http.post(
-                        "/searches",
-                        content=image,
-                        params={"scene": scene, **query},
-                        headers={"Content-Type": media_type_of(image)},
+
+        def pause(seconds: float) -> None:
+            sleep(seconds)
+
+        def before_sleep(state: tenacity.RetryCallState) -> None:
+            if on_wait is not None:
+                on_wait(_refusal(state), state.upcoming_sleep)
+
+        retrying = tenacity.Retrying(
+            retry=tenacity.retry_if_exception(_waitable),
+            wait=lambda state: min(_after_s(state), max_wait_s),
+            # Stopped before a wait that would pass the budget: waits so far + the one asked.
+            stop=lambda state: state.idle_for + _after_s(state) > retry_budget_s,
+            sleep=pause,
+            before_sleep=before_sleep,
+            reraise=True,  # the controller's own refusal, not tenacity's RetryError
+        )
+        for attempt in retrying:
+            with attempt:
+                try:
+                    response = self._check(
+                        self._http.post(
+                            "/searches",
+                            content=image,
+                            params={"scene": scene, **query},
+                            headers={"Content-Type": media_type_of(image)},
+                        )
                     )
-                )
-            except ControllerError as refusal:
-                refusal.waited_s = waited_s
-                if refusal.retry_after_s is None or refusal.status not in RETRYABLE_STATUSES:
+                except ControllerError as refusal:
+                    refusal.waited_s = attempt.retry_state.idle_for
                     raise
-                after = max(refusal.retry_after_s, MIN_WAIT_S)  # never a busy loop
-                if waited_s + after > retry_budget_s:
-                    raise  # the controller will not take it within the budget
-                wait_s = min(after, max_wait_s)
-                if on_wait is not None:
-                    on_wait(refusal, wait_s)
-                sleep(wait_s)
-                waited_s += wait_s
-                continue
-            return Search.model_validate(response.json())
+        return Search.model_validate(response.json())
 
     def _check(self, response: httpx.Response) -> httpx.Response:
         """``response``, or :class:`ControllerError` with its ``Retry-After``."""

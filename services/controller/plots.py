@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import io
 import math
-from collections import OrderedDict
 from collections.abc import Awaitable, Callable
-from datetime import datetime
 
 import matplotlib
 
@@ -24,8 +22,10 @@ import matplotlib.pyplot as plt  # noqa: E402 - after choosing the off-screen ba
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from services.common.caches import LruFront, SharedLru  # noqa: E402
 from services.common.contracts.search import TERMINAL_STATUSES, Search  # noqa: E402
-from services.common.geometry.grid import HemisphereGrid, angular_distance_deg  # noqa: E402
+from services.common.geometry.grid import HemisphereGrid  # noqa: E402
+from services.common.geometry.sphere import angular_distance_deg  # noqa: E402
 
 __all__ = ["PlotCache", "distance_png", "trajectory_png"]
 
@@ -93,8 +93,9 @@ def distance_png(search: Search) -> bytes:
     return _png(fig)
 
 
-class PlotCache:
-    """The plots of finished searches, the ``capacity`` most recently used ones.
+class PlotCache(LruFront[bytes]):
+    """The plots of finished searches, the ``capacity`` most recently used ones (a
+    :class:`~services.common.caches.SharedLru` bounded by count).
 
     A running search's plots change with every iteration: they are drawn on every request. A
     finished search's are drawn once; its ``updated_at`` is part of the key, so a search that
@@ -105,24 +106,15 @@ class PlotCache:
         if capacity < 1:
             raise ValueError("capacity must be at least 1")
         self.capacity = capacity
-        self.hits = 0
-        self._pngs: OrderedDict[tuple[str, str, datetime], bytes] = OrderedDict()
-
-    def __len__(self) -> int:
-        return len(self._pngs)
+        self._lru = SharedLru[bytes](capacity)
 
     async def png(self, search: Search, name: str, draw: Callable[[], Awaitable[bytes]]) -> bytes:
         """Plot ``name`` of ``search``: kept if the search is finished, else ``draw()``."""
         if search.status not in TERMINAL_STATUSES:
             return await draw()
         key = (search.id, name, search.updated_at)
-        png = self._pngs.get(key)
-        if png is not None:
-            self.hits += 1
-            self._pngs.move_to_end(key)
-            return png
-        png = await draw()
-        self._pngs[key] = png
-        while len(self._pngs) > self.capacity:
-            self._pngs.popitem(last=False)
+        png = self._lru.lookup(key)
+        if png is None:
+            png = await draw()
+            self._lru.put(key, png)
         return png

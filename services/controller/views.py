@@ -18,10 +18,10 @@ from collections.abc import Awaitable, Callable
 import cv2
 import numpy as np
 
+from services.common.caches import LruFront, SharedLru
 from services.common.contracts.search import Search, ViewSettings
 from services.common.geometry.pose import GridIndex
 from services.common.images import decode_image, media_type_of
-from services.common.lru import LruCache
 
 __all__ = [
     "Render",
@@ -74,7 +74,7 @@ def iteration_pose(search: Search, index: int) -> GridIndex:
     return search.iterations[index].pose.index
 
 
-class ViewStore:
+class ViewStore(LruFront[bytes]):
     """PNG views of grid poses, the most recently used kept in memory up to ``max_bytes``.
 
     A view is keyed by its scene, grid pose and :class:`ViewSettings` (two searches of one pose
@@ -84,51 +84,43 @@ class ViewStore:
     search's own, or the controller's current ones
     (:meth:`~services.controller.stages.Stages.settings_for`).
 
-    Storing and eviction are :class:`~services.common.lru.LruCache`'s (``lookup`` / ``put``,
-    each view weighed by its length); its ``get`` computes synchronously, and a render is
-    awaited, so two requests for one view not kept may both render it (the same pixels).
+    Storing and eviction are a byte-bounded :class:`~services.common.caches.SharedLru`'s
+    (``lookup`` / ``put``, each view weighed by its length); a render is awaited between them,
+    so two requests for one view not kept may both render it (the same pixels).
     """
 
     def __init__(self, render: Render, max_bytes: int) -> None:
         self._render = render
-        self._views = LruCache[bytes](max_bytes, weigh=len)
+        self._lru = SharedLru[bytes](max_bytes, weigh=len)
         self.renders = 0
-
-    def __len__(self) -> int:
-        return len(self._views)
 
     @property
     def max_bytes(self) -> int:
         """The most bytes of views kept (each counts its length and a small overhead)."""
-        return self._views.max_bytes
+        return self._lru.maxsize
 
     @property
     def nbytes(self) -> int:
         """Bytes of views kept now."""
-        return self._views.nbytes
-
-    @property
-    def hits(self) -> int:
-        """Views answered from memory."""
-        return self._views.hits
+        return self._lru.currsize
 
     def remember(self, scene: str, index: GridIndex, settings: ViewSettings, image: bytes) -> None:
         """Keep ``image``, the view of ``scene`` at ``index`` as a search rendered it with
         ``settings``."""
-        self._views.put(_key(scene, index, settings), image)
+        self._lru.put(_key(scene, index, settings), image)
 
     async def png(self, scene: str, index: GridIndex, settings: ViewSettings) -> bytes:
         """The view of ``scene`` at grid pose ``index`` rendered with ``settings``, as PNG: kept,
         else rendered (the renderer's refusals and the broker's errors pass through)."""
         key = _key(scene, index, settings)
-        image = self._views.lookup(key)
+        image = self._lru.lookup(key)
         rendered = image is None
         if image is None:
             image = await self._render(scene, index, settings)
             self.renders += 1
         png = image if image.startswith(_PNG) else await asyncio.to_thread(to_png, image)
         if rendered or png is not image:
-            self._views.put(key, png)  # smaller than the PPM, and not encoded twice
+            self._lru.put(key, png)  # smaller than the PPM, and not encoded twice
         return png
 
 

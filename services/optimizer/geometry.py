@@ -116,7 +116,7 @@ class PinholeCameras:
     def unit_positions(self) -> FloatArray:
         """Camera centres ``(N, 3)`` on the unit sphere, ``(sinθ cosφ, sinθ sinφ, cosθ)``: minus
         the forward axes (to the last bit
-        :func:`services.common.geometry.grid.pose_to_cartesian`)."""
+        :func:`services.common.geometry.sphere.pose_to_cartesian`)."""
         units: FloatArray = -self.rotation[:, 2]
         return units
 

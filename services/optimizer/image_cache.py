@@ -22,12 +22,12 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import Final
 
+from services.common.caches import LruFront, SharedLru, array_nbytes
 from services.common.contracts.detect import Detection
 from services.common.contracts.optimize import ImageDetections, VisitedView
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.pose import PoseQuery
 from services.common.geometry.scene import CameraSpec
-from services.common.lru import LruCache, array_nbytes
 from services.optimizer.observations import Observation
 from services.optimizer.problem import Visit
 from services.optimizer.proxies import ProxyKind
@@ -78,32 +78,21 @@ def _key_nbytes(node: object) -> int:
     return sys.getsizeof(node)
 
 
-class ImageCache:
+class ImageCache(LruFront[tuple[SeenImage, int]]):
     """LRU of :class:`SeenImage` per (setting, image), at most ``max_bytes`` of them (arrays and
     keys); ``max_bytes=0`` keeps nothing (every image computed afresh)."""
 
     def __init__(self, max_bytes: int = DEFAULT_IMAGE_CACHE_BYTES) -> None:
-        self._entries = LruCache[tuple[SeenImage, int]](max_bytes, weigh=lambda entry: entry[1])
-
-    @property
-    def hits(self) -> int:
-        return self._entries.hits
-
-    @property
-    def misses(self) -> int:
-        return self._entries.misses
+        self._lru = SharedLru[tuple[SeenImage, int]](max_bytes, weigh=lambda entry: entry[1])
 
     @property
     def nbytes(self) -> int:
         """Bytes held now (keys and arrays, estimated, plus the LRU's overhead per entry)."""
-        return self._entries.nbytes
+        return self._lru.currsize
 
     @property
     def max_bytes(self) -> int:
-        return self._entries.max_bytes
-
-    def __len__(self) -> int:
-        return len(self._entries)
+        return self._lru.maxsize
 
     @staticmethod
     def setting(
@@ -137,8 +126,4 @@ class ImageCache:
                 array.flags.writeable = False
             return seen, _key_nbytes(key) + array_nbytes(seen)
 
-        return self._entries.get(key, stored)[0]
-
-    def clear(self) -> None:
-        """Forget every image and reset the counters."""
-        self._entries.clear()
+        return self._lru.get(key, stored)[0]

@@ -29,9 +29,9 @@ from typing import Final
 
 import numpy as np
 
+from services.common.caches import SharedLru, array_nbytes
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import CameraSpec
-from services.common.lru import LruCache
 from services.optimizer.calibration import PaperCalibration
 from services.optimizer.geometry import FloatArray
 from services.optimizer.longitude import solve_rotation
@@ -98,8 +98,10 @@ _CANDIDATES_BYTES: Final = 8 * 2**20
 _MAPPED_BYTES: Final = 4 * 2**20
 """Memory for current views' paper mappings: ~1 kB each."""
 
-_candidate_profiles: Final = LruCache[tuple[FloatArray, FloatArray]](_CANDIDATES_BYTES)
-_mapped_views: Final = LruCache[tuple[Observation, FloatArray]](_MAPPED_BYTES)
+_candidate_profiles: Final = SharedLru[tuple[FloatArray, FloatArray]](
+    _CANDIDATES_BYTES, weigh=array_nbytes
+)
+_mapped_views: Final = SharedLru[tuple[Observation, FloatArray]](_MAPPED_BYTES, weigh=array_nbytes)
 
 
 def _candidates(

@@ -53,8 +53,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from services.common.geometry.grid import HemisphereGrid, pose_to_cartesian
+from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import CameraSpec
+from services.common.geometry.sphere import pose_to_cartesian
 from services.optimizer.geometry import FloatArray, PinholeCameras
 from services.optimizer.matching import COLOUR_GATE, Assignment, assign
 from services.optimizer.observations import Observation, appearance_cost

@@ -13,14 +13,12 @@ which an observation computes once: a search's requests find their views' observ
 from __future__ import annotations
 
 import operator
-import threading
-from collections import OrderedDict
-from collections.abc import Hashable
 from dataclasses import fields
 from typing import Final
 
 import numpy as np
 
+from services.common.caches import LruFront, SharedLru
 from services.common.geometry.scene import CameraSpec
 from services.optimizer.mapping import MappedObjects, map_exact
 from services.optimizer.observations import Observation
@@ -34,24 +32,20 @@ DEFAULT_VIEW_MAPPINGS: Final = 4096
 (a few kB each)."""
 
 
-class ViewMappings:
-    """LRU of :func:`.mapping.map_exact` results per (observation digest, pose, camera).
+class ViewMappings(LruFront[MappedObjects]):
+    """LRU of :func:`.mapping.map_exact` results per (observation digest, pose, camera), at most
+    ``maxsize`` of them (a :class:`~services.common.caches.SharedLru`; 0 keeps none).
 
     The arrays handed out are read-only: they are shared by every caller that asks for the
     same view.
     """
 
     def __init__(self, maxsize: int = DEFAULT_VIEW_MAPPINGS) -> None:
-        if maxsize < 0:
-            raise ValueError(f"maxsize must be >= 0, got {maxsize}")
-        self.maxsize = maxsize
-        self.hits = 0
-        self.misses = 0
-        self._entries: OrderedDict[Hashable, MappedObjects] = OrderedDict()
-        self._lock = threading.Lock()
+        self._lru = SharedLru[MappedObjects](maxsize)  # raises for a negative maxsize
 
-    def __len__(self) -> int:
-        return len(self._entries)
+    @property
+    def maxsize(self) -> int:
+        return self._lru.maxsize
 
     def get(
         self, observation: Observation, theta_deg: float, phi_deg: float, camera: CameraSpec
@@ -60,31 +54,15 @@ class ViewMappings:
         # The digest covers the kinds too: in identity mode they come from the classes. The
         # camera's values, not the model: a pydantic model hashes and compares in Python.
         key = (observation.digest, float(theta_deg), float(phi_deg), _CAMERA_FIELDS(camera))
-        with self._lock:
-            found = self._entries.get(key)
-            if found is not None:
-                self._entries.move_to_end(key)
-                self.hits += 1
-                return found
-            self.misses += 1
-        # Mapped outside the lock: two threads may map one view at once, never wait on it.
-        boxes = np.ascontiguousarray(observation.boxes, dtype=np.float64)
-        mapped = map_exact(boxes, observation.kinds, camera, theta_deg, phi_deg)
-        for field in fields(mapped):
-            getattr(mapped, field.name).flags.writeable = False
-        if self.maxsize:
-            with self._lock:
-                self._entries[key] = mapped
-                self._entries.move_to_end(key)
-                while len(self._entries) > self.maxsize:
-                    self._entries.popitem(last=False)
-        return mapped
 
-    def clear(self) -> None:
-        """Forget every mapping and reset the counters."""
-        with self._lock:
-            self._entries.clear()
-            self.hits = self.misses = 0
+        def mapping() -> MappedObjects:
+            boxes = np.ascontiguousarray(observation.boxes, dtype=np.float64)
+            mapped = map_exact(boxes, observation.kinds, camera, theta_deg, phi_deg)
+            for field in fields(mapped):
+                getattr(mapped, field.name).flags.writeable = False
+            return mapped
+
+        return self._lru.get(key, mapping)
 
 
 SHARED_MAPPINGS: Final = ViewMappings()

@@ -21,14 +21,14 @@ import logging
 import os
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ParamSpec, TypeVar
+from typing import Any, ParamSpec, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.caches import SharedLru
 from services.common.contracts.render import ObjectAnnotation, RenderAnnotations
 from services.common.errors import ServiceUnavailableError
 from services.common.geometry.camera import mitsuba_to_world, pinhole_camera, project
@@ -115,7 +115,6 @@ class RenderEngine:
         if cache_size < 1 or max_queue < 1 or slice_samples < 1:
             raise ValueError("cache_size, max_queue and slice_samples must be at least 1")
         self._choice: VariantChoice = choose_variant(variant)
-        self._cache_size = cache_size
         self._max_queue = max_queue
         self._freeze = freeze
         self._slice_samples = slice_samples
@@ -123,7 +122,8 @@ class RenderEngine:
         self._scheduler = Scheduler(thread_name="mitsuba")
         self._lock = threading.Lock()
         self._in_flight = 0
-        self._cache: OrderedDict[tuple[str, int, int, int], _Loaded] = OrderedDict()
+        # Filled on the worker thread, read by loaded_scenes on the event loop: under a lock.
+        self._cache = SharedLru[_Loaded](cache_size)
         self._mi: Any = None
         self._dr: Any = None
         self._aov: Any = None
@@ -181,7 +181,8 @@ class RenderEngine:
 
     def loaded_scenes(self) -> tuple[str, ...]:
         """Ids of the scenes currently loaded (any film size)."""
-        return tuple(sorted({key[0] for key in list(self._cache)}))
+        keys = cast(tuple[tuple[str, int, int, int], ...], self._cache.keys())
+        return tuple(sorted({key[0] for key in keys}))
 
     def _admit(self) -> None:
         with self._lock:
@@ -262,10 +263,10 @@ class RenderEngine:
     def loaded(self, scene: LoadedScene, width: int, height: int) -> _Loaded:
         """The scene loaded at this film size, from the cache or loaded now (worker thread only)."""
         key = (scene.id, scene.version, width, height)
-        cached = self._cache.get(key)
-        if cached is not None:
-            self._cache.move_to_end(key)
-            return cached
+        return self._cache.get(key, lambda: self._load(scene, width, height))
+
+    def _load(self, scene: LoadedScene, width: int, height: int) -> _Loaded:
+        """Load the scene at this film size (worker thread only)."""
         mi = self._mi
         started = time.perf_counter()
         # optimize=False: Mitsuba would otherwise merge meshes that share a material into one
@@ -298,9 +299,6 @@ class RenderEngine:
             shape_to_object=shape_to_object,
             centroids=(lo + hi) / 2.0,
         )
-        self._cache[key] = loaded
-        while len(self._cache) > self._cache_size:
-            self._cache.popitem(last=False)
         _log.info(
             "loaded scene %s at %dx%d in %.0f ms",
             scene.id,

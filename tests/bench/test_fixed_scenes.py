@@ -31,8 +31,9 @@ from cosmos.bench.variants import (
 from cosmos.cli import main
 from services.common.contracts.detect import Detection
 from services.common.contracts.render import ObjectAnnotation
-from services.common.geometry.grid import angular_distance_deg, grid_for
+from services.common.geometry.grid import grid_for
 from services.common.geometry.pose import GridIndex
+from services.common.geometry.sphere import angular_distance_deg
 from services.detector.letterbox import fit
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "detector.onnx"

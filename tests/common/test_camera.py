@@ -19,8 +19,8 @@ from services.common.geometry.camera import (
     pixel_rays,
     project,
 )
-from services.common.geometry.grid import pose_to_cartesian
 from services.common.geometry.pose import Pose
+from services.common.geometry.sphere import pose_to_cartesian
 
 thetas = st.floats(0.0, 90.0)
 phis = st.floats(-720.0, 720.0)

@@ -15,12 +15,14 @@ from services.common.geometry.grid import (
     GridError,
     GridSpec,
     HemisphereGrid,
-    angular_distance_deg,
-    cartesian_to_pose,
     grid_for,
-    pose_to_cartesian,
 )
 from services.common.geometry.pose import GridIndex, Pose
+from services.common.geometry.sphere import (
+    angular_distance_deg,
+    cartesian_to_pose,
+    pose_to_cartesian,
+)
 
 DEMO = (7.5, 7.5, 82.5)
 GRID_PARAMS = [

@@ -94,7 +94,7 @@ def uncached(monkeypatch, strategy: str) -> None:
     """The strategy's caches emptied and kept empty: every answer computed afresh."""
     for cache in CACHES[strategy]:
         cache.clear()
-        monkeypatch.setattr(cache, "max_bytes", 0)
+        monkeypatch.setattr(cache, "put", lambda key, value: False)  # keeps nothing
 
 
 @pytest.mark.usefixtures("fresh_caches")
@@ -110,7 +110,7 @@ def test_the_simple_searchs_caches_hit_in_the_service(demo, context, monkeypatch
     second = search(demo, context, "simple", GridIndex(lat=7, lon=26))
     assert mapped.hits >= 1
     for cache in (mapped, scored):
-        assert 0 < cache.nbytes <= cache.max_bytes
+        assert 0 < cache.currsize <= cache.maxsize
     uncached(monkeypatch, "simple")
     assert search(demo, context, "simple", GridIndex(lat=9, lon=25)) == first
     assert search(demo, context, "simple", GridIndex(lat=7, lon=26)) == second
@@ -130,7 +130,7 @@ def test_the_paper_searchs_caches_hit_in_the_service(demo, context, monkeypatch)
     second = search(demo, context, "paper", GridIndex(lat=10, lon=30))
     assert mapped.hits >= 1
     for cache in (mapped, profiles):
-        assert 0 < cache.nbytes <= cache.max_bytes
+        assert 0 < cache.currsize <= cache.maxsize
     uncached(monkeypatch, "paper")
     assert search(demo, context, "paper", GridIndex(lat=0, lon=0)) == first
     assert search(demo, context, "paper", GridIndex(lat=10, lon=30)) == second

@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from services.common.geometry.camera import camera_axes, pinhole_camera, project
-from services.common.geometry.grid import pose_to_cartesian
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import CameraSpec
+from services.common.geometry.sphere import pose_to_cartesian
 from services.optimizer import proxies
 from services.optimizer.geometry import PinholeCameras
 from services.optimizer.proxies import (

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.common.geometry.grid import angular_distance_deg, grid_for
+from services.common.geometry.grid import grid_for
 from services.common.geometry.pose import GridIndex
 from services.common.geometry.scene import LoadedScene, SceneSpec
+from services.common.geometry.sphere import angular_distance_deg
 from services.optimizer.calibration import CalibrationStore
 from services.optimizer.observations import Observation
 from services.optimizer.problem import SearchProblem, Visit

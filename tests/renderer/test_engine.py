@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -246,3 +247,28 @@ def test_a_render_in_sample_passes_is_the_same_estimate(engine, catalog):
     assert 0 < np.abs(split - one).mean() < 1.25 * noise
     assert abs(split.mean() - one.mean()) < 0.5
     assert first.render_ms > 0
+
+
+def test_the_scene_cache_hits_and_keeps_the_most_recently_used(monkeypatch):
+    """A (scene, film size) is loaded once and found again; past ``cache_size`` the least
+    recently used goes (no Mitsuba needed: the loading itself is stood in for)."""
+    engine = RenderEngine(SCALAR_VARIANT, cache_size=2)
+    loads: list[tuple[str, int]] = []
+
+    def load(scene, width, height):
+        loads.append((scene.id, width))
+        return object()
+
+    monkeypatch.setattr(engine, "_load", load)
+    demo, garden = (SimpleNamespace(id=name, version=1) for name in ("demo", "garden"))
+    try:
+        first = engine.loaded(demo, 320, 240)
+        assert engine.loaded(demo, 320, 240) is first  # a hit: not loaded again
+        engine.loaded(garden, 320, 240)
+        engine.loaded(demo, 320, 240)  # demo is now the most recent
+        engine.loaded(demo, 640, 480)  # garden, the least recently used, goes
+        assert engine.loaded_scenes() == ("demo",)
+        engine.loaded(garden, 320, 240)
+        assert loads == [("demo", 320), ("garden", 320), ("demo", 640), ("garden", 320)]
+    finally:
+        engine.close()

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
+from services.common.caches import ENTRY_OVERHEAD
 from services.common.contracts.search import ViewSettings
 from services.common.geometry.pose import GridIndex
 from services.common.images import encode_ppm
-from services.common.lru import ENTRY_OVERHEAD
 from services.controller.page import INDEX, PageAssets, accepts_gzip, not_modified
 from services.controller.views import ViewStore, displayable, to_png
 

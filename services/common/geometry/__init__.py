@@ -4,6 +4,7 @@
 Module                    What it holds
 ========================  =================================================================
 :mod:`.pose`              :class:`~.pose.Pose`, :class:`~.pose.GridIndex`, :class:`~.pose.PoseQuery`
+:mod:`.sphere`            camera positions of poses and back, angles between poses
 :mod:`.grid`              :class:`~.grid.GridSpec` (the one grid type) and
                           :class:`~.grid.HemisphereGrid` (its rings, indices and neighbours)
 :mod:`.camera`            :class:`~.camera.PinholeCamera` and projection to and from pixels

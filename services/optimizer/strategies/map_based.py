@@ -20,8 +20,9 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.geometry.grid import HemisphereGrid, pose_to_cartesian
+from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import CameraSpec
+from services.common.geometry.sphere import pose_to_cartesian
 from services.optimizer.geometry import PinholeCameras
 from services.optimizer.matching import Assignment, ViewComparison
 from services.optimizer.observations import Observation

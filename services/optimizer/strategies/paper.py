@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from services.common.geometry.grid import angular_distance_deg
+from services.common.geometry.sphere import angular_distance_deg
 from services.optimizer.geometry import PinholeCameras
 from services.optimizer.layout import LayoutEstimate, estimate_layout
 from services.optimizer.matching import compare_views

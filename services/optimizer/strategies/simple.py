@@ -17,8 +17,8 @@ from __future__ import annotations
 
 from typing import Final
 
+from services.common.caches import SharedLru, array_nbytes
 from services.common.geometry.grid import Direction
-from services.common.lru import LruCache
 from services.optimizer.matching import compare_views
 from services.optimizer.problem import Plan, SearchProblem, Visit
 from services.optimizer.strategies.done import done_plan
@@ -42,8 +42,8 @@ it 40 % slower)."""
 _SCORED_BYTES: Final = 8 * 2**20
 """Memory for those maps scored against a target: ~5 kB each on a 341-pose grid."""
 
-_mapped_views: Final = LruCache[Mapped](_MAPPED_BYTES)
-_scored_views: Final = LruCache[MapEstimate | None](_SCORED_BYTES)
+_mapped_views: Final = SharedLru[Mapped](_MAPPED_BYTES, weigh=array_nbytes)
+_scored_views: Final = SharedLru[MapEstimate | None](_SCORED_BYTES, weigh=array_nbytes)
 
 
 def _reference_estimate(problem: SearchProblem, reference: Visit) -> MapEstimate | None:

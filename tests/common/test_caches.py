@@ -1,12 +1,14 @@
-"""The byte-bounded LRU cache the optimizer and the controller share: bounded by bytes, counting
-hits, and its storing part (lookup / put) for values computed by a coroutine."""
+"""The shared LRU over cachetools: bounded by entries or by bytes, counting hits, computing a
+missing value once per miss, and safe to share between threads."""
 
 from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
-from services.common.lru import ENTRY_OVERHEAD, LruCache, array_nbytes
+from services.common.caches import ENTRY_OVERHEAD, SharedLru, array_nbytes
 
 
 def test_array_bytes_count_every_array_once():
@@ -16,7 +18,7 @@ def test_array_bytes_count_every_array_once():
 
 
 def test_the_lru_is_bounded_by_bytes_and_counts_hits():
-    cache = LruCache[np.ndarray](max_bytes=3 * (800 + ENTRY_OVERHEAD))
+    cache = SharedLru[np.ndarray](3 * (800 + ENTRY_OVERHEAD), weigh=array_nbytes)
     calls = []
 
     def zeros(n: int):
@@ -31,30 +33,30 @@ def test_the_lru_is_bounded_by_bytes_and_counts_hits():
     assert cache.get("a", zeros(800)) is cache.get("a", zeros(800))  # a is now the most recent
     cache.get("d", zeros(800))  # b, the least recently used, goes
     assert (cache.hits, cache.misses, len(cache)) == (2, 4, 3)
-    assert cache.nbytes == 3 * (800 + ENTRY_OVERHEAD) <= cache.max_bytes
+    assert cache.currsize == 3 * (800 + ENTRY_OVERHEAD) <= cache.maxsize
     cache.get("b", zeros(800))
     assert calls == [800, 800, 800, 800, 800]  # b computed again
     big = cache.get("e", zeros(8000))  # heavier than the whole budget: answered, not kept
     assert big.shape == (1000,)
-    assert "e" not in cache._entries
-    assert cache.nbytes <= cache.max_bytes
+    assert "e" not in cache
+    assert cache.currsize <= cache.maxsize
     cache.clear()
-    assert (cache.hits, cache.misses, len(cache), cache.nbytes) == (0, 0, 0, 0)
+    assert (cache.hits, cache.misses, len(cache), cache.currsize) == (0, 0, 0, 0)
 
 
 def test_values_without_arrays_are_bounded_too():
-    cache = LruCache[None](max_bytes=10 * ENTRY_OVERHEAD)
+    cache = SharedLru[None](10 * ENTRY_OVERHEAD, weigh=array_nbytes)
     for key in range(100):
         cache.get(key, lambda: None)
     assert len(cache) == 10
     assert cache.get(99, lambda: None) is None
     assert cache.hits == 1
-    with pytest.raises(ValueError, match="max_bytes"):
-        LruCache[None](max_bytes=-1)
+    with pytest.raises(ValueError, match="maxsize"):
+        SharedLru[None](-1)
 
 
 def test_lookup_and_put_store_and_evict_as_get_does():
-    cache = LruCache[bytes](max_bytes=2 * (100 + ENTRY_OVERHEAD), weigh=len)
+    cache = SharedLru[bytes](2 * (100 + ENTRY_OVERHEAD), weigh=len)
     assert cache.lookup("a") is None
     assert cache.put("a", b"a" * 100)
     assert cache.put("b", b"b" * 100)
@@ -63,8 +65,33 @@ def test_lookup_and_put_store_and_evict_as_get_does():
     assert cache.lookup("b") is None
     assert (cache.hits, cache.misses, len(cache)) == (1, 2, 2)
     assert cache.put("a", b"A" * 50)  # replaced: its old weight is given back
-    assert cache.nbytes == 50 + 100 + 2 * ENTRY_OVERHEAD
+    assert cache.currsize == 50 + 100 + 2 * ENTRY_OVERHEAD
     assert not cache.put("big", b"x" * 1000)  # heavier than the whole budget: not kept
     assert cache.lookup("big") is None
     assert cache.lookup("a") == b"A" * 50
     assert cache.lookup("c") == b"c" * 100  # nothing was evicted for it
+
+
+def test_a_count_bound_keeps_the_most_recently_used_entries():
+    cache = SharedLru[str](2)
+    for key in "aba":
+        cache.get(key, key.upper)
+    cache.get("c", lambda: "C")  # b, the least recently used, goes
+    assert cache.keys() == ("a", "c")
+    assert (cache.hits, cache.misses) == (1, 3)
+    nothing = SharedLru[str](0)  # keeps nothing: every value is computed again
+    assert nothing.get("a", lambda: "A") == nothing.get("a", lambda: "A") == "A"
+    assert (len(nothing), nothing.hits, nothing.misses) == (0, 0, 2)
+
+
+def test_threads_share_the_cache_safely():
+    cache = SharedLru[int](3)
+
+    def work(i: int) -> bool:
+        k = i % 5
+        return cache.get(k, lambda: k * k) == k * k
+
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        assert all(pool.map(work, range(400)))
+    assert len(cache) <= 3
+    assert cache.hits + cache.misses == 400
