@@ -14,15 +14,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
-from typing import Annotated, Any, Final
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi import Path as FastApiPath
-from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.responses import JSONResponse, Response
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sse_starlette import EventSourceResponse
 from starlette.routing import BaseRoute, Match
 from starlette.types import Scope
 
@@ -32,7 +32,6 @@ from services.common.contracts.optimize import UnsupportedGridError, searchable_
 from services.common.contracts.render import SceneDetail, SceneSummary
 from services.common.contracts.search import (
     MAX_ITERATIONS,
-    TERMINAL_STATUSES,
     ControllerHealth,
     Search,
     SearchPage,
@@ -46,21 +45,14 @@ from services.common.errors import (
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex
 from services.common.http import app_state, problem_responses
-from services.common.stopping import STOPPING
 from services.common.upload import read_upload
+from services.controller import events
 from services.controller.auth import authenticate, checked_key
 from services.controller.broker import Broker, BrokerError
-from services.controller.events import Notifier
+from services.controller.events import Notifier, event_stream
 from services.controller.form import OPENAPI, search_options
 from services.controller.keys import ApiKey, KeyStore
-from services.controller.page import (
-    INDEX,
-    SECURITY_HEADERS,
-    Asset,
-    PageAssets,
-    accepts_gzip,
-    not_modified,
-)
+from services.controller.page import page_routes
 from services.controller.plots import PlotCache, distance_png, trajectory_png
 from services.controller.quotas import Quotas
 from services.controller.runner import SearchRunner
@@ -92,7 +84,6 @@ class ControllerState:
     quotas: Quotas
     views: ViewStore
     plots: PlotCache = field(default_factory=PlotCache)
-    page: PageAssets = field(default_factory=PageAssets)
 
 
 State = Annotated[ControllerState, Depends(app_state("controller"))]
@@ -182,52 +173,17 @@ async def health(state: State) -> ControllerHealth:
     return _health_of(state)
 
 
-HEALTH_EVENTS_EVERY_S: Final = 1.0
-"""How often ``GET /health/events`` looks whether the health changed."""
-_KEEP_ALIVE_S: Final = 15.0
-"""A comment sent on an event stream after this long without an event."""
-_STOP_CHECK_S: Final = 1.0
-"""How often a waiting event stream looks whether the server is stopping (:data:`STOPPING`)."""
-
-
-async def _set_within(event: asyncio.Event, timeout_s: float) -> bool:
-    """Whether ``event`` is set within ``timeout_s``."""
-    try:
-        await asyncio.wait_for(event.wait(), timeout=timeout_s)
-    except TimeoutError:
-        return False
-    return True
-
-
 @router.get(
     "/health/events",
-    response_class=StreamingResponse,
+    response_class=EventSourceResponse,
     responses={200: {"content": {"text/event-stream": {}}}},
 )
-async def health_events(state: State) -> StreamingResponse:
+async def health_events(state: State) -> EventSourceResponse:
     """Server-sent events: ``health``, the body ``GET /health`` answers, at once and then
     whenever it changed (looked at every second), until the client leaves or the server stops;
-    a comment every 15 s while nothing changed keeps proxies from closing the stream. The web
-    page's broker panel follows it. Open to anyone, as ``/health`` is."""
-
-    async def stream() -> AsyncIterator[bytes]:
-        last = ""
-        quiet_s = 0.0
-        while not STOPPING.is_set():
-            doc = _health_of(state).model_dump_json()
-            if doc != last:
-                last = doc
-                quiet_s = 0.0
-                yield _sse("health", doc)
-            elif quiet_s >= _KEEP_ALIVE_S:
-                quiet_s = 0.0
-                yield b": keep-alive\n\n"
-            await asyncio.sleep(HEALTH_EVENTS_EVERY_S)
-            quiet_s += HEALTH_EVENTS_EVERY_S
-
-    return StreamingResponse(
-        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
-    )
+    a comment every 15 s keeps proxies from closing the stream. The web page's broker panel
+    follows it. Open to anyone, as ``/health`` is."""
+    return event_stream(events.health_events(lambda: _health_of(state).model_dump_json()))
 
 
 def _health_of(state: ControllerState) -> ControllerHealth:
@@ -398,16 +354,12 @@ async def retry_search(search_id: str, state: State, key: Caller) -> JSONRespons
     )
 
 
-def _sse(event: str, data: str) -> bytes:
-    return f"event: {event}\ndata: {data}\n\n".encode()
-
-
 @router.get(
     "/searches/{search_id}/events",
-    response_class=StreamingResponse,
+    response_class=EventSourceResponse,
     responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(401, 404)},
 )
-async def search_events(search_id: str, state: State, key: Caller) -> StreamingResponse:
+async def search_events(search_id: str, state: State, key: Caller) -> EventSourceResponse:
     """Server-sent events (:data:`~services.common.contracts.search.SEARCH_EVENTS`): while the
     search is queued or running, ``search`` with the search without its iterations whenever it
     changed (its status, its target's detections); ``iteration`` for each recorded iteration;
@@ -415,40 +367,7 @@ async def search_events(search_id: str, state: State, key: Caller) -> StreamingR
     as they are. A server that stops ends the stream (the client follows again, elsewhere)."""
     if state.store.status_doc(search_id, visible_to=_visible_to(key)) is None:
         raise _unknown_search(search_id)
-
-    async def stream() -> AsyncIterator[bytes]:
-        sent = 0
-        last_doc = ""
-        with state.notifier.following(search_id):  # a client that goes away stops following
-            while True:
-                changed = state.notifier.current(search_id)
-                # The status before the iterations: a search ends after its last one.
-                status_doc = state.store.status_doc(search_id)
-                if status_doc is not None and status_doc[0] not in TERMINAL_STATUSES:
-                    if status_doc[1] != last_doc:
-                        last_doc = status_doc[1]
-                        yield _sse("search", last_doc)
-                docs = state.store.iteration_docs(search_id, start=sent)
-                for doc in docs:
-                    yield _sse("iteration", doc)
-                sent += len(docs)
-                if status_doc is None:  # expired meanwhile: stop rather than spin
-                    return
-                if status_doc[0] in TERMINAL_STATUSES:
-                    yield _sse("end", status_doc[1])
-                    return
-                quiet_s = 0.0
-                while not await _set_within(changed, _STOP_CHECK_S):
-                    if STOPPING.is_set():
-                        return  # the server is stopping: the client follows again elsewhere
-                    quiet_s += _STOP_CHECK_S
-                    if quiet_s >= _KEEP_ALIVE_S:
-                        quiet_s = 0.0
-                        yield b": keep-alive\n\n"
-
-    return StreamingResponse(
-        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
-    )
+    return event_stream(events.search_events(state.store, state.notifier, search_id))
 
 
 async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
@@ -606,37 +525,4 @@ async def iteration_view(
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
 
 
-def _file(request: Request, asset: Asset) -> Response:
-    """``asset`` for ``request``: 304 when the client holds it, gzipped when it accepts that."""
-    gzip_ok = accepts_gzip(request.headers.get("accept-encoding", ""))
-    headers = {**asset.headers(gzip_ok=gzip_ok), **SECURITY_HEADERS}
-    if not_modified(asset, request.headers.get("if-none-match", "")):
-        headers.pop("Content-Encoding", None)
-        return Response(status_code=304, headers=headers)
-    body = asset.gzipped if gzip_ok and asset.gzipped is not None else asset.body
-    return Response(body, media_type=asset.media_type, headers=headers)
-
-
-def _page_missing(what: str) -> NotFoundError:
-    return NotFoundError(
-        f"{what} is not built: run `npm ci && npm run build` in web/",
-        slug="page-not-built",
-        title="Page not built",
-    )
-
-
-@router.get("/", response_class=Response, include_in_schema=False)
-async def page(request: Request, state: State) -> Response:
-    """The web page (no key needed to load it: it asks for one and sends it with its calls)."""
-    if state.page.index is None:
-        raise _page_missing(INDEX)
-    return _file(request, state.page.index)
-
-
-@router.get("/assets/{name}", response_class=Response, include_in_schema=False)
-async def page_asset(name: str, request: Request, state: State) -> Response:
-    """A file of the web page (its name carries a hash of its content: cached for good)."""
-    asset = state.page.asset(name)
-    if asset is None:
-        raise NotFoundError(f"no page asset {name!r}", field="name", slug="unknown-asset")
-    return _file(request, asset)
+router.routes.extend(page_routes())  # the page: no key needed to load it (page.py)
