@@ -12,9 +12,7 @@ one, so ids do not leak); an admin key sees them all.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -48,45 +46,25 @@ from services.common.http import app_state, problem_responses
 from services.common.upload import read_upload
 from services.controller import events
 from services.controller.auth import authenticate, checked_key
-from services.controller.broker import Broker, BrokerError
-from services.controller.events import Notifier, event_stream
+from services.controller.broker import BrokerError
+from services.controller.events import event_stream
 from services.controller.form import OPENAPI, search_options
-from services.controller.keys import ApiKey, KeyStore
+from services.controller.keys import ApiKey
 from services.controller.page import page_routes
-from services.controller.plots import PlotCache, distance_png, trajectory_png
-from services.controller.quotas import Quotas
-from services.controller.runner import SearchRunner
-from services.controller.settings import ControllerSettings
-from services.controller.stages import StageError, Stages
-from services.controller.store import SearchStore
-from services.controller.submit import INLINE_WRITE_BYTES, create_search
+from services.controller.plots import distance_png, trajectory_png
+from services.controller.runner import NotRetryable
+from services.controller.stages import StageError
+from services.controller.submit import RETRY_AFTER_S
 from services.controller.transport import StageRequest
-from services.controller.views import UnknownIteration, ViewStore, displayable, iteration_pose
+from services.controller.views import UnknownIteration, displayable, iteration_pose
+from services.controller.wiring import Controller
 
-__all__ = ["ControllerState", "needs_key", "router"]
+__all__ = ["needs_key", "router"]
 
 router = APIRouter()
 _log = logging.getLogger("cosmos.controller")
 
-RETRY_AFTER_S = 5
-"""``Retry-After`` of a 503 while a stage is unavailable (the broker probes it more often)."""
-
-
-@dataclass(frozen=True)
-class ControllerState:
-    settings: ControllerSettings
-    store: SearchStore
-    broker: Broker
-    stages: Stages
-    runner: SearchRunner
-    notifier: Notifier
-    keys: KeyStore
-    quotas: Quotas
-    views: ViewStore
-    plots: PlotCache = field(default_factory=PlotCache)
-
-
-State = Annotated[ControllerState, Depends(app_state("controller"))]
+State = Annotated[Controller, Depends(app_state("controller"))]
 
 _bearer = HTTPBearer(
     scheme_name="ApiKey",
@@ -157,7 +135,7 @@ def _unknown_search(search_id: str) -> NotFoundError:
     )
 
 
-def _search_or_404(state: ControllerState, key: ApiKey | None, search_id: str) -> Search:
+def _search_or_404(state: Controller, key: ApiKey | None, search_id: str) -> Search:
     search = state.store.get(search_id, visible_to=_visible_to(key))
     if search is None:
         raise _unknown_search(search_id)
@@ -186,7 +164,7 @@ async def health_events(state: State) -> EventSourceResponse:
     return event_stream(events.health_events(lambda: _health_of(state).model_dump_json()))
 
 
-def _health_of(state: ControllerState) -> ControllerHealth:
+def _health_of(state: Controller) -> ControllerHealth:
     size = state.store.size()
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(
@@ -231,21 +209,6 @@ def _unavailable(stage: str, why: Exception) -> ServiceUnavailableError:
     )
 
 
-def _refuse_while_unavailable(state: ControllerState) -> None:
-    """503 with ``Retry-After`` while a stage no replica serves: a search taken now would only
-    wait for it (and fail after the outage budget), so it is not taken."""
-    down = state.broker.unavailable()
-    if down:
-        raise ServiceUnavailableError(
-            f"the {' and the '.join(down)} {'is' if len(down) == 1 else 'are'} unavailable (no "
-            "replica answers); try again once GET /health no longer lists "
-            f"{'it' if len(down) == 1 else 'them'}",
-            slug="stage-unavailable",
-            title="Stage unavailable",
-            headers={"Retry-After": str(RETRY_AFTER_S)},
-        )
-
-
 @router.post(
     "/searches",
     status_code=202,
@@ -260,41 +223,15 @@ async def submit(request: Request, state: State, key: Caller) -> JSONResponse:
     JPEG or binary PPM body with the options in the query. A key over one of its quotas gets
     429 with ``Retry-After``; while a stage has no replica available (``GET /health`` says
     ``degraded``), 503 with ``Retry-After``."""
-    _refuse_while_unavailable(state)
+    state.admission.refuse_while_unavailable()  # before the body is read
     upload = await read_upload(request)
     options = search_options(upload.fields, request.query_params.multi_items())
-    admitted: contextlib.AbstractContextManager[None] = (
-        state.quotas.admit(key.id, len(upload.image))
-        if key is not None and not key.admin
-        else contextlib.nullcontext()
-    )
-    idle = state.runner.idle
     try:
-        with admitted:
-            search = await create_search(
-                state.store,
-                state.stages,
-                image=upload.image,
-                scene_id=options.scene,
-                strategy=options.strategy,
-                start_theta_deg=options.start_theta_deg,
-                start_phi_deg=options.start_phi_deg,
-                seed=options.seed,
-                max_iterations=options.max_iterations
-                or state.settings.controller_default_max_iterations,
-                max_image_pixels=state.settings.controller_max_image_pixels,
-                max_image_side=state.settings.controller_max_image_side,
-                start_early=idle,
-                owner=None if key is None else key.id,
-            )
+        search = await state.admission.submit(upload.image, options, key)
     except BrokerError as exc:
         raise _unavailable(exc.stage, exc) from exc
     except StageError as exc:
         raise UnprocessableError(str(exc), field="scene") from exc
-    # The runner keeps the image of a search that starts now, or a small one; a large image of
-    # a queued search is read back when it starts (50 maximal uploads queued would hold 1 GB).
-    keep = idle or len(upload.image) <= INLINE_WRITE_BYTES
-    state.runner.submit(search.id, recorded=(search, upload.image) if keep else None)
     return JSONResponse(
         search.model_dump(mode="json"),
         status_code=202,
@@ -340,13 +277,10 @@ async def retry_search(search_id: str, state: State, key: Caller) -> JSONRespons
     ``urn:cosmos:problem:stage-unavailable``) from its recorded iterations: 202, the search
     queued again. 409 for any other search; 503 with ``Retry-After`` while a stage is still
     unavailable; 429 for a key at its quota of searches queued or running."""
-    why = state.runner.why_not_retryable(_search_or_404(state, key, search_id))
-    if why is not None:
-        raise ConflictError(why, slug="not-retryable", title="Not retryable")
-    _refuse_while_unavailable(state)
-    if key is not None and not key.admin:
-        state.quotas.check(key.id, 0)  # its image is stored already
-    search = state.runner.retry(search_id)  # nothing ran since the check: it takes the search
+    try:
+        search = state.admission.retry(_search_or_404(state, key, search_id), key)
+    except NotRetryable as exc:
+        raise ConflictError(str(exc), slug="not-retryable", title="Not retryable") from exc
     return JSONResponse(
         search.model_dump(mode="json"),
         status_code=202,
@@ -370,7 +304,7 @@ async def search_events(search_id: str, state: State, key: Caller) -> EventSourc
     return event_stream(events.search_events(state.store, state.notifier, search_id))
 
 
-async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
+async def _grid_of(state: Controller, search: Search) -> GridSpec:
     try:
         scene = await state.stages.scene(search.scene)
     except (StageError, BrokerError) as exc:
