@@ -71,14 +71,17 @@ from services.controller.writes import Writes
 __all__ = ["SearchLoop"]
 
 
-@dataclass(frozen=True)
-class _View:
-    """A rendered pose's detections, reused if the search comes back to it, and the sha256 of
-    the model that detected them (None when recorded by an earlier version)."""
+View = DetectResponse | Iteration
+"""A view's detections, as they came: the detector's answer for a pose rendered now, or the
+iteration that saw a pose before (a pose is rendered once). The view becomes an
+:class:`Iteration` (recorded) and a :class:`VisitedView` (the optimizer's request): the two
+contracts it travels through, and no other shape."""
 
-    image_size: tuple[int, int]
-    detections: tuple[Detection, ...]
-    model: str | None = None
+
+def _model_of(view: View) -> str | None:
+    """The sha256 of the model that detected ``view`` (None when recorded by an earlier
+    version)."""
+    return view.model.sha256 if isinstance(view, DetectResponse) else view.detector_sha256
 
 
 def _retrieve(task: asyncio.Task[Any]) -> None:
@@ -134,13 +137,13 @@ def _classes_for(
     search: Search,
     scene: SceneDetail,
     target_model: ModelInfo | None,
-    views: Iterable[_View],
+    views: Iterable[View],
 ) -> tuple[ObjectClass, ...] | None:
     """The scene's object classes when the target and every view came from the scene's own
     model (module docstring), else None."""
     if target_model is None or target_model.scene != search.scene:
         return None
-    if any(view.model != target_model.sha256 for view in views):
+    if any(_model_of(view) != target_model.sha256 for view in views):
         return None
     return object_classes(scene.spec)
 
@@ -177,7 +180,7 @@ class _Progress:
     scene: SceneDetail
     grid: SearchableGrid
     history: list[Iteration]
-    views: dict[tuple[int, int], _View]
+    views: dict[tuple[int, int], Iteration]  # the iteration that saw each pose first
     target: tuple[Detection, ...] | None
     target_size: tuple[int, int]
     target_model: ModelInfo | None  # None for a target recorded by an earlier version
@@ -187,9 +190,9 @@ class _Progress:
     def recorded(cls, search: Search, scene: SceneDetail, grid: SearchableGrid) -> _Progress:
         """What ``search`` recorded: nothing for a new search, its iterations for a resumed one."""
         history = list(search.iterations)
-        views = {
-            _at(it.pose): _View(it.image_size, it.detections, it.detector_sha256) for it in history
-        }
+        views: dict[tuple[int, int], Iteration] = {}
+        for it in history:
+            views.setdefault(_at(it.pose), it)
         return cls(
             search,
             scene,
@@ -227,12 +230,13 @@ class _Progress:
         seen, self.unrecorded_target = self.unrecorded_target, None
         return seen
 
-    def request(self, target: TargetImage, pose: GridPose, view: _View) -> NextPoseRequest:
+    def request(self, target: TargetImage, pose: GridPose, view: View) -> NextPoseRequest:
         """The optimizer's question once it sees ``view`` at ``pose``: the target and every view
         so far, with the scene's object classes when they apply (:func:`_classes_for`)."""
         history = [_visited(it.pose, it.image_size, it.detections) for it in self.history]
         history.append(_visited(pose, view.image_size, view.detections))
-        classes = _classes_for(self.search, self.scene, self.target_model, self.views.values())
+        views = [*self.views.values(), view]
+        classes = _classes_for(self.search, self.scene, self.target_model, views)
         return NextPoseRequest(
             strategy=self.search.strategy,
             camera=self.scene.spec.camera,
@@ -243,7 +247,7 @@ class _Progress:
         )
 
     def add(
-        self, pose: GridPose, view: _View, answer: NextPoseResponse, timings: StageTimings
+        self, pose: GridPose, view: View, answer: NextPoseResponse, timings: StageTimings
     ) -> Iteration:
         """Record, in the history, ``view`` at ``pose`` and the optimizer's ``answer`` to it."""
         estimate = answer.estimate
@@ -252,7 +256,7 @@ class _Progress:
             pose=pose,
             image_size=view.image_size,
             detections=view.detections,
-            detector_sha256=view.model,
+            detector_sha256=_model_of(view),
             timings=timings,
             estimate=(
                 Pose(theta_deg=estimate.theta_deg, phi_deg=estimate.phi_deg)
@@ -268,6 +272,7 @@ class _Progress:
             match=answer.match,
         )
         self.history.append(iteration)
+        self.views.setdefault(_at(pose), iteration)
         return iteration
 
 
@@ -290,10 +295,10 @@ class SearchLoop:
 
     async def _observe(
         self, search: Search, pose: GridPose, target_image: bytes | None
-    ) -> tuple[_View, DetectResponse | None, float, float]:
+    ) -> tuple[DetectResponse, DetectResponse | None, float, float]:
         """Render and detect ``pose``; detect ``target_image`` too (while rendering), if given.
 
-        Returns the view, the target's detections (or None), render and detect milliseconds.
+        Returns the view's detections, the target's (or None), render and detect milliseconds.
         """
         sid = search.id
         target_task = None
@@ -317,12 +322,11 @@ class SearchLoop:
                 target_task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, SearchFailed):
                     await target_task
-        view = _View(found.image_size, found.detections, found.model.sha256)
-        return view, seen, (t1 - t0) * 1000, (t2 - t1) * 1000
+        return found, seen, (t1 - t0) * 1000, (t2 - t1) * 1000
 
     async def _observe_while(
         self, writes: Writes, search: Search, pose: GridPose, target_image: bytes | None
-    ) -> tuple[_View, DetectResponse | None, float, float]:
+    ) -> tuple[DetectResponse, DetectResponse | None, float, float]:
         """:meth:`_observe`, with the search's waiting writes done once its requests are out."""
         observing = asyncio.create_task(self._observe(search, pose, target_image))
         observing.add_done_callback(_retrieve)  # when a write fails before it is awaited
@@ -411,7 +415,7 @@ class SearchLoop:
 
     async def _look(
         self, progress: _Progress, pose: GridPose, image: bytes, writes: Writes
-    ) -> tuple[_View, float, float]:
+    ) -> tuple[View, float, float]:
         """The view at ``pose``: rendered and detected, with the target ``image`` while its
         detections are unknown, or the one seen there before. The waiting writes go out
         meanwhile. Returns the view, render and detect milliseconds (0 for a view seen before)."""
@@ -425,7 +429,6 @@ class SearchLoop:
         )
         if seen is not None:
             progress.saw_target(seen)
-        progress.views[_at(pose)] = view
         return view, render_ms, detect_ms
 
     def _target(self, progress: _Progress) -> TargetImage:
@@ -442,7 +445,7 @@ class SearchLoop:
         return TargetImage(image_size=progress.target_size, detections=progress.target)
 
     async def _ask_optimizer(
-        self, progress: _Progress, target: TargetImage, pose: GridPose, view: _View
+        self, progress: _Progress, target: TargetImage, pose: GridPose, view: View
     ) -> tuple[NextPoseResponse, float]:
         """The optimizer's answer once it sees ``view`` at ``pose``, and its milliseconds."""
         request = progress.request(target, pose, view)
