@@ -18,13 +18,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi import Path as FastApiPath
 from fastapi.responses import JSONResponse, Response
-from fastapi.routing import APIRoute
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sse_starlette import EventSourceResponse
-from starlette.routing import BaseRoute, Match
-from starlette.types import Scope
 
-from services.common.auth import PROBE_PATHS
 from services.common.contracts.base import MAX_SAFE_INTEGER
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
 from services.common.contracts.render import SceneDetail, SceneSummary
@@ -45,7 +40,7 @@ from services.common.geometry.pose import GridIndex
 from services.common.http import app_state, problem_responses
 from services.common.upload import read_upload
 from services.controller import events
-from services.controller.auth import authenticate, checked_key
+from services.controller.auth import Caller, caller
 from services.controller.broker import BrokerError
 from services.controller.events import event_stream
 from services.controller.form import OPENAPI, search_options
@@ -59,69 +54,12 @@ from services.controller.transport import StageRequest
 from services.controller.views import UnknownIteration, displayable, iteration_pose
 from services.controller.wiring import Controller
 
-__all__ = ["needs_key", "router"]
+__all__ = ["router"]
 
 router = APIRouter()
 _log = logging.getLogger("cosmos.controller")
 
 State = Annotated[Controller, Depends(app_state("controller"))]
-
-_bearer = HTTPBearer(
-    scheme_name="ApiKey",
-    bearerFormat="cosmos_<43 characters>",
-    description="An API key: `cosmos keys create` makes one (`cosmos up` prints a local one).",
-    auto_error=False,
-)
-
-
-async def _caller(
-    request: Request,
-    state: State,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> ApiKey | None:
-    """The key a request acts for; None when auth is off (everyone's searches, no quotas).
-    ``credentials`` only declares the scheme in the OpenAPI schema: the check is
-    :func:`~services.controller.auth.authenticate`'s, done already for a request with a body."""
-    if not state.settings.controller_auth:
-        return None
-    return checked_key(request.scope) or authenticate(
-        state.keys, request.headers.get("authorization")
-    )
-
-
-Caller = Annotated[ApiKey | None, Depends(_caller)]
-
-
-def _wants_key(route: BaseRoute) -> bool:
-    """Whether ``route`` checks an API key (depends on :func:`_caller`, directly or not)."""
-    if not isinstance(route, APIRoute):
-        return False  # not a FastAPI route: no dependencies, no key
-    pending = [route.dependant]
-    while pending:
-        dependant = pending.pop()
-        if dependant.call is _caller:
-            return True
-        pending.extend(dependant.dependencies)
-    return False
-
-
-def needs_key(scope: Scope) -> bool:
-    """Whether a request to ``scope``'s path wants an API key before its body is read: the
-    route of this module that takes it checks one (its method aside, so a wrong method gets
-    its 405 where the path is open), or no route takes the path at all (the probes and the
-    OpenAPI documents are open)."""
-    partial: BaseRoute | None = None
-    for route in router.routes:  # in order, as the app dispatches
-        match, _ = route.matches(scope)
-        if match is Match.FULL:
-            return _wants_key(route)
-        if match is Match.PARTIAL and partial is None:
-            partial = route
-    if partial is not None:
-        return _wants_key(partial)
-    app = scope["app"]
-    documents = {app.openapi_url, app.docs_url, app.redoc_url, app.swagger_ui_oauth2_redirect_url}
-    return scope["path"] not in PROBE_PATHS | documents
 
 
 def _visible_to(key: ApiKey | None) -> str | None:
@@ -185,7 +123,7 @@ def _health_of(state: Controller) -> ControllerHealth:
     "/scenes",
     response_model=list[SceneSummary],
     responses=problem_responses(401, 503),
-    dependencies=[Depends(_caller)],
+    dependencies=[Depends(caller)],
 )
 async def scenes(state: State) -> Any:
     """The scenes the renderers know (proxied)."""
@@ -367,7 +305,7 @@ _PNG_ANSWER: dict[int | str, dict[str, Any]] = {200: {"content": {"image/png": {
     "/scenes/{scene_id}",
     response_model=SceneDetail,
     responses=problem_responses(401, 404, 503),
-    dependencies=[Depends(_caller)],
+    dependencies=[Depends(caller)],
 )
 async def scene(scene_id: str, state: State) -> SceneDetail:
     """A scene's spec and its hemisphere grid with its rings (the page draws them)."""
@@ -383,7 +321,7 @@ async def scene(scene_id: str, state: State) -> SceneDetail:
     "/scenes/{scene_id}/view.png",
     response_class=Response,
     responses={**_PNG_ANSWER, **problem_responses(401, 404, 422, 503)},
-    dependencies=[Depends(_caller)],
+    dependencies=[Depends(caller)],
 )
 async def scene_view(
     scene_id: str,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 
 from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
@@ -14,8 +15,8 @@ from starlette.types import Scope
 
 from cosmos.environment import from_environment
 from services.common.http import service_app
-from services.controller.api import needs_key, router
-from services.controller.auth import ApiKeyMiddleware
+from services.controller.api import router
+from services.controller.auth import ApiKeyMiddleware, needs_key
 from services.controller.keys import KeyStore
 from services.controller.readiness import ControllerReadiness
 from services.controller.settings import ControllerSettings
@@ -70,7 +71,9 @@ def create_app(
     if settings.controller_auth:
         # Added after the body bounds, so it runs before them: a request with a body and no
         # valid key is refused before its body is admitted or read (auth.py).
-        app.add_middleware(ApiKeyMiddleware, needs_key=needs_key, keys=_keys_of)
+        app.add_middleware(
+            ApiKeyMiddleware, needs_key=partial(needs_key, router.routes), keys=_keys_of
+        )
     origins = settings.cors_origins()
     if origins:  # none: no CORS headers, so browsers keep other origins' pages out
         app.add_middleware(
