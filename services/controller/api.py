@@ -1,4 +1,5 @@
-"""Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots.
+"""Controller routes: each validates its request, calls one function (admission, the store, the
+runner, the event streams, plots, views) and maps its errors to problem details.
 
 Every route but ``/health`` and ``/health/events`` (and the OpenAPI documents, and the web
 page's files, which hold no data) wants an API key (``Authorization: Bearer <key>``,
