@@ -235,11 +235,11 @@ async def run(args: argparse.Namespace, urls: StageUrls, workdir: Path) -> None:
     apart = float(angular_distance_deg((begin.theta_deg, begin.phi_deg), end))
     target = Target(args.scene, image, truth, end)
     controller = Controller(urls, None, workdir / "history.sqlite3", RecordingStages)
-    stages = controller.stages
-    if not isinstance(stages, RecordingStages):
-        raise TypeError("the controller must record its requests")
     await controller.start()
     try:
+        stages = controller.stages
+        if not isinstance(stages, RecordingStages):
+            raise TypeError("the controller must record its requests")
         await controller.search(target, "simple", start=begin, seed=0)
         searched = len(stages.requests[-1].history)
         full = await extended(stages, args.scene, stages.requests[-1], args.views)

@@ -2,7 +2,8 @@
 
 Renderer, detector and optimizer run as uvicorn processes on loopback (:func:`stage_processes`);
 :class:`Controller` is the controller's own search loop over them, in this process, without its
-HTTP API: a search goes from :func:`~services.controller.submit.create_search` through a
+HTTP API, wired by :func:`~services.controller.wiring.build_controller`: a search goes from
+:meth:`~services.controller.submit.Admission.submit` through a
 :class:`~services.controller.runner.SearchRunner` to its end, as ``POST /searches`` runs it.
 """
 
@@ -19,16 +20,13 @@ from cosmos.bench.target import Target
 from cosmos.launch import spawn_service, stop_service, wait_healthy
 from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.contracts.optimize import StrategyName
-from services.common.contracts.search import TERMINAL_STATUSES
+from services.common.contracts.search import TERMINAL_STATUSES, SearchOptions
 from services.common.geometry.pose import Pose
-from services.controller.broker import Broker
-from services.controller.events import Notifier
-from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
-from services.controller.store import SearchStore
-from services.controller.submit import create_search
-from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
+from services.controller.transport import Transport
+from services.controller.wiring import Controller as Wired
+from services.controller.wiring import build_controller
 
 __all__ = ["SCENE", "Controller", "StageUrls", "stage_processes"]
 
@@ -72,7 +70,8 @@ def stage_processes(workdir: Path) -> Iterator[StageUrls]:
 
 class Controller:
     """The controller's search loop over one transport (the broker's own unless given), with its
-    own store and runner; ``stages`` makes its stage calls."""
+    own store and runner, wired as the service wires them (:func:`build_controller`), one
+    search at a time; ``stages`` makes its stage calls. Its parts exist once :meth:`start` ran."""
 
     def __init__(
         self,
@@ -81,31 +80,50 @@ class Controller:
         database: Path,
         stages: type[Stages] = Stages,
     ) -> None:
-        self.settings = ControllerSettings(controller_database_url=f"sqlite:///{database}")
-        to_stages = WithServiceToken(transport or AiohttpTransport(2.0), urls.token)
-        self.broker = Broker(urls.pools(), transport=to_stages, health_interval_s=0)
-        self.stages = stages(self.broker, render_spp=self.settings.controller_view_spp)
-        self.store = SearchStore(self.settings.controller_database_url)
-        self.notifier = Notifier()
-        self.runner = SearchRunner(self.store, self.stages, self.notifier, 1)
+        self.settings = ControllerSettings(
+            controller_database_url=f"sqlite:///{database}",
+            controller_renderer_urls=urls.renderer,
+            controller_detector_urls=urls.detector,
+            controller_optimizer_urls=urls.optimizer,
+            controller_max_concurrent_searches=1,
+            service_token=urls.token,
+        )
+        self._transport = transport
+        self._stages_class = stages
+        self._parts: Wired | None = None
+
+    @property
+    def parts(self) -> Wired:
+        if self._parts is None:
+            raise RuntimeError("the controller is not started")
+        return self._parts
+
+    @property
+    def stages(self) -> Stages:
+        return self.parts.stages
 
     async def start(self) -> None:
-        await self.runner.start()
+        """Build the controller and start its runner (the broker does not probe the stages:
+        nothing but the searches calls them)."""
+        self._parts = await build_controller(
+            self.settings, transport=self._transport, stages_class=self._stages_class
+        )
+        await self._parts.runner.start()
 
     async def close(self) -> None:
+        parts = self.parts
         # A worker cancelled before it has seen its search end takes the cancellation for the
         # search's and carries on (SearchRunner._work), and close() would wait for it forever.
-        while self.runner.running:
+        while parts.runner.running:
             await asyncio.sleep(0)
-        await self.runner.close()
-        await self.broker.close()
-        self.store.close()
+        await parts.close()
 
     async def _ended(self, search_id: str) -> None:
-        with self.notifier.following(search_id):
+        notifier, store = self.parts.notifier, self.parts.store
+        with notifier.following(search_id):
             while True:
-                changed = self.notifier.current(search_id)
-                state = self.store.status_doc(search_id)
+                changed = notifier.current(search_id)
+                state = store.status_doc(search_id)
                 if state is not None and state[0] in TERMINAL_STATUSES:
                     return
                 await changed.wait()
@@ -116,31 +134,25 @@ class Controller:
         """One search for ``target`` from ``start`` as ``POST /searches`` runs it: wall
         milliseconds and stage calls."""
         t0 = time.perf_counter()
-        record = await create_search(
-            self.store,
-            self.stages,
-            image=target.image,
-            scene_id=target.scene,
+        options = SearchOptions(
+            scene=target.scene,
             strategy=strategy,
             start_theta_deg=start.theta_deg,
             start_phi_deg=start.phi_deg,
             seed=seed,
-            max_iterations=self.settings.controller_default_max_iterations,
-            max_image_pixels=self.settings.controller_max_image_pixels,
-            max_image_side=self.settings.controller_max_image_side,
-            start_early=self.runner.idle,
         )
-        self.runner.submit(record.id, recorded=(record, target.image))
+        record = await self.parts.admission.submit(target.image, options, None)
+        store = self.parts.store
         try:
             async with asyncio.timeout(SEARCH_TIMEOUT_S):
                 await self._ended(record.id)
         except TimeoutError:
-            state = self.store.status_doc(record.id)
+            state = store.status_doc(record.id)
             raise RuntimeError(f"search {record.id} still {state and state[0]}") from None
         wall_ms = (time.perf_counter() - t0) * 1000
-        search = self.store.get(record.id)
+        search = store.get(record.id)
         if search is None or search.status != "succeeded" or search.result is None:
             raise RuntimeError(f"search {record.id} ended {search and search.status}")
-        iterations = len(self.store.iterations(record.id))
+        iterations = len(store.iterations(record.id))
         renders = search.result.renders
         return wall_ms, 2 * renders + 1 + iterations  # renders, detections (+ target), plans

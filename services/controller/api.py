@@ -1,4 +1,5 @@
-"""Controller routes: thin HTTP wrappers over search submission, the store, the runner, plots.
+"""Controller routes: each validates its request, calls one function (admission, the store, the
+runner, the event streams, plots, views) and maps its errors to problem details.
 
 Every route but ``/health`` and ``/health/events`` (and the OpenAPI documents, and the web
 page's files, which hold no data) wants an API key (``Authorization: Bearer <key>``,
@@ -12,27 +13,19 @@ one, so ids do not leak); an admin key sees them all.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-from collections.abc import AsyncIterator
-from dataclasses import dataclass, field
-from typing import Annotated, Any, Final
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi import Path as FastApiPath
-from fastapi.responses import JSONResponse, Response, StreamingResponse
-from fastapi.routing import APIRoute
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from starlette.routing import BaseRoute, Match
-from starlette.types import Scope
+from fastapi.responses import JSONResponse, Response
+from sse_starlette import EventSourceResponse
 
-from services.common.auth import PROBE_PATHS
-from services.common.contracts.base import MAX_SAFE_INTEGER
+from services.common.base import MAX_SAFE_INTEGER
 from services.common.contracts.optimize import UnsupportedGridError, searchable_grid
 from services.common.contracts.render import SceneDetail, SceneSummary
 from services.common.contracts.search import (
     MAX_ITERATIONS,
-    TERMINAL_STATUSES,
     ControllerHealth,
     Search,
     SearchPage,
@@ -46,113 +39,28 @@ from services.common.errors import (
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex
 from services.common.http import app_state, problem_responses
-from services.common.stopping import STOPPING
 from services.common.upload import read_upload
-from services.controller.auth import authenticate, checked_key
-from services.controller.broker import Broker, BrokerError
-from services.controller.events import Notifier
+from services.controller import events
+from services.controller.auth import Caller, caller
+from services.controller.broker import BrokerError
+from services.controller.events import event_stream
 from services.controller.form import OPENAPI, search_options
-from services.controller.keys import ApiKey, KeyStore
-from services.controller.page import (
-    INDEX,
-    SECURITY_HEADERS,
-    Asset,
-    PageAssets,
-    accepts_gzip,
-    not_modified,
-)
-from services.controller.plots import PlotCache, distance_png, trajectory_png
-from services.controller.quotas import Quotas
-from services.controller.runner import SearchRunner
-from services.controller.settings import ControllerSettings
-from services.controller.stages import StageError, Stages
-from services.controller.store import SearchStore
-from services.controller.submit import INLINE_WRITE_BYTES, create_search
+from services.controller.keys import ApiKey
+from services.controller.page import page_routes
+from services.controller.plots import distance_png, trajectory_png
+from services.controller.runner import NotRetryable
+from services.controller.stages import StageError
+from services.controller.submit import RETRY_AFTER_S
 from services.controller.transport import StageRequest
-from services.controller.views import UnknownIteration, ViewStore, displayable, iteration_pose
+from services.controller.views import UnknownIteration, displayable, iteration_pose
+from services.controller.wiring import Controller
 
-__all__ = ["ControllerState", "needs_key", "router"]
+__all__ = ["router"]
 
 router = APIRouter()
 _log = logging.getLogger("cosmos.controller")
 
-RETRY_AFTER_S = 5
-"""``Retry-After`` of a 503 while a stage is unavailable (the broker probes it more often)."""
-
-
-@dataclass(frozen=True)
-class ControllerState:
-    settings: ControllerSettings
-    store: SearchStore
-    broker: Broker
-    stages: Stages
-    runner: SearchRunner
-    notifier: Notifier
-    keys: KeyStore
-    quotas: Quotas
-    views: ViewStore
-    plots: PlotCache = field(default_factory=PlotCache)
-    page: PageAssets = field(default_factory=PageAssets)
-
-
-State = Annotated[ControllerState, Depends(app_state("controller"))]
-
-_bearer = HTTPBearer(
-    scheme_name="ApiKey",
-    bearerFormat="cosmos_<43 characters>",
-    description="An API key: `cosmos keys create` makes one (`cosmos up` prints a local one).",
-    auto_error=False,
-)
-
-
-async def _caller(
-    request: Request,
-    state: State,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> ApiKey | None:
-    """The key a request acts for; None when auth is off (everyone's searches, no quotas).
-    ``credentials`` only declares the scheme in the OpenAPI schema: the check is
-    :func:`~services.controller.auth.authenticate`'s, done already for a request with a body."""
-    if not state.settings.controller_auth:
-        return None
-    return checked_key(request.scope) or authenticate(
-        state.keys, request.headers.get("authorization")
-    )
-
-
-Caller = Annotated[ApiKey | None, Depends(_caller)]
-
-
-def _wants_key(route: BaseRoute) -> bool:
-    """Whether ``route`` checks an API key (depends on :func:`_caller`, directly or not)."""
-    if not isinstance(route, APIRoute):
-        return False  # not a FastAPI route: no dependencies, no key
-    pending = [route.dependant]
-    while pending:
-        dependant = pending.pop()
-        if dependant.call is _caller:
-            return True
-        pending.extend(dependant.dependencies)
-    return False
-
-
-def needs_key(scope: Scope) -> bool:
-    """Whether a request to ``scope``'s path wants an API key before its body is read: the
-    route of this module that takes it checks one (its method aside, so a wrong method gets
-    its 405 where the path is open), or no route takes the path at all (the probes and the
-    OpenAPI documents are open)."""
-    partial: BaseRoute | None = None
-    for route in router.routes:  # in order, as the app dispatches
-        match, _ = route.matches(scope)
-        if match is Match.FULL:
-            return _wants_key(route)
-        if match is Match.PARTIAL and partial is None:
-            partial = route
-    if partial is not None:
-        return _wants_key(partial)
-    app = scope["app"]
-    documents = {app.openapi_url, app.docs_url, app.redoc_url, app.swagger_ui_oauth2_redirect_url}
-    return scope["path"] not in PROBE_PATHS | documents
+State = Annotated[Controller, Depends(app_state("controller"))]
 
 
 def _visible_to(key: ApiKey | None) -> str | None:
@@ -166,7 +74,7 @@ def _unknown_search(search_id: str) -> NotFoundError:
     )
 
 
-def _search_or_404(state: ControllerState, key: ApiKey | None, search_id: str) -> Search:
+def _search_or_404(state: Controller, key: ApiKey | None, search_id: str) -> Search:
     search = state.store.get(search_id, visible_to=_visible_to(key))
     if search is None:
         raise _unknown_search(search_id)
@@ -182,55 +90,20 @@ async def health(state: State) -> ControllerHealth:
     return _health_of(state)
 
 
-HEALTH_EVENTS_EVERY_S: Final = 1.0
-"""How often ``GET /health/events`` looks whether the health changed."""
-_KEEP_ALIVE_S: Final = 15.0
-"""A comment sent on an event stream after this long without an event."""
-_STOP_CHECK_S: Final = 1.0
-"""How often a waiting event stream looks whether the server is stopping (:data:`STOPPING`)."""
-
-
-async def _set_within(event: asyncio.Event, timeout_s: float) -> bool:
-    """Whether ``event`` is set within ``timeout_s``."""
-    try:
-        await asyncio.wait_for(event.wait(), timeout=timeout_s)
-    except TimeoutError:
-        return False
-    return True
-
-
 @router.get(
     "/health/events",
-    response_class=StreamingResponse,
+    response_class=EventSourceResponse,
     responses={200: {"content": {"text/event-stream": {}}}},
 )
-async def health_events(state: State) -> StreamingResponse:
+async def health_events(state: State) -> EventSourceResponse:
     """Server-sent events: ``health``, the body ``GET /health`` answers, at once and then
     whenever it changed (looked at every second), until the client leaves or the server stops;
-    a comment every 15 s while nothing changed keeps proxies from closing the stream. The web
-    page's broker panel follows it. Open to anyone, as ``/health`` is."""
-
-    async def stream() -> AsyncIterator[bytes]:
-        last = ""
-        quiet_s = 0.0
-        while not STOPPING.is_set():
-            doc = _health_of(state).model_dump_json()
-            if doc != last:
-                last = doc
-                quiet_s = 0.0
-                yield _sse("health", doc)
-            elif quiet_s >= _KEEP_ALIVE_S:
-                quiet_s = 0.0
-                yield b": keep-alive\n\n"
-            await asyncio.sleep(HEALTH_EVENTS_EVERY_S)
-            quiet_s += HEALTH_EVENTS_EVERY_S
-
-    return StreamingResponse(
-        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
-    )
+    a comment every 15 s keeps proxies from closing the stream. The web page's broker panel
+    follows it. Open to anyone, as ``/health`` is."""
+    return event_stream(events.health_events(lambda: _health_of(state).model_dump_json()))
 
 
-def _health_of(state: ControllerState) -> ControllerHealth:
+def _health_of(state: Controller) -> ControllerHealth:
     size = state.store.size()
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(
@@ -251,7 +124,7 @@ def _health_of(state: ControllerState) -> ControllerHealth:
     "/scenes",
     response_model=list[SceneSummary],
     responses=problem_responses(401, 503),
-    dependencies=[Depends(_caller)],
+    dependencies=[Depends(caller)],
 )
 async def scenes(state: State) -> Any:
     """The scenes the renderers know (proxied)."""
@@ -275,21 +148,6 @@ def _unavailable(stage: str, why: Exception) -> ServiceUnavailableError:
     )
 
 
-def _refuse_while_unavailable(state: ControllerState) -> None:
-    """503 with ``Retry-After`` while a stage no replica serves: a search taken now would only
-    wait for it (and fail after the outage budget), so it is not taken."""
-    down = state.broker.unavailable()
-    if down:
-        raise ServiceUnavailableError(
-            f"the {' and the '.join(down)} {'is' if len(down) == 1 else 'are'} unavailable (no "
-            "replica answers); try again once GET /health no longer lists "
-            f"{'it' if len(down) == 1 else 'them'}",
-            slug="stage-unavailable",
-            title="Stage unavailable",
-            headers={"Retry-After": str(RETRY_AFTER_S)},
-        )
-
-
 @router.post(
     "/searches",
     status_code=202,
@@ -304,41 +162,15 @@ async def submit(request: Request, state: State, key: Caller) -> JSONResponse:
     JPEG or binary PPM body with the options in the query. A key over one of its quotas gets
     429 with ``Retry-After``; while a stage has no replica available (``GET /health`` says
     ``degraded``), 503 with ``Retry-After``."""
-    _refuse_while_unavailable(state)
+    state.admission.refuse_while_unavailable()  # before the body is read
     upload = await read_upload(request)
     options = search_options(upload.fields, request.query_params.multi_items())
-    admitted: contextlib.AbstractContextManager[None] = (
-        state.quotas.admit(key.id, len(upload.image))
-        if key is not None and not key.admin
-        else contextlib.nullcontext()
-    )
-    idle = state.runner.idle
     try:
-        with admitted:
-            search = await create_search(
-                state.store,
-                state.stages,
-                image=upload.image,
-                scene_id=options.scene,
-                strategy=options.strategy,
-                start_theta_deg=options.start_theta_deg,
-                start_phi_deg=options.start_phi_deg,
-                seed=options.seed,
-                max_iterations=options.max_iterations
-                or state.settings.controller_default_max_iterations,
-                max_image_pixels=state.settings.controller_max_image_pixels,
-                max_image_side=state.settings.controller_max_image_side,
-                start_early=idle,
-                owner=None if key is None else key.id,
-            )
+        search = await state.admission.submit(upload.image, options, key)
     except BrokerError as exc:
         raise _unavailable(exc.stage, exc) from exc
     except StageError as exc:
         raise UnprocessableError(str(exc), field="scene") from exc
-    # The runner keeps the image of a search that starts now, or a small one; a large image of
-    # a queued search is read back when it starts (50 maximal uploads queued would hold 1 GB).
-    keep = idle or len(upload.image) <= INLINE_WRITE_BYTES
-    state.runner.submit(search.id, recorded=(search, upload.image) if keep else None)
     return JSONResponse(
         search.model_dump(mode="json"),
         status_code=202,
@@ -384,13 +216,10 @@ async def retry_search(search_id: str, state: State, key: Caller) -> JSONRespons
     ``urn:cosmos:problem:stage-unavailable``) from its recorded iterations: 202, the search
     queued again. 409 for any other search; 503 with ``Retry-After`` while a stage is still
     unavailable; 429 for a key at its quota of searches queued or running."""
-    why = state.runner.why_not_retryable(_search_or_404(state, key, search_id))
-    if why is not None:
-        raise ConflictError(why, slug="not-retryable", title="Not retryable")
-    _refuse_while_unavailable(state)
-    if key is not None and not key.admin:
-        state.quotas.check(key.id, 0)  # its image is stored already
-    search = state.runner.retry(search_id)  # nothing ran since the check: it takes the search
+    try:
+        search = state.admission.retry(_search_or_404(state, key, search_id), key)
+    except NotRetryable as exc:
+        raise ConflictError(str(exc), slug="not-retryable", title="Not retryable") from exc
     return JSONResponse(
         search.model_dump(mode="json"),
         status_code=202,
@@ -398,16 +227,12 @@ async def retry_search(search_id: str, state: State, key: Caller) -> JSONRespons
     )
 
 
-def _sse(event: str, data: str) -> bytes:
-    return f"event: {event}\ndata: {data}\n\n".encode()
-
-
 @router.get(
     "/searches/{search_id}/events",
-    response_class=StreamingResponse,
+    response_class=EventSourceResponse,
     responses={200: {"content": {"text/event-stream": {}}}, **problem_responses(401, 404)},
 )
-async def search_events(search_id: str, state: State, key: Caller) -> StreamingResponse:
+async def search_events(search_id: str, state: State, key: Caller) -> EventSourceResponse:
     """Server-sent events (:data:`~services.common.contracts.search.SEARCH_EVENTS`): while the
     search is queued or running, ``search`` with the search without its iterations whenever it
     changed (its status, its target's detections); ``iteration`` for each recorded iteration;
@@ -415,43 +240,10 @@ async def search_events(search_id: str, state: State, key: Caller) -> StreamingR
     as they are. A server that stops ends the stream (the client follows again, elsewhere)."""
     if state.store.status_doc(search_id, visible_to=_visible_to(key)) is None:
         raise _unknown_search(search_id)
-
-    async def stream() -> AsyncIterator[bytes]:
-        sent = 0
-        last_doc = ""
-        with state.notifier.following(search_id):  # a client that goes away stops following
-            while True:
-                changed = state.notifier.current(search_id)
-                # The status before the iterations: a search ends after its last one.
-                status_doc = state.store.status_doc(search_id)
-                if status_doc is not None and status_doc[0] not in TERMINAL_STATUSES:
-                    if status_doc[1] != last_doc:
-                        last_doc = status_doc[1]
-                        yield _sse("search", last_doc)
-                docs = state.store.iteration_docs(search_id, start=sent)
-                for doc in docs:
-                    yield _sse("iteration", doc)
-                sent += len(docs)
-                if status_doc is None:  # expired meanwhile: stop rather than spin
-                    return
-                if status_doc[0] in TERMINAL_STATUSES:
-                    yield _sse("end", status_doc[1])
-                    return
-                quiet_s = 0.0
-                while not await _set_within(changed, _STOP_CHECK_S):
-                    if STOPPING.is_set():
-                        return  # the server is stopping: the client follows again elsewhere
-                    quiet_s += _STOP_CHECK_S
-                    if quiet_s >= _KEEP_ALIVE_S:
-                        quiet_s = 0.0
-                        yield b": keep-alive\n\n"
-
-    return StreamingResponse(
-        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
-    )
+    return event_stream(events.search_events(state.store, state.notifier, search_id))
 
 
-async def _grid_of(state: ControllerState, search: Search) -> GridSpec:
+async def _grid_of(state: Controller, search: Search) -> GridSpec:
     try:
         scene = await state.stages.scene(search.scene)
     except (StageError, BrokerError) as exc:
@@ -514,7 +306,7 @@ _PNG_ANSWER: dict[int | str, dict[str, Any]] = {200: {"content": {"image/png": {
     "/scenes/{scene_id}",
     response_model=SceneDetail,
     responses=problem_responses(401, 404, 503),
-    dependencies=[Depends(_caller)],
+    dependencies=[Depends(caller)],
 )
 async def scene(scene_id: str, state: State) -> SceneDetail:
     """A scene's spec and its hemisphere grid with its rings (the page draws them)."""
@@ -530,7 +322,7 @@ async def scene(scene_id: str, state: State) -> SceneDetail:
     "/scenes/{scene_id}/view.png",
     response_class=Response,
     responses={**_PNG_ANSWER, **problem_responses(401, 404, 422, 503)},
-    dependencies=[Depends(_caller)],
+    dependencies=[Depends(caller)],
 )
 async def scene_view(
     scene_id: str,
@@ -606,37 +398,4 @@ async def iteration_view(
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
 
 
-def _file(request: Request, asset: Asset) -> Response:
-    """``asset`` for ``request``: 304 when the client holds it, gzipped when it accepts that."""
-    gzip_ok = accepts_gzip(request.headers.get("accept-encoding", ""))
-    headers = {**asset.headers(gzip_ok=gzip_ok), **SECURITY_HEADERS}
-    if not_modified(asset, request.headers.get("if-none-match", "")):
-        headers.pop("Content-Encoding", None)
-        return Response(status_code=304, headers=headers)
-    body = asset.gzipped if gzip_ok and asset.gzipped is not None else asset.body
-    return Response(body, media_type=asset.media_type, headers=headers)
-
-
-def _page_missing(what: str) -> NotFoundError:
-    return NotFoundError(
-        f"{what} is not built: run `npm ci && npm run build` in web/",
-        slug="page-not-built",
-        title="Page not built",
-    )
-
-
-@router.get("/", response_class=Response, include_in_schema=False)
-async def page(request: Request, state: State) -> Response:
-    """The web page (no key needed to load it: it asks for one and sends it with its calls)."""
-    if state.page.index is None:
-        raise _page_missing(INDEX)
-    return _file(request, state.page.index)
-
-
-@router.get("/assets/{name}", response_class=Response, include_in_schema=False)
-async def page_asset(name: str, request: Request, state: State) -> Response:
-    """A file of the web page (its name carries a hash of its content: cached for good)."""
-    asset = state.page.asset(name)
-    if asset is None:
-        raise NotFoundError(f"no page asset {name!r}", field="name", slug="unknown-asset")
-    return _file(request, asset)
+router.routes.extend(page_routes())  # the page: no key needed to load it (page.py)

@@ -2,8 +2,8 @@
 
 :func:`authenticate` is the check: ``Authorization: Bearer <key>`` must carry a key of the
 :class:`~services.controller.keys.KeyStore`, not revoked, else :class:`UnauthorizedError` (401
-problem details with ``WWW-Authenticate: Bearer``). The routes call it through their ``Caller``
-dependency (:mod:`services.controller.api`).
+problem details with ``WWW-Authenticate: Bearer``). The routes (:mod:`services.controller.api`)
+call it through their :data:`Caller` dependency; :func:`needs_key` tells which routes want a key.
 
 :class:`ApiKeyMiddleware` calls it from the request's head, in front of the body bounds
 (:class:`~services.common.bodies.BodyMiddleware`): a request with a body, to a route that wants a
@@ -16,16 +16,30 @@ answers the same.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Final
+from collections.abc import Callable, Sequence
+from typing import Annotated, Final
 
+from fastapi import Depends, Request
+from fastapi.routing import APIRoute
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.routing import BaseRoute, Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from services.common.auth import PROBE_PATHS
 from services.common.bodies import has_body, send_problem
 from services.common.errors import UnauthorizedError
+from services.common.http import app_state
 from services.controller.keys import ApiKey, KeyStore
+from services.controller.wiring import Controller
 
-__all__ = ["ApiKeyMiddleware", "authenticate", "checked_key"]
+__all__ = [
+    "ApiKeyMiddleware",
+    "Caller",
+    "authenticate",
+    "caller",
+    "checked_key",
+    "needs_key",
+]
 
 _SCOPE_KEY: Final = "cosmos.api_key"
 """Where :class:`ApiKeyMiddleware` leaves the key it accepted, in the request's scope."""
@@ -92,3 +106,63 @@ class ApiKeyMiddleware:
             return
         scope[_SCOPE_KEY] = key
         await self.app(scope, receive, send)
+
+
+_State = Annotated[Controller, Depends(app_state("controller"))]
+
+_bearer = HTTPBearer(
+    scheme_name="ApiKey",
+    bearerFormat="cosmos_<43 characters>",
+    description="An API key: `cosmos keys create` makes one (`cosmos up` prints a local one).",
+    auto_error=False,
+)
+
+
+async def caller(
+    request: Request,
+    state: _State,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> ApiKey | None:
+    """The key a request acts for; None when auth is off (everyone's searches, no quotas).
+    ``credentials`` only declares the scheme in the OpenAPI schema: the check is
+    :func:`authenticate`'s, done already for a request with a body."""
+    if not state.settings.controller_auth:
+        return None
+    return checked_key(request.scope) or authenticate(
+        state.keys, request.headers.get("authorization")
+    )
+
+
+Caller = Annotated[ApiKey | None, Depends(caller)]
+
+
+def _wants_key(route: BaseRoute) -> bool:
+    """Whether ``route`` checks an API key (depends on :func:`caller`, directly or not)."""
+    if not isinstance(route, APIRoute):
+        return False  # not a FastAPI route: no dependencies, no key
+    pending = [route.dependant]
+    while pending:
+        dependant = pending.pop()
+        if dependant.call is caller:
+            return True
+        pending.extend(dependant.dependencies)
+    return False
+
+
+def needs_key(routes: Sequence[BaseRoute], scope: Scope) -> bool:
+    """Whether a request to ``scope``'s path wants an API key before its body is read: the
+    route of ``routes`` (the API's) that takes it checks one (its method aside, so a wrong
+    method gets its 405 where the path is open), or no route takes the path at all (the probes
+    and the OpenAPI documents are open)."""
+    partial: BaseRoute | None = None
+    for route in routes:  # in order, as the app dispatches
+        match, _ = route.matches(scope)
+        if match is Match.FULL:
+            return _wants_key(route)
+        if match is Match.PARTIAL and partial is None:
+            partial = route
+    if partial is not None:
+        return _wants_key(partial)
+    app = scope["app"]
+    documents = {app.openapi_url, app.docs_url, app.redoc_url, app.swagger_ui_oauth2_redirect_url}
+    return scope["path"] not in PROBE_PATHS | documents

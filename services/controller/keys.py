@@ -30,6 +30,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from services.common.settings import API_KEY_VARIABLE
 from services.controller.store import database_path
 
 __all__ = [
@@ -47,9 +48,6 @@ __all__ = [
 
 KEY_FILE = "api-key"
 """The local key's file name, in the folder of the controller's database."""
-
-API_KEY_VARIABLE = "COSMOS_API_KEY"
-"""The environment variable a client's key is read from first."""
 
 _PREFIX = "cosmos_"
 

@@ -1,29 +1,31 @@
-"""Accepting a search: validate the target image and the options, pick the start pose, record it."""
+"""Accepting a search: admission (no stage down, the key within its quotas), then validating the
+target image and the options, picking the start pose, recording it and queueing it."""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import random
 import re
 import uuid
 import weakref
 
-from services.common.contracts.optimize import (
-    GridPose,
-    StrategyName,
-    UnsupportedGridError,
-    searchable_grid,
-)
-from services.common.contracts.search import MAX_ITERATIONS, Search
-from services.common.errors import NotFoundError, UnprocessableError
+from services.common.contracts.optimize import GridPose, UnsupportedGridError, searchable_grid
+from services.common.contracts.search import MAX_ITERATIONS, Search, SearchOptions
+from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import SCENE_ID_PATTERN
 from services.common.images import checked_header, decode_image
+from services.controller.broker import Broker
+from services.controller.keys import ApiKey
+from services.controller.quotas import Quotas
+from services.controller.runner import NotRetryable, SearchRunner
+from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore, utcnow
 
-__all__ = ["INLINE_WRITE_BYTES", "create_search"]
+__all__ = ["INLINE_WRITE_BYTES", "RETRY_AFTER_S", "Admission", "create_search"]
 
 INLINE_WRITE_BYTES = 1 << 20
 """A target image up to this size is stored on the event loop (a 230 KB one takes ~0.4 ms, less
@@ -32,6 +34,9 @@ at once, the inserts of their 20 MB images on the loop took 4.4 s of its time (s
 uploads run in docs/HISTORY.md) and stalled it for seconds: the broker's calls timed out meanwhile.
 One at a time, because the store has one lock: with several inserts queued on it, the loop's
 next store call waited behind all of them (1.6 s, sampled)."""
+
+RETRY_AFTER_S = 5
+"""``Retry-After`` of a 503 while a stage is unavailable (the broker probes it more often)."""
 
 _log = logging.getLogger("cosmos.controller")
 _UNDOING: set[asyncio.Task[None]] = set()
@@ -84,20 +89,15 @@ async def _undo_write(store: SearchStore, write: asyncio.Future[None], search_id
 async def create_search(
     store: SearchStore,
     stages: Stages,
-    *,
     image: bytes,
-    scene_id: str,
-    strategy: StrategyName,
-    start_theta_deg: float | None,
-    start_phi_deg: float | None,
-    seed: int | None,
-    max_iterations: int,
-    max_image_pixels: int,
-    max_image_side: int,
+    options: SearchOptions,
+    settings: ControllerSettings,
+    *,
     start_early: bool = False,
     owner: str | None = None,
 ) -> Search:
-    """Validate a new search and record it as queued (the caller queues it).
+    """Validate a new search and record it as queued (the caller queues it); without
+    ``max_iterations`` in ``options``, it takes the controller's default.
 
     The image must decode (PNG, JPEG or binary PPM within the size caps; its header is checked
     first, its pixels decoded off the event loop); the scene must be known to the renderers. A
@@ -111,48 +111,51 @@ async def create_search(
     records the controller's current view settings (:attr:`Stages.view_settings`): all its views
     are rendered with them.
     """
+    max_image_pixels = settings.controller_max_image_pixels
+    max_image_side = settings.controller_max_image_side
+    max_iterations = options.max_iterations or settings.controller_default_max_iterations
     header = checked_header(image, max_pixels=max_image_pixels, max_side=max_image_side)
     if not 1 <= max_iterations <= MAX_ITERATIONS:
         raise UnprocessableError(
             f"max_iterations must be within 1..{MAX_ITERATIONS}", field="max_iterations"
         )
-    if (start_theta_deg is None) != (start_phi_deg is None):
+    if (options.start_theta_deg is None) != (options.start_phi_deg is None):
         raise UnprocessableError(
             "give start_theta_deg and start_phi_deg together", field="start_theta_deg"
         )
-    if re.match(SCENE_ID_PATTERN, scene_id) is None:
+    if re.match(SCENE_ID_PATTERN, options.scene) is None:
         raise NotFoundError(
-            f"unknown scene {scene_id!r}",
+            f"unknown scene {options.scene!r}",
             field="scene",
             slug="unknown-scene",
             title="Unknown scene",
         )
     try:
-        scene = await stages.scene(scene_id)
+        scene = await stages.scene(options.scene)
     except StageError as exc:
         if exc.problem.status == 404:
             raise NotFoundError(
-                f"unknown scene {scene_id!r}",
+                f"unknown scene {options.scene!r}",
                 field="scene",
                 slug="unknown-scene",
                 title="Unknown scene",
             ) from exc
         raise UnprocessableError(
-            f"scene {scene_id!r}: {exc.problem.detail}", field="scene"
+            f"scene {options.scene!r}: {exc.problem.detail}", field="scene"
         ) from exc
     try:
         grid = searchable_grid(scene.spec.search).grid()
     except UnsupportedGridError as exc:
         raise UnprocessableError(
-            f"scene {scene_id!r}'s grid cannot be searched: {exc}",
+            f"scene {options.scene!r}'s grid cannot be searched: {exc}",
             field=exc.field,
             slug="unsupported-grid",
             title="Grid not supported",
         ) from exc
-    seed = seed if seed is not None else random.SystemRandom().randrange(2**31)
-    if start_theta_deg is not None and start_phi_deg is not None:
+    seed = options.seed if options.seed is not None else random.SystemRandom().randrange(2**31)
+    if options.start_theta_deg is not None and options.start_phi_deg is not None:
         try:
-            asked = Pose(theta_deg=start_theta_deg, phi_deg=start_phi_deg)
+            asked = Pose(theta_deg=options.start_theta_deg, phi_deg=options.start_phi_deg)
         except ValueError as exc:
             raise UnprocessableError(
                 "start_theta_deg must be within [0, 90] and both angles finite",
@@ -165,7 +168,7 @@ async def create_search(
     search_id = uuid.uuid4().hex
     view_settings = stages.view_settings  # its views are rendered so from now on, always
     if start_early:
-        stages.render_early(scene_id, index, search_id, view_settings)
+        stages.render_early(options.scene, index, search_id, view_settings)
         # One turn of the loop puts the render request on the wire (on a kept-alive connection
         # that is the task's first step) before the decode's thread hop: ~0.5 ms sooner.
         await asyncio.sleep(0)
@@ -177,8 +180,8 @@ async def create_search(
         record = Search(
             id=search_id,
             status="queued",
-            scene=scene_id,
-            strategy=strategy,
+            scene=options.scene,
+            strategy=options.strategy,
             start=GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg),
             seed=seed,
             max_iterations=max_iterations,
@@ -195,3 +198,80 @@ async def create_search(
         stages.forget_early(search_id)
         raise
     return record
+
+
+class Admission:
+    """Takes searches in, new (:meth:`submit`) or again (:meth:`retry`): none while a stage has no
+    replica available, and a key's only within its quotas (an admin key, or none when auth is
+    off, has no quotas)."""
+
+    def __init__(
+        self,
+        settings: ControllerSettings,
+        store: SearchStore,
+        stages: Stages,
+        broker: Broker,
+        runner: SearchRunner,
+        quotas: Quotas,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.stages = stages
+        self.broker = broker
+        self.runner = runner
+        self.quotas = quotas
+
+    def refuse_while_unavailable(self) -> None:
+        """503 with ``Retry-After`` while a stage no replica serves: a search taken now would
+        only wait for it (and fail after the outage budget), so it is not taken."""
+        down = self.broker.unavailable()
+        if down:
+            raise ServiceUnavailableError(
+                f"the {' and the '.join(down)} {'is' if len(down) == 1 else 'are'} unavailable "
+                "(no replica answers); try again once GET /health no longer lists "
+                f"{'it' if len(down) == 1 else 'them'}",
+                slug="stage-unavailable",
+                title="Stage unavailable",
+                headers={"Retry-After": str(RETRY_AFTER_S)},
+            )
+
+    async def submit(self, image: bytes, options: SearchOptions, key: ApiKey | None) -> Search:
+        """Record a new search for ``key`` (:func:`create_search`) and queue it. The caller
+        has called :meth:`refuse_while_unavailable` before it read ``image``. Raises
+        :class:`~services.controller.broker.BrokerError` and
+        :class:`~services.controller.stages.StageError` when the renderer cannot tell the
+        scene, the errors of :func:`create_search` and the quotas' otherwise."""
+        admitted: contextlib.AbstractContextManager[None] = (
+            self.quotas.admit(key.id, len(image))
+            if key is not None and not key.admin
+            else contextlib.nullcontext()
+        )
+        idle = self.runner.idle
+        with admitted:
+            search = await create_search(
+                self.store,
+                self.stages,
+                image,
+                options,
+                self.settings,
+                start_early=idle,
+                owner=None if key is None else key.id,
+            )
+        # The runner keeps the image of a search that starts now, or a small one; a large image
+        # of a queued search is read back when it starts (50 maximal uploads queued would hold
+        # 1 GB).
+        keep = idle or len(image) <= INLINE_WRITE_BYTES
+        self.runner.submit(search.id, recorded=(search, image) if keep else None)
+        return search
+
+    def retry(self, search: Search, key: ApiKey | None) -> Search:
+        """Queue ``search`` again (:meth:`SearchRunner.retry`); raises :class:`NotRetryable`
+        for a search that did not fail for an outage, 503 while a stage is still unavailable,
+        and the quota of searches queued or running."""
+        why = self.runner.why_not_retryable(search)
+        if why is not None:
+            raise NotRetryable(why)
+        self.refuse_while_unavailable()
+        if key is not None and not key.admin:
+            self.quotas.check(key.id, 0)  # its image is stored already
+        return self.runner.retry(search.id)  # nothing ran since the check: it takes the search

@@ -25,9 +25,31 @@ from services.detector.model import DetectorModel
 from services.detector.registry import ModelRegistry
 from services.detector.settings import DetectorSettings
 
-__all__ = ["app", "create_app"]
+__all__ = ["app", "build_detector", "create_app"]
 
 _log = logging.getLogger("cosmos.detector")
+
+
+async def build_detector(settings: DetectorSettings) -> DetectorState:
+    """The detector's parts, wired once: the general model (loaded and started: a missing or
+    broken one stops the start-up), the scene catalog, and the registry of scene models (not
+    started)."""
+    model = await asyncio.to_thread(
+        DetectorModel, settings.detector_model, threads=settings.detector_threads
+    )
+    detector = Detector(model, settings)
+    await detector.start()
+    _log.info(
+        "serving %s (%s, input %s, classes %s) on %s",
+        model.path,
+        model.info.sha256[:12],
+        model.info.input_size,
+        ", ".join(model.classes),
+        ", ".join(model.providers),
+    )
+    catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
+    registry = ModelRegistry(detector, catalog, settings)
+    return DetectorState(settings=settings, registry=registry)
 
 
 def create_app(settings: DetectorSettings | None = None) -> FastAPI:
@@ -37,28 +59,14 @@ def create_app(settings: DetectorSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        model = await asyncio.to_thread(
-            DetectorModel, settings.detector_model, threads=settings.detector_threads
-        )
-        detector = Detector(model, settings)
-        await detector.start()
-        _log.info(
-            "serving %s (%s, input %s, classes %s) on %s",
-            model.path,
-            model.info.sha256[:12],
-            model.info.input_size,
-            ", ".join(model.classes),
-            ", ".join(model.providers),
-        )
-        catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
-        registry = ModelRegistry(detector, catalog, settings)
+        state = await build_detector(settings)
         try:
-            await registry.start()
-            app.state.detector = DetectorState(settings=settings, registry=registry)
+            await state.registry.start()
+            app.state.detector = state
             yield
         finally:
-            await registry.close()
-            await detector.close()
+            await state.registry.close()
+            await state.registry.general.close()
 
     return service_app(
         "detector",

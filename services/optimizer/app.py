@@ -19,7 +19,19 @@ from services.optimizer.calibration import CalibrationStore
 from services.optimizer.planning import OptimizerContext
 from services.optimizer.settings import OptimizerSettings
 
-__all__ = ["app", "create_app"]
+__all__ = ["app", "build_optimizer", "create_app"]
+
+
+def build_optimizer(settings: OptimizerSettings) -> OptimizerContext:
+    """The optimizer's parts, wired once: the calibrations and the scene catalog (read from
+    disk), and the bounds of its requests."""
+    return OptimizerContext(
+        calibrations=CalibrationStore.load(settings.optimizer_paper_calibration),
+        catalog=SceneCatalog(settings.scene_directories()),
+        default_strategy=settings.optimizer_default_strategy,
+        max_grid_poses=settings.optimizer_max_grid_poses,
+        max_history_detections=settings.optimizer_max_history_detections,
+    )
 
 
 def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
@@ -29,18 +41,8 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        calibrations = await asyncio.to_thread(
-            CalibrationStore.load, settings.optimizer_paper_calibration
-        )
-        catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
         app.state.optimizer = OptimizerState(
-            context=OptimizerContext(
-                calibrations=calibrations,
-                catalog=catalog,
-                default_strategy=settings.optimizer_default_strategy,
-                max_grid_poses=settings.optimizer_max_grid_poses,
-                max_history_detections=settings.optimizer_max_history_detections,
-            )
+            context=await asyncio.to_thread(build_optimizer, settings)
         )
         yield
 

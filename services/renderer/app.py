@@ -19,7 +19,20 @@ from services.renderer.api import RendererState, router
 from services.renderer.engine import RenderEngine
 from services.renderer.settings import RendererSettings
 
-__all__ = ["app", "create_app"]
+__all__ = ["app", "build_renderer", "create_app"]
+
+
+def build_renderer(settings: RendererSettings) -> RendererState:
+    """The renderer's parts, wired once: its scene catalog (read from disk) and its engine (not
+    started: :meth:`RenderEngine.start` loads Mitsuba on the render thread)."""
+    catalog = SceneCatalog(settings.scene_directories())
+    engine = RenderEngine(
+        settings.renderer_mitsuba_variant,
+        settings.renderer_scene_cache,
+        settings.renderer_max_queue,
+        slice_samples=settings.renderer_slice_samples,
+    )
+    return RendererState(settings=settings, catalog=catalog, engine=engine)
 
 
 def create_app(settings: RendererSettings | None = None) -> FastAPI:
@@ -29,19 +42,13 @@ def create_app(settings: RendererSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        catalog = await asyncio.to_thread(SceneCatalog, settings.scene_directories())
-        engine = RenderEngine(
-            settings.renderer_mitsuba_variant,
-            settings.renderer_scene_cache,
-            settings.renderer_max_queue,
-            slice_samples=settings.renderer_slice_samples,
-        )
-        await asyncio.to_thread(engine.start)
-        app.state.renderer = RendererState(settings=settings, catalog=catalog, engine=engine)
+        state = await asyncio.to_thread(build_renderer, settings)
+        await asyncio.to_thread(state.engine.start)
+        app.state.renderer = state
         try:
             yield
         finally:
-            await asyncio.to_thread(engine.close)
+            await asyncio.to_thread(state.engine.close)
 
     async def readiness(app: FastAPI) -> list[str]:
         state: RendererState = app.state.renderer

@@ -16,11 +16,12 @@ from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from services.common.auth import token_from_environment
-from services.common.contracts.search import Search, ViewSettings
+from services.common.contracts.search import Search, SearchOptions, ViewSettings
 from services.common.errors import UnprocessableError
 from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
 from services.controller.broker import Broker
+from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
 from services.controller.submit import create_search
@@ -224,20 +225,13 @@ def _png(width: int = 64, height: int = 48) -> bytes:
 
 
 async def _submit(stages: Stages, store: SearchStore, image: bytes) -> Search:
-    return await create_search(
-        store,
-        stages,
-        image=image,
-        scene_id="demo",
-        strategy="reprojection",
-        start_theta_deg=45.0,
-        start_phi_deg=30.0,
-        seed=1,
-        max_iterations=10,
-        max_image_pixels=1_000_000,
-        max_image_side=4096,
-        start_early=True,
+    options = SearchOptions(
+        scene="demo", start_theta_deg=45.0, start_phi_deg=30.0, seed=1, max_iterations=10
     )
+    limits = ControllerSettings(
+        controller_max_image_pixels=1_000_000, controller_max_image_side=4096
+    )
+    return await create_search(store, stages, image, options, limits, start_early=True)
 
 
 async def test_a_submission_starts_its_start_view_before_it_is_stored(apps):

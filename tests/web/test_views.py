@@ -3,17 +3,17 @@ page's files (media types, validators, gzip)."""
 
 from __future__ import annotations
 
-import gzip
-
 import cv2
+import httpx
 import numpy as np
 import pytest
+from starlette.applications import Starlette
 
 from services.common.caches import ENTRY_OVERHEAD
 from services.common.contracts.search import ViewSettings
 from services.common.geometry.pose import GridIndex
 from services.common.images import encode_ppm
-from services.controller.page import INDEX, PageAssets, accepts_gzip, not_modified
+from services.controller.page import INDEX, page_routes
 from services.controller.views import ViewStore, displayable, to_png
 
 
@@ -106,52 +106,45 @@ def test_a_browser_gets_png_or_jpeg_never_ppm():
     assert to_png(png) is png
 
 
-def test_the_page_files_have_media_types_validators_and_gzip(tmp_path):
+def _page_client(directory) -> httpx.AsyncClient:
+    transport = httpx.ASGITransport(Starlette(routes=page_routes(directory)))
+    return httpx.AsyncClient(transport=transport, base_url="http://page")
+
+
+@pytest.mark.anyio
+async def test_the_page_files_have_media_types_validators_and_gzip(tmp_path):
     (tmp_path / "assets").mkdir()
     (tmp_path / INDEX).write_text("<!doctype html><p>" + "page " * 100)
     (tmp_path / "assets" / "app-ABC.js").write_text("export const x = 1;" * 100)
     (tmp_path / "assets" / "tiny-X.css").write_text("a{}")
-    page = PageAssets(tmp_path)
-    assert page.index is not None
-    assert page.index.media_type == "text/html; charset=utf-8"
-    assert page.index.cache_control == "no-cache"
-    app = page.asset("app-ABC.js")
-    assert app is not None
-    assert app.media_type == "text/javascript; charset=utf-8"
-    assert app.cache_control == "public, max-age=31536000, immutable"
-    assert app.gzipped is not None
-    assert gzip.decompress(app.gzipped) == app.body
-    assert app.headers(gzip_ok=True)["Content-Encoding"] == "gzip"
-    assert "Content-Encoding" not in app.headers(gzip_ok=False)
-    tiny = page.asset("tiny-X.css")
-    assert tiny is not None
-    assert tiny.gzipped is None  # gzip would make it larger
-    assert page.asset("nope.js") is None
-    assert page.asset("../index.html") is None
-    assert PageAssets(tmp_path / "unbuilt").index is None
+    async with _page_client(tmp_path) as client:
+        index = await client.get("/", headers={"Accept-Encoding": "identity"})
+        assert index.headers["content-type"] == "text/html; charset=utf-8"
+        assert index.headers["cache-control"] == "no-cache"
+        assert "script-src 'self'" in index.headers["content-security-policy"]
+        app = await client.get("/assets/app-ABC.js", headers={"Accept-Encoding": "gzip"})
+        assert app.headers["content-type"] == "text/javascript; charset=utf-8"
+        assert app.headers["cache-control"] == "public, max-age=31536000, immutable"
+        assert app.headers["content-encoding"] == "gzip"
+        assert app.text == "export const x = 1;" * 100  # inflated by the client
+        assert app.num_bytes_downloaded < len(app.content)
+        plain = await client.get("/assets/app-ABC.js", headers={"Accept-Encoding": "identity"})
+        assert "content-encoding" not in plain.headers
+        tiny = await client.get("/assets/tiny-X.css", headers={"Accept-Encoding": "gzip"})
+        assert "content-encoding" not in tiny.headers  # gzip would make it larger
+        for missing in ("/assets/nope.js", "/assets/..%2Findex.html"):
+            assert (await client.get(missing)).status_code == 404
 
 
-@pytest.mark.parametrize(
-    ("header", "gzip_ok"),
-    [
-        ("gzip, deflate, br", True),
-        ("br;q=1.0, gzip;q=0.5", True),
-        ("gzip;q=0", False),
-        ("identity", False),
-        ("", False),
-        ("*", True),
-    ],
-)
-def test_accept_encoding(header, gzip_ok):
-    assert accepts_gzip(header) is gzip_ok
-
-
-def test_if_none_match(tmp_path):
+@pytest.mark.anyio
+async def test_if_none_match(tmp_path):
     (tmp_path / INDEX).write_text("x")
-    index = PageAssets(tmp_path).index
-    assert index is not None
-    assert not_modified(index, index.etag)
-    assert not_modified(index, f'"other", W/{index.etag}')
-    assert not_modified(index, "*")
-    assert not not_modified(index, '"other"')
-    assert not not_modified(index, "")
+    async with _page_client(tmp_path) as client:
+        etag = (await client.get("/")).headers["etag"]
+        for held in (etag, f'"other", W/{etag}'):
+            again = await client.get("/", headers={"If-None-Match": held})
+            assert again.status_code == 304
+            assert again.content == b""
+            assert again.headers["cache-control"] == "no-cache"
+        other = await client.get("/", headers={"If-None-Match": '"other"'})
+        assert other.status_code == 200
