@@ -16,6 +16,7 @@ from services.common.contracts.render import (
     SceneDetail,
     SceneSummary,
 )
+from services.common.geometry.pose import Pose
 from services.common.geometry.scene import scene_json_schema
 from services.common.http import app_state, problem_responses
 from services.common.images import PPM_MEDIA_TYPE, encode_ppm
@@ -109,18 +110,17 @@ async def get_scene(scene_id: str, state: State) -> SceneDetail:
 async def render(
     body: RenderRequest, state: State, accept: Annotated[str, Header()] = ""
 ) -> Response:
-    """Render a view of a scene from a pose (angles or grid indices): PNG by default, binary PPM
-    (uncompressed, for the detector next door) on ``Accept: image/x-portable-pixmap``."""
+    """Render a view of a scene from a hemisphere pose (angles or grid indices) or a free camera:
+    PNG by default, binary PPM (uncompressed, for the detector next door) on
+    ``Accept: image/x-portable-pixmap``."""
     view = resolve_view(state.catalog, state.settings, body)
     image = await state.engine.render_async(
         view.scene, view.pose, view.width, view.height, view.spp, view.seed
     )
-    headers = {
-        "X-Render-Ms": f"{image.render_ms:.1f}",
-        "X-Mitsuba-Variant": state.engine.variant,
-        "X-Pose-Theta-Deg": repr(view.pose.theta_deg),
-        "X-Pose-Phi-Deg": repr(view.pose.phi_deg),
-    }
+    headers = {"X-Render-Ms": f"{image.render_ms:.1f}", "X-Mitsuba-Variant": state.engine.variant}
+    if isinstance(view.pose, Pose):
+        headers["X-Pose-Theta-Deg"] = repr(view.pose.theta_deg)
+        headers["X-Pose-Phi-Deg"] = repr(view.pose.phi_deg)
     if view.grid_index is not None:
         headers["X-Grid-Index"] = f"{view.grid_index.lat},{view.grid_index.lon}"
     if PPM_MEDIA_TYPE in accept:
