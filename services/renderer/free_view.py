@@ -27,6 +27,7 @@ from services.common.geometry.lens import undistort_pixels
 __all__ = ["FreeView", "plan_free_view"]
 
 _MARGIN_PX = 2  # rendered pixels kept beyond the outermost ray, for bilinear interpolation
+_MAX_EXTENT_PX = 1e7  # far beyond any film cap, still exact as int and float32
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,6 +90,8 @@ def plan_free_view(camera: PinholeCamera, distortion: LensDistortion | None) -> 
         xy = undistort_pixels(centres, camera, lens)
     focal = max(camera.fx, camera.fy)
     scaled = xy * focal
+    if not np.isfinite(scaled).all() or np.abs(scaled).max() > _MAX_EXTENT_PX:
+        raise ValueError("the lens spreads the film's rays beyond any renderable film")
     lo = np.floor(scaled.min(axis=(0, 1))) - _MARGIN_PX
     hi = np.ceil(scaled.max(axis=(0, 1))) + _MARGIN_PX
     width, height = int(hi[0] - lo[0]), int(hi[1] - lo[1])

@@ -9,6 +9,7 @@ loaded scene: the engine checks it (:func:`check_outside_objects`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,8 @@ from services.renderer.free_view import FreeView, plan_free_view
 from services.renderer.settings import RendererSettings
 
 __all__ = ["View", "check_outside_objects", "resolve_free_camera", "resolve_pose", "resolve_view"]
+
+_MAX_FOV_DEG = 179.0  # a pinhole's field of view only reaches 180° at a focal length of 0
 
 
 @dataclass(frozen=True)
@@ -88,6 +91,14 @@ def resolve_free_camera(
             "Camera below the ground",
         )
     pinhole = free_pinhole_camera(camera, width, height, scene.spec.camera.fov_deg)
+    for name, side, focal in (("fx_px", width, pinhole.fx), ("fy_px", height, pinhole.fy)):
+        if not math.degrees(2.0 * math.atan(side / (2.0 * focal))) < _MAX_FOV_DEG:
+            raise _invalid_camera(
+                f"{name} {focal:g} gives a field of view of 180° or more over {side} pixels",
+                name,
+                "field-of-view-too-wide",
+                "Field of view too wide",
+            )
     distortion = camera.distortion
     if distortion is not None and image_folds(pinhole, distortion):
         raise _invalid_camera(
@@ -100,6 +111,8 @@ def resolve_free_camera(
     try:
         return plan_free_view(pinhole, distortion)
     except ValueError as exc:
+        if distortion is None or distortion.is_zero:  # fx and fy too unequal to render
+            raise _invalid_camera(str(exc), "fy_px", "film-too-large", "Film too large") from exc
         raise _invalid_camera(
             str(exc), "distortion", "distortion-folds-image", "Distortion folds the image"
         ) from exc

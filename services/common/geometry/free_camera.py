@@ -21,8 +21,8 @@ x right, y down, z forward (the optical axis). An orientation is given as exactl
   so ϑ = 90° looks straight down (nadir) and ϑ = -90° straight up. With roll 0 the image's x axis
   is level, ``right = (sin ψ, -cos ψ, 0)``, and ``down = f × right``; at the nadir the top of the
   image then points along yaw. Roll ρ turns the camera about its optical axis, right-handed about
-  f: ``right' = right cos ρ + down sin ρ`` (the image's x axis dips by ρ, the world in the image
-  turns by ρ counter-clockwise).
+  f: ``right' = right cos ρ + down sin ρ``: the camera turns clockwise as seen from behind it, the
+  world in the image counter-clockwise by ρ (a level camera's x axis dips by ρ).
 * ``look_at`` (and ``roll_deg``): the optical axis points from ``position`` at that world point;
   the yaw and pitch follow from that direction (yaw 0 when it is vertical) and roll is as above.
 
@@ -136,8 +136,8 @@ class FreeCamera(FrozenModel):
     )
     roll_deg: Number = Field(
         default=0.0,
-        description="Turn about the optical axis (with yaw/pitch or look_at): the image's x axis "
-        "dips by this angle, the world in the image turns counter-clockwise.",
+        description="Turn about the optical axis (with yaw/pitch or look_at), right-handed about "
+        "the forward axis: the world in the image turns counter-clockwise by this angle.",
     )
     fov_deg: FovDeg | None = Field(
         default=None,
@@ -269,10 +269,12 @@ def rotation_of_yaw_pitch_roll(yaw_deg: float, pitch_deg: float, roll_deg: float
 
 def look_at_angles(position: ArrayLike, target: ArrayLike) -> tuple[float, float]:
     """Yaw and pitch in degrees of the direction from ``position`` to ``target`` (yaw 0 when it
-    is vertical)."""
+    is vertical to within rounding)."""
     d = np.asarray(target, dtype=np.float64) - np.asarray(position, dtype=np.float64)
     horizontal = math.hypot(d[0], d[1])
-    yaw = math.degrees(math.atan2(d[1], d[0])) if horizontal > 0.0 else 0.0
+    # Within rounding of vertical, the yaw is noise: take 0.
+    vertical = horizontal <= 1e-12 * abs(d[2])
+    yaw = 0.0 if vertical else math.degrees(math.atan2(d[1], d[0]))
     return yaw, math.degrees(math.atan2(-d[2], horizontal))
 
 

@@ -70,11 +70,15 @@ def fold_radius(distortion: LensDistortion) -> float:
     ``r_d = r (1 + k1 r² + k2 r⁴)`` has ``dr_d/dr = 1 + 3 k1 r² + 5 k2 r⁴``, positive at r = 0;
     r* is the smallest positive root s = r*² of ``5 k2 s² + 3 k1 s + 1 = 0``.
     """
-    k1, k2 = distortion.k1, distortion.k2
-    if k2 == 0.0:
-        return math.inf if k1 >= 0.0 else math.sqrt(-1.0 / (3.0 * k1))
-    roots = np.roots([5.0 * k2, 3.0 * k1, 1.0])
-    positive = [float(s.real) for s in roots if abs(s.imag) < 1e-12 and s.real > 0.0]
+    a, b = 5.0 * distortion.k2, 3.0 * distortion.k1
+    if a == 0.0:
+        return math.inf if b >= 0.0 else math.sqrt(-1.0 / b)
+    disc = b * b - 4.0 * a
+    if disc < 0.0:
+        return math.inf
+    # The roots q / a and 1 / q, with q of the sign of -b: no cancellation (Numerical Recipes 5.6).
+    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+    positive = [s for s in (q / a, 1.0 / q) if s > 0.0]
     return math.sqrt(min(positive)) if positive else math.inf
 
 
