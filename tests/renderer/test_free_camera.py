@@ -157,6 +157,25 @@ def test_a_principal_point_shift_moves_the_annotations_with_it(engine, catalog):
     assert moved >= 2
 
 
+def test_a_principal_point_shift_moves_the_image_with_it(engine, catalog):
+    scene = catalog.get("demo")
+    base = FreeCamera(position=(0.0, 0.5, 8.0), yaw_deg=90, pitch_deg=90, fx_px=150, fy_px=150)
+    shifted = base.model_copy(update={"cx_px": W / 2 + 12.0, "cy_px": H / 2 - 7.0})
+    # Blurred: the lit ground's sampling noise at 16 spp is larger than a shift's difference.
+    a, b = (
+        cv2.GaussianBlur(
+            engine.render(scene, free_view(catalog, cam), W, H, 16, seed=1).rgb.astype(np.float32),
+            (0, 0),
+            3,
+        )
+        for cam in (base, shifted)
+    )
+    aligned = np.abs(b[:-7, 12:] - a[7:, :-12]).mean()  # content 12 px right, 7 px up
+    unaligned = np.abs(b[:-7, 12:] - a[:-7, 12:]).mean()
+    assert aligned < 3.0
+    assert unaligned > 3 * aligned
+
+
 def test_unequal_focal_lengths_render_through_a_warp_and_annotate_consistently(engine, catalog):
     camera = FreeCamera(
         position=(0.0, 0.0, 8.0), yaw_deg=0.0, pitch_deg=90.0, fx_px=150.0, fy_px=120.0

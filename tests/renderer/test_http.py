@@ -8,7 +8,7 @@ import httpx
 import numpy as np
 import pytest
 
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import FreeCamera, LensDistortion
 from services.common.geometry.grid import grid_for
 from services.renderer.client import RendererClient
 from tests.support import assert_token_required, fuzz_service
@@ -97,11 +97,19 @@ def test_every_route_answers_within_its_schema(renderer_process):
     )
 
 
-def test_the_client_renders_a_free_camera_with_its_ground_truth(renderer_process):
+@pytest.mark.parametrize(
+    "lens", [None, LensDistortion(k1=-0.25, k2=0.05, p1=0.002)], ids=["pinhole", "distorted"]
+)
+def test_the_client_renders_a_free_camera_with_its_ground_truth(renderer_process, lens):
     """``RendererClient.render_camera`` over real HTTP: the PNG of the film asked for and the
-    annotations of the same camera, their boxes on the coloured pixels."""
+    annotations of the same camera, their boxes on the coloured pixels (also when the image is
+    warped through a lens)."""
     camera = FreeCamera(
-        position=(4.0, -3.0, 3.5), look_at=(0.0, 0.0, 0.4), roll_deg=-15.0, fov_deg=55.0
+        position=(4.0, -3.0, 3.5),
+        look_at=(0.0, 0.0, 0.4),
+        roll_deg=-15.0,
+        fov_deg=55.0,
+        distortion=lens,
     )
     with RendererClient(renderer_process.url, token=renderer_process.token) as client:
         colours = {o.name: o.color for o in client.scene("demo").spec.objects}
@@ -111,6 +119,7 @@ def test_the_client_renders_a_free_camera_with_its_ground_truth(renderer_process
     )
     assert rgb.shape == (120, 160, 3)
     assert ann.pose is None
+    assert ann.distortion == lens
     assert ann.camera.fov_deg == pytest.approx(55.0)
     seen = colour_boxes(rgb, colours)
     compared = 0
