@@ -16,8 +16,6 @@ from services.common.geometry.free_camera import (
     quaternion_of_rotation,
 )
 from services.common.geometry.pose import Pose
-from services.renderer.engine import RenderEngine
-from services.renderer.variant import SCALAR_VARIANT
 from services.renderer.view import resolve_free_camera
 
 W, H = 160, 120
@@ -228,36 +226,27 @@ def test_a_camera_inside_an_object_is_refused_by_the_engine(engine, catalog):
         assert info.value.field == "camera.position"
 
 
-def test_frozen_free_camera_renders_are_the_traced_renders(engine, catalog):
+def test_frozen_free_camera_renders_are_the_traced_renders(engine, traced_engine, catalog):
     """The fov and the principal point are sensor parameters the frozen render must take as
     inputs: free cameras that change them (directly or through a warp), and a grid pose after
     them, give the very pixels of tracing each again."""
-    if engine.variant == SCALAR_VARIANT:
-        pytest.skip("the scalar variant has nothing to freeze")
-    traced = RenderEngine(engine.variant, freeze=False)
-    traced.start()
-    try:
-        scene = catalog.get("garden")
-        cameras = [
-            FreeCamera(position=(3.0, 2.0, 4.0), look_at=(0, 0, 0), fov_deg=60.0),
-            FreeCamera(position=(3.0, 2.0, 4.0), look_at=(0, 0, 0), fov_deg=30.0),
-            FreeCamera(
-                position=(0.0, 1.0, 6.0), yaw_deg=0, pitch_deg=80, fx_px=90, fy_px=90, cx_px=70
-            ),
-            FreeCamera(
-                position=(0.0, 1.0, 6.0),
-                yaw_deg=0,
-                pitch_deg=80,
-                fx_px=90,
-                fy_px=90,
-                distortion=LensDistortion(k1=-0.1),
-            ),
-        ]
-        views = [free_view(catalog, c, "garden") for c in cameras]
-        views.append(Pose(theta_deg=30, phi_deg=40))
-        for view in views:
-            frozen = engine.render(scene, view, W, H, 2, seed=4)
-            again = traced.render(scene, view, W, H, 2, seed=4)
-            assert np.array_equal(frozen.rgb, again.rgb), view
-    finally:
-        traced.close()
+    scene = catalog.get("garden")
+    cameras = [
+        FreeCamera(position=(3.0, 2.0, 4.0), look_at=(0, 0, 0), fov_deg=60.0),
+        FreeCamera(position=(3.0, 2.0, 4.0), look_at=(0, 0, 0), fov_deg=30.0),
+        FreeCamera(position=(0.0, 1.0, 6.0), yaw_deg=0, pitch_deg=80, fx_px=90, fy_px=90, cx_px=70),
+        FreeCamera(
+            position=(0.0, 1.0, 6.0),
+            yaw_deg=0,
+            pitch_deg=80,
+            fx_px=90,
+            fy_px=90,
+            distortion=LensDistortion(k1=-0.1),
+        ),
+    ]
+    views = [free_view(catalog, c, "garden") for c in cameras]
+    views.append(Pose(theta_deg=30, phi_deg=40))
+    for view in views:
+        frozen = engine.render(scene, view, W, H, 2, seed=4)
+        again = traced_engine.render(scene, view, W, H, 2, seed=4)
+        assert np.array_equal(frozen.rgb, again.rgb), view
