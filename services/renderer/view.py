@@ -168,19 +168,19 @@ def _film(
 def resolve_view(catalog: SceneCatalog, settings: RendererSettings, request: RenderRequest) -> View:
     """Validate ``request`` against its scene and the caps of ``settings``."""
     scene = catalog.get(request.scene)
-    width, height = _film(scene, request, settings)
     pose: Pose | FreeView
-    if request.camera is not None:
-        pose, index = resolve_free_camera(scene, request.camera, width, height), None
-    elif request.pose is not None:
+    if request.camera is None:
+        if request.pose is None:  # RenderRequest validation makes this unreachable
+            raise UnprocessableError("give a pose or a camera", field="pose")
         pose, index = resolve_pose(scene, request.pose)
-    else:  # RenderRequest validation makes this unreachable
-        raise UnprocessableError("give a pose or a camera", field="pose")
-    if isinstance(pose, FreeView) and pose.rendered is not pose.camera:
-        _check_rendered_film(pose, settings)
-        width_r, height_r = pose.rendered.width, pose.rendered.height
+        width, height = _film(scene, request, settings)
+        width_r, height_r = width, height  # the film Mitsuba renders
     else:
-        width_r, height_r = width, height
+        width, height = _film(scene, request, settings)
+        pose, index = resolve_free_camera(scene, request.camera, width, height), None
+        if pose.rendered is not pose.camera:
+            _check_rendered_film(pose, settings)
+        width_r, height_r = pose.rendered.width, pose.rendered.height
     spp = request.spp if request.spp is not None else settings.renderer_default_spp
     if spp > settings.renderer_max_spp:
         raise UnprocessableError(
@@ -193,8 +193,8 @@ def resolve_view(catalog: SceneCatalog, settings: RendererSettings, request: Ren
         # The cost of a render is its samples (pixels x spp); this caps one request's.
         raise UnprocessableError(
             f"{width_r}x{height_r} at {spp} spp is {width_r * height_r * spp} samples, over the "
-            "limit of "
-            f"{settings.renderer_max_samples} samples per render (COSMOS_RENDERER_MAX_SAMPLES)",
+            f"limit of {settings.renderer_max_samples} samples per render "
+            "(COSMOS_RENDERER_MAX_SAMPLES)",
             field="spp",
             slug="too-many-samples",
             title="Too many samples",

@@ -276,6 +276,12 @@ BAD_FREE_CAMERAS = [
     (free(fx_px=1e-9, fy_px=1e-9), "camera.fx_px", "field-of-view-too-wide"),
     (free(fx_px=1e5, fy_px=1), "camera.fy_px", "film-too-large"),
     (free(distortion={"k1": -0.6}), "camera.distortion.k1", "distortion-folds-image"),
+    # A barrel lens over a 1000 px film is rendered on a pinhole film wider than the 1024 px cap.
+    (
+        {**free(fov_deg=120, distortion={"k1": -0.02}), "width": 1000},
+        "camera.distortion",
+        "film-too-large",
+    ),
     (free(distortion={"k1": -0.1, "k2": -2.0}), "camera.distortion.k1", "distortion-folds-image"),
     (
         {"scene": "demo", "camera": {"position": [1, 1, 2], "look_at": [1, 1, 2]}},
