@@ -14,10 +14,12 @@ masks take the nearest rendered pixel, so the ground-truth boxes are those of th
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from cachetools import LRUCache, cached
 from numpy.typing import NDArray
 
 from services.common.geometry.camera import PinholeCamera
@@ -70,6 +72,57 @@ def _rendered_pinhole(
     )
 
 
+@dataclass(frozen=True, eq=False)
+class _Warp:
+    """The rendered pinhole's film and intrinsics, and the maps into the image's film."""
+
+    width: int
+    height: int
+    focal: float
+    cx: float
+    cy: float
+    map_x: NDArray[np.float32]
+    map_y: NDArray[np.float32]
+
+
+# The maps depend on the intrinsics and the lens only, never on the pose: a search renders many
+# poses through one photo's lens, and undistorting every pixel costs ~0.3 s at 640x480 (~1 µs a
+# pixel), so the last few lenses are kept (up to ~5 MB each at 640x480).
+_WARPS: LRUCache[tuple[object, ...], _Warp] = LRUCache(maxsize=8)
+
+
+def _lens_key(camera: PinholeCamera, lens: LensDistortion | None) -> tuple[object, ...]:
+    return (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, lens)
+
+
+@cached(_WARPS, key=_lens_key, lock=threading.Lock())
+def _warp(camera: PinholeCamera, lens: LensDistortion | None) -> _Warp:
+    """The warp of ``camera``'s image from its rendered pinhole (module docstring); only the
+    intrinsics and the lens matter. Raises ``ValueError`` when the lens cannot be inverted over
+    the film."""
+    us, vs = np.meshgrid(
+        np.arange(camera.width, dtype=np.float64) + 0.5,
+        np.arange(camera.height, dtype=np.float64) + 0.5,
+    )
+    xy: NDArray[np.float64]
+    if lens is None:
+        xy = np.stack([(us - camera.cx) / camera.fx, (vs - camera.cy) / camera.fy], axis=-1)
+    else:
+        xy = undistort_pixels(np.stack([us, vs], axis=-1), camera, lens)
+    focal = max(camera.fx, camera.fy)
+    scaled = xy * focal
+    if not np.isfinite(scaled).all() or np.abs(scaled).max() > _MAX_EXTENT_PX:
+        raise ValueError("the lens spreads the film's rays beyond any renderable film")
+    lo = np.floor(scaled.min(axis=(0, 1))) - _MARGIN_PX
+    hi = np.ceil(scaled.max(axis=(0, 1))) + _MARGIN_PX
+    cx, cy = float(-lo[0]), float(-lo[1])
+    map_x = (scaled[..., 0] + cx - 0.5).astype(np.float32)
+    map_y = (scaled[..., 1] + cy - 0.5).astype(np.float32)
+    map_x.setflags(write=False)  # shared by every view through this lens
+    map_y.setflags(write=False)
+    return _Warp(int(hi[0] - lo[0]), int(hi[1] - lo[1]), focal, cx, cy, map_x, map_y)
+
+
 def plan_free_view(camera: PinholeCamera, distortion: LensDistortion | None) -> FreeView:
     """How to render ``camera`` with ``distortion`` (module docstring).
 
@@ -78,25 +131,8 @@ def plan_free_view(camera: PinholeCamera, distortion: LensDistortion | None) -> 
     lens = None if distortion is None or distortion.is_zero else distortion
     if lens is None and camera.fx == camera.fy:
         return FreeView(camera=camera, distortion=None, rendered=camera)
-    us, vs = np.meshgrid(
-        np.arange(camera.width, dtype=np.float64) + 0.5,
-        np.arange(camera.height, dtype=np.float64) + 0.5,
+    warp = _warp(camera, lens)
+    rendered = _rendered_pinhole(camera, warp.focal, warp.width, warp.height, warp.cx, warp.cy)
+    return FreeView(
+        camera=camera, distortion=lens, rendered=rendered, map_x=warp.map_x, map_y=warp.map_y
     )
-    centres = np.stack([us, vs], axis=-1)
-    xy: NDArray[np.float64]
-    if lens is None:
-        xy = np.stack([(us - camera.cx) / camera.fx, (vs - camera.cy) / camera.fy], axis=-1)
-    else:
-        xy = undistort_pixels(centres, camera, lens)
-    focal = max(camera.fx, camera.fy)
-    scaled = xy * focal
-    if not np.isfinite(scaled).all() or np.abs(scaled).max() > _MAX_EXTENT_PX:
-        raise ValueError("the lens spreads the film's rays beyond any renderable film")
-    lo = np.floor(scaled.min(axis=(0, 1))) - _MARGIN_PX
-    hi = np.ceil(scaled.max(axis=(0, 1))) + _MARGIN_PX
-    width, height = int(hi[0] - lo[0]), int(hi[1] - lo[1])
-    cx, cy = float(-lo[0]), float(-lo[1])
-    rendered = _rendered_pinhole(camera, focal, width, height, cx, cy)
-    map_x = (scaled[..., 0] + cx - 0.5).astype(np.float32)
-    map_y = (scaled[..., 1] + cy - 0.5).astype(np.float32)
-    return FreeView(camera=camera, distortion=lens, rendered=rendered, map_x=map_x, map_y=map_y)

@@ -176,6 +176,23 @@ def test_a_principal_point_shift_moves_the_image_with_it(engine, catalog):
     assert unaligned > 3 * aligned
 
 
+def test_a_lens_warp_is_computed_once_for_every_pose_through_it(catalog):
+    lens = LensDistortion(k1=-0.1, p2=0.001)
+    first, second = (
+        free_view(
+            catalog,
+            FreeCamera(
+                position=(x, 0.0, 5.0), yaw_deg=0, pitch_deg=70, fov_deg=50, distortion=lens
+            ),
+        )
+        for x in (0.0, 1.0)
+    )
+    assert first.camera.position != second.camera.position
+    assert first.map_x is second.map_x  # the cache's hit: the same arrays, read-only
+    assert not first.map_x.flags.writeable
+    assert first.rendered.width == second.rendered.width
+
+
 def test_unequal_focal_lengths_render_through_a_warp_and_annotate_consistently(engine, catalog):
     camera = FreeCamera(
         position=(0.0, 0.0, 8.0), yaw_deg=0.0, pitch_deg=90.0, fx_px=150.0, fy_px=120.0
