@@ -20,6 +20,7 @@ from services.common.geometry.free_camera import (
     quaternion_of_rotation,
     rotation_of_quaternion,
     rotation_of_yaw_pitch_roll,
+    yaw_pitch_roll_of_rotation,
 )
 from services.common.geometry.lens import (
     distort,
@@ -63,6 +64,18 @@ def test_yaw_pitch_roll_is_a_rotation_with_the_optical_axis_where_it_says(yaw, p
     # Roll turns the x axis towards the image's down axis: its height is -cos(pitch) sin(roll).
     expected_dip = -math.cos(p) * math.sin(math.radians(roll))
     assert rotation[2, 0] == pytest.approx(expected_dip, abs=1e-12)
+
+
+@settings(max_examples=100, deadline=None)
+@given(yaw=yaws, pitch=pitches, roll=rolls)
+def test_yaw_pitch_roll_come_back_from_the_rotation(yaw, pitch, roll):
+    rotation = rotation_of_yaw_pitch_roll(yaw, pitch, roll)
+    back = yaw_pitch_roll_of_rotation(rotation)
+    np.testing.assert_allclose(rotation_of_yaw_pitch_roll(*back), rotation, atol=1e-9)
+    if abs(pitch) < 89.99:  # the angles themselves, up to whole turns, away from the poles
+        assert back[1] == pytest.approx(pitch, abs=1e-9)
+        for got, want in ((back[0], yaw), (back[2], roll)):
+            assert math.remainder(got - want, 360.0) == pytest.approx(0.0, abs=1e-7)
 
 
 def test_a_nadir_view_looks_down_with_the_image_top_along_the_yaw():

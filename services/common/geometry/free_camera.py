@@ -58,6 +58,7 @@ __all__ = [
     "quaternion_of_rotation",
     "rotation_of_quaternion",
     "rotation_of_yaw_pitch_roll",
+    "yaw_pitch_roll_of_rotation",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -265,6 +266,23 @@ def rotation_of_yaw_pitch_roll(yaw_deg: float, pitch_deg: float, roll_deg: float
     right = right0 * math.cos(rho) + down0 * math.sin(rho)
     down = down0 * math.cos(rho) - right0 * math.sin(rho)
     return np.stack([right, down, forward], axis=1)
+
+
+def yaw_pitch_roll_of_rotation(rotation: ArrayLike) -> tuple[float, float, float]:
+    """Yaw, pitch and roll in degrees of a camera-to-world rotation: the inverse of
+    :func:`rotation_of_yaw_pitch_roll` (yaw 0 when the optical axis is vertical)::
+
+        ϑ = asin(-f_z),  ψ = atan2(f_y, f_x),  ρ = atan2(right · d₀, right · r₀)
+    """
+    m = np.asarray(rotation, dtype=np.float64)
+    forward, right = m[:, 2], m[:, 0]
+    pitch = math.degrees(math.asin(max(-1.0, min(1.0, -forward[2]))))
+    yaw, _ = look_at_angles((0.0, 0.0, 0.0), forward)
+    psi = math.radians(yaw)
+    right0 = np.array([math.sin(psi), -math.cos(psi), 0.0])
+    down0 = np.cross(forward, right0)
+    roll = math.degrees(math.atan2(float(right @ down0), float(right @ right0)))
+    return yaw, pitch, roll
 
 
 def look_at_angles(position: ArrayLike, target: ArrayLike) -> tuple[float, float]:
