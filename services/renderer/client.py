@@ -9,6 +9,7 @@ from services.common.contracts.render import (
     SceneDetail,
     SceneSummary,
 )
+from services.common.geometry.free_camera import FreeCamera
 
 __all__ = ["RendererClient", "RendererError"]
 
@@ -42,3 +43,21 @@ class RendererClient(ServiceClient):
         body = request.model_dump(mode="json", exclude_none=True)
         response = self._check(self._http.post("/render/annotations", json=body))
         return RenderAnnotations.model_validate(response.json())
+
+    def render_camera(
+        self,
+        scene: str,
+        camera: FreeCamera,
+        *,
+        width: int | None = None,
+        height: int | None = None,
+        spp: int | None = None,
+        seed: int = 0,
+    ) -> tuple[bytes, RenderAnnotations]:
+        """A free camera's view: ``POST /render`` (PNG bytes) and ``POST /render/annotations``
+        (its ground truth) for the same request; ``camera``'s pixel intrinsics are in pixels of
+        the film (the scene camera's unless ``width``/``height`` are given)."""
+        request = RenderRequest(
+            scene=scene, camera=camera, width=width, height=height, spp=spp, seed=seed
+        )
+        return self.render_png(request), self.annotations(request)

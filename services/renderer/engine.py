@@ -31,15 +31,18 @@ from numpy.typing import NDArray
 from services.common.caches import SharedLru
 from services.common.contracts.render import ObjectAnnotation, RenderAnnotations
 from services.common.errors import ServiceUnavailableError
-from services.common.geometry.camera import mitsuba_to_world, pinhole_camera, project
+from services.common.geometry.camera import PinholeCamera, pinhole_camera
+from services.common.geometry.lens import project_lens
 from services.common.geometry.pose import GridIndex, Pose
 from services.common.geometry.scene import LoadedScene
 from services.renderer.annotate import silhouettes
+from services.renderer.free_view import FreeView
 from services.renderer.imaging import linear_to_srgb8
 from services.renderer.pool import lower_worker_priority
 from services.renderer.scene_builder import build_object_scene, build_scene, object_index_of
 from services.renderer.scheduler import DEFAULT_SLICE_SAMPLES, Job, Scheduler, single_slice
 from services.renderer.variant import SCALAR_VARIANT, VariantChoice, VariantRequest, choose_variant
+from services.renderer.view import check_outside_objects
 
 __all__ = ["RenderEngine", "RenderedImage", "pass_seed", "sample_passes"]
 
@@ -90,7 +93,8 @@ class _Loaded:
     camera_sensor: Any
     mask_sensor: Any
     shape_to_object: NDArray[np.int64]
-    centroids: NDArray[np.float64]
+    lo: NDArray[np.float64]
+    hi: NDArray[np.float64]
     object_scenes: dict[int, tuple[Any, Any]] = field(default_factory=dict)
 
 
@@ -222,41 +226,83 @@ class RenderEngine:
             self._release()
 
     # -- products ---------------------------------------------------------------------------
+    # ``pose`` is a hemisphere pose or a free camera resolved for rendering (``FreeView``); the
+    # film is ``width`` x ``height`` either way (a free camera's is its own camera's).
 
     def render(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int = 0
+        self,
+        scene: LoadedScene,
+        pose: Pose | FreeView,
+        width: int,
+        height: int,
+        spp: int,
+        seed: int = 0,
     ) -> RenderedImage:
         """Render ``scene`` from ``pose`` (blocking)."""
-        job = self._render(scene, pose, width, height, spp, seed)
-        return self._run(job, width * height * spp)
+        view = self.free_view(scene, pose, width, height)
+        job = self._render(scene, view, spp, seed)
+        return self._run(job, view.rendered.width * view.rendered.height * spp)
 
     async def render_async(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int = 0
+        self,
+        scene: LoadedScene,
+        pose: Pose | FreeView,
+        width: int,
+        height: int,
+        spp: int,
+        seed: int = 0,
     ) -> RenderedImage:
         """Render ``scene`` from ``pose`` on the worker."""
-        job = self._render(scene, pose, width, height, spp, seed)
-        return await self._run_async(job, width * height * spp)
+        view = self.free_view(scene, pose, width, height)
+        job = self._render(scene, view, spp, seed)
+        return await self._run_async(job, view.rendered.width * view.rendered.height * spp)
 
     def annotate(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
+        self,
+        scene: LoadedScene,
+        pose: Pose | FreeView,
+        width: int,
+        height: int,
+        grid_index: GridIndex | None,
     ) -> RenderAnnotations:
         """Ground truth of the view (blocking)."""
-        job = self._annotate(scene, pose, width, height, grid_index)
-        return self._run(job, width * height * (len(scene.spec.objects) + 1))
+        view = self.free_view(scene, pose, width, height)
+        job = self._annotate(scene, pose, view, grid_index)
+        return self._run(job, self._annotation_cost(scene, view))
 
     async def annotate_async(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
+        self,
+        scene: LoadedScene,
+        pose: Pose | FreeView,
+        width: int,
+        height: int,
+        grid_index: GridIndex | None,
     ) -> RenderAnnotations:
         """Ground truth of the view on the worker."""
-        job = self._annotate(scene, pose, width, height, grid_index)
-        return await self._run_async(job, width * height * (len(scene.spec.objects) + 1))
+        view = self.free_view(scene, pose, width, height)
+        job = self._annotate(scene, pose, view, grid_index)
+        return await self._run_async(job, self._annotation_cost(scene, view))
 
     def object_map(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int
+        self, scene: LoadedScene, pose: Pose | FreeView, width: int, height: int
     ) -> NDArray[np.int64]:
         """Per-pixel index of the object seen through each pixel centre, -1 where none."""
-        job = single_slice(self._object_map, scene, pose, width, height)
-        return self._run(job, width * height)
+        view = self.free_view(scene, pose, width, height)
+        job = single_slice(self._object_map, scene, view)
+        return self._run(job, view.rendered.width * view.rendered.height)
+
+    @staticmethod
+    def free_view(scene: LoadedScene, pose: Pose | FreeView, width: int, height: int) -> FreeView:
+        """The camera of a view as a :class:`FreeView` (a hemisphere pose renders directly)."""
+        if isinstance(pose, FreeView):
+            return pose
+        spec = scene.spec.camera
+        camera = pinhole_camera(pose, spec.radius, spec.fov_deg, width, height)
+        return FreeView(camera=camera, distortion=None, rendered=camera)
+
+    @staticmethod
+    def _annotation_cost(scene: LoadedScene, view: FreeView) -> int:
+        return view.rendered.width * view.rendered.height * (len(scene.spec.objects) + 1)
 
     # -- worker-side ------------------------------------------------------------------------
 
@@ -297,7 +343,8 @@ class RenderEngine:
             camera_sensor=sensors["camera"],
             mask_sensor=sensors["mask_camera"],
             shape_to_object=shape_to_object,
-            centroids=(lo + hi) / 2.0,
+            lo=lo,
+            hi=hi,
         )
         _log.info(
             "loaded scene %s at %dx%d in %.0f ms",
@@ -320,25 +367,40 @@ class RenderEngine:
         mi, dr = self._mi, self._dr
         return [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]) for shape in shapes]
 
-    def _place(self, params: Any, key: str, pose: Pose, radius: float) -> None:
-        params[key] = self._mi.ScalarTransform4f(mitsuba_to_world(pose, radius).tolist())
+    def _place(self, params: Any, sensor: str, camera: PinholeCamera) -> None:
+        """Point the sensor of ``params`` at ``camera``: Mitsuba's camera space is x left, y up,
+        z forward, so its camera-to-world columns are ``(-right, -down, forward, position)``; its
+        principal point sits at ``(0.5 - o_x) W, (0.5 - o_y) H`` for offsets ``o``."""
+        rotation = np.asarray(camera.rotation)
+        matrix = np.eye(4)
+        matrix[:3, 0] = -rotation[0]
+        matrix[:3, 1] = -rotation[1]
+        matrix[:3, 2] = rotation[2]
+        matrix[:3, 3] = camera.position
+        params[f"{sensor}.to_world"] = self._mi.ScalarTransform4f(matrix.tolist())
+        params[f"{sensor}.x_fov"] = camera.fov_deg
+        params[f"{sensor}.principal_point_offset_x"] = 0.5 - camera.cx / camera.width
+        params[f"{sensor}.principal_point_offset_y"] = 0.5 - camera.cy / camera.height
         params.update()
+
+    def _check_placement(self, loaded: _Loaded, pose: Pose | FreeView) -> None:
+        if isinstance(pose, FreeView):
+            check_outside_objects(pose.camera.position, loaded.lo, loaded.hi)
 
     def _traced_render(self, scene: Any, sensor: Any, seed: Any, spp: int) -> Any:
         return self._mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
     def _render(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int
+        self, scene: LoadedScene, view: FreeView, spp: int, seed: int
     ) -> Job[RenderedImage]:
         """A render in sample passes (:func:`sample_passes`), one slice each."""
+        width, height = view.rendered.width, view.rendered.height
         passes = sample_passes(width * height, spp, self._slice_samples)
         total: NDArray[np.float32] | None = None
         render_ms = 0.0
         for index, pass_spp in enumerate(passes):
             yield width * height * pass_spp
-            linear, ms = self._render_pass(
-                scene, pose, width, height, pass_spp, pass_seed(seed, index)
-            )
+            linear, ms = self._render_pass(scene, view, pass_spp, pass_seed(seed, index))
             render_ms += ms
             if len(passes) == 1:
                 total = linear  # one pass: the very pixels of one render
@@ -352,15 +414,17 @@ class RenderEngine:
             total /= np.float32(spp)
         if not self._workers_niced:  # the pool starts with the first launch
             self._workers_niced = lower_worker_priority() > 0
-        return RenderedImage(rgb=linear_to_srgb8(total), render_ms=render_ms)
+        return RenderedImage(rgb=linear_to_srgb8(view.warp(total)), render_ms=render_ms)
 
     def _render_pass(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int, spp: int, seed: int
+        self, scene: LoadedScene, view: FreeView, spp: int, seed: int
     ) -> tuple[NDArray[np.float32], float]:
-        """One Mitsuba render: linear RGB ``(H, W, 3)`` and how long it took in ms."""
+        """One Mitsuba render of the rendered film: linear RGB ``(h, w, 3)`` and its time in ms."""
+        width, height = view.rendered.width, view.rendered.height
         loaded = self.loaded(scene, width, height)
+        self._check_placement(loaded, view)
         # Placed on every pass: another job's slice may have moved this cached camera.
-        self._place(loaded.params, "camera.to_world", pose, scene.spec.camera.radius)
+        self._place(loaded.params, "camera", view.rendered)
         started = time.perf_counter()
         # The seed as a JIT value, so that a new seed does not need a new recording.
         jit_seed = seed if self.variant == SCALAR_VARIANT else self._mi.UInt32(seed)
@@ -376,27 +440,33 @@ class RenderEngine:
         return ids
 
     def _annotate(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int, grid_index: GridIndex | None
+        self,
+        scene: LoadedScene,
+        pose: Pose | FreeView,
+        view: FreeView,
+        grid_index: GridIndex | None,
     ) -> Job[RenderAnnotations]:
         """The ground truth in slices: the object map, then each object's own silhouette."""
         spec = scene.spec
-        radius = spec.camera.radius
         count = len(spec.objects)
+        width, height = view.rendered.width, view.rendered.height
         yield width * height
         loaded = self.loaded(scene, width, height)
-        visible = silhouettes(self._object_map(scene, pose, width, height), count)
+        self._check_placement(loaded, pose)
+        visible = silhouettes(self._object_map(scene, view), count)
         full_pixels = np.zeros(count, dtype=np.int64)
         full_boxes: list[tuple[float, float, float, float] | None] = []
         for index in range(count):
             yield width * height
             alone, params = self._object_scene(loaded, scene, index, width, height)
-            self._place(params, "mask_camera.to_world", pose, radius)
+            self._place(params, "mask_camera", view.rendered)
             mask = self._shape_ids(alone, alone.sensors()[0], width, height) > 0
+            mask = view.warp(mask.astype(np.float32), nearest=True) > 0.5
             stats = silhouettes(np.where(mask, 0, -1), 1)
             full_pixels[index] = stats.pixels[0]
             full_boxes.append(stats.box(0))
-        camera = pinhole_camera(pose, radius, spec.camera.fov_deg, width, height)
-        projected, _ = project(loaded.centroids, camera)
+        centroids = (loaded.lo + loaded.hi) / 2.0
+        projected, _ = project_lens(centroids, view.camera, view.distortion)
         objects = []
         for index, obj in enumerate(spec.objects):
             full = int(full_pixels[index])
@@ -406,7 +476,7 @@ class RenderEngine:
                     name=obj.name,
                     shape=obj.shape,
                     position=(obj.position[0], obj.position[1], 0.0),
-                    centroid=tuple(float(v) for v in loaded.centroids[index]),
+                    centroid=tuple(float(v) for v in centroids[index]),
                     box=visible.box(index),
                     visible_pixels=int(visible.pixels[index]),
                     full_box=full_boxes[index],
@@ -416,20 +486,24 @@ class RenderEngine:
                 )
             )
         return RenderAnnotations(
-            scene=scene.id, pose=pose, grid_index=grid_index, camera=camera, objects=tuple(objects)
+            scene=scene.id,
+            pose=pose if isinstance(pose, Pose) else None,
+            grid_index=grid_index,
+            camera=view.camera,
+            distortion=view.distortion,
+            objects=tuple(objects),
         )
 
-    def _object_map(
-        self, scene: LoadedScene, pose: Pose, width: int, height: int
-    ) -> NDArray[np.int64]:
+    def _object_map(self, scene: LoadedScene, view: FreeView) -> NDArray[np.int64]:
+        width, height = view.rendered.width, view.rendered.height
         loaded = self.loaded(scene, width, height)
-        self._place(loaded.params, "mask_camera.to_world", pose, scene.spec.camera.radius)
+        self._place(loaded.params, "mask_camera", view.rendered)
         ids = self._shape_ids(loaded.scene, loaded.mask_sensor, width, height)
         known = (ids >= 0) & (ids < len(loaded.shape_to_object))
-        mapped: NDArray[np.int64] = np.where(
-            known, loaded.shape_to_object[np.where(known, ids, 0)], -1
-        )
-        return mapped
+        mapped = np.where(known, loaded.shape_to_object[np.where(known, ids, 0)], -1)
+        warped = view.warp(mapped.astype(np.float32), nearest=True)
+        result: NDArray[np.int64] = np.rint(warped).astype(np.int64)
+        return result
 
     def _object_scene(
         self, loaded: _Loaded, scene: LoadedScene, index: int, width: int, height: int

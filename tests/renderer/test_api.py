@@ -223,3 +223,100 @@ async def test_oversized_streamed_body_is_413(client):
     )
     assert response.status_code == 413
     assert response.headers["content-type"] == "application/problem+json"
+
+
+# -- free cameras -------------------------------------------------------------------------------
+
+NADIR = {"position": [0.3, 0.2, 7.0], "yaw_deg": 0, "pitch_deg": 90}
+
+
+async def test_a_free_camera_renders_and_annotates(client):
+    camera = {**NADIR, "roll_deg": 20, "fx_px": 120, "fy_px": 120, "cx_px": 70, "cy_px": 55}
+    body = {"scene": "demo", "camera": camera, "width": 160, "height": 120, "spp": 2}
+    response = await client.post("/render", json=body)
+    assert response.status_code == 200, response.text
+    assert decode(response.content).shape == (120, 160, 3)
+    assert "x-pose-theta-deg" not in response.headers
+    ann = (await client.post("/render/annotations", json=body)).json()
+    assert ann["pose"] is None
+    assert ann["grid_index"] is None
+    assert ann["distortion"] is None
+    assert (ann["camera"]["fx"], ann["camera"]["cx"], ann["camera"]["cy"]) == (120, 70, 55)
+    assert sum(o["box"] is not None for o in ann["objects"]) >= 3
+
+
+async def test_a_distorted_free_camera_reports_its_lens(client):
+    lens = {"k1": -0.2, "k2": 0.03, "p1": 0.001, "p2": 0.0}
+    body = {"scene": "demo", "camera": {**NADIR, "distortion": lens}, "width": 96, "spp": 1}
+    response = await client.post("/render", json=body)
+    assert response.status_code == 200, response.text
+    assert decode(response.content).shape == (72, 96, 3)
+    ann = (await client.post("/render/annotations", json=body)).json()
+    assert ann["distortion"] == lens
+
+
+def free(**camera):
+    return {"scene": "demo", "camera": {**NADIR, **camera}, "width": 96, "spp": 1}
+
+
+BAD_FREE_CAMERAS = [
+    (free(position=[0.0, 0.0, -1.0]), "camera.position", "camera-below-ground"),
+    (free(position=[0.0, 0.0, 0.0]), "camera.position", "camera-below-ground"),
+    # Inside the red ball's bounding box (centre (1.2, -0.6, 0.45), radius 0.45).
+    (free(position=[1.2, -0.6, 0.3]), "camera.position", "camera-inside-object"),
+    (
+        {"scene": "demo", "camera": {"position": [1, 1, 2], "quaternion_wxyz": [0, 0, 0, 0]}},
+        "camera.quaternion_wxyz",
+        "invalid-request",
+    ),
+    (free(fov_deg=0), "camera.fov_deg", "invalid-request"),
+    (free(fov_deg=180), "camera.fov_deg", "invalid-request"),
+    (free(fx_px=0, fy_px=100), "camera.fx_px", "invalid-request"),
+    (free(fx_px=100, fy_px=-5), "camera.fy_px", "invalid-request"),
+    (free(fx_px=1e-9, fy_px=1e-9), "camera.fx_px", "field-of-view-too-wide"),
+    (free(fx_px=1e5, fy_px=1), "camera.fy_px", "film-too-large"),
+    (free(distortion={"k1": -0.6}), "camera.distortion.k1", "distortion-folds-image"),
+    # A barrel lens over a 1000 px film is rendered on a pinhole film wider than the 1024 px cap.
+    (
+        {**free(fov_deg=120, distortion={"k1": -0.02}), "width": 1000},
+        "camera.distortion",
+        "film-too-large",
+    ),
+    (free(distortion={"k1": -0.1, "k2": -2.0}), "camera.distortion.k1", "distortion-folds-image"),
+    (
+        {"scene": "demo", "camera": {"position": [1, 1, 2], "look_at": [1, 1, 2]}},
+        "camera.look_at",
+        "invalid-request",
+    ),
+    (free(yaw_deg=None), "camera", "invalid-request"),  # null is "not given": no yaw
+    (free(look_at=[0, 0, 0]), "camera", "invalid-request"),
+    (free(pitch_deg=95), "camera.pitch_deg", "invalid-request"),
+    (free(colour=1), "camera.colour", "invalid-request"),
+    ({**free(), "pose": {"lat": 0, "lon": 0}}, "body", "invalid-request"),
+    ({"scene": "demo"}, "body", "invalid-request"),
+]
+
+
+@pytest.mark.parametrize(("body", "field", "slug"), BAD_FREE_CAMERAS)
+@pytest.mark.parametrize("path", ["/render", "/render/annotations"])
+async def test_bad_free_cameras_get_problem_details_naming_the_field(
+    client, path, body, field, slug
+):
+    response = await client.post(path, json=body)
+    assert response.status_code == 422, response.text
+    assert response.headers["content-type"] == "application/problem+json"
+    problem = response.json()
+    assert (problem["field"], problem["type"]) == (field, f"urn:cosmos:problem:{slug}"), problem
+
+
+@pytest.mark.parametrize("bad", ["NaN", "Infinity", "-Infinity"])
+async def test_non_finite_camera_numbers_are_422_naming_the_field(client, bad):
+    content = (
+        '{"scene": "demo", "camera": {"position": [0, ' + bad + ', 5], "yaw_deg": 0, '
+        '"pitch_deg": 90}}'
+    )
+    response = await client.post(
+        "/render", content=content, headers={"content-type": "application/json"}
+    )
+    assert response.status_code == 422
+    assert response.json()["field"] == "camera.position[1]"

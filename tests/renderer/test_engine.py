@@ -120,31 +120,24 @@ def test_moving_the_camera_does_not_recompile_kernels(engine, catalog):
         assert all(k["cache_hit"] for k in kernels), kernels
 
 
-def test_frozen_renders_are_the_traced_renders_and_record_once(engine, catalog):
+def test_frozen_renders_are_the_traced_renders_and_record_once(engine, traced_engine, catalog):
     """Replaying the frozen render gives the very pixels of tracing it again, for every pose
     and seed, and new poses and seeds replay the recording instead of recording anew."""
-    if engine.variant == SCALAR_VARIANT:
-        pytest.skip("the scalar variant has nothing to freeze")
-    traced = RenderEngine(engine.variant, freeze=False)
-    traced.start()
-    try:
-        scene = catalog.get("garden")
-        views = [
-            (Pose(theta_deg=t, phi_deg=p), seed)
-            for t, p, seed in ((30, 40, 0), (55, 300, 1), (10, 120, 7), (75, 200, 99), (45, 10, 3))
-        ]
-        recordings = []
-        for pose, seed in views:
-            frozen = engine.render(scene, pose, 176, 132, 3, seed)  # a film no other test uses
-            recordings.append(engine.frozen_recordings)
-            again = traced.render(scene, pose, 176, 132, 3, seed)
-            assert np.array_equal(frozen.rgb, again.rgb)
-        assert traced.frozen_recordings == 0
-        # Values that change between calls become recording inputs after their first change
-        # (dr.freeze's auto_opaque); from then on new views replay the recording.
-        assert recordings[2:] == [recordings[2]] * 3, recordings
-    finally:
-        traced.close()
+    scene = catalog.get("garden")
+    views = [
+        (Pose(theta_deg=t, phi_deg=p), seed)
+        for t, p, seed in ((30, 40, 0), (55, 300, 1), (10, 120, 7), (75, 200, 99), (45, 10, 3))
+    ]
+    recordings = []
+    for pose, seed in views:
+        frozen = engine.render(scene, pose, 176, 132, 3, seed)  # a film no other test uses
+        recordings.append(engine.frozen_recordings)
+        again = traced_engine.render(scene, pose, 176, 132, 3, seed)
+        assert np.array_equal(frozen.rgb, again.rgb)
+    assert traced_engine.frozen_recordings == 0
+    # Values that change between calls become recording inputs after their first change
+    # (dr.freeze's auto_opaque); from then on new views replay the recording.
+    assert recordings[2:] == [recordings[2]] * 3, recordings
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="threads are found in /proc")

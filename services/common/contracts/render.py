@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, field_serializer, field_validator
+from pydantic import ConfigDict, Field, field_serializer, field_validator, model_validator
 
 from services.common.base import BoxXYXY, FrozenModel, Integer, NonNegInt, Number
 from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.free_camera import FreeCamera, LensDistortion
 from services.common.geometry.grid import GridSpec
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery
 from services.common.geometry.scene import SceneSpec
@@ -22,15 +23,42 @@ __all__ = [
 ]
 
 
+def _render_request_schema(schema: dict[str, Any]) -> None:
+    """Publish that a request gives exactly one of ``pose`` and ``camera``."""
+    schema["oneOf"] = [
+        {"required": ["pose"], "not": {"required": ["camera"]}},
+        {"required": ["camera"], "not": {"required": ["pose"]}},
+    ]
+
+
 class RenderRequest(FrozenModel):
-    """``POST /render``: a scene, a pose (continuous or grid indices) and optional film settings."""
+    """``POST /render``: a scene, where the camera is (a hemisphere ``pose``, continuous or grid
+    indices, or a free ``camera``: exactly one) and optional film settings.
+
+    ``width`` and ``height`` are the film in pixels (the scene camera's by default; one alone
+    keeps its aspect ratio); a free camera's pixel intrinsics are in pixels of that film.
+    """
+
+    model_config = ConfigDict(json_schema_extra=_render_request_schema)
 
     scene: Annotated[str, Field(min_length=1, max_length=128)]
-    pose: PoseQuery
+    pose: PoseQuery | None = Field(
+        default=None, description="A hemisphere pose: angles or grid indices."
+    )
+    camera: FreeCamera | None = Field(
+        default=None,
+        description="A free camera: any position, orientation and intrinsics (instead of pose).",
+    )
     width: Annotated[Integer, Field(ge=8)] | None = None
     height: Annotated[Integer, Field(ge=8)] | None = None
     spp: Annotated[Integer, Field(ge=1)] | None = None
     seed: Annotated[Integer, Field(ge=0, le=2**31 - 1)] = 0
+
+    @model_validator(mode="after")
+    def _one_camera(self) -> RenderRequest:
+        if (self.pose is None) == (self.camera is None):
+            raise ValueError("give exactly one of pose and camera")
+        return self
 
 
 class ObjectAnnotation(FrozenModel):
@@ -57,7 +85,8 @@ class ObjectAnnotation(FrozenModel):
     )
     visible_fraction: Annotated[Number, Field(ge=0.0, le=1.0)]
     projected_center: tuple[Number, Number] = Field(
-        description="Pinhole projection of ``centroid`` in pixels (may lie outside the image)."
+        description="Projection of ``centroid`` in pixels, through the distortion when there is "
+        "one (may lie outside the image)."
     )
 
 
@@ -65,9 +94,15 @@ class RenderAnnotations(FrozenModel):
     """``POST /render/annotations``: per-object ground truth and the camera of the view."""
 
     scene: str
-    pose: Pose
+    pose: Pose | None = Field(description="The hemisphere pose; null for a free camera.")
     grid_index: GridIndex | None
     camera: PinholeCamera
+    distortion: LensDistortion | None = Field(
+        default=None,
+        description="The image's lens distortion (OpenCV k1, k2, p1, p2) on top of the pinhole "
+        "``camera``; null for a pinhole image. Boxes and projected centres are in the distorted "
+        "image.",
+    )
     objects: tuple[ObjectAnnotation, ...]
 
 

@@ -1,0 +1,124 @@
+"""Projection through a lens with OpenCV distortion, its inverse, and whether it folds the film.
+
+The pinhole part is :class:`~services.common.geometry.camera.PinholeCamera`; the distortion is
+:class:`~services.common.geometry.free_camera.LensDistortion` (``k1, k2, p1, p2``, the model of
+``cv2.projectPoints``). Pixel (0, 0) is the top-left corner of the top-left pixel, as in
+:func:`~services.common.geometry.camera.project`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from services.common.geometry.camera import PinholeCamera, project
+from services.common.geometry.free_camera import LensDistortion
+
+__all__ = [
+    "UNDISTORT_TOLERANCE_PX",
+    "distort",
+    "fold_radius",
+    "image_folds",
+    "project_lens",
+    "undistort_pixels",
+]
+
+FloatArray = NDArray[np.float64]
+UNDISTORT_TOLERANCE_PX = 1e-3
+"""How far a pixel, undistorted and distorted again, may land from where it was."""
+
+
+def distort(xy: ArrayLike, distortion: LensDistortion) -> FloatArray:
+    """Distort normalised coordinates ``(..., 2)`` (the equations of :class:`LensDistortion`)."""
+    pts = np.asarray(xy, dtype=np.float64)
+    x, y = pts[..., 0], pts[..., 1]
+    d = distortion
+    r2 = x * x + y * y
+    radial = 1.0 + d.k1 * r2 + d.k2 * r2 * r2
+    xd = x * radial + 2.0 * d.p1 * x * y + d.p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + d.p1 * (r2 + 2.0 * y * y) + 2.0 * d.p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
+def project_lens(
+    points: ArrayLike, camera: PinholeCamera, distortion: LensDistortion | None
+) -> tuple[FloatArray, FloatArray]:
+    """Project world points ``(..., 3)`` to distorted pixels ``(..., 2)``, and their depth.
+
+    ``(u, v) = (fx x_d + cx, fy y_d + cy)`` with ``(x_d, y_d)`` the distorted
+    ``(X_c / Z_c, Y_c / Z_c)``; without distortion this is
+    :func:`~services.common.geometry.camera.project`. Points behind the camera get NaN.
+    """
+    pixels, depth = project(points, camera)
+    if distortion is None or distortion.is_zero:
+        return pixels, depth
+    xy = np.stack(
+        [(pixels[..., 0] - camera.cx) / camera.fx, (pixels[..., 1] - camera.cy) / camera.fy],
+        axis=-1,
+    )
+    xy_d = distort(xy, distortion)
+    out = np.stack([camera.fx * xy_d[..., 0] + camera.cx, camera.fy * xy_d[..., 1] + camera.cy], -1)
+    return out, depth
+
+
+def fold_radius(distortion: LensDistortion) -> float:
+    """The undistorted radius r* where the radial model stops increasing (inf if it never does).
+
+    ``r_d = r (1 + k1 r² + k2 r⁴)`` has ``dr_d/dr = 1 + 3 k1 r² + 5 k2 r⁴``, positive at r = 0;
+    r* is the smallest positive root s = r*² of ``5 k2 s² + 3 k1 s + 1 = 0``.
+    """
+    a, b = 5.0 * distortion.k2, 3.0 * distortion.k1
+    if a == 0.0:
+        return math.inf if b >= 0.0 else math.sqrt(-1.0 / b)
+    disc = b * b - 4.0 * a
+    if disc < 0.0:
+        return math.inf
+    # The roots q / a and 1 / q, with q of the sign of -b: no cancellation (Numerical Recipes 5.6).
+    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+    positive = [s for s in (q / a, 1.0 / q) if s > 0.0]
+    return math.sqrt(min(positive)) if positive else math.inf
+
+
+def image_folds(camera: PinholeCamera, distortion: LensDistortion) -> bool:
+    """Whether the radial distortion folds the film: some corner's distorted radius (normalised)
+    lies at or beyond ``r_d(r*)``, the largest the monotonic part of the model reaches, so two
+    directions would land on one pixel. The tangential terms are not part of this test; the
+    round trip of :func:`undistort_pixels` catches what they break."""
+    r_star = fold_radius(distortion)
+    if math.isinf(r_star):
+        return False
+    reach = r_star * (1.0 + distortion.k1 * r_star**2 + distortion.k2 * r_star**4)
+    xs = (np.array([0.0, camera.width]) - camera.cx) / camera.fx
+    ys = (np.array([0.0, camera.height]) - camera.cy) / camera.fy
+    corner = math.sqrt(float(np.max(xs**2)) + float(np.max(ys**2)))
+    return corner >= reach
+
+
+def undistort_pixels(
+    pixels: ArrayLike, camera: PinholeCamera, distortion: LensDistortion
+) -> FloatArray:
+    """The normalised undistorted coordinates ``(..., 2)`` of distorted pixels ``(..., 2)``.
+
+    ``cv2.undistortPoints`` iterated to convergence (1e-12, at most 200 steps; its default is 5
+    steps, far off at strongly distorted corners). Raises
+    ``ValueError`` when a pixel, distorted again, lands more than :data:`UNDISTORT_TOLERANCE_PX`
+    from where it was: the model has no unique inverse there.
+    """
+    px = np.asarray(pixels, dtype=np.float64)
+    flat = px.reshape(-1, 1, 2)
+    matrix = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    xy = cv2.undistortPoints(
+        flat, matrix, distortion.coefficients(), R=None, P=None, criteria=criteria
+    ).reshape(px.shape)
+    back = distort(xy, distortion)
+    again = np.stack(
+        [camera.fx * back[..., 0] + camera.cx, camera.fy * back[..., 1] + camera.cy], -1
+    )
+    error = float(np.max(np.abs(again - px))) if px.size else 0.0
+    if not error <= UNDISTORT_TOLERANCE_PX:
+        raise ValueError(f"the distortion has no unique inverse over the film ({error:.3g} px off)")
+    return np.asarray(xy, dtype=np.float64)
