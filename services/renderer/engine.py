@@ -40,40 +40,23 @@ from services.renderer.free_view import FreeView
 from services.renderer.imaging import linear_to_srgb8
 from services.renderer.pool import lower_worker_priority
 from services.renderer.scene_builder import build_object_scene, build_scene, object_index_of
-from services.renderer.scheduler import DEFAULT_SLICE_SAMPLES, Job, Scheduler, single_slice
+from services.renderer.scheduler import (
+    DEFAULT_SLICE_SAMPLES,
+    Job,
+    Scheduler,
+    pass_seed,
+    sample_passes,
+    single_slice,
+)
 from services.renderer.variant import SCALAR_VARIANT, VariantChoice, VariantRequest, choose_variant
 from services.renderer.view import check_outside_objects
 
-__all__ = ["RenderEngine", "RenderedImage", "pass_seed", "sample_passes"]
+__all__ = ["RenderEngine", "RenderedImage"]
 
 _log = logging.getLogger("cosmos.renderer")
 FROZEN_RECORDINGS = 16  # frozen render recordings kept (scenes x film sizes x spp in use)
-_SEED_STEP = 0x9E3779B9  # odd, so the passes of one render get distinct 32-bit seeds
 P = ParamSpec("P")
 T = TypeVar("T")
-
-
-def sample_passes(pixels: int, spp: int, slice_samples: int) -> list[int]:
-    """The spp of each sample pass of a render: as few passes as keep each within
-    ``slice_samples`` samples (but at least one sample per pixel each), spp split evenly.
-
-    >>> sample_passes(320 * 240, 8, 1 << 22)
-    [8]
-    >>> sample_passes(2048 * 2048, 16, 1 << 22)
-    [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
-    >>> sample_passes(1024 * 1024, 10, 1 << 22)
-    [4, 3, 3]
-    """
-    if pixels < 1 or spp < 1 or slice_samples < 1:
-        raise ValueError("pixels, spp and slice_samples must be positive")
-    count = min(spp, max(1, -(-pixels * spp // slice_samples)))
-    base, extra = divmod(spp, count)
-    return [base + 1] * extra + [base] * (count - extra)
-
-
-def pass_seed(seed: int, index: int) -> int:
-    """The seed of sample pass ``index`` of a render seeded ``seed``; pass 0 keeps ``seed``."""
-    return (seed + index * _SEED_STEP) & 0xFFFFFFFF
 
 
 @dataclass(frozen=True)

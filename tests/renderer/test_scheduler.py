@@ -10,8 +10,7 @@ from concurrent.futures import CancelledError
 
 import pytest
 
-from services.renderer.engine import pass_seed, sample_passes
-from services.renderer.scheduler import Job, Scheduler, single_slice
+from services.renderer.scheduler import Job, Scheduler, pass_seed, sample_passes, single_slice
 
 SAMPLE_S = 1e-7  # the scheduler's first guess of a sample's cost: what the jobs below take
 
