@@ -508,6 +508,9 @@ class SearchRunner:
         if search.status in TERMINAL_STATUSES:
             return search
         self._cancelled.add(search_id)
+        # A task cancelled before its first step never runs its own clean-up.
+        self._submitted.pop(search_id, None)
+        self.stages.forget_early(search_id)
         task = self._running.get(search_id)
         if task is not None:
             task.cancel()

@@ -323,16 +323,23 @@ class SearchStore:
         """Change a search's status, result, error or target detections; stamps ``updated_at``,
         and a search's finish time when it finishes. A search that fails loses its target image
         (nothing reads it again; its record says why it failed), unless it failed for an outage
-        (:data:`OUTAGE`): it may be retried."""
+        (:data:`OUTAGE`): it may be retried.
+
+        A cancelled search stays cancelled: its status, result and error are not changed again
+        (a run winding down after the cancel writes what it did, never over the cancel)."""
         with self._lock:
             return self._update(search_id, changes)
 
     def _update(self, search_id: str, changes: SearchChanges) -> Search:
         """:meth:`update`, with the lock held."""
-        row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
+        row = self._db.execute(
+            "SELECT doc, status FROM searches WHERE id = ?", (search_id,)
+        ).fetchone()
         if row is None:
             raise KeyError(search_id)
         given = {key: value for key, value in changes.items() if value is not None}
+        if row[1] == "cancelled":
+            given = {k: v for k, v in given.items() if k not in {"status", "result", "error"}}
         search = Search.model_validate_json(row[0]).model_copy(
             update={**given, "updated_at": utcnow()}
         )

@@ -754,3 +754,45 @@ def test_close_cancelled_is_cancelled(tmp_path, detail):
     stopped = store.get("s1")
     assert stopped is not None
     assert stopped.status == "running"
+
+
+# -- cancelling ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("call", ["scene", "render", "detect view", "optimize"])
+def test_a_cancel_is_never_lost_whenever_it_arrives(tmp_path, detail, call):
+    """A search cancelled while it waits for ``call`` ends cancelled, stays so in the store, and
+    a restarted controller does not resume it. (Cancelled while it waited for its scene, before
+    its first write, its run's last write set it 'running' again: no worker ran it, and the next
+    start ran it to its end.)"""
+    stages = FakeStages(detail, done_after=3)
+    store = stored(tmp_path, stages)
+    waiting, release = asyncio.Event(), asyncio.Event()
+    original = getattr(stages, call.split()[0])
+
+    async def held(*args, **kwargs):
+        if call != "detect view" or args[0] != PNG:
+            waiting.set()
+            await release.wait()
+        return await original(*args, **kwargs)
+
+    setattr(stages, call.split()[0], held)
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+
+    async def go() -> None:
+        await runner.start()  # takes s1, left queued
+        await waiting.wait()
+        assert runner.cancel("s1").status == "cancelled"
+        release.set()
+        for _ in range(100):
+            if runner.running == 0:
+                break
+            await asyncio.sleep(0.01)
+        assert runner.running == 0
+        await closed_at_once(runner)
+
+    asyncio.run(go())
+    final = store.get("s1")
+    assert final is not None
+    assert final.status == "cancelled"
+    assert store.unfinished() == []  # a restart does not resume it
