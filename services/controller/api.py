@@ -5,8 +5,8 @@ page's files, which hold no data) wants an API key (``Authorization: Bearer <key
 :mod:`services.controller.keys`) unless ``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays
 open for load balancers and container health checks; it tells counts and replicas by name
 (``renderer-1``), no search and no address (those are in the controller's log, for every key
-alike). A key sees and cancels its own searches only (another tenant's is a 404, as an unknown
-one, so ids do not leak); an admin key sees them all.
+alike). A key sees, cancels and deletes its own searches only (another tenant's is a 404, as an
+unknown one, so ids do not leak); an admin key sees them all.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ from services.controller.page import (
 )
 from services.controller.plots import PlotCache, distance_png, trajectory_png
 from services.controller.quotas import Quotas
-from services.controller.runner import SearchRunner
+from services.controller.runner import SearchRunner, StillStopping
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchStore
@@ -365,12 +365,40 @@ async def get_search(search_id: str, state: State, key: Caller) -> Search:
 
 
 @router.delete(
-    "/searches/{search_id}", response_model=Search, responses=problem_responses(401, 404)
+    "/searches/{search_id}",
+    response_model=Search,
+    responses={
+        200: {"description": "The queued or running search, now cancelled (it is kept)."},
+        204: {"description": "The finished, failed or cancelled search was deleted."},
+        **problem_responses(401, 404, 409),
+    },
 )
-async def cancel_search(search_id: str, state: State, key: Caller) -> Search:
-    """Cancel a queued or running search (a finished one is returned unchanged)."""
-    _search_or_404(state, key, search_id)
-    return state.runner.cancel(search_id)
+async def cancel_search(search_id: str, state: State, key: Caller) -> Response:
+    """Cancel a queued or running search: 200, the search cancelled (its iterations so far are
+    kept, and its image counts towards the key's stored bytes until it is deleted). Delete a
+    finished, failed or cancelled search with its target image and iterations: 204, and its
+    bytes no longer count. So a first DELETE cancels a running search and a second one deletes
+    it; a DELETE that arrives just after the search ended deletes it. 409 with ``Retry-After``
+    while a search cancelled a moment ago is still stopping."""
+    search = _search_or_404(state, key, search_id)
+    if search.status not in TERMINAL_STATUSES:
+        cancelled = state.runner.cancel(search_id)
+        return JSONResponse(cancelled.model_dump(mode="json"))
+    try:
+        deleted = state.runner.delete(search_id)
+    except StillStopping:
+        raise ConflictError(
+            f"search {search_id} was cancelled and is still stopping; delete it again in a moment",
+            slug="search-stopping",
+            title="Search still stopping",
+            headers={"Retry-After": "1"},
+        ) from None
+    if deleted is None:  # expired meanwhile
+        raise _unknown_search(search_id)
+    owner, created_at = deleted
+    if owner is not None:
+        state.quotas.deleted(owner, created_at)
+    return Response(status_code=204)
 
 
 @router.post(

@@ -48,6 +48,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any, TypeVar, Unpack
 
 from pydantic import ValidationError
@@ -81,10 +82,15 @@ from services.controller.events import Notifier
 from services.controller.stages import StageError, Stages
 from services.controller.store import SearchChanges, SearchStore
 
-__all__ = ["NotRetryable", "SearchRunner"]
+__all__ = ["NotRetryable", "SearchRunner", "StillStopping"]
 
 _log = logging.getLogger("cosmos.controller")
 T = TypeVar("T")
+
+
+class StillStopping(Exception):
+    """A cancelled search whose run has not stopped yet (its last writes are to come): it cannot
+    be deleted yet."""
 
 
 class NotRetryable(Exception):
@@ -517,6 +523,19 @@ class SearchRunner:
         search = self.store.update(search_id, status="cancelled")
         self.notifier.publish(search_id)
         return search
+
+    def delete(self, search_id: str) -> tuple[str | None, datetime] | None:
+        """Delete a finished, failed or cancelled search with its image and iterations: its
+        owner and creation time, or None when there is no such search (a queued or running one
+        is cancelled first, :meth:`cancel`). Raises :class:`StillStopping` while a cancelled
+        search's run winds down."""
+        if search_id in self._running:
+            raise StillStopping(search_id)
+        deleted = self.store.delete_finished(search_id)
+        if deleted is not None:
+            self._cancelled.discard(search_id)
+            self.notifier.publish(search_id)  # its followers end
+        return deleted
 
     def why_not_retryable(self, search: Search) -> str | None:
         """Why :meth:`retry` would refuse ``search``, or None if it would take it."""

@@ -12,7 +12,8 @@ Each search has an owner (the id of the API key that submitted it, or none when 
 ran without keys); queries take ``visible_to``, the key id whose searches alone are seen (None:
 everyone's). What a search holds is bounded: a failed search's target image is deleted when it
 fails (the record stays, to say why), and :meth:`SearchStore.expire` deletes finished searches
-with their images and iterations. Deleted pages are reused by later writes; the file does not
+with their images and iterations (as :meth:`SearchStore.delete_finished` does one, when its
+tenant asks). Deleted pages are reused by later writes; the file does not
 shrink (no ``VACUUM``, which would rewrite the whole database under the lock).
 """
 
@@ -245,6 +246,17 @@ class SearchStore:
         with self._transaction():
             cursor = self._db.execute("DELETE FROM searches WHERE id = ?", (search_id,))
         return cursor.rowcount > 0
+
+    def delete_finished(self, search_id: str) -> tuple[str | None, datetime] | None:
+        """Delete a finished (succeeded, failed or cancelled) search with its image and
+        iterations: its owner and creation time, or None when no such search is held."""
+        with self._transaction():
+            rows = self._db.execute(
+                "DELETE FROM searches WHERE id = ? AND status IN "
+                "('succeeded', 'failed', 'cancelled') RETURNING owner, created_at",
+                (search_id,),
+            ).fetchall()
+        return (rows[0][0], datetime.fromisoformat(rows[0][1])) if rows else None
 
     def get(self, search_id: str, *, visible_to: str | None = None) -> Search | None:
         """The search with its iterations, or None (also when ``visible_to`` does not own it)."""
