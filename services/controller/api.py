@@ -3,9 +3,10 @@
 Every route but ``/health`` and ``/health/events`` (and the OpenAPI documents, and the web
 page's files, which hold no data) wants an API key (``Authorization: Bearer <key>``,
 :mod:`services.controller.keys`) unless ``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays
-open for load balancers and container health checks; it tells counts and replicas by name
-(``renderer-1``), no search and no address (those are in the controller's log, for every key
-alike). A key sees, cancels and deletes its own searches only (another tenant's is a 404, as an
+open for load balancers and container health checks; it tells whether the service is up, its
+queue and replicas by name (``renderer-1``), no search and no address (those are in the
+controller's log, for every key alike); the store's figures, every tenant's, only with an admin
+key. A key sees, cancels and deletes its own searches only (another tenant's is a 404, as an
 unknown one, so ids do not leak); an admin key sees them all.
 """
 
@@ -41,6 +42,7 @@ from services.common.errors import (
     ConflictError,
     NotFoundError,
     ServiceUnavailableError,
+    UnauthorizedError,
     UnprocessableError,
 )
 from services.common.geometry.grid import GridSpec
@@ -173,13 +175,30 @@ def _search_or_404(state: ControllerState, key: ApiKey | None, search_id: str) -
     return search
 
 
+def _sees_store(state: ControllerState, request: Request) -> bool:
+    """Whether ``request`` may see the store's figures: it carries an admin key (or keys are
+    off). Any other key, a wrong one or none gets the open health: a health check is never
+    refused."""
+    if not state.settings.controller_auth:
+        return True
+    authorization = request.headers.get("authorization")
+    if authorization is None:
+        return False
+    try:
+        return authenticate(state.keys, authorization).admin
+    except UnauthorizedError:
+        return False
+
+
 @router.get("/health", response_model=ControllerHealth)
-async def health(state: State) -> ControllerHealth:
+async def health(request: Request, state: State) -> ControllerHealth:
     """Liveness, the queue, what the broker knows of every replica by name (state, tasks in
     flight, moving-average task times; ``degraded``, naming the stages, while a stage has no
-    replica available), and the store's size. Open to anyone (no key): health checks have
-    none, and no search or internal address is shown."""
-    return _health_of(state)
+    replica available). Open to anyone (no key): health checks have none, and no search or
+    internal address is shown. The store's size (``store_searches``, ``store_image_bytes``,
+    ``store_bytes``: every tenant's) only with an admin key (``Authorization: Bearer <key>``);
+    null for any other key or none."""
+    return _health_of(state, with_store=_sees_store(state, request))
 
 
 HEALTH_EVENTS_EVERY_S: Final = 1.0
@@ -204,17 +223,19 @@ async def _set_within(event: asyncio.Event, timeout_s: float) -> bool:
     response_class=StreamingResponse,
     responses={200: {"content": {"text/event-stream": {}}}},
 )
-async def health_events(state: State) -> StreamingResponse:
+async def health_events(request: Request, state: State) -> StreamingResponse:
     """Server-sent events: ``health``, the body ``GET /health`` answers, at once and then
     whenever it changed (looked at every second), until the client leaves or the server stops;
     a comment every 15 s while nothing changed keeps proxies from closing the stream. The web
-    page's broker panel follows it. Open to anyone, as ``/health`` is."""
+    page's broker panel follows it. Open to anyone, as ``/health`` is, and with the store's
+    figures for an admin key only, as there."""
+    with_store = _sees_store(state, request)
 
     async def stream() -> AsyncIterator[bytes]:
         last = ""
         quiet_s = 0.0
         while not STOPPING.is_set():
-            doc = _health_of(state).model_dump_json()
+            doc = _health_of(state, with_store=with_store).model_dump_json()
             if doc != last:
                 last = doc
                 quiet_s = 0.0
@@ -230,8 +251,8 @@ async def health_events(state: State) -> StreamingResponse:
     )
 
 
-def _health_of(state: ControllerState) -> ControllerHealth:
-    size = state.store.size()
+def _health_of(state: ControllerState, *, with_store: bool) -> ControllerHealth:
+    size = state.store.size() if with_store else None
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(
         status="degraded" if unavailable else "ok",
@@ -240,9 +261,9 @@ def _health_of(state: ControllerState) -> ControllerHealth:
         searches_running=state.runner.running,
         broker_heuristic=state.broker.heuristic.value,
         replicas=tuple(state.broker.stats()),
-        store_searches=size.searches,
-        store_image_bytes=size.image_bytes,
-        store_bytes=size.database_bytes,
+        store_searches=None if size is None else size.searches,
+        store_image_bytes=None if size is None else size.image_bytes,
+        store_bytes=None if size is None else size.database_bytes,
         unavailable_stages=unavailable,
     )
 
