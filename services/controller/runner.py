@@ -38,6 +38,10 @@ the render), and before the search ends, fails or is cancelled; a search interru
 resumes from its last recorded iteration (the optimizer is stateless: it is given the whole
 history every time).
 Searches run concurrently on ``max_concurrent`` workers; the rest wait in a FIFO queue.
+
+A cancel (:meth:`SearchRunner.cancel`) is never lost, whenever it arrives: it is recorded at
+once, and the store keeps a cancelled search cancelled whatever its stopping run writes after it
+(a run cancelled before its first write used to set it 'running' again, for a restart to resume).
 """
 
 from __future__ import annotations

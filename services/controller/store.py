@@ -13,8 +13,9 @@ ran without keys); queries take ``visible_to``, the key id whose searches alone 
 everyone's). What a search holds is bounded: a failed search's target image is deleted when it
 fails (the record stays, to say why), and :meth:`SearchStore.expire` deletes finished searches
 with their images and iterations (as :meth:`SearchStore.delete_finished` does one, when its
-tenant asks). Deleted pages are reused by later writes; the file does not
-shrink (no ``VACUUM``, which would rewrite the whole database under the lock).
+tenant asks). Deleted pages are reused by later writes; the file does not shrink (no
+``VACUUM``, which would rewrite the whole database under the lock). A cancelled search stays
+cancelled, whatever its stopping run writes after the cancel (:meth:`SearchStore.update`).
 """
 
 from __future__ import annotations
