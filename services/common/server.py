@@ -25,6 +25,12 @@ What :class:`HttpProtocol` measures, per connection:
 And when asked to stop, the server sets :data:`~services.common.stopping.STOPPING` (the
 endless event streams end themselves), then gives the responses still in flight
 ``--timeout-graceful-shutdown`` seconds.
+
+Secrets never reach a log line (:class:`RedactSecrets`): a key sent in the query string
+(``?api_key=…``, refused by the controller) was written verbatim to the access log. The values of
+query parameters with sensitive names (``api_key``, ``token``, ``access_token``, ``password``,
+any name ending in ``key``, ``token`` or ``secret`` …), ``Bearer`` credentials and anything shaped
+like a COSMOS API key are replaced by ``REDACTED`` in every line of the server's log handlers.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ import asyncio
 import json
 import logging
 import os
+import re
 from collections.abc import Sequence
 from types import FrameType
 from typing import Any, Final
@@ -51,8 +58,11 @@ __all__ = [
     "DEFAULT_HEAD_TIMEOUT_S",
     "DEFAULT_MAX_HEAD_BYTES",
     "HttpProtocol",
+    "RedactSecrets",
     "guarded_protocol",
     "main",
+    "redact",
+    "redact_logs",
 ]
 
 DEFAULT_MAX_HEAD_BYTES: Final = 64 * 1024
@@ -221,6 +231,63 @@ def guarded_protocol(
     )
 
 
+_SECRET_QUERY = re.compile(
+    r"(?i)(?<=[?&;])"
+    r"([^=&;#?\s\"']*(?:key|token|secret|passw(?:or)?d|pwd|signature|auth|authorization|"
+    r"session|sessionid|jwt|credentials?))"
+    r"=[^&;#\s\"']*"
+)
+"""A query parameter whose name says it holds a secret, and its value."""
+_BEARER = re.compile(r"(?i)\b(bearer\s+)[^\s\"',;]+")
+_API_KEY = re.compile(r"\bcosmos_[A-Za-z0-9_-]{32,}")
+"""A COSMOS API key (``cosmos_`` and 43 characters), wherever it appears."""
+REDACTED: Final = "REDACTED"
+_FORMATTER = logging.Formatter()
+
+
+def redact(text: str) -> str:
+    """``text`` with the secrets in it replaced by ``REDACTED``: the values of sensitive query
+    parameters, ``Bearer`` credentials and API keys."""
+    text = _SECRET_QUERY.sub(rf"\1={REDACTED}", text)
+    text = _BEARER.sub(rf"\1{REDACTED}", text)
+    return _API_KEY.sub(REDACTED, text)
+
+
+class RedactSecrets(logging.Filter):
+    """Redacts (:func:`redact`) every record that passes: the access log's arguments one by one
+    (uvicorn's access formatter unpacks them), any other record's whole message and traceback."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.name == "uvicorn.access" and isinstance(record.args, tuple):
+            record.args = tuple(redact(a) if isinstance(a, str) else a for a in record.args)
+            return True
+        message = record.getMessage()
+        redacted = redact(message)
+        if redacted != message:
+            record.msg, record.args = redacted, None
+        if record.exc_info and not record.exc_text:  # a traceback may quote a request too
+            record.exc_text = redact(_FORMATTER.formatException(record.exc_info))
+        return True
+
+
+def redact_logs() -> None:
+    """Put :class:`RedactSecrets` on every handler of the logging uvicorn configured (its own
+    and the access log's), and on the handler of last resort, which writes the records of
+    loggers without one (the services' own)."""
+    redacting = RedactSecrets()
+    loggers = (
+        logging.getLogger(),
+        logging.getLogger("uvicorn"),
+        logging.getLogger("uvicorn.access"),
+    )
+    handlers = {handler for logger in loggers for handler in logger.handlers}
+    if logging.lastResort is not None:
+        handlers.add(logging.lastResort)
+    for handler in handlers:
+        if not any(isinstance(f, RedactSecrets) for f in handler.filters):
+            handler.addFilter(redacting)
+
+
 class _Server(uvicorn.Server):
     """uvicorn's server, which sets :data:`~services.common.stopping.STOPPING` when asked to
     stop."""
@@ -279,6 +346,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         timeout_keep_alive=args.timeout_keep_alive,
         timeout_graceful_shutdown=args.timeout_graceful_shutdown,
     )
+    redact_logs()  # after Config, which configures logging
     _Server(config).run()
 
 

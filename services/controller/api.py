@@ -4,10 +4,11 @@ runner, the event streams, plots, views) and maps its errors to problem details.
 Every route but ``/health`` and ``/health/events`` (and the OpenAPI documents, and the web
 page's files, which hold no data) wants an API key (``Authorization: Bearer <key>``,
 :mod:`services.controller.keys`) unless ``COSMOS_CONTROLLER_AUTH`` is off. ``/health`` stays
-open for load balancers and container health checks; it tells counts and replicas by name
-(``renderer-1``), no search and no address (those are in the controller's log, for every key
-alike). A key sees and cancels its own searches only (another tenant's is a 404, as an unknown
-one, so ids do not leak); an admin key sees them all.
+open for load balancers and container health checks; it tells whether the service is up, its
+queue and replicas by name (``renderer-1``), no search and no address (those are in the
+controller's log, for every key alike); the store's figures, every tenant's, only with an admin
+key. A key sees, cancels and deletes its own searches only (another tenant's is a 404, as an
+unknown one, so ids do not leak); an admin key sees them all.
 """
 
 from __future__ import annotations
@@ -41,14 +42,14 @@ from services.common.geometry.pose import GridIndex
 from services.common.http import app_state, problem_responses
 from services.common.upload import read_upload
 from services.controller import events
-from services.controller.auth import Caller, caller
+from services.controller.auth import Caller, caller, is_admin
 from services.controller.broker import BrokerError
 from services.controller.events import event_stream
 from services.controller.form import OPENAPI, search_options
 from services.controller.keys import ApiKey
 from services.controller.page import page_routes
 from services.controller.plots import distance_png, trajectory_png
-from services.controller.runner import NotRetryable
+from services.controller.runner import NotRetryable, StillStopping
 from services.controller.stages import StageError
 from services.controller.submit import RETRY_AFTER_S
 from services.controller.transport import StageRequest
@@ -81,13 +82,23 @@ def _search_or_404(state: Controller, key: ApiKey | None, search_id: str) -> Sea
     return search
 
 
+def _sees_store(state: Controller, request: Request) -> bool:
+    """Whether ``request`` may see the store's figures (every tenant's): with an admin key, or
+    when keys are off."""
+    if not state.settings.controller_auth:
+        return True
+    return is_admin(state.keys, request.headers.get("authorization"))
+
+
 @router.get("/health", response_model=ControllerHealth)
-async def health(state: State) -> ControllerHealth:
+async def health(request: Request, state: State) -> ControllerHealth:
     """Liveness, the queue, what the broker knows of every replica by name (state, tasks in
     flight, moving-average task times; ``degraded``, naming the stages, while a stage has no
-    replica available), and the store's size. Open to anyone (no key): health checks have
-    none, and no search or internal address is shown."""
-    return _health_of(state)
+    replica available). Open to anyone (no key): health checks have none, and no search or
+    internal address is shown. The store's size (``store_searches``, ``store_image_bytes``,
+    ``store_bytes``: every tenant's) only with an admin key (``Authorization: Bearer <key>``);
+    null for any other key or none."""
+    return _health_of(state, with_store=_sees_store(state, request))
 
 
 @router.get(
@@ -95,16 +106,20 @@ async def health(state: State) -> ControllerHealth:
     response_class=EventSourceResponse,
     responses={200: {"content": {"text/event-stream": {}}}},
 )
-async def health_events(state: State) -> EventSourceResponse:
+async def health_events(request: Request, state: State) -> EventSourceResponse:
     """Server-sent events: ``health``, the body ``GET /health`` answers, at once and then
     whenever it changed (looked at every second), until the client leaves or the server stops;
     a comment every 15 s keeps proxies from closing the stream. The web page's broker panel
-    follows it. Open to anyone, as ``/health`` is."""
-    return event_stream(events.health_events(lambda: _health_of(state).model_dump_json()))
+    follows it. Open to anyone, as ``/health`` is, and with the store's figures for an admin
+    key only, as there."""
+    with_store = _sees_store(state, request)
+    return event_stream(
+        events.health_events(lambda: _health_of(state, with_store=with_store).model_dump_json())
+    )
 
 
-def _health_of(state: Controller) -> ControllerHealth:
-    size = state.store.size()
+def _health_of(state: Controller, *, with_store: bool) -> ControllerHealth:
+    size = state.store.size() if with_store else None
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(
         status="degraded" if unavailable else "ok",
@@ -113,9 +128,9 @@ def _health_of(state: Controller) -> ControllerHealth:
         searches_running=state.runner.running,
         broker_heuristic=state.broker.heuristic.value,
         replicas=tuple(state.broker.stats()),
-        store_searches=size.searches,
-        store_image_bytes=size.image_bytes,
-        store_bytes=size.database_bytes,
+        store_searches=None if size is None else size.searches,
+        store_image_bytes=None if size is None else size.image_bytes,
+        store_bytes=None if size is None else size.database_bytes,
         unavailable_stages=unavailable,
     )
 
@@ -197,12 +212,36 @@ async def get_search(search_id: str, state: State, key: Caller) -> Search:
 
 
 @router.delete(
-    "/searches/{search_id}", response_model=Search, responses=problem_responses(401, 404)
+    "/searches/{search_id}",
+    response_model=Search,
+    responses={
+        200: {"description": "The queued or running search, now cancelled (it is kept)."},
+        204: {"description": "The finished, failed or cancelled search was deleted."},
+        **problem_responses(401, 404, 409),
+    },
 )
-async def cancel_search(search_id: str, state: State, key: Caller) -> Search:
-    """Cancel a queued or running search (a finished one is returned unchanged)."""
-    _search_or_404(state, key, search_id)
-    return state.runner.cancel(search_id)
+async def cancel_search(search_id: str, state: State, key: Caller) -> Response:
+    """Cancel a queued or running search: 200, the search cancelled (its iterations so far are
+    kept, and its image counts towards the key's stored bytes until it is deleted). Delete a
+    finished, failed or cancelled search with its target image and iterations: 204, and its
+    bytes no longer count. So a first DELETE cancels a running search and a second one deletes
+    it; a DELETE that arrives just after the search ended deletes it. 409 with ``Retry-After``
+    while a search cancelled a moment ago is still stopping."""
+    search = _search_or_404(state, key, search_id)
+    try:
+        cancelled = state.admission.dismiss(search)
+    except StillStopping:
+        raise ConflictError(
+            f"search {search_id} was cancelled and is still stopping; delete it again in a moment",
+            slug="search-stopping",
+            title="Search still stopping",
+            headers={"Retry-After": "1"},
+        ) from None
+    except KeyError:  # expired meanwhile
+        raise _unknown_search(search_id) from None
+    if cancelled is None:
+        return Response(status_code=204)
+    return JSONResponse(cancelled.model_dump(mode="json"))
 
 
 @router.post(

@@ -66,6 +66,14 @@ class Quotas:
         self.store = store
         self.limits = limits
         self._pending: dict[str, _Pending] = {}
+        self._deleted: dict[str, list[datetime]] = {}  # creation times, within the window
+
+    def deleted(self, owner: str, created_at: datetime) -> None:
+        """``owner`` deleted a search created at ``created_at``: its bytes are freed, but
+        within the window it still counts towards the searches per minute (else deleting would
+        lift that quota). Kept in memory: a restart forgets at most a minute of them."""
+        if created_at >= utcnow() - WINDOW:
+            self._deleted.setdefault(owner, []).append(created_at)
 
     @contextmanager
     def admit(self, owner: str, image_bytes: int) -> Iterator[None]:
@@ -108,10 +116,13 @@ class Quotas:
                 ACTIVE_RETRY_S,
                 "active_searches",
             )
-        recent = [t for t in pending.times if t >= now - WINDOW]
+        deleted = [t for t in self._deleted.pop(owner, []) if t >= now - WINDOW]
+        if deleted:
+            self._deleted[owner] = deleted
+        recent = [t for t in pending.times if t >= now - WINDOW] + deleted
         if usage.first_recent is not None:
             recent.append(usage.first_recent)
-        if usage.recent + len(pending.times) >= limits.searches_per_minute:
+        if usage.recent + len(pending.times) + len(deleted) >= limits.searches_per_minute:
             first = min(recent)
             raise QuotaExceededError(
                 f"your key submitted {limits.searches_per_minute} searches in the last minute, "
@@ -128,7 +139,8 @@ class Quotas:
                 f"your key's searches hold {stored} bytes of target images and this one adds "
                 f"{image_bytes}, over its quota of {limits.stored_bytes}; finished searches are "
                 f"deleted {limits.retention_s:.0f} s after they finish, which frees their images "
-                "(the first after Retry-After seconds), or send smaller images",
+                "(the first after Retry-After seconds); delete finished or cancelled ones "
+                "yourself (DELETE /searches/{id}), or send smaller images",
                 wait,
                 "stored_bytes",
             )

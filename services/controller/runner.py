@@ -4,6 +4,10 @@ Searches run concurrently on ``max_concurrent`` workers, each through the search
 (:mod:`~services.controller.loop`); the rest wait in a FIFO queue. A search whose stage stayed
 away longer than the outage budget (:mod:`~services.controller.outages`) can be queued again
 with :meth:`SearchRunner.retry`.
+
+A cancel (:meth:`SearchRunner.cancel`) is never lost, whenever it arrives: it is recorded at
+once, and the store keeps a cancelled search cancelled whatever its stopping run writes after it
+(a run cancelled before its first write used to set it 'running' again, for a restart to resume).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from datetime import datetime
 
 from pydantic import ValidationError
 
@@ -24,9 +29,14 @@ from services.controller.outages import OutagePolicy, why_not_retryable
 from services.controller.stages import Stages
 from services.controller.store import SearchStore
 
-__all__ = ["NotRetryable", "SearchRunner"]
+__all__ = ["NotRetryable", "SearchRunner", "StillStopping"]
 
 _log = logging.getLogger("cosmos.controller")
+
+
+class StillStopping(Exception):
+    """A cancelled search whose run has not stopped yet (its last writes are to come): it cannot
+    be deleted yet."""
 
 
 class NotRetryable(Exception):
@@ -105,12 +115,28 @@ class SearchRunner:
         if search.status in TERMINAL_STATUSES:
             return search
         self._cancelled.add(search_id)
+        # A task cancelled before its first step never runs its own clean-up.
+        self._submitted.pop(search_id, None)
+        self.stages.forget_early(search_id)
         task = self._running.get(search_id)
         if task is not None:
             task.cancel()
         search = self.store.update(search_id, status="cancelled")
         self.notifier.publish(search_id)
         return search
+
+    def delete(self, search_id: str) -> tuple[str | None, datetime] | None:
+        """Delete a finished, failed or cancelled search with its image and iterations: its
+        owner and creation time, or None when there is no such search (a queued or running one
+        is cancelled first, :meth:`cancel`). Raises :class:`StillStopping` while a cancelled
+        search's run winds down."""
+        if search_id in self._running:
+            raise StillStopping(search_id)
+        deleted = self.store.delete_finished(search_id)
+        if deleted is not None:
+            self._cancelled.discard(search_id)
+            self.notifier.publish(search_id)  # its followers end
+        return deleted
 
     def why_not_retryable(self, search: Search) -> str | None:
         """Why :meth:`retry` would refuse ``search``, or None if it would take it."""

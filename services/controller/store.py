@@ -12,8 +12,10 @@ Each search has an owner (the id of the API key that submitted it, or none when 
 ran without keys); queries take ``visible_to``, the key id whose searches alone are seen (None:
 everyone's). What a search holds is bounded: a failed search's target image is deleted when it
 fails (the record stays, to say why), and :meth:`SearchStore.expire` deletes finished searches
-with their images and iterations. Deleted pages are reused by later writes; the file does not
-shrink (no ``VACUUM``, which would rewrite the whole database under the lock).
+with their images and iterations (as :meth:`SearchStore.delete_finished` does one, when its
+tenant asks). Deleted pages are reused by later writes; the file does not shrink (no
+``VACUUM``, which would rewrite the whole database under the lock). A cancelled search stays
+cancelled, whatever its stopping run writes after the cancel (:meth:`SearchStore.update`).
 """
 
 from __future__ import annotations
@@ -246,6 +248,17 @@ class SearchStore:
             cursor = self._db.execute("DELETE FROM searches WHERE id = ?", (search_id,))
         return cursor.rowcount > 0
 
+    def delete_finished(self, search_id: str) -> tuple[str | None, datetime] | None:
+        """Delete a finished (succeeded, failed or cancelled) search with its image and
+        iterations: its owner and creation time, or None when no such search is held."""
+        with self._transaction():
+            rows = self._db.execute(
+                "DELETE FROM searches WHERE id = ? AND status IN "
+                "('succeeded', 'failed', 'cancelled') RETURNING owner, created_at",
+                (search_id,),
+            ).fetchall()
+        return (rows[0][0], datetime.fromisoformat(rows[0][1])) if rows else None
+
     def get(self, search_id: str, *, visible_to: str | None = None) -> Search | None:
         """The search with its iterations, or None (also when ``visible_to`` does not own it)."""
         row = self._one(
@@ -323,16 +336,23 @@ class SearchStore:
         """Change a search's status, result, error or target detections; stamps ``updated_at``,
         and a search's finish time when it finishes. A search that fails loses its target image
         (nothing reads it again; its record says why it failed), unless it failed for an outage
-        (:data:`OUTAGE`): it may be retried."""
+        (:data:`OUTAGE`): it may be retried.
+
+        A cancelled search stays cancelled: its status, result and error are not changed again
+        (a run winding down after the cancel writes what it did, never over the cancel)."""
         with self._lock:
             return self._update(search_id, changes)
 
     def _update(self, search_id: str, changes: SearchChanges) -> Search:
         """:meth:`update`, with the lock held."""
-        row = self._db.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
+        row = self._db.execute(
+            "SELECT doc, status FROM searches WHERE id = ?", (search_id,)
+        ).fetchone()
         if row is None:
             raise KeyError(search_id)
         given = {key: value for key, value in changes.items() if value is not None}
+        if row[1] == "cancelled":
+            given = {k: v for k, v in given.items() if k not in {"status", "result", "error"}}
         search = Search.model_validate_json(row[0]).model_copy(
             update={**given, "updated_at": utcnow()}
         )

@@ -12,7 +12,12 @@ import uuid
 import weakref
 
 from services.common.contracts.optimize import GridPose, UnsupportedGridError, searchable_grid
-from services.common.contracts.search import MAX_ITERATIONS, Search, SearchOptions
+from services.common.contracts.search import (
+    MAX_ITERATIONS,
+    TERMINAL_STATUSES,
+    Search,
+    SearchOptions,
+)
 from services.common.errors import NotFoundError, ServiceUnavailableError, UnprocessableError
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import SCENE_ID_PATTERN
@@ -220,6 +225,22 @@ class Admission:
         self.broker = broker
         self.runner = runner
         self.quotas = quotas
+
+    def dismiss(self, search: Search) -> Search | None:
+        """Cancel a queued or running search (it is kept: the cancelled search), or delete a
+        finished, failed or cancelled one with its image and iterations (None), so its bytes no
+        longer count towards its key's quota. Raises :class:`~.runner.StillStopping` while a search
+        cancelled a moment ago still winds down, and :class:`KeyError` when it expired
+        meanwhile."""
+        if search.status not in TERMINAL_STATUSES:
+            return self.runner.cancel(search.id)
+        deleted = self.runner.delete(search.id)
+        if deleted is None:
+            raise KeyError(search.id)
+        owner, created_at = deleted
+        if owner is not None:
+            self.quotas.deleted(owner, created_at)
+        return None
 
     def refuse_while_unavailable(self) -> None:
         """503 with ``Retry-After`` while a stage no replica serves: a search taken now would

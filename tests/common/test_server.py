@@ -4,6 +4,7 @@ closed after the deadline while normal requests are served as usual."""
 
 from __future__ import annotations
 
+import logging
 import signal
 import socket
 import subprocess
@@ -17,7 +18,7 @@ import httpx
 import pytest
 
 from cosmos.launch import ServiceProcess, stop_service, wait_healthy
-from services.common.server import DEFAULT_MAX_HEAD_BYTES
+from services.common.server import DEFAULT_MAX_HEAD_BYTES, RedactSecrets
 from tests.support import ROOT, free_port, running_service
 
 pytestmark = pytest.mark.slow
@@ -198,3 +199,43 @@ def test_a_stopping_server_ends_its_event_streams_and_exits_cleanly(tmp_path):
         assert outcome == ["ended"]
         # by itself: uvicorn raises the signal it caught again once it shut down, not killed
         assert service.process.returncode in {0, -signal.SIGTERM}
+
+
+SECRET = "s3cret-value"
+KEY = "cosmos_" + "k" * 43
+
+
+def test_a_key_in_the_query_string_never_reaches_the_access_log(launched):
+    """A key sent as ``?api_key=…`` is refused by the controller, but uvicorn's access log wrote
+    the whole query: the server's log has every sensitive value redacted, and the rest as sent."""
+    query = f"api_key={SECRET}&lat=3&token={SECRET}&X-Api-Key={KEY}&access_token={SECRET}"
+    answer = httpx.get(f"{launched.url}/health?{query}", headers={"Authorization": f"Bearer {KEY}"})
+    assert answer.status_code == 200
+    deadline = time.monotonic() + 5
+    while "/health?api_key=" not in launched.log.read_text() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    log = launched.log.read_text()
+    line = next(line for line in log.splitlines() if "/health?api_key=" in line)
+    assert "?api_key=REDACTED&lat=3&token=REDACTED&X-Api-Key=REDACTED&access_token=REDACTED" in line
+    assert SECRET not in log
+    assert KEY not in log
+
+
+def test_other_log_lines_lose_their_secrets_too():
+    """A service's own line that quotes a request or a header keeps its words, not its secrets."""
+    record = logging.LogRecord(
+        "cosmos.controller", logging.WARNING, __file__, 1, "refused %s with %s", None, None
+    )
+    record.args = (f"/searches?scene=demo&api_key={SECRET}", f"Authorization: Bearer {KEY}")
+    assert RedactSecrets().filter(record)
+    assert record.getMessage() == (
+        "refused /searches?scene=demo&api_key=REDACTED with Authorization: Bearer REDACTED"
+    )
+    try:
+        raise ValueError(f"GET /searches?token={SECRET}")
+    except ValueError:
+        failed = logging.LogRecord(
+            "cosmos.controller", logging.ERROR, __file__, 1, "crashed", None, sys.exc_info()
+        )
+    assert RedactSecrets().filter(failed)
+    assert SECRET not in logging.Formatter().format(failed)

@@ -151,3 +151,50 @@ def test_admissions_not_yet_recorded_count(tmp_path):
         quotas.check("k", 10)  # both released
         assert quotas._pending == {}
     store.close()
+
+
+async def test_a_tenant_frees_its_stored_bytes_by_deleting_its_searches(
+    start_controller, monkeypatch
+):
+    """DELETE cancels a queued search (it keeps its image: still counted); a second DELETE
+    deletes it with its image and iterations, and its bytes no longer count. Another tenant
+    cannot delete it (404, as an unknown id); an admin key can."""
+    room = len(png_bytes()) * 3 // 2  # one image, not two
+    async with start_controller(controller_quota_stored_bytes=1024) as (app, client):
+        hold(app, monkeypatch)
+        store = app.state.controller.store
+        stored(store, "old", key_id(app, client), image=b"x" * (1024 - room))
+        first = (await submit(client)).json()["id"]
+        cancelled = await client.delete(f"/searches/{first}")
+        assert cancelled.status_code == 200, cancelled.text
+        assert cancelled.json()["status"] == "cancelled"
+        assert_quota(await submit(client), "stored_bytes", 7 * 24 * 3600)
+        async with key_client(app, new_key(app, "other")) as other:
+            assert (await other.delete(f"/searches/{first}")).status_code == 404
+        assert store.holds_image(first)
+        deleted = await client.delete(f"/searches/{first}")
+        assert deleted.status_code == 204, deleted.text
+        assert (await client.get(f"/searches/{first}")).status_code == 404
+        assert (await client.delete(f"/searches/{first}")).status_code == 404
+        assert not store.holds_image(first)
+        assert store.iterations(first) == []
+        second = await submit(client)
+        assert second.status_code == 202, second.text  # room again
+
+        search_id = second.json()["id"]
+        store.update(search_id, status="succeeded")
+        async with key_client(app, new_key(app, "ops", admin=True)) as admin:
+            assert (await admin.delete(f"/searches/{search_id}")).status_code == 204
+        assert store.get(search_id) is None
+
+
+async def test_deleting_searches_does_not_lift_the_searches_per_minute(
+    start_controller, monkeypatch
+):
+    async with start_controller(controller_quota_searches_per_minute=2) as (app, client):
+        hold(app, monkeypatch)
+        for _ in range(2):
+            search_id = (await submit(client)).json()["id"]
+            for answer in (200, 204):  # cancelled, then deleted
+                assert (await client.delete(f"/searches/{search_id}")).status_code == answer
+        assert_quota(await submit(client), "searches_per_minute", 61)

@@ -35,7 +35,7 @@ from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
 from services.controller.broker import BrokerError
 from services.controller.events import Notifier
-from services.controller.runner import NotRetryable, SearchRunner
+from services.controller.runner import NotRetryable, SearchRunner, StillStopping
 from services.controller.stages import StageError
 from services.controller.store import SearchStore, utcnow
 
@@ -718,16 +718,12 @@ def test_close_stops_a_running_search_which_resumes_later(tmp_path, detail):
     assert run_stored(store, stages).status == "succeeded"
 
 
-def test_close_cancelled_is_cancelled(tmp_path, detail):
-    """close() cancelled while a search winds down (here: a render that takes its time to
-    stop) stops waiting, and a later close() finishes the job."""
-    stages = FakeStages(detail, done_after=3)
-    store = stored(tmp_path, stages)
+def stubborn_renders(stages: FakeStages) -> tuple[asyncio.Event, asyncio.Event]:
+    """Make ``stages`` render for ever, and take its time to stop once cancelled: set the
+    first event when a render starts; a cancelled render stops when the second one is set."""
     rendering, release = asyncio.Event(), asyncio.Event()
 
-    async def stubborn_render(
-        scene_id: str, index: GridIndex, request_id: str = "", view_settings=None
-    ) -> bytes:
+    async def stubborn_render(*args, **kwargs) -> bytes:
         rendering.set()
         try:
             await asyncio.sleep(60)
@@ -736,6 +732,15 @@ def test_close_cancelled_is_cancelled(tmp_path, detail):
         raise AssertionError("unreachable")
 
     stages.render = stubborn_render  # type: ignore[method-assign]
+    return rendering, release
+
+
+def test_close_cancelled_is_cancelled(tmp_path, detail):
+    """close() cancelled while a search winds down (here: a render that takes its time to
+    stop) stops waiting, and a later close() finishes the job."""
+    stages = FakeStages(detail, done_after=3)
+    store = stored(tmp_path, stages)
+    rendering, release = stubborn_renders(stages)
     runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
 
     async def go() -> None:
@@ -754,3 +759,74 @@ def test_close_cancelled_is_cancelled(tmp_path, detail):
     stopped = store.get("s1")
     assert stopped is not None
     assert stopped.status == "running"
+
+
+# -- cancelling ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("call", ["scene", "render", "detect view", "optimize"])
+def test_a_cancel_is_never_lost_whenever_it_arrives(tmp_path, detail, call):
+    """A search cancelled while it waits for ``call`` ends cancelled, stays so in the store, and
+    a restarted controller does not resume it. (Cancelled while it waited for its scene, before
+    its first write, its run's last write set it 'running' again: no worker ran it, and the next
+    start ran it to its end.)"""
+    stages = FakeStages(detail, done_after=3)
+    store = stored(tmp_path, stages)
+    waiting, release = asyncio.Event(), asyncio.Event()
+    original = getattr(stages, call.split()[0])
+
+    async def held(*args, **kwargs):
+        if call != "detect view" or args[0] != PNG:
+            waiting.set()
+            await release.wait()
+        return await original(*args, **kwargs)
+
+    setattr(stages, call.split()[0], held)
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+
+    async def go() -> None:
+        await runner.start()  # takes s1, left queued
+        await waiting.wait()
+        assert runner.cancel("s1").status == "cancelled"
+        release.set()
+        for _ in range(100):
+            if runner.running == 0:
+                break
+            await asyncio.sleep(0.01)
+        assert runner.running == 0
+        await closed_at_once(runner)
+
+    asyncio.run(go())
+    final = store.get("s1")
+    assert final is not None
+    assert final.status == "cancelled"
+    assert store.unfinished() == []  # a restart does not resume it
+
+
+def test_a_cancelled_search_is_deleted_only_once_its_run_has_stopped(tmp_path, detail):
+    """Its run writes what it did as it stops: deleting it before would lose those writes (or
+    fail them); afterwards it goes with its image and iterations."""
+    stages = FakeStages(detail, done_after=3)
+    store = stored(tmp_path, stages)
+    rendering, release = stubborn_renders(stages)
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+
+    async def go() -> None:
+        await runner.start()
+        await rendering.wait()
+        runner.cancel("s1")
+        await asyncio.sleep(0.01)
+        with pytest.raises(StillStopping):
+            runner.delete("s1")
+        release.set()
+        while runner.running:
+            await asyncio.sleep(0.01)
+        deleted = runner.delete("s1")
+        assert deleted is not None
+        assert deleted[0] is None  # no owner: stored without keys
+        assert runner.delete("s1") is None
+        await closed_at_once(runner)
+
+    asyncio.run(go())
+    assert store.get("s1") is None
+    assert not store.holds_image("s1")

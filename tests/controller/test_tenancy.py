@@ -5,9 +5,14 @@ unless allowed; ``COSMOS_CONTROLLER_AUTH=off`` opens everything."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
+from sse_starlette import ServerSentEvent
+from starlette.requests import Request
 
 from cosmos import cli
+from services.controller.api import health_events
 from tests.controller.clients import key_client, key_id, new_key
 from tests.controller.test_api import png_bytes, record
 
@@ -205,3 +210,47 @@ def test_a_cors_setting_that_is_not_an_origin_is_refused():
 
     with pytest.raises(ValidationError, match="not an origin"):
         ControllerSettings(controller_cors_origins="https://app.example/path")
+
+
+STORE_FIGURES = ("store_searches", "store_image_bytes", "store_bytes")
+
+
+async def health_event(app, client) -> dict:
+    """The first ``health`` event of ``GET /health/events`` for ``client``'s key, read from the
+    route's stream (the in-process transport would wait for the endless stream's end)."""
+    headers = [(b"authorization", v.encode()) for v in client.headers.get_list("authorization")]
+    request = Request(
+        {"type": "http", "method": "GET", "path": "/health/events", "headers": headers}
+    )
+    response = await health_events(request, app.state.controller)
+    stream = response.body_iterator
+    try:
+        chunk = await anext(stream)
+    finally:
+        await stream.aclose()  # type: ignore[attr-defined]
+    assert isinstance(chunk, ServerSentEvent)
+    assert chunk.event == "health"
+    return json.loads(chunk.data)
+
+
+async def test_the_open_health_shows_the_store_s_figures_to_an_admin_key_only(controller):
+    """Whole-store counts (every tenant's) are not for anyone who asks: no key, a tenant's key
+    or a wrong one gets the health without them, an admin key with them; the events alike."""
+    app, tenant = controller
+    record(app.state.controller.store, "someones", "succeeded", owner="k1")
+    async with key_client(app, None) as anonymous, key_client(app, "cosmos_wrong") as wrong:
+        for client in (anonymous, tenant, wrong):
+            health = await client.get("/health")
+            assert health.status_code == 200
+            body = health.json()
+            assert body["status"] == "ok" or body["unavailable_stages"]
+            assert body["replicas"]  # the page's broker panel shows them
+            for figure in STORE_FIGURES:
+                assert body[figure] is None, (client.headers, figure)
+                assert (await health_event(app, client))[figure] is None
+    async with key_client(app, new_key(app, "ops", admin=True)) as admin:
+        body = (await admin.get("/health")).json()
+        assert body["store_searches"] == 1
+        assert body["store_image_bytes"] == len(png_bytes())
+        assert body["store_bytes"] > 0
+        assert (await health_event(app, admin))["store_searches"] == 1

@@ -27,7 +27,9 @@ export function renderHealth(health) {
     "p",
     { class: "summary" },
     h("span", { class: `badge ${health.status}` }, health.status),
-    ` ${health.searches_running} running, ${health.searches_queued} queued · heuristic ${health.broker_heuristic} · ${health.store_searches} searches stored`,
+    ` ${health.searches_running} running, ${health.searches_queued} queued · heuristic ${health.broker_heuristic}`,
+    // the store's figures come with an admin key only
+    health.store_searches == null ? null : ` · ${health.store_searches} searches stored`,
     health.unavailable_stages?.length ? h("strong", {}, ` · unavailable: ${health.unavailable_stages.join(", ")}`) : null,
   );
   const table = h(

@@ -223,7 +223,13 @@ export function showSearch({ view, api }, id) {
   cancel.addEventListener("click", async () => {
     cancel.disabled = true;
     try {
-      search = await api(base, { method: "DELETE", signal });
+      const answer = await api(base, { method: "DELETE", signal, as: "response" });
+      if (answer.status === 204) {
+        // it had ended before the cancel arrived: a DELETE of an ended search deletes it
+        message.replaceChildren(notice("The search had ended before the cancel arrived, and was deleted.", "error"));
+        return;
+      }
+      search = await answer.json();
       schedule();
     } catch (error) {
       if (error.name !== "AbortError") message.replaceChildren(notice(`Could not cancel: ${error.detail || error.message}`, "error"));

@@ -229,7 +229,8 @@ class ReplicaHealth(FrozenModel):
 
 
 class ControllerHealth(FrozenModel):
-    """``GET /health`` of the controller: ``degraded`` while a stage has no replica available."""
+    """``GET /health`` of the controller: ``degraded`` while a stage has no replica available;
+    the store's figures (whole-store, every tenant's) for an admin key only."""
 
     status: Literal["ok", "degraded"]
     service: Literal["controller"]
@@ -237,10 +238,19 @@ class ControllerHealth(FrozenModel):
     searches_running: Count
     broker_heuristic: str
     replicas: tuple[ReplicaHealth, ...]
-    store_searches: Count = Field(description="Searches held (finished ones expire).")
-    store_image_bytes: Count = Field(description="Bytes of the target images held.")
-    store_bytes: Count = Field(
-        description="Bytes of the database's pages in use (free pages and the log aside)."
+    store_searches: Count | None = Field(
+        default=None,
+        description="Searches held, every tenant's (finished ones expire). With an admin key "
+        "only (or with keys off); null otherwise.",
+    )
+    store_image_bytes: Count | None = Field(
+        default=None,
+        description="Bytes of the target images held. With an admin key only; null otherwise.",
+    )
+    store_bytes: Count | None = Field(
+        default=None,
+        description="Bytes of the database's pages in use (free pages and the log aside). With "
+        "an admin key only; null otherwise.",
     )
     unavailable_stages: tuple[str, ...] = Field(
         default=(),
