@@ -57,7 +57,6 @@ import uvloop
 from benchmarks.local import Controller, StageUrls, stage_processes
 from cosmos.bench.runner import TARGET_SPP
 from cosmos.bench.target import Target
-from services.common.catalog import SceneCatalog
 from services.common.contracts.optimize import (
     NextPoseRequest,
     NextPoseResponse,
@@ -72,9 +71,9 @@ from services.common.images import media_type_of
 from services.controller.broker import Broker
 from services.controller.stages import Stages
 from services.controller.transport import StageRequest
-from services.optimizer.calibration import CalibrationStore
-from services.optimizer.planning import OptimizerContext, next_pose
+from services.optimizer.planning import next_pose
 from services.optimizer.settings import OptimizerSettings
+from services.optimizer.wiring import build_optimizer
 from services.renderer.client import RendererClient
 
 STEPS = (1, 10, 20, 40)
@@ -144,11 +143,7 @@ async def measure(
     urls: StageUrls, stages: Stages, scene: str, full: NextPoseRequest, reps: int
 ) -> dict[str, dict[int, list[float]]]:
     """Per quantity and k, the samples (module docstring); render and detect under k = 0."""
-    settings = OptimizerSettings()
-    context = OptimizerContext(
-        calibrations=CalibrationStore.load(settings.optimizer_paper_calibration),
-        catalog=SceneCatalog(settings.scene_directories()),
-    )
+    context = build_optimizer(OptimizerSettings())
     steps = [k for k in STEPS if k <= len(full.history)]
     names = ("bytes", "build", "encode", "call", "parse", "plan", "json")
     out: dict[str, dict[int, list[float]]] = {name: {k: [] for k in steps} for name in names}

@@ -100,11 +100,10 @@ class InProcess:
         from services.detector.detect import DetectOptions
         from services.detector.model import DetectorModel
         from services.detector.settings import DetectorSettings
-        from services.optimizer.calibration import CalibrationStore
-        from services.optimizer.planning import OptimizerContext
         from services.optimizer.settings import OptimizerSettings
-        from services.renderer.engine import RenderEngine
+        from services.optimizer.wiring import build_optimizer
         from services.renderer.settings import RendererSettings
+        from services.renderer.wiring import build_renderer
 
         renderer = RendererSettings()
         controller = ControllerSettings()
@@ -112,21 +111,14 @@ class InProcess:
         # What the controller asks the renderer for (its settings, else the renderer's default).
         self.spp = render_spp or controller.controller_view_spp or renderer.renderer_default_spp
         self.width = render_width or controller.controller_view_width
-        self.engine = RenderEngine(renderer.renderer_mitsuba_variant)
+        self.engine = build_renderer(renderer).engine
         self.engine.start()
         self.detector_settings = DetectorSettings()
         self.model = DetectorModel(
             self.detector_settings.detector_model, threads=self.detector_settings.detector_threads
         )
         self.options = DetectOptions.from_settings(self.detector_settings)
-        optimizer = OptimizerSettings()
-        self.context = OptimizerContext(
-            calibrations=CalibrationStore.load(optimizer.optimizer_paper_calibration),
-            catalog=SceneCatalog(optimizer.scene_directories()),
-            default_strategy=optimizer.optimizer_default_strategy,
-            max_grid_poses=optimizer.optimizer_max_grid_poses,
-            max_history_detections=optimizer.optimizer_max_history_detections,
-        )
+        self.context = build_optimizer(OptimizerSettings())
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="target-detect")
 
     def close(self) -> None:

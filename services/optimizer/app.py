@@ -11,27 +11,13 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.common.catalog import SceneCatalog
 from services.common.http import service_app
 from services.common.settings import from_environment
 from services.optimizer.api import OptimizerState, router
-from services.optimizer.calibration import CalibrationStore
-from services.optimizer.planning import OptimizerContext
 from services.optimizer.settings import OptimizerSettings
+from services.optimizer.wiring import build_optimizer
 
-__all__ = ["app", "build_optimizer", "create_app"]
-
-
-def build_optimizer(settings: OptimizerSettings) -> OptimizerContext:
-    """The optimizer's parts, wired once: the calibrations and the scene catalog (read from
-    disk), and the bounds of its requests."""
-    return OptimizerContext(
-        calibrations=CalibrationStore.load(settings.optimizer_paper_calibration),
-        catalog=SceneCatalog(settings.scene_directories()),
-        default_strategy=settings.optimizer_default_strategy,
-        max_grid_poses=settings.optimizer_max_grid_poses,
-        max_history_detections=settings.optimizer_max_history_detections,
-    )
+__all__ = ["app", "create_app"]
 
 
 def create_app(settings: OptimizerSettings | None = None) -> FastAPI:

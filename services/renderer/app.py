@@ -12,27 +12,13 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.common.catalog import SceneCatalog
 from services.common.http import service_app
 from services.common.settings import from_environment
 from services.renderer.api import RendererState, router
-from services.renderer.engine import RenderEngine
 from services.renderer.settings import RendererSettings
+from services.renderer.wiring import build_renderer
 
-__all__ = ["app", "build_renderer", "create_app"]
-
-
-def build_renderer(settings: RendererSettings) -> RendererState:
-    """The renderer's parts, wired once: its scene catalog (read from disk) and its engine (not
-    started: :meth:`RenderEngine.start` loads Mitsuba on the render thread)."""
-    catalog = SceneCatalog(settings.scene_directories())
-    engine = RenderEngine(
-        settings.renderer_mitsuba_variant,
-        settings.renderer_scene_cache,
-        settings.renderer_max_queue,
-        slice_samples=settings.renderer_slice_samples,
-    )
-    return RendererState(settings=settings, catalog=catalog, engine=engine)
+__all__ = ["app", "create_app"]
 
 
 def create_app(settings: RendererSettings | None = None) -> FastAPI:
