@@ -12,6 +12,7 @@ ENV DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 \
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY services ./services
+COPY cosmos ./cosmos
 RUN pip install --no-cache-dir .
 COPY scenes ./scenes
 COPY models ./models

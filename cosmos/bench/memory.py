@@ -2,7 +2,7 @@
 
 :func:`memory_of` reads the resident size now and its high-water mark (``VmRSS`` and ``VmHWM`` of
 ``/proc/<pid>/status``); :func:`reset_peak` starts that mark over. The fault suite's memory
-sampler, the benchmarks and the tests all read memory through these two.
+sampler and the tests read memory through these two.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The COSMOS Controller's queue of searches and its workers: admission, cancellation, retries.
+"""The controller's queue of searches and its workers: queueing, cancelling, deleting, retrying.
 
 Searches run concurrently on ``max_concurrent`` workers, each through the search loop
 (:mod:`~services.controller.loop`); the rest wait in a FIFO queue. A search whose stage stayed
