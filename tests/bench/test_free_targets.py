@@ -249,6 +249,10 @@ def test_references_on_drawn_targets(targets: list[FreeTarget], garden: LoadedSc
     assert "box-only bound" in table
     assert "baseline" in table
     assert table.count("all") == 2
+    by_objects = text_table(results, by="objects").splitlines()
+    assert by_objects[0].split()[2] == "objects"
+    counts = {str(len(t.usable)) for t in targets}
+    assert {line.split()[2] for line in by_objects[1:] if "baseline" in line} == counts | {"all"}
 
 
 def test_variants_apply_to_free_targets(targets: list[FreeTarget]) -> None:

@@ -1,5 +1,6 @@
 """``python -m cosmos.bench.free_targets --scene demo --n 20 --seed 1``: draw free targets, run
-the baseline and the box-only bound on them, print the table per elevation band."""
+the baseline and the box-only bound on them, print the table per elevation band and per count
+of objects in view."""
 
 from __future__ import annotations
 
@@ -57,7 +58,7 @@ def _run(args: argparse.Namespace, renderer: Renderer, catalog: SceneCatalog) ->
             f"{scene_id}: {len(targets)} targets drawn in {drawn_s:.1f} s, "
             f"{sum(not t.intrinsics_given for t in targets)} without intrinsics\n"
         )
-    sys.stdout.write(text_table(results) + "\n")
+    sys.stdout.write(text_table(results) + "\n\n" + text_table(results, by="objects") + "\n")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

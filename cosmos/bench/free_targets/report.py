@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Final
+from typing import Final, Literal
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from cosmos.bench.free_targets.shapes import SceneShapes
 from cosmos.bench.free_targets.solve import baseline, box_only_bound
 from cosmos.bench.tables import plain_table
 
-__all__ = ["METHODS", "TargetResult", "band_rows", "evaluate", "text_table"]
+__all__ = ["METHODS", "TargetResult", "evaluate", "group_rows", "text_table"]
 
 METHODS: Final = ("baseline", "box-only bound")
 
@@ -68,13 +68,17 @@ def evaluate(
     return results
 
 
-def band_rows(results: Sequence[TargetResult], method: str) -> list[tuple[str, ErrorSummary]]:
-    """``method``'s summary for each elevation band that has targets, then for all of them."""
+def group_rows(
+    results: Sequence[TargetResult], method: str, by: Literal["band", "objects"] = "band"
+) -> list[tuple[str, ErrorSummary]]:
+    """``method``'s summary per elevation band (or per count of objects in view) that has
+    targets, then for all of them."""
+    keys: list[str] = list(BANDS) if by == "band" else sorted({str(r.objects) for r in results})
     rows: list[tuple[str, ErrorSummary]] = []
-    for band in BANDS:
-        errors = [r.errors[method] for r in results if r.band == band]
+    for key in keys:
+        errors = [r.errors[method] for r in results if str(getattr(r, by)) == key]
         if errors:
-            rows.append((band, summarize(errors)))
+            rows.append((key, summarize(errors)))
     rows.append(("all", summarize([r.errors[method] for r in results])))
     return rows
 
@@ -92,7 +96,6 @@ def _num(value: float, digits: int) -> str:
 HEADER: Final = (
     "scene",
     "method",
-    "band",
     "n",
     *(f"≤{p:.0%}/{r:g}°" for p, r in THRESHOLDS),
     "pos med %r",
@@ -103,14 +106,15 @@ HEADER: Final = (
 )
 
 
-def text_table(results: Sequence[TargetResult]) -> str:
-    """Per scene, per method, per elevation band: the shares within the thresholds, median and
-    p95 position error (in % of the radius) and rotation error, and the targets without a pose."""
+def text_table(results: Sequence[TargetResult], by: Literal["band", "objects"] = "band") -> str:
+    """Per scene, per method, per elevation band (or count of objects at least 60 % visible):
+    the shares within the thresholds, median and p95 position error (in % of the radius) and
+    rotation error, and the targets without a pose."""
     rows = []
     for scene in dict.fromkeys(r.scene for r in results):
         mine = [r for r in results if r.scene == scene]
         for method in METHODS:
-            for band, s in band_rows(mine, method):
+            for band, s in group_rows(mine, method, by):
                 rows.append(
                     [
                         scene,
@@ -125,4 +129,6 @@ def text_table(results: Sequence[TargetResult]) -> str:
                         str(s.missed),
                     ]
                 )
-    return plain_table(HEADER, rows)
+    header = list(HEADER)
+    header.insert(2, "band" if by == "band" else "objects")
+    return plain_table(header, rows)
