@@ -9,7 +9,9 @@ measures a search's floor in one process, :mod:`.settings_sweep` the render sett
 (:mod:`.settings_choice` picks one), :mod:`.scenes` generates random scenes that
 :mod:`.random_run` searches with the general and the per-scene detector (:mod:`.random_report`
 its figures); :mod:`.session` is what the command's modes share and :mod:`.command` runs them.
-:mod:`.faults` is the fault suite (``python -m benchmarks.faults``, ``tests/faults/``).
+:mod:`.faults` is the fault suite (``python -m benchmarks.faults``, ``tests/faults/``);
+:mod:`.free_targets` draws free-camera targets with the baseline and the box-only bound they are
+measured against (``python -m cosmos.bench.free_targets``; issue 23, item 5).
 """
 
 from cosmos.bench.command import run

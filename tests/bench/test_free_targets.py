@@ -1,0 +1,263 @@
+"""Free targets (issue 23, item 5): the drawing keeps every constraint over real annotation
+renders at a small film, the metrics are right on known poses, the baseline recovers an exact
+pose from exact centroids, and the box-only fit returns the truth without noise."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cosmos.bench.free_targets import (
+    BANDS,
+    DrawError,
+    Estimate,
+    FreeTarget,
+    LocalRenderer,
+    PoseError,
+    baseline,
+    baseline_pnp,
+    box_fit,
+    box_only_bound,
+    draw_targets,
+    evaluate,
+    pose_error,
+    project_boxes,
+    scene_shapes,
+    summarize,
+    text_table,
+)
+from cosmos.bench.free_targets.draw import (
+    DISTANCE_RANGE,
+    FOV_SPREAD,
+    MIN_OBJECTS,
+    MIN_VISIBLE,
+    NADIR_SHARE,
+    ROLL_LIMIT_DEG,
+    band_of,
+)
+from cosmos.bench.free_targets.estimate import intrinsics_matrix
+from cosmos.bench.free_targets.metrics import MISSED
+from services.common.catalog import SceneCatalog
+from services.common.contracts.render import RenderAnnotations, RenderRequest
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    free_pinhole_camera,
+    yaw_pitch_roll_of_rotation,
+)
+from services.common.geometry.scene import LoadedScene
+from services.renderer.engine import RenderEngine
+
+COUNT, SEED = 7, 3
+FILM = (96, 72)
+
+
+@pytest.fixture(scope="module")
+def renderer(engine: RenderEngine, catalog: SceneCatalog) -> Iterator[LocalRenderer]:
+    with LocalRenderer(catalog, engine=engine) as local:
+        yield local
+
+
+@pytest.fixture(scope="module")
+def garden(catalog: SceneCatalog) -> LoadedScene:
+    return catalog.get("garden")
+
+
+@pytest.fixture(scope="module")
+def targets(renderer: LocalRenderer, garden: LoadedScene) -> list[FreeTarget]:
+    width, height = FILM
+    shapes = scene_shapes(garden)
+    return draw_targets(renderer, garden, shapes, COUNT, SEED, width=width, height=height, spp=1)
+
+
+def test_drawn_cameras_keep_every_constraint(targets: list[FreeTarget], garden: LoadedScene):
+    spec = garden.spec.camera
+    shapes = scene_shapes(garden)
+    assert [t.index for t in targets] == list(range(COUNT))
+    for target in targets:
+        drawn, camera = target.drawn, target.camera
+        position = np.asarray(camera.position)
+        distance = float(np.linalg.norm(position - drawn.look_at))
+        assert distance == pytest.approx(drawn.distance)
+        assert DISTANCE_RANGE[0] * spec.radius <= distance <= DISTANCE_RANGE[1] * spec.radius
+        assert 10.0 <= drawn.elevation_deg <= 90.0
+        assert drawn.look_at[2] == 0.0
+        # it looks at the point, pitched by the elevation, rolled within ±25°
+        forward = camera.rotation()[:, 2]
+        assert forward == pytest.approx((np.asarray(drawn.look_at) - position) / distance)
+        yaw, pitch, roll = yaw_pitch_roll_of_rotation(camera.rotation())
+        assert pitch == pytest.approx(drawn.elevation_deg, abs=1e-6)
+        if drawn.elevation_deg < 90.0:  # at the nadir, roll and yaw turn about the same axis
+            assert roll == pytest.approx(camera.roll_deg, abs=1e-6)
+            assert (yaw - camera.yaw_deg + 180.0) % 360.0 == pytest.approx(180.0, abs=1e-6)
+        assert abs(camera.roll_deg) <= ROLL_LIMIT_DEG
+        assert camera.fov_deg is not None
+        assert abs(camera.fov_deg / spec.fov_deg - 1.0) <= FOV_SPREAD
+        # above the ground, outside every object
+        assert position[2] > 0.0
+        assert not np.any(np.all((position > shapes.lo) & (position < shapes.hi), axis=1))
+        # at least three objects at least 60 % visible, by the renderer's count
+        assert len(target.usable) >= MIN_OBJECTS
+        seen = {o.name: o.visible_fraction for o in target.annotations.objects}
+        assert all(seen[name] >= MIN_VISIBLE for name in target.usable)
+        assert target.annotations.camera.width == FILM[0]
+        assert target.png.startswith(b"\x89PNG")
+    nadir = [t for t in targets if t.band == "nadir"]
+    assert len(nadir) == round(NADIR_SHARE * COUNT)
+    assert all(t.drawn.elevation_deg == 90.0 for t in nadir)
+    assert sum(not t.intrinsics_given for t in targets) == round(COUNT / 3)
+
+
+def test_drawing_is_seeded(renderer: LocalRenderer, garden: LoadedScene, targets):
+    shapes = scene_shapes(garden)
+    again = draw_targets(renderer, garden, shapes, 2, SEED, width=FILM[0], spp=1)
+    for first, second in zip(targets[:2], again, strict=True):
+        assert first.camera == second.camera
+    other = draw_targets(renderer, garden, shapes, 2, SEED + 1, width=FILM[0], spp=1)
+    assert other[0].camera != targets[0].camera
+
+
+def test_a_scene_that_cannot_be_satisfied_says_so(renderer: LocalRenderer, garden: LoadedScene):
+    calls = []
+
+    class Blind:
+        def render_png(self, request: RenderRequest) -> bytes:
+            raise AssertionError("no target should be rendered")
+
+        def annotations(self, request: RenderRequest) -> RenderAnnotations:
+            calls.append(request)
+            truth = renderer.annotations(request)
+            hidden = tuple(o.model_copy(update={"visible_fraction": 0.3}) for o in truth.objects)
+            return truth.model_copy(update={"objects": hidden})
+
+    with pytest.raises(DrawError, match="none of 4 cameras drawn for target 0 sees 3 objects"):
+        draw_targets(Blind(), garden, scene_shapes(garden), 2, SEED, width=48, spp=1, max_tries=4)
+    assert 1 <= len(calls) <= 4
+
+
+def test_projected_hulls_match_the_renderers_boxes(targets: list[FreeTarget], garden):
+    """The hull points are the rendered objects: their boxes agree with the renderer's, which
+    count the pixels whose centre the object covers, to within 1.5 px."""
+    shapes = scene_shapes(garden)
+    for target in targets:
+        camera = target.annotations.camera
+        boxes = project_boxes(
+            shapes,
+            np.asarray(camera.rotation),
+            np.asarray(camera.translation),
+            intrinsics_matrix(camera),
+            (camera.width, camera.height),
+        )
+        for obj in target.annotations.objects:
+            if obj.full_box is not None and obj.name in target.usable:
+                i = shapes.names.index(obj.name)
+                assert boxes[i] == pytest.approx(obj.full_box, abs=1.5)
+
+
+def test_bands() -> None:
+    assert [band_of(e) for e in (10.0, 29.9, 30.0, 59.9, 60.0, 89.99, 90.0)] == [
+        "10-30",
+        "10-30",
+        "30-60",
+        "30-60",
+        "60-89",
+        "60-89",
+        "nadir",
+    ]
+    assert set(BANDS) == {"10-30", "30-60", "60-89", "nadir"}
+
+
+CAMERA = FreeCamera(position=(4.0, -3.0, 5.0), look_at=(0.3, 0.2, 0.0), roll_deg=12.0, fov_deg=50)
+
+
+def _truth() -> Estimate:
+    return Estimate.of_camera(CAMERA, 45.0, 320)
+
+
+def test_metrics_on_known_poses() -> None:
+    truth = _truth()
+    error = pose_error(truth, truth, 8.0)
+    assert (error.position, error.rotation_deg, error.fov_pct) == pytest.approx((0, 0, 0), abs=1e-6)
+    turn = Rotation.from_rotvec(np.radians(3.0) * np.array([1.0, 2.0, 2.0]) / 3.0).as_matrix()
+    moved = Estimate(turn @ truth.rotation, truth.position + [0.16, 0.0, 0.0], 55.0)
+    error = pose_error(moved, truth, 8.0)
+    assert error.rotation_deg == pytest.approx(3.0)
+    assert error.position == pytest.approx(0.02)
+    assert error.fov_pct == pytest.approx(10.0)
+    assert pose_error(None, truth, 8.0) is MISSED
+
+
+def test_summary_shares_and_quantiles() -> None:
+    errors = [PoseError(0.01, 0.5, 0.0), PoseError(0.04, 1.5, 0.0), PoseError(0.08, 4.0, 0.0)]
+    errors.append(MISSED)
+    s = summarize(errors)
+    assert s.within == (0.25, 0.5, 0.75)
+    assert s.count == 4
+    assert s.missed == 1
+    assert s.position_median == pytest.approx(0.06)
+    assert s.rotation_median_deg == pytest.approx(2.75)
+    assert math.isinf(s.position_p95)
+
+
+def test_baseline_recovers_an_exact_pose_from_exact_centroids(garden: LoadedScene) -> None:
+    truth = _truth()
+    camera = free_pinhole_camera(CAMERA, 320, 240, 45.0)
+    centroids = scene_shapes(garden).centroids
+    rotation, translation = truth.world_to_camera
+    cam = centroids @ rotation.T + translation
+    K = intrinsics_matrix(camera)
+    pixels = (cam @ K.T)[:, :2] / cam[:, 2:]
+    estimate = baseline_pnp(centroids, pixels, K, camera.fov_deg)
+    assert estimate is not None
+    error = pose_error(estimate, truth, 8.0)
+    assert error.position < 1e-6
+    assert error.rotation_deg < 1e-5
+    assert baseline_pnp(centroids[:2], pixels[:2], K, camera.fov_deg) is None
+
+
+def test_box_fit_returns_the_truth_without_noise(garden: LoadedScene) -> None:
+    truth = _truth()
+    shapes = scene_shapes(garden)
+    camera = free_pinhole_camera(CAMERA, 320, 240, 45.0)
+    K = intrinsics_matrix(camera)
+    boxes = project_boxes(shapes, *truth.world_to_camera, K, (320, 240))
+    fitted = box_fit(shapes, boxes, K, (320, 240), truth)
+    assert pose_error(fitted, truth, 8.0).position < 1e-9
+    # from a start a little off, the fit comes back to the truth
+    turn = Rotation.from_rotvec(np.radians([0.5, -0.3, 0.4])).as_matrix()
+    start = Estimate(turn @ truth.rotation, truth.position + [0.05, -0.04, 0.03], truth.fov_deg)
+    error = pose_error(box_fit(shapes, boxes, K, (320, 240), start), truth, 8.0)
+    assert error.position < 1e-5
+    assert error.rotation_deg < 1e-3
+
+
+def test_references_on_drawn_targets(targets: list[FreeTarget], garden: LoadedScene) -> None:
+    shapes = scene_shapes(garden)
+    radius = garden.spec.camera.radius
+    for target in targets:
+        truth = Estimate.of_camera(target.camera, 45.0, FILM[0])
+        exact = box_only_bound(target, shapes, np.random.default_rng(0), sigma_px=0.0)
+        assert pose_error(exact, truth, radius).position < 1e-6
+        noisy = box_only_bound(target, shapes, np.random.default_rng(0))
+        assert pose_error(noisy, truth, radius).position < 0.2
+    assert any(baseline(t) is not None for t in targets)
+    results = evaluate(targets, shapes, radius, SEED)
+    table = text_table(results)
+    assert "box-only bound" in table
+    assert "baseline" in table
+    assert table.count("all") == 2
+    by_objects = text_table(results, by="objects").splitlines()
+    assert by_objects[0].split()[2] == "objects"
+    counts = {str(len(t.usable)) for t in targets}
+    assert {line.split()[2] for line in by_objects[1:] if "baseline" in line} == counts | {"all"}
+
+
+def test_variants_apply_to_free_targets(targets: list[FreeTarget]) -> None:
+    rng = np.random.default_rng(0)
+    target = targets[0]
+    assert target.image("clean", rng) == target.png
+    assert target.image("jpeg", rng).startswith(b"\xff\xd8")
+    assert target.image("noise", rng) != target.png
