@@ -76,7 +76,7 @@ Status = Literal["found", "ambiguous", "failed"]
 IntrinsicsSource = Literal["given", "estimated", "scene"]
 
 MIN_FOCAL_PAIRS: Final = 4
-FOCAL_STARTS: Final = (0.7, 0.85, 1.0, 1.2, 1.45)
+FOCAL_STARTS: Final = (0.75, 1.0, 1.33)
 """Zooms of the scene camera's focal length the joint pose-and-focal fit starts from."""
 NOISE_FLOOR_PX: Final = 0.7
 """Edge RMS that any pose is granted: about the detector's measured box-edge error."""
