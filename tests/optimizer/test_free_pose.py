@@ -13,6 +13,7 @@ from services.common.contracts.detect import Detection
 from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.common.geometry.scene import parse_scene
 from services.optimizer.free import Intrinsics, project_boxes, scene_objects, solve_free_pose
+from services.optimizer.free.solve import NOISE_FLOOR_PX
 
 W, H = 320, 240
 
@@ -92,7 +93,7 @@ def test_the_error_grows_smoothly_with_box_noise(scenes):
     """Median errors over seeded targets at σ = 0.25, 0.5, 1, 2 px: monotone within 20 %."""
     objects = scenes["garden"]
     rng = np.random.default_rng(7)
-    medians = []
+    medians, standardised = [], []
     for sigma in (0.25, 0.5, 1.0, 2.0):
         found = []
         for camera in CAMERAS.values():
@@ -100,8 +101,13 @@ def test_the_error_grows_smoothly_with_box_noise(scenes):
             for _ in range(3):
                 dets = exact_detections(objects, pinhole, sigma, rng)
                 answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
-                found.append(errors(answer.pose, pinhole)[0] / objects.radius)
+                moved = errors(answer.pose, pinhole)[0]
+                found.append(moved / objects.radius)
+                expected = answer.pose.position_sigma * sigma / NOISE_FLOOR_PX
+                standardised.append(moved / expected)
         medians.append(float(np.median(found)))
+    # the reported uncertainty is about the error it stands for
+    assert 0.4 < float(np.median(standardised)) < 2.5
     assert all(b >= 0.8 * a for a, b in zip(medians, medians[1:], strict=False))
     assert medians[-1] > medians[0]
     assert medians[0] < 0.01

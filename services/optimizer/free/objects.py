@@ -238,6 +238,8 @@ def project_boxes(
     points (``np.minimum.reduceat``: one pass over all points). NaN for an object with a point
     at depth ≤ 1e-6 (behind or in the camera's plane: its box is unbounded).
     """
+    if len(objects) == 0:
+        return np.zeros((0, 4))
     cam = objects.points @ np.asarray(rotation, dtype=np.float64).T + np.asarray(translation)
     depth = cam[:, 2]
     behind = np.logical_or.reduceat(depth <= _NEAR, objects.starts)

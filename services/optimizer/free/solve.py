@@ -55,7 +55,13 @@ from services.common.geometry.free_camera import (
 )
 from services.optimizer.free.hypotheses import compatibility, distinct, hypotheses
 from services.optimizer.free.objects import SceneObjects, project_boxes
-from services.optimizer.free.refine import Intrinsics, PoseFit, centre_pnp, refine_edges
+from services.optimizer.free.refine import (
+    Intrinsics,
+    PoseFit,
+    centre_pnp,
+    pose_uncertainty,
+    refine_edges,
+)
 from services.optimizer.geometry import FloatArray
 from services.optimizer.mapping import clipped_sides
 from services.optimizer.matching import assign
@@ -118,7 +124,9 @@ class IntrinsicsUsed:
 class PoseCandidate:
     """A camera pose: position (world, scene units), camera-to-world quaternion ``(w, x, y, z)``
     and yaw/pitch/roll (the conventions of :mod:`services.common.geometry.free_camera`), the
-    intrinsics, the edge RMS residual in pixels and the pairs it explains."""
+    intrinsics, the edge RMS residual in pixels, the pairs it explains, and its 1-σ position and
+    rotation uncertainty under :data:`NOISE_FLOOR_PX` of edge noise (:func:`~.refine.
+    pose_uncertainty`: how firmly the boxes pin this pose; inf when they do not)."""
 
     position: tuple[float, float, float]
     quaternion_wxyz: tuple[float, float, float, float]
@@ -126,6 +134,8 @@ class PoseCandidate:
     intrinsics: IntrinsicsUsed
     residual_px: float
     correspondences: tuple[Correspondence, ...]
+    position_sigma: float
+    rotation_sigma_deg: float
 
     @property
     def inliers(self) -> int:
@@ -227,8 +237,9 @@ def _refined(
     intrinsics: Intrinsics,
     estimate_focal: bool,
     size: tuple[int, int],
-) -> _Fit:
-    """A hypothesis refined: centres, edges, pairs re-drawn, edges again (module docstring)."""
+) -> _Fit | None:
+    """A hypothesis refined: centres, edges, pairs re-drawn, edges again (module docstring);
+    None when the refined pose pairs no detection at all."""
     rvec, tvec, dets, objs = start
     scales = FOCAL_STARTS if estimate_focal and len(dets) >= MIN_FOCAL_PAIRS else (1.0,)
     fits = [
@@ -239,16 +250,18 @@ def _refined(
     ]
     fit = min(fits, key=lambda f: f.rms_px)
     dets, objs = _reassign(objects, boxes, masks, compatible, fit, *size)
+    if len(dets) == 0:
+        return None
+    estimated = len(scales) > 1 and len(dets) >= MIN_FOCAL_PAIRS
+    # Too few pairs left to hold the focal length: back to the scene camera's.
+    k = fit.intrinsics if estimated or len(scales) == 1 else intrinsics
     if len(dets) >= 3:
-        fit = _fit_pairs(
-            objects, boxes, masks, dets, objs, fit.rvec, fit.tvec, fit.intrinsics, len(scales) > 1
-        )
+        fit = _fit_pairs(objects, boxes, masks, dets, objs, fit.rvec, fit.tvec, k, estimated)
     else:
-        fit = refine_edges(
-            objects.subset(objs), boxes[dets], masks[dets], fit.rvec, fit.tvec, fit.intrinsics
-        )
-    source: IntrinsicsSource = "estimated" if len(scales) > 1 else "scene"
-    return _Fit(fit=fit, detections=dets, objects=objs, source=source)
+        fit = refine_edges(objects.subset(objs), boxes[dets], masks[dets], fit.rvec, fit.tvec, k)
+    return _Fit(
+        fit=fit, detections=dets, objects=objs, source="estimated" if estimated else "scene"
+    )
 
 
 def _start_view(
@@ -290,8 +303,19 @@ def _few(
 
 
 def _candidate(
-    fit: _Fit, objects: SceneObjects, labels: tuple[str, ...], index: NDArray[np.intp], width: int
+    fit: _Fit,
+    objects: SceneObjects,
+    evidence: tuple[FloatArray, NDArray[np.bool_], tuple[str, ...], NDArray[np.intp]],
+    width: int,
 ) -> PoseCandidate:
+    boxes, masks, labels, index = evidence
+    sigmas = pose_uncertainty(
+        objects.subset(fit.objects),
+        boxes[fit.detections],
+        masks[fit.detections],
+        fit.fit,
+        NOISE_FLOOR_PX,
+    )
     rotation_cw = fit.fit.rotation().T
     k = fit.fit.intrinsics
     c = fit.fit.position()
@@ -318,6 +342,8 @@ def _candidate(
             )
             for n, (d, o) in enumerate(zip(fit.detections, fit.objects, strict=True))
         ),
+        position_sigma=sigmas[0],
+        rotation_sigma_deg=sigmas[1],
     )
 
 
@@ -380,7 +406,7 @@ def solve_free_pose(
             not given,
             (width, height),
         )
-        if fit.fit.position()[2] > 0.0:
+        if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else _Fit(fit.fit, fit.detections, fit.objects, "given"))
     if not fits:
         fits = _few(objects, boxes, masks, compatible, np.arange(len(index)), k0)
@@ -394,7 +420,7 @@ def solve_free_pose(
             (),
             len(index),
         )
-    poses = [_candidate(f, objects, labels, index, width) for f in ranked]
+    poses = [_candidate(f, objects, (boxes, masks, labels, index), width) for f in ranked]
     best = poses[0]
     ratio = UNIQUE_RATIO_3 if best.inliers == 3 else AMBIGUITY_RATIO
     limit = ratio * max(best.residual_px, NOISE_FLOOR_PX)
