@@ -229,15 +229,19 @@ def pose_uncertainty(
     masks: ArrayLike,
     fit: PoseFit,
     sigma_px: float,
+    *,
+    with_focal: bool = False,
 ) -> tuple[float, float]:
     """1-σ position (scene units) and rotation (degrees) uncertainty of a fitted pose, from the
     Gauss–Newton covariance of the box edges with ``sigma_px`` of noise on each edge.
 
     With ``J`` the Jacobian of the edge residuals with respect to the camera centre ``c`` and a
     small world-frame turn ``δ`` of the camera (``R_cw ← exp([δ]×) R_cw``), both by central
-    differences, ``Σ = σ² (JᵀJ)⁻¹``; the answers are ``√tr Σ_c`` and ``√tr Σ_δ`` in degrees. The
-    focal length is held fixed. A view that boxes barely pin (a nadir view of objects of one
-    height trades tilt for shift) shows here as a large σ, though its residual is small.
+    differences, ``Σ = σ² (JᵀJ)⁻¹``; the answers are ``√tr Σ_c`` and ``√tr Σ_δ`` in degrees. With
+    ``with_focal`` (an estimated focal length) ``log f`` is a seventh parameter, so that the
+    pose's uncertainty includes what the focal's leaves open (a dolly zoom: farther and
+    narrower). A view that boxes barely pin (a nadir view of objects of one height trades tilt
+    for shift) shows here as a large σ, though its residual is small.
     """
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     m = np.asarray(masks, dtype=np.bool_).reshape(-1, 4)
@@ -248,20 +252,22 @@ def pose_uncertainty(
         turn, _ = cv2.Rodrigues(p[:3])
         r_wc = (np.asarray(turn) @ rotation_cw).T
         rvec, _ = cv2.Rodrigues(r_wc)
-        tvec = -r_wc @ (centre + p[3:])
-        return _edge_errors(
-            objects, b, m, np.asarray(rvec, dtype=np.float64).reshape(3), tvec, fit.intrinsics
-        )[~m].ravel()
+        tvec = -r_wc @ (centre + p[3:6])
+        k = fit.intrinsics.scaled(math.exp(p[6])) if with_focal else fit.intrinsics
+        r = np.asarray(rvec, dtype=np.float64).reshape(3)
+        return _edge_errors(objects, b, m, r, tvec, k)[~m].ravel()
 
-    steps = np.array([1e-5] * 3 + [1e-5 * max(1.0, float(np.linalg.norm(centre)))] * 3)
+    steps = np.array(
+        [1e-5] * 3 + [1e-5 * max(1.0, float(np.linalg.norm(centre)))] * 3 + [1e-5] * with_focal
+    )
     columns = []
     for i, h in enumerate(steps):
-        e = np.zeros(6)
+        e = np.zeros(7)
         e[i] = h
         columns.append((residuals(e) - residuals(-e)) / (2.0 * h))
     jac = np.stack(columns, axis=1)
     normal = jac.T @ jac
-    if jac.shape[0] < 6 or np.linalg.cond(normal) > 1e12:
+    if jac.shape[0] < len(steps) or np.linalg.cond(normal) > 1e12:
         return math.inf, math.inf
     cov = sigma_px**2 * np.linalg.inv(normal)
     rotation_sigma = math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0)))

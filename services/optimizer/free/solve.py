@@ -315,6 +315,7 @@ def _candidate(
         masks[fit.detections],
         fit.fit,
         NOISE_FLOOR_PX,
+        with_focal=fit.source == "estimated",
     )
     rotation_cw = fit.fit.rotation().T
     k = fit.fit.intrinsics
