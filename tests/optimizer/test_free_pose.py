@@ -247,3 +247,41 @@ def test_a_symmetric_layout_is_ambiguous_never_found():
     # the twins are the camera turned a quarter (or half) turn about the vertical
     assert all(errors(p, pinhole)[1] > 45.0 for p in twins)
     assert all(errors(p, pinhole)[0] < 0.005 * objects.radius for p in twins)
+
+
+def test_three_objects_are_found_only_when_the_pose_is_the_one(scenes):
+    """Seeded views of three of the garden's objects, exact boxes: a ``found`` pose is the true
+    one, and an ``ambiguous`` answer holds the true pose among its poses."""
+    full = scenes["garden"]
+    rng = np.random.default_rng(5)
+    statuses = []
+    for _ in range(15):
+        objects = full.subset(rng.choice(len(full), 3, replace=False))
+        elevation, azimuth = math.radians(rng.uniform(15, 85)), rng.uniform(0, 2 * math.pi)
+        target = np.array([*objects.centroids[:, :2].mean(axis=0), 0.0])
+        position = target + rng.uniform(5, 10) * np.array(
+            [
+                math.cos(elevation) * math.cos(azimuth),
+                math.cos(elevation) * math.sin(azimuth),
+                math.sin(elevation),
+            ]
+        )
+        camera = FreeCamera(
+            position=tuple(position), look_at=tuple(target), roll_deg=rng.uniform(-25, 25)
+        )
+        pinhole = free_pinhole_camera(camera, W, H, objects.fov_deg)
+        dets = exact_detections(objects, pinhole)
+        if len(dets) < 3:
+            continue
+        answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
+        right = [
+            errors(p, pinhole)[0] < 1e-3 * objects.radius and errors(p, pinhole)[1] < 0.05
+            for p in (answer.pose, *answer.alternatives)
+        ]
+        statuses.append(answer.status)
+        if answer.status == "found":
+            assert right[0]
+        else:
+            assert answer.status == "ambiguous"
+            assert any(right)
+    assert statuses.count("found") >= len(statuses) // 2
