@@ -71,6 +71,14 @@ def errors(pose, pinhole) -> tuple[float, float]:
     return moved, turned
 
 
+def assert_exact(answer, pinhole, radius: float) -> None:
+    """Found, within 1e-3 of the radius and 0.05° of the true camera."""
+    assert answer.status == "found", answer.reason
+    moved, turned = errors(answer.pose, pinhole)
+    assert moved < 1e-3 * radius
+    assert turned < 0.05
+
+
 @pytest.mark.parametrize("scene", ["demo", "garden"])
 @pytest.mark.parametrize("view", list(CAMERAS))
 def test_exact_boxes_give_the_exact_pose(scenes, scene, view):
@@ -79,10 +87,7 @@ def test_exact_boxes_give_the_exact_pose(scenes, scene, view):
     answer = solve_free_pose(
         objects, exact_detections(objects, pinhole), W, H, intrinsics_of(pinhole)
     )
-    assert answer.status == "found", answer.reason
-    moved, turned = errors(answer.pose, pinhole)
-    assert moved < 1e-3 * objects.radius
-    assert turned < 0.05
+    assert_exact(answer, pinhole, objects.radius)
     assert answer.pose.residual_px < 1e-3
     assert answer.pose.intrinsics.source == "given"
     names = {c.object for c in answer.pose.correspondences}
@@ -161,10 +166,7 @@ def test_look_alikes_are_told_apart_by_geometry():
         answer = solve_free_pose(
             objects, exact_detections(objects, pinhole), W, H, intrinsics_of(pinhole)
         )
-        assert answer.status == "found", answer.reason
-        moved, turned = errors(answer.pose, pinhole)
-        assert moved < 1e-3 * objects.radius
-        assert turned < 0.05
+        assert_exact(answer, pinhole, objects.radius)
 
 
 def test_the_general_models_shape_labels_are_enumerated(scenes):
@@ -176,10 +178,7 @@ def test_the_general_models_shape_labels_are_enumerated(scenes):
         for d in exact_detections(objects, pinhole)
     ]
     answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
-    assert answer.status == "found", answer.reason
-    moved, turned = errors(answer.pose, pinhole)
-    assert moved < 1e-3 * objects.radius
-    assert turned < 0.05
+    assert_exact(answer, pinhole, objects.radius)
 
 
 @pytest.mark.parametrize("zoom", [0.8, 1.2])
@@ -285,3 +284,29 @@ def test_three_objects_are_found_only_when_the_pose_is_the_one(scenes):
             assert answer.status == "ambiguous"
             assert any(right)
     assert statuses.count("found") >= len(statuses) // 2
+
+
+def test_boxes_cut_by_the_border_still_give_the_exact_pose(scenes):
+    """A narrow view that cuts objects at the image border: their clipped sides are left out."""
+    objects = scenes["garden"]
+    camera = FreeCamera(position=(4.0, -3.0, 3.5), look_at=(0.0, 0.0, 0.0), fov_deg=34.0)
+    pinhole = free_pinhole_camera(camera, W, H, objects.fov_deg)
+    dets = exact_detections(objects, pinhole)
+    cut = [d for d in dets if min(d.box[:2]) <= 0.0 or d.box[2] >= W or d.box[3] >= H]
+    assert cut, "the view should cut at least one object"
+    answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
+    assert_exact(answer, pinhole, objects.radius)
+
+
+def test_a_spurious_detection_is_left_unpaired(scenes):
+    """A false detection of a real class, far from that object's place: it is not paired."""
+    objects = scenes["garden"]
+    pinhole = free_pinhole_camera(CAMERAS["hemisphere"], W, H, objects.fov_deg)
+    dets = exact_detections(objects, pinhole)
+    ghost = Detection(label=objects.labels[0], class_id=0, confidence=0.6, box=(5, 5, 30, 28))
+    answer = solve_free_pose(objects, [*dets, ghost], W, H, intrinsics_of(pinhole))
+    assert answer.status == "found", answer.reason
+    assert len(dets) not in {c.detection for c in answer.pose.correspondences}
+    moved, turned = errors(answer.pose, pinhole)
+    assert moved < 1e-3 * objects.radius
+    assert turned < 0.05

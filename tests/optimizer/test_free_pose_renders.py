@@ -63,6 +63,9 @@ def test_rendered_boxes_give_the_camera(
 ):
     objects, annotations, detections = annotated(engine, catalog, scene_id, camera)
     truth = annotations.camera
+    # the point sets stand where the renderer puts the objects (meshes placed from their PLY)
+    centroids = np.array([obj.centroid for obj in annotations.objects])
+    assert np.allclose(objects.centroids, centroids, atol=1e-5)
     intrinsics = Intrinsics(truth.fx, truth.fy, truth.cx, truth.cy)
     answer = solve_free_pose(objects, detections, W, H, intrinsics)
     assert answer.status == "found", answer.reason
