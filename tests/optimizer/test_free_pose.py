@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -310,3 +311,29 @@ def test_a_spurious_detection_is_left_unpaired(scenes):
     moved, turned = errors(answer.pose, pinhole)
     assert moved < 1e-3 * objects.radius
     assert turned < 0.05
+
+
+@pytest.mark.parametrize("fit_focal", [False, True])
+def test_the_edge_jacobian_is_the_finite_difference_one(scenes, fit_focal):
+    from services.optimizer.free.refine import _edge_errors, _edge_jacobian
+
+    objects = scenes["garden"]
+    k = Intrinsics(300.0, 310.0, 160.0, 120.0)
+    pinhole = free_pinhole_camera(CAMERAS["rolled"], W, H, objects.fov_deg)
+    rvec = cv2.Rodrigues(np.asarray(pinhole.rotation))[0].ravel()
+    tvec = np.asarray(pinhole.translation)
+    masks = np.zeros((len(objects), 4), dtype=bool)
+    masks[1, 2] = True
+    boxes = np.zeros((len(objects), 4))
+    start = np.concatenate([rvec, tvec, [0.0] if fit_focal else []])
+
+    def edges(p):
+        zoomed = k.scaled(math.exp(p[6])) if fit_focal else k
+        return _edge_errors(objects, boxes, masks, p[:3], p[3:6], zoomed).ravel()
+
+    h = 1e-6
+    numeric = np.stack(
+        [(edges(start + e) - edges(start - e)) / (2 * h) for e in np.eye(len(start)) * h], axis=1
+    )
+    analytic = _edge_jacobian(objects, masks, rvec, tvec, k, fit_focal)
+    assert np.allclose(analytic, numeric, atol=1e-5 * np.abs(numeric).max())

@@ -45,6 +45,7 @@ from services.optimizer.geometry import FloatArray
 
 __all__ = [
     "CONE_SEGMENTS",
+    "NEAR_DEPTH",
     "RIM_POINTS",
     "SPHERE_POINTS",
     "SceneObjects",
@@ -56,7 +57,7 @@ SPHERE_POINTS: Final = 600
 RIM_POINTS: Final = 128
 CONE_SEGMENTS: Final = 64
 """The renderer's cone is this many-sided pyramid (``renderer/scene_builder.py``)."""
-_NEAR: Final = 1e-6
+NEAR_DEPTH: Final = 1e-6
 """Depth (scene units) below which a point counts as behind the camera."""
 
 
@@ -242,8 +243,8 @@ def project_boxes(
         return np.zeros((0, 4))
     cam = objects.points @ np.asarray(rotation, dtype=np.float64).T + np.asarray(translation)
     depth = cam[:, 2]
-    behind = np.logical_or.reduceat(depth <= _NEAR, objects.starts)
-    uv = cam[:, :2] / np.maximum(depth, _NEAR)[:, np.newaxis]
+    behind = np.logical_or.reduceat(depth <= NEAR_DEPTH, objects.starts)
+    uv = cam[:, :2] / np.maximum(depth, NEAR_DEPTH)[:, np.newaxis]
     uv = uv * np.asarray(focal_px, dtype=np.float64) + np.asarray(principal_px)
     boxes = np.concatenate(
         [np.minimum.reduceat(uv, objects.starts), np.maximum.reduceat(uv, objects.starts)], axis=1
