@@ -337,3 +337,14 @@ def test_the_edge_jacobian_is_the_finite_difference_one(scenes, fit_focal):
     )
     analytic = _edge_jacobian(objects, masks, rvec, tvec, k, fit_focal)
     assert np.allclose(analytic, numeric, atol=1e-5 * np.abs(numeric).max())
+
+
+def test_more_boxes_than_objects_of_their_label_stay_ambiguous(scenes):
+    """Every box labelled ``mesh`` in a scene of two meshes: two distinct objects at most, so
+    an ambiguous answer, not a failure and never a found pose."""
+    objects = scenes["garden"]
+    pinhole = free_pinhole_camera(CAMERAS["hemisphere"], W, H, objects.fov_deg)
+    dets = [d.model_copy(update={"label": "mesh"}) for d in exact_detections(objects, pinhole)]
+    answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
+    assert answer.status == "ambiguous", answer.reason
+    assert answer.pose.inliers <= 2

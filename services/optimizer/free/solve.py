@@ -302,6 +302,21 @@ def _few(
     return fits
 
 
+def _few_detections(compatible: NDArray[np.bool_], order: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Up to two detections, most confident first, that distinct objects can be: with no pose
+    hypothesis, more would only repeat objects (six boxes labelled ``mesh`` in a scene of two
+    meshes)."""
+    kept: list[int] = []
+    for i in order.tolist():
+        trial = [*kept, i]
+        rows = [np.flatnonzero(compatible[j]).tolist() for j in trial]
+        if any(len(set(a)) == len(a) for a in itertools.product(*rows)):
+            kept = trial
+        if len(kept) == 2:
+            break
+    return np.asarray(kept, dtype=np.intp)
+
+
 def _candidate(
     fit: _Fit,
     objects: SceneObjects,
@@ -410,7 +425,9 @@ def solve_free_pose(
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else _Fit(fit.fit, fit.detections, fit.objects, "given"))
     if not fits:
-        fits = _few(objects, boxes, masks, compatible, np.arange(len(index)), k0)
+        scores = np.array([detections[int(i)].confidence for i in index])
+        few = _few_detections(compatible, np.argsort(-scores, kind="stable"))
+        fits = _few(objects, boxes, masks, compatible, few, k0)
         fits = [f if not given else _Fit(f.fit, f.detections, f.objects, "given") for f in fits]
     ranked = _distinct_best(fits, objects.radius)
     if not ranked:
