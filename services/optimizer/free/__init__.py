@@ -4,15 +4,16 @@
 :class:`FreePoseAnswer` from the target's detections (:mod:`.solve` for the steps and the status).
 """
 
-from services.optimizer.free.objects import SceneObjects, project_boxes, scene_objects
-from services.optimizer.free.refine import Intrinsics
-from services.optimizer.free.solve import (
+from services.optimizer.free.answer import (
     Correspondence,
     FreePoseAnswer,
     IntrinsicsUsed,
     PoseCandidate,
-    solve_free_pose,
+    Status,
 )
+from services.optimizer.free.objects import SceneObjects, project_boxes, scene_objects
+from services.optimizer.free.refine import Intrinsics
+from services.optimizer.free.solve import solve_free_pose
 
 __all__ = [
     "Correspondence",
@@ -21,6 +22,7 @@ __all__ = [
     "IntrinsicsUsed",
     "PoseCandidate",
     "SceneObjects",
+    "Status",
     "project_boxes",
     "scene_objects",
     "solve_free_pose",

@@ -39,7 +39,7 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Final, Literal
+from typing import Final
 
 import cv2
 import numpy as np
@@ -47,11 +47,17 @@ from numpy.typing import NDArray
 
 from services.common.contracts.detect import Detection
 from services.common.geometry.free_camera import (
-    FreeCamera,
     look_at_angles,
     quaternion_of_rotation,
     rotation_of_yaw_pitch_roll,
     yaw_pitch_roll_of_rotation,
+)
+from services.optimizer.free.answer import (
+    Correspondence,
+    FreePoseAnswer,
+    IntrinsicsSource,
+    IntrinsicsUsed,
+    PoseCandidate,
 )
 from services.optimizer.free.hypotheses import compatibility, distinct, hypotheses
 from services.optimizer.free.objects import SceneObjects, project_boxes
@@ -69,17 +75,9 @@ from services.optimizer.matching import assign
 __all__ = [
     "AMBIGUITY_RATIO",
     "NOISE_FLOOR_PX",
-    "Correspondence",
-    "FreePoseAnswer",
-    "IntrinsicsUsed",
-    "PoseCandidate",
-    "Status",
     "inlier_gate",
     "solve_free_pose",
 ]
-
-Status = Literal["found", "ambiguous", "failed"]
-IntrinsicsSource = Literal["given", "estimated", "scene"]
 
 MIN_FOCAL_PAIRS: Final = 4
 FOCAL_STARTS: Final = (0.75, 1.0, 1.33)
@@ -95,78 +93,6 @@ MAX_ALTERNATIVES: Final = 4
 FEW_STARTS_DEG: Final = tuple((theta, phi) for theta in (30.0, 60.0) for phi in range(0, 360, 90))
 """(θ, φ) of the start views at the scene radius when fewer than three detections are usable."""
 MAX_FEW_ASSIGNMENTS: Final = 4
-
-
-@dataclass(frozen=True)
-class Correspondence:
-    """Detection ``detection`` (its index in the request) is object ``object``."""
-
-    detection: int
-    object: str
-    label: str
-    residual_px: float
-
-
-@dataclass(frozen=True)
-class IntrinsicsUsed:
-    """The intrinsics a pose was computed with: ``given``, ``estimated`` from the boxes, or the
-    ``scene`` camera's field of view (not given, too few pairs to estimate)."""
-
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-    fov_deg: float
-    source: IntrinsicsSource
-
-
-@dataclass(frozen=True)
-class PoseCandidate:
-    """A camera pose: position (world, scene units), camera-to-world quaternion ``(w, x, y, z)``
-    and yaw/pitch/roll (the conventions of :mod:`services.common.geometry.free_camera`), the
-    intrinsics, the edge RMS residual in pixels, the pairs it explains, and its 1-σ position and
-    rotation uncertainty under :data:`NOISE_FLOOR_PX` of edge noise (:func:`~.refine.
-    pose_uncertainty`: how firmly the boxes pin this pose; inf when they do not)."""
-
-    position: tuple[float, float, float]
-    quaternion_wxyz: tuple[float, float, float, float]
-    yaw_pitch_roll_deg: tuple[float, float, float]
-    intrinsics: IntrinsicsUsed
-    residual_px: float
-    correspondences: tuple[Correspondence, ...]
-    position_sigma: float
-    rotation_sigma_deg: float
-
-    @property
-    def inliers(self) -> int:
-        return len(self.correspondences)
-
-    def free_camera(self) -> FreeCamera:
-        """This pose as the renderer takes it."""
-        k = self.intrinsics
-        return FreeCamera(
-            position=self.position,
-            quaternion_wxyz=self.quaternion_wxyz,
-            fx_px=k.fx_px,
-            fy_px=k.fy_px,
-            cx_px=k.cx_px,
-            cy_px=k.cy_px,
-        )
-
-    def rotation(self) -> FloatArray:
-        """The camera-to-world rotation."""
-        return FreeCamera(position=self.position, quaternion_wxyz=self.quaternion_wxyz).rotation()
-
-
-@dataclass(frozen=True)
-class FreePoseAnswer:
-    """The pose from the boxes alone (module docstring): ``pose`` is None only when ``failed``."""
-
-    status: Status
-    reason: str
-    pose: PoseCandidate | None
-    alternatives: tuple[PoseCandidate, ...]
-    usable_detections: int
 
 
 @dataclass(frozen=True)
