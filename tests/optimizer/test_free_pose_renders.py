@@ -91,3 +91,17 @@ def test_rendered_boxes_give_the_focal_length_when_not_given(engine, catalog):
     moved, turned = errors(answer.pose, annotations.camera)
     assert moved < 0.05 * objects.radius
     assert turned < 2.0
+
+
+def test_the_answer_renders_the_targets_boxes(engine, catalog):
+    """The answer as the renderer's free camera (quaternion, fx/fy/cx/cy) annotates the target's
+    boxes again: what the one confirming render of item 2 will compare."""
+    camera = FreeCamera(position=(-6.0, 2.0, 4.0), look_at=(0.5, 0.0, 0.0), roll_deg=20.0)
+    objects, annotations, detections = annotated(engine, catalog, "garden", camera)
+    answer = solve_free_pose(objects, detections, W, H)
+    assert answer.status == "found", answer.reason
+    _, again, _ = annotated(engine, catalog, "garden", answer.pose.free_camera())
+    for pair in answer.pose.correspondences:
+        target = np.asarray(detections[pair.detection].box)
+        rendered = np.asarray(again.objects[objects.names.index(pair.object)].box)
+        assert np.sqrt(np.mean((rendered - target) ** 2)) < 1.5
