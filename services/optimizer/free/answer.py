@@ -1,0 +1,96 @@
+"""What the pose from boxes alone answers: a status, the best pose, its rivals, their evidence.
+
+Frozen dataclasses of the domain; the HTTP contract that carries them comes with the route.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from services.common.geometry.free_camera import FreeCamera
+from services.optimizer.geometry import FloatArray
+
+__all__ = [
+    "Correspondence",
+    "FreePoseAnswer",
+    "IntrinsicsSource",
+    "IntrinsicsUsed",
+    "PoseCandidate",
+    "Status",
+]
+
+Status = Literal["found", "ambiguous", "failed"]
+IntrinsicsSource = Literal["given", "estimated", "scene"]
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """Detection ``detection`` (its index in the request) is object ``object``."""
+
+    detection: int
+    object: str
+    label: str
+    residual_px: float
+
+
+@dataclass(frozen=True)
+class IntrinsicsUsed:
+    """The intrinsics a pose was computed with: ``given``, ``estimated`` from the boxes, or the
+    ``scene`` camera's field of view (not given, too few pairs to estimate)."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    fov_deg: float
+    source: IntrinsicsSource
+
+
+@dataclass(frozen=True)
+class PoseCandidate:
+    """A camera pose: position (world, scene units), camera-to-world quaternion ``(w, x, y, z)``
+    and yaw/pitch/roll (the conventions of :mod:`services.common.geometry.free_camera`), the
+    intrinsics, the edge RMS residual in pixels, the pairs it explains, and its 1-σ position and
+    rotation uncertainty under :data:`~.solve.NOISE_FLOOR_PX` of edge noise (:func:`~.refine.
+    pose_uncertainty`: how firmly the boxes pin this pose; inf when they do not)."""
+
+    position: tuple[float, float, float]
+    quaternion_wxyz: tuple[float, float, float, float]
+    yaw_pitch_roll_deg: tuple[float, float, float]
+    intrinsics: IntrinsicsUsed
+    residual_px: float
+    correspondences: tuple[Correspondence, ...]
+    position_sigma: float
+    rotation_sigma_deg: float
+
+    @property
+    def inliers(self) -> int:
+        return len(self.correspondences)
+
+    def free_camera(self) -> FreeCamera:
+        """This pose as the renderer takes it."""
+        k = self.intrinsics
+        return FreeCamera(
+            position=self.position,
+            quaternion_wxyz=self.quaternion_wxyz,
+            fx_px=k.fx_px,
+            fy_px=k.fy_px,
+            cx_px=k.cx_px,
+            cy_px=k.cy_px,
+        )
+
+    def rotation(self) -> FloatArray:
+        """The camera-to-world rotation."""
+        return FreeCamera(position=self.position, quaternion_wxyz=self.quaternion_wxyz).rotation()
+
+
+@dataclass(frozen=True)
+class FreePoseAnswer:
+    """The pose from the boxes alone (:mod:`.solve`): ``pose`` is None only when ``failed``."""
+
+    status: Status
+    reason: str
+    pose: PoseCandidate | None
+    alternatives: tuple[PoseCandidate, ...]
+    usable_detections: int

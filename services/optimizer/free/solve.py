@@ -1,0 +1,411 @@
+"""The 6-DoF camera pose from the target's boxes alone, before any render, and how sure it is.
+
+The steps (each in its module):
+
+1. hypotheses from minimal sets of box centres, over the label-compatible assignments
+   (:mod:`.hypotheses`);
+2. for each distinct hypothesis: PnP on the paired centres corrected for the box-centre bias,
+   then least squares on the box edges (:mod:`.refine`); the pairs are then re-drawn at the
+   refined pose with a box-edge gate (:func:`inlier_gate`) and the edges refitted on them;
+3. without given intrinsics and with at least :data:`MIN_FOCAL_PAIRS` pairs, the focal length
+   joins the edge fit of every hypothesis, started from a few zooms of the scene camera's
+   (:data:`FOCAL_STARTS`); with fewer pairs the scene camera's field of view is used and the
+   answer says so. Every hypothesis gets the focal: a fixed-focal fit is a dolly zoom of the
+   free one (farther and narrower), which at noise-level residuals would pass for a rival;
+4. the answer's status (:class:`FreePoseAnswer`).
+
+With fewer than three usable detections no minimal set exists: the edges are fitted from a ring
+of start views around the scene (:data:`FEW_STARTS_DEG`), and the answer is ``ambiguous`` with
+the distinct fits as alternatives, never ``found``.
+
+Status
+------
+``found``
+    The best pose pairs at least four detections, or three when it is clearly unique: no
+    distinct pose (:func:`~.hypotheses.distinct`) pairs as many detections with an edge RMS
+    within :data:`UNIQUE_RATIO_3` (three pairs) or :data:`AMBIGUITY_RATIO` (four or more) times
+    ``max(best RMS, NOISE_FLOOR_PX)``.
+``ambiguous``
+    Fewer than three pairs, or such a distinct pose exists (a symmetric layout, look-alikes
+    that can swap): the best pose and the alternatives, with their residuals.
+``failed``
+    No usable detection: none, none confident enough, or none whose label names an object of
+    the scene.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.contracts.detect import Detection
+from services.common.geometry.free_camera import (
+    look_at_angles,
+    quaternion_of_rotation,
+    rotation_of_yaw_pitch_roll,
+    yaw_pitch_roll_of_rotation,
+)
+from services.optimizer.free.answer import (
+    Correspondence,
+    FreePoseAnswer,
+    IntrinsicsSource,
+    IntrinsicsUsed,
+    PoseCandidate,
+)
+from services.optimizer.free.hypotheses import compatibility, distinct, hypotheses
+from services.optimizer.free.objects import SceneObjects, project_boxes
+from services.optimizer.free.refine import (
+    Intrinsics,
+    PoseFit,
+    centre_pnp,
+    pose_uncertainty,
+    refine_edges,
+)
+from services.optimizer.geometry import FloatArray
+from services.optimizer.mapping import clipped_sides
+from services.optimizer.matching import assign
+
+__all__ = [
+    "AMBIGUITY_RATIO",
+    "NOISE_FLOOR_PX",
+    "inlier_gate",
+    "solve_free_pose",
+]
+
+MIN_FOCAL_PAIRS: Final = 4
+FOCAL_STARTS: Final = (0.75, 1.0, 1.33)
+"""Zooms of the scene camera's focal length the joint pose-and-focal fit starts from."""
+NOISE_FLOOR_PX: Final = 0.7
+"""Edge RMS that any pose is granted: about the detector's measured box-edge error."""
+AMBIGUITY_RATIO: Final = 2.0
+UNIQUE_RATIO_3: Final = 3.0
+INLIER_MIN_PX: Final = 3.0
+INLIER_BOX_FRACTION: Final = 0.15
+REFINED_HYPOTHESES: Final = 6
+MAX_ALTERNATIVES: Final = 4
+FEW_STARTS_DEG: Final = tuple((theta, phi) for theta in (30.0, 60.0) for phi in range(0, 360, 90))
+"""(θ, φ) of the start views at the scene radius when fewer than three detections are usable."""
+MAX_FEW_ASSIGNMENTS: Final = 4
+
+
+@dataclass(frozen=True)
+class _Fit:
+    fit: PoseFit
+    detections: NDArray[np.intp]
+    objects: NDArray[np.intp]
+    source: IntrinsicsSource
+
+    @property
+    def key(self) -> tuple[FloatArray, FloatArray]:
+        return self.fit.rvec, self.fit.tvec
+
+
+def inlier_gate(boxes: FloatArray) -> FloatArray:
+    """(D,) the largest edge RMS (pixels) at which a refined pose's box still pairs with a
+    detection: :data:`INLIER_BOX_FRACTION` of its diagonal, at least :data:`INLIER_MIN_PX`
+    (partly hidden objects' boxes shrink)."""
+    diag = np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    gate: FloatArray = np.maximum(INLIER_MIN_PX, INLIER_BOX_FRACTION * diag)
+    return gate
+
+
+def _reassign(
+    objects: SceneObjects,
+    boxes: FloatArray,
+    masks: NDArray[np.bool_],
+    compatible: NDArray[np.bool_],
+    fit: PoseFit,
+    width: int,
+    height: int,
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Pairs at a refined pose: gated Hungarian on the masked edge RMS of the clipped boxes."""
+    k = fit.intrinsics
+    projected = project_boxes(objects, fit.rotation(), fit.tvec, (k.fx, k.fy), (k.cx, k.cy))
+    projected = np.clip(projected, 0.0, [width, height, width, height])
+    diff = (boxes[:, np.newaxis, :] - projected[np.newaxis, :, :]) ** 2
+    diff[np.broadcast_to(masks[:, np.newaxis, :], diff.shape)] = 0.0
+    used = np.maximum((~masks).sum(axis=1), 1)[:, np.newaxis]
+    cost = np.sqrt(diff.sum(axis=-1) / used) / inlier_gate(boxes)[:, np.newaxis]
+    cost[~compatible] = np.inf
+    pairs = assign(cost, 1.0)
+    return pairs.rows, pairs.cols
+
+
+def _fit_pairs(
+    objects: SceneObjects,
+    boxes: FloatArray,
+    masks: NDArray[np.bool_],
+    dets: NDArray[np.intp],
+    objs: NDArray[np.intp],
+    rvec: FloatArray,
+    tvec: FloatArray,
+    intrinsics: Intrinsics,
+    fit_focal: bool,
+) -> PoseFit:
+    paired = objects.subset(objs)
+    r, t = centre_pnp(paired, boxes[dets], masks[dets], rvec, tvec, intrinsics)
+    return refine_edges(paired, boxes[dets], masks[dets], r, t, intrinsics, fit_focal=fit_focal)
+
+
+def _refined(
+    objects: SceneObjects,
+    boxes: FloatArray,
+    masks: NDArray[np.bool_],
+    compatible: NDArray[np.bool_],
+    start: tuple[FloatArray, FloatArray, NDArray[np.intp], NDArray[np.intp]],
+    intrinsics: Intrinsics,
+    estimate_focal: bool,
+    size: tuple[int, int],
+) -> _Fit | None:
+    """A hypothesis refined: centres, edges, pairs re-drawn, edges again (module docstring);
+    None when the refined pose pairs no detection at all."""
+    rvec, tvec, dets, objs = start
+    scales = FOCAL_STARTS if estimate_focal and len(dets) >= MIN_FOCAL_PAIRS else (1.0,)
+    fits = [
+        _fit_pairs(
+            objects, boxes, masks, dets, objs, rvec, tvec, intrinsics.scaled(s), len(scales) > 1
+        )
+        for s in scales
+    ]
+    fit = min(fits, key=lambda f: f.rms_px)
+    dets, objs = _reassign(objects, boxes, masks, compatible, fit, *size)
+    if len(dets) == 0:
+        return None
+    estimated = len(scales) > 1 and len(dets) >= MIN_FOCAL_PAIRS
+    # Too few pairs left to hold the focal length: back to the scene camera's.
+    k = fit.intrinsics if estimated or len(scales) == 1 else intrinsics
+    if len(dets) >= 3:
+        fit = _fit_pairs(objects, boxes, masks, dets, objs, fit.rvec, fit.tvec, k, estimated)
+    else:
+        fit = refine_edges(objects.subset(objs), boxes[dets], masks[dets], fit.rvec, fit.tvec, k)
+    return _Fit(
+        fit=fit, detections=dets, objects=objs, source="estimated" if estimated else "scene"
+    )
+
+
+def _start_view(
+    theta_deg: float, phi_deg: float, radius: float, target: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """World-to-camera ``(rvec, tvec)`` of a camera at (θ, φ) on the sphere of ``radius`` about
+    ``target``, looking at it."""
+    theta, phi = math.radians(theta_deg), math.radians(phi_deg)
+    centre = target + radius * np.array(
+        [math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)]
+    )
+    yaw, pitch = look_at_angles(centre, target)
+    rotation = rotation_of_yaw_pitch_roll(yaw, pitch, 0.0).T
+    rvec, _ = cv2.Rodrigues(rotation)
+    return np.asarray(rvec, dtype=np.float64).reshape(3), -rotation @ centre
+
+
+def _few(
+    objects: SceneObjects,
+    boxes: FloatArray,
+    masks: NDArray[np.bool_],
+    compatible: NDArray[np.bool_],
+    usable: NDArray[np.intp],
+    intrinsics: Intrinsics,
+) -> list[_Fit]:
+    """Edge fits of one or two detections from the start views, over their assignments."""
+    candidates = [np.flatnonzero(compatible[i]).tolist() for i in usable]
+    assignments = [a for a in itertools.product(*candidates) if len(set(a)) == len(a)]
+    fits = []
+    for objs in assignments[:MAX_FEW_ASSIGNMENTS]:
+        paired = objects.subset(objs)
+        target = paired.centroids.mean(axis=0)
+        for theta, phi in FEW_STARTS_DEG:
+            rvec, tvec = _start_view(theta, phi, objects.radius, target)
+            fit = refine_edges(paired, boxes[usable], masks[usable], rvec, tvec, intrinsics)
+            if fit.position()[2] > 0.0:
+                fits.append(_Fit(fit, usable, np.asarray(objs, dtype=np.intp), "scene"))
+    return fits
+
+
+def _few_detections(compatible: NDArray[np.bool_], order: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Up to two detections, most confident first, that distinct objects can be: with no pose
+    hypothesis, more would only repeat objects (six boxes labelled ``mesh`` in a scene of two
+    meshes)."""
+    kept: list[int] = []
+    for i in order.tolist():
+        trial = [*kept, i]
+        rows = [np.flatnonzero(compatible[j]).tolist() for j in trial]
+        if any(len(set(a)) == len(a) for a in itertools.product(*rows)):
+            kept = trial
+        if len(kept) == 2:
+            break
+    return np.asarray(kept, dtype=np.intp)
+
+
+def _candidate(
+    fit: _Fit,
+    objects: SceneObjects,
+    evidence: tuple[FloatArray, NDArray[np.bool_], tuple[str, ...], NDArray[np.intp]],
+    width: int,
+) -> PoseCandidate:
+    boxes, masks, labels, index = evidence
+    sigmas = pose_uncertainty(
+        objects.subset(fit.objects),
+        boxes[fit.detections],
+        masks[fit.detections],
+        fit.fit,
+        NOISE_FLOOR_PX,
+        with_focal=fit.source == "estimated",
+    )
+    rotation_cw = fit.fit.rotation().T
+    k = fit.fit.intrinsics
+    c = fit.fit.position()
+    ypr = yaw_pitch_roll_of_rotation(rotation_cw)
+    return PoseCandidate(
+        position=(float(c[0]), float(c[1]), float(c[2])),
+        quaternion_wxyz=quaternion_of_rotation(rotation_cw),
+        yaw_pitch_roll_deg=(ypr[0], ypr[1], ypr[2]),
+        intrinsics=IntrinsicsUsed(
+            fx_px=k.fx,
+            fy_px=k.fy,
+            cx_px=k.cx,
+            cy_px=k.cy,
+            fov_deg=k.fov_deg(width),
+            source=fit.source,
+        ),
+        residual_px=fit.fit.rms_px,
+        correspondences=tuple(
+            Correspondence(
+                detection=int(index[d]),
+                object=objects.names[o],
+                label=labels[d],
+                residual_px=float(fit.fit.pair_rms_px[n]),
+            )
+            for n, (d, o) in enumerate(zip(fit.detections, fit.objects, strict=True))
+        ),
+        position_sigma=sigmas[0],
+        rotation_sigma_deg=sigmas[1],
+    )
+
+
+def _distinct_best(fits: list[_Fit], radius: float) -> list[_Fit]:
+    """The fits, best first (most pairs, then least RMS), one of each distinct pose."""
+    ranked = sorted(fits, key=lambda f: (-len(f.detections), f.fit.rms_px))
+    kept: list[_Fit] = []
+    for f in ranked:
+        if all(distinct(f.key, k.key, radius) for k in kept):
+            kept.append(f)
+    return kept
+
+
+def solve_free_pose(
+    objects: SceneObjects,
+    detections: Sequence[Detection],
+    width: int,
+    height: int,
+    intrinsics: Intrinsics | None = None,
+    *,
+    min_confidence: float = 0.0,
+    seed: int = 0,
+) -> FreePoseAnswer:
+    """The camera pose from the target's detections alone (module docstring).
+
+    Parameters
+    ----------
+    objects : the scene's objects (:func:`.objects.scene_objects`).
+    detections : the target's detections, boxes in pixels of its ``width`` x ``height`` image.
+    intrinsics : the photo's, when known; otherwise the scene camera's field of view is the start
+        and the focal length is estimated from four pairs on.
+    min_confidence : detections below it are not used.
+    seed : for the sampled minimal sets when there are too many to solve them all.
+    """
+    labels_all = tuple(d.label for d in detections)
+    compatible_all = compatibility(objects, labels_all)
+    boxes_all = np.array([d.box for d in detections], dtype=np.float64).reshape(-1, 4)
+    finite = np.all(np.isfinite(boxes_all), axis=1)
+    sized = (boxes_all[:, 2] > boxes_all[:, 0]) & (boxes_all[:, 3] > boxes_all[:, 1])
+    confident = np.array([d.confidence >= min_confidence for d in detections], dtype=np.bool_)
+    ok = finite & sized & confident & compatible_all.any(axis=1)
+    index = np.flatnonzero(ok)
+    if len(index) == 0:
+        return FreePoseAnswer("failed", _failure(detections, objects, confident), None, (), 0)
+    boxes, compatible = boxes_all[index], compatible_all[index]
+    labels = tuple(labels_all[i] for i in index)
+    masks = clipped_sides(boxes, width, height)
+    given = intrinsics is not None
+    k0 = intrinsics if intrinsics is not None else Intrinsics.of_fov(objects.fov_deg, width, height)
+    hyps = hypotheses(objects, boxes, compatible, k0, width, height, seed=seed)
+    fits = []
+    for h in hyps[:REFINED_HYPOTHESES]:
+        fit = _refined(
+            objects,
+            boxes,
+            masks,
+            compatible,
+            (h.rvec, h.tvec, h.detections, h.objects),
+            k0,
+            not given,
+            (width, height),
+        )
+        if fit is not None and fit.fit.position()[2] > 0.0:
+            fits.append(fit if not given else _Fit(fit.fit, fit.detections, fit.objects, "given"))
+    if not fits:
+        scores = np.array([detections[int(i)].confidence for i in index])
+        few = _few_detections(compatible, np.argsort(-scores, kind="stable"))
+        fits = _few(objects, boxes, masks, compatible, few, k0)
+        fits = [f if not given else _Fit(f.fit, f.detections, f.objects, "given") for f in fits]
+    ranked = _distinct_best(fits, objects.radius)
+    if not ranked:
+        return FreePoseAnswer(
+            "failed",
+            "no camera pose above the ground explains the detections",
+            None,
+            (),
+            len(index),
+        )
+    poses = [_candidate(f, objects, (boxes, masks, labels, index), width) for f in ranked]
+    best = poses[0]
+    ratio = UNIQUE_RATIO_3 if best.inliers == 3 else AMBIGUITY_RATIO
+    limit = ratio * max(best.residual_px, NOISE_FLOOR_PX)
+    rivals = tuple(p for p in poses[1:] if p.inliers >= best.inliers and p.residual_px <= limit)
+    if best.inliers < 3:
+        reason = (
+            f"ambiguous: only {best.inliers} object(s) paired; at least 3 are needed for a "
+            "pose (4 to be sure): a wider view, or a photo with more of the scene's objects"
+        )
+        return FreePoseAnswer(
+            "ambiguous", reason, best, tuple(poses[1 : 1 + MAX_ALTERNATIVES]), len(index)
+        )
+    if rivals:
+        reason = (
+            f"ambiguous: {len(rivals)} distinct pose(s) explain the boxes almost as well "
+            f"(edge RMS ≤ {limit:.2f} px against the best {best.residual_px:.2f} px): a "
+            "symmetric layout or look-alike objects; more objects in view would decide"
+        )
+        return FreePoseAnswer("ambiguous", reason, best, rivals[:MAX_ALTERNATIVES], len(index))
+    focal = {
+        "estimated": "focal length estimated",
+        "scene": "the scene camera's field of view assumed (too few objects to estimate it)",
+        "given": "intrinsics given",
+    }
+    reason = (
+        f"found: {best.inliers} objects paired, edge RMS {best.residual_px:.2f} px; "
+        f"{focal[best.intrinsics.source]}"
+    )
+    return FreePoseAnswer("found", reason, best, (), len(index))
+
+
+def _failure(
+    detections: Sequence[Detection], objects: SceneObjects, confident: NDArray[np.bool_]
+) -> str:
+    if not detections:
+        return "failed: no object was detected in the image; a photo showing the scene's objects"
+    if not confident.any():
+        return "failed: every detection is below the confidence threshold"
+    seen = sorted({d.label for d in detections})
+    known = sorted(set(objects.labels) | set(objects.shapes))
+    return (
+        f"failed: no detection names an object of the scene (labels {', '.join(seen)}; the "
+        f"scene's classes are {', '.join(known)}): is the detector the scene's own?"
+    )
