@@ -41,14 +41,24 @@ from cosmos.bench.free_targets.draw import (
 )
 from cosmos.bench.free_targets.estimate import intrinsics_matrix
 from cosmos.bench.free_targets.metrics import MISSED
+from cosmos.bench.free_targets.report import TargetResult, solver_table
+from cosmos.bench.free_targets.solver import SOLVER, answer_estimate, confirmed_wrong
 from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.common.geometry.free_camera import (
     FreeCamera,
     free_pinhole_camera,
+    quaternion_of_rotation,
     yaw_pitch_roll_of_rotation,
 )
 from services.common.geometry.scene import LoadedScene
+from services.optimizer.free import (
+    FreePoseAnswer,
+    IntrinsicsUsed,
+    PoseCandidate,
+    Status,
+    scene_objects,
+)
 from services.renderer.engine import RenderEngine
 
 COUNT, SEED = 7, 3
@@ -248,7 +258,13 @@ def test_references_on_drawn_targets(targets: list[FreeTarget], garden: LoadedSc
     table = text_table(results)
     assert "box-only bound" in table
     assert "baseline" in table
+    assert SOLVER not in table
     assert table.count("all") == 2
+    solved = evaluate(targets, shapes, radius, SEED, scene_objects(garden.spec, garden.assets))
+    assert all(r.status in ("found", "ambiguous", "failed") for r in solved)
+    solver_rows = [line.split() for line in text_table(solved).splitlines() if SOLVER in line]
+    assert solver_rows[-1][3:5] == ["all", str(COUNT)]
+    assert solver_table(solved).splitlines()[-1].split()[:3] == ["garden", "all", str(COUNT)]
     by_objects = text_table(results, by="objects").splitlines()
     assert by_objects[0].split()[2] == "objects"
     counts = {str(len(t.usable)) for t in targets}
@@ -261,3 +277,42 @@ def test_variants_apply_to_free_targets(targets: list[FreeTarget]) -> None:
     assert target.image("clean", rng) == target.png
     assert target.image("jpeg", rng).startswith(b"\xff\xd8")
     assert target.image("noise", rng) != target.png
+
+
+def _answer(status: Status, estimate: Estimate) -> FreePoseAnswer:
+    """An answer whose best pose is ``estimate``."""
+    pose = PoseCandidate(
+        position=tuple(float(v) for v in estimate.position),
+        quaternion_wxyz=quaternion_of_rotation(estimate.rotation),
+        yaw_pitch_roll_deg=yaw_pitch_roll_of_rotation(estimate.rotation),
+        intrinsics=IntrinsicsUsed(300.0, 300.0, 160.0, 120.0, estimate.fov_deg, "estimated"),
+        residual_px=0.5,
+        correspondences=(),
+        position_sigma=0.01,
+        rotation_sigma_deg=0.1,
+    )
+    return FreePoseAnswer(status, "", pose, (), 4)
+
+
+def test_confirmed_wrong_counts_found_answers_far_from_the_truth() -> None:
+    truth = _truth()
+    right = pose_error(answer_estimate(_answer("found", truth)), truth, 8.0)
+    assert (right.position, right.rotation_deg) == pytest.approx((0.0, 0.0), abs=1e-6)
+    moved = Estimate(truth.rotation, truth.position + [1.2, 0.0, 0.0], truth.fov_deg)  # 15 % r
+    wrong = pose_error(answer_estimate(_answer("found", moved)), truth, 8.0)
+    near = Estimate(truth.rotation, truth.position + [0.56, 0.0, 0.0], truth.fov_deg)  # 7 % r
+    close = pose_error(answer_estimate(_answer("found", near)), truth, 8.0)
+    assert answer_estimate(FreePoseAnswer("failed", "", None, (), 0)) is None
+    assert confirmed_wrong([right], ["found"]) == 0
+    assert (
+        confirmed_wrong([right, wrong, wrong, close], ["found", "found", "ambiguous", "found"]) == 1
+    )
+    assert confirmed_wrong([close], ["found"], (0.05, 2.0)) == 1
+    results = [
+        TargetResult("s", i, "nadir", i == 2, 4, {SOLVER: e}, status)
+        for i, (e, status) in enumerate([(right, "found"), (wrong, "found"), (MISSED, "failed")])
+    ]
+    header, nadir, total = (line.split() for line in solver_table(results).splitlines())
+    assert nadir == total[:1] + ["nadir"] + total[2:]
+    # n, found, ambiguous, failed, wrong >10%/5°, found >5%/2°, fov median (no K), n (no K)
+    assert total[2:] == ["3", "67%", "0%", "33%", "1", "1", "0.0", "2"]

@@ -1,21 +1,33 @@
-"""``python -m cosmos.bench.free_targets --scene demo --n 20 --seed 1``: draw free targets, run
-the baseline and the box-only bound on them, print the table per elevation band and per count
-of objects in view."""
+"""``python -m cosmos.bench.free_targets --scene demo --random-scenes 4 --n 20 --seed 1``: draw
+free targets, run the baseline, the box-only bound and the box solver on them, print the table
+per elevation band and per count of objects in view, and the solver's statuses.
+
+``--random-scenes N`` adds N scenes of :func:`cosmos.bench.scenes.generate_scene` (scene ``i``
+from the seed ``[seed, i]``, written to a temporary folder): their targets are tabled together
+as scene "random", then each scene's totals. A scene where targets cannot be drawn
+(:class:`DrawError`) is reported and skipped."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
 
 from cosmos.bench.free_targets.draw import DrawError, draw_targets
 from cosmos.bench.free_targets.rendering import LocalRenderer, Renderer
-from cosmos.bench.free_targets.report import evaluate, text_table
+from cosmos.bench.free_targets.report import TargetResult, evaluate, solver_table, text_table
 from cosmos.bench.free_targets.shapes import scene_shapes
+from cosmos.bench.scenes import generate_scene
 from services.common.auth import token_from_environment
 from services.common.catalog import SceneCatalog
 from services.common.errors import ServiceError
+from services.optimizer.free import scene_objects
 from services.renderer.client import RendererClient, RendererError
 from services.renderer.settings import RendererSettings
 
@@ -33,45 +45,94 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--height", type=int)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--url", help="a running renderer instead of rendering in-process")
+    parser.add_argument(
+        "--random-scenes",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also N generated scenes (local renderer only), tabled together as 'random'",
+    )
     return parser
 
 
-def _run(args: argparse.Namespace, renderer: Renderer, catalog: SceneCatalog) -> None:
-    results = []
-    for scene_id in args.scene or ["demo"]:
-        scene = catalog.get(scene_id)
-        shapes = scene_shapes(scene)
-        started = time.perf_counter()
-        targets = draw_targets(
-            renderer,
-            scene,
-            shapes,
-            args.n,
-            args.seed,
-            width=args.width,
-            height=args.height,
-            spp=args.spp,
-        )
-        drawn_s = time.perf_counter() - started
-        results += evaluate(targets, shapes, scene.spec.camera.radius, args.seed)
-        sys.stderr.write(
-            f"{scene_id}: {len(targets)} targets drawn in {drawn_s:.1f} s, "
-            f"{sum(not t.intrinsics_given for t in targets)} without intrinsics\n"
-        )
-    sys.stdout.write(text_table(results) + "\n\n" + text_table(results, by="objects") + "\n")
+def _scene_results(
+    args: argparse.Namespace, renderer: Renderer, catalog: SceneCatalog, scene_id: str
+) -> list[TargetResult]:
+    scene = catalog.get(scene_id)
+    shapes = scene_shapes(scene)
+    started = time.perf_counter()
+    targets = draw_targets(
+        renderer,
+        scene,
+        shapes,
+        args.n,
+        args.seed,
+        width=args.width,
+        height=args.height,
+        spp=args.spp,
+    )
+    drawn_s = time.perf_counter() - started
+    objects = scene_objects(scene.spec, scene.assets)
+    results = evaluate(targets, shapes, scene.spec.camera.radius, args.seed, objects)
+    sys.stderr.write(
+        f"{scene_id}: {len(targets)} targets drawn in {drawn_s:.1f} s, solved in "
+        f"{time.perf_counter() - started - drawn_s:.1f} s, "
+        f"{sum(not t.intrinsics_given for t in targets)} without intrinsics\n"
+    )
+    return results
+
+
+def _run(
+    args: argparse.Namespace,
+    renderer: Renderer,
+    catalog: SceneCatalog,
+    random_ids: Sequence[str] = (),
+) -> None:
+    results: list[TargetResult] = []
+    for scene_id in args.scene or ([] if random_ids else ["demo"]):
+        results += _scene_results(args, renderer, catalog, scene_id)
+    randoms: list[TargetResult] = []
+    skipped = []
+    for scene_id in random_ids:
+        try:
+            randoms += _scene_results(args, renderer, catalog, scene_id)
+        except DrawError as exc:
+            skipped.append(scene_id)
+            sys.stderr.write(f"free targets: skipped: {exc}\n")
+    results += [replace(r, scene="random") for r in randoms]
+    out = [text_table(results), text_table(results, by="objects"), solver_table(results)]
+    if randoms:
+        out += [text_table(randoms, totals_only=True), solver_table(randoms)]
+    if skipped:
+        out.append(f"skipped (no targets drawn): {', '.join(skipped)}")
+    sys.stdout.write("\n\n".join(out) + "\n")
+
+
+def _generate(count: int, seed: int, folder: Path) -> list[str]:
+    """``count`` random scenes written to ``folder``; their ids."""
+    ids = [f"rand{seed}-{i}" for i in range(count)]
+    for i, scene_id in enumerate(ids):
+        generate_scene(np.random.default_rng([seed, i]), folder, scene_id)
+    return ids
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.random_scenes and args.url:
+        sys.stderr.write("free targets: --random-scenes renders in-process: leave out --url\n")
+        return 2
     settings = RendererSettings()
-    catalog = SceneCatalog(settings.scene_directories())
     try:
-        if args.url:
-            with RendererClient(args.url, token=token_from_environment()) as client:
-                _run(args, client, catalog)
-        else:
-            with LocalRenderer(catalog, settings) as local:
-                _run(args, local, catalog)
+        with tempfile.TemporaryDirectory(prefix="cosmos-free-scenes-") as tmp:
+            random_ids = _generate(args.random_scenes, args.seed, Path(tmp))
+            directories = settings.scene_directories() + ([Path(tmp)] if random_ids else [])
+            catalog = SceneCatalog(directories)
+            if args.url:
+                with RendererClient(args.url, token=token_from_environment()) as client:
+                    _run(args, client, catalog)
+            else:
+                with LocalRenderer(catalog, settings) as local:
+                    _run(args, local, catalog, random_ids)
     except ServiceError as exc:
         sys.stderr.write(f"free targets: {exc.detail}\n")
         return 2

@@ -1,11 +1,11 @@
-"""The baseline and the box-only bound on a set of free targets, and their table per elevation
-band."""
+"""The baseline, the box-only bound and the box solver on a set of free targets, their table per
+elevation band, and the solver's own table: its statuses and its confirmed-wrong answers."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Final, Literal
 
 import numpy as np
@@ -21,11 +21,27 @@ from cosmos.bench.free_targets.metrics import (
 )
 from cosmos.bench.free_targets.shapes import SceneShapes
 from cosmos.bench.free_targets.solve import baseline, box_only_bound
+from cosmos.bench.free_targets.solver import (
+    SOLVER,
+    WRONG,
+    WRONG_LOOSE,
+    answer_estimate,
+    confirmed_wrong,
+    solve_target,
+)
 from cosmos.bench.tables import plain_table
+from services.optimizer.free import SceneObjects
 
-__all__ = ["METHODS", "TargetResult", "evaluate", "group_rows", "text_table"]
+__all__ = [
+    "METHODS",
+    "TargetResult",
+    "evaluate",
+    "group_rows",
+    "solver_table",
+    "text_table",
+]
 
-METHODS: Final = ("baseline", "box-only bound")
+METHODS: Final = ("baseline", "box-only bound", SOLVER)
 
 
 @dataclass(frozen=True)
@@ -39,13 +55,20 @@ class TargetResult:
     objects: int
     """How many objects the target shows at least 60 % visible."""
     errors: dict[str, PoseError]
+    status: str | None = field(default=None)
+    """The box solver's answer status (None when it did not run)."""
 
 
 def evaluate(
-    targets: Sequence[FreeTarget], shapes: SceneShapes, radius: float, seed: int
+    targets: Sequence[FreeTarget],
+    shapes: SceneShapes,
+    radius: float,
+    seed: int,
+    objects: SceneObjects | None = None,
 ) -> list[TargetResult]:
-    """The baseline and the box-only bound (its noise seeded by ``seed`` and the target's
-    index) on every target, against its true camera."""
+    """The baseline, the box-only bound and, given the scene's ``objects``, the box solver
+    (their noise seeded by ``seed`` and the target's index) on every target, against its true
+    camera."""
     results = []
     for target in targets:
         camera = target.annotations.camera
@@ -55,6 +78,11 @@ def evaluate(
             "baseline": baseline(target),
             "box-only bound": box_only_bound(target, shapes, rng),
         }
+        status = None
+        if objects is not None:
+            answer = solve_target(target, objects, np.random.default_rng([seed, target.index, 2]))
+            estimates[SOLVER] = answer_estimate(answer)
+            status = answer.status
         results.append(
             TargetResult(
                 scene=target.scene,
@@ -63,6 +91,7 @@ def evaluate(
                 intrinsics_given=target.intrinsics_given,
                 objects=len(target.usable),
                 errors={name: pose_error(e, truth, radius) for name, e in estimates.items()},
+                status=status,
             )
         )
     return results
@@ -76,10 +105,12 @@ def group_rows(
     keys: list[str] = list(BANDS) if by == "band" else sorted({str(r.objects) for r in results})
     rows: list[tuple[str, ErrorSummary]] = []
     for key in keys:
-        errors = [r.errors[method] for r in results if str(getattr(r, by)) == key]
+        errors = [
+            r.errors[method] for r in results if str(getattr(r, by)) == key and method in r.errors
+        ]
         if errors:
             rows.append((key, summarize(errors)))
-    rows.append(("all", summarize([r.errors[method] for r in results])))
+    rows.append(("all", summarize([r.errors[method] for r in results if method in r.errors])))
     return rows
 
 
@@ -106,15 +137,24 @@ HEADER: Final = (
 )
 
 
-def text_table(results: Sequence[TargetResult], by: Literal["band", "objects"] = "band") -> str:
-    """Per scene, per method, per elevation band (or count of objects at least 60 % visible):
-    the shares within the thresholds, median and p95 position error (in % of the radius) and
-    rotation error, and the targets without a pose."""
+def text_table(
+    results: Sequence[TargetResult],
+    by: Literal["band", "objects"] = "band",
+    totals_only: bool = False,
+) -> str:
+    """Per scene, per method, per elevation band (or count of objects at least 60 % visible;
+    only the "all" row with ``totals_only``): the shares within the thresholds, median and p95
+    position error (in % of the radius) and rotation error, and the targets without a pose. A
+    method no target ran is left out."""
     rows = []
     for scene in dict.fromkeys(r.scene for r in results):
         mine = [r for r in results if r.scene == scene]
         for method in METHODS:
+            if not any(method in r.errors for r in mine):
+                continue
             for band, s in group_rows(mine, method, by):
+                if totals_only and band != "all":
+                    continue
                 rows.append(
                     [
                         scene,
@@ -132,3 +172,49 @@ def text_table(results: Sequence[TargetResult], by: Literal["band", "objects"] =
     header = list(HEADER)
     header.insert(2, "band" if by == "band" else "objects")
     return plain_table(header, rows)
+
+
+STATUSES: Final = ("found", "ambiguous", "failed")
+SOLVER_HEADER: Final = (
+    "scene",
+    "band",
+    "n",
+    "found",
+    "ambiguous",
+    "failed",
+    f"wrong >{WRONG[0]:.0%}/{WRONG[1]:g}°",
+    f"found >{WRONG_LOOSE[0]:.0%}/{WRONG_LOOSE[1]:g}°",
+    "fov med % (no K)",
+    "n no K",
+)
+
+
+def solver_table(results: Sequence[TargetResult]) -> str:
+    """The box solver per scene and elevation band: the shares of its statuses, how many
+    ``found`` answers are confirmed wrong (outside :data:`~.solver.WRONG`; the number to keep
+    at 0) and outside :data:`~.solver.WRONG_LOOSE`, and the median fov error over the targets
+    that do not give their intrinsics."""
+    rows = []
+    ran = [r for r in results if SOLVER in r.errors]
+    for scene in dict.fromkeys(r.scene for r in ran):
+        mine = [r for r in ran if r.scene == scene]
+        for band in [*BANDS, "all"]:
+            group = [r for r in mine if band in ("all", r.band)]
+            if not group:
+                continue
+            errors = [r.errors[SOLVER] for r in group]
+            statuses = [r.status for r in group]
+            unknown = [r.errors[SOLVER].fov_pct for r in group if not r.intrinsics_given]
+            rows.append(
+                [
+                    scene,
+                    band,
+                    str(len(group)),
+                    *(_pct(statuses.count(s) / len(group)) for s in STATUSES),
+                    str(confirmed_wrong(errors, statuses)),
+                    str(confirmed_wrong(errors, statuses, WRONG_LOOSE)),
+                    _num(float(np.median(unknown)) if unknown else math.nan, 1),
+                    str(len(unknown)),
+                ]
+            )
+    return plain_table(list(SOLVER_HEADER), rows)
