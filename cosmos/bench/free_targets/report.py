@@ -102,7 +102,9 @@ def group_rows(
 ) -> list[tuple[str, ErrorSummary]]:
     """``method``'s summary per elevation band (or per count of objects in view) that has
     targets, then for all of them."""
-    keys: list[str] = list(BANDS) if by == "band" else sorted({str(r.objects) for r in results})
+    keys: list[str] = (
+        list(BANDS) if by == "band" else [str(n) for n in sorted({r.objects for r in results})]
+    )
     rows: list[tuple[str, ErrorSummary]] = []
     for key in keys:
         errors = [
@@ -183,6 +185,7 @@ SOLVER_HEADER: Final = (
     "ambiguous",
     "failed",
     f"wrong >{WRONG[0]:.0%}/{WRONG[1]:g}°",
+    "of them no K",
     f"found >{WRONG_LOOSE[0]:.0%}/{WRONG_LOOSE[1]:g}°",
     "fov med % (no K)",
     "n no K",
@@ -192,8 +195,9 @@ SOLVER_HEADER: Final = (
 def solver_table(results: Sequence[TargetResult]) -> str:
     """The box solver per scene and elevation band: the shares of its statuses, how many
     ``found`` answers are confirmed wrong (outside :data:`~.solver.WRONG`; the number to keep
-    at 0) and outside :data:`~.solver.WRONG_LOOSE`, and the median fov error over the targets
-    that do not give their intrinsics."""
+    at 0) and how many of those gave no intrinsics, how many are outside
+    :data:`~.solver.WRONG_LOOSE`, and the median fov error over the targets that do not give
+    their intrinsics."""
     rows = []
     ran = [r for r in results if SOLVER in r.errors]
     for scene in dict.fromkeys(r.scene for r in ran):
@@ -212,6 +216,12 @@ def solver_table(results: Sequence[TargetResult]) -> str:
                     str(len(group)),
                     *(_pct(statuses.count(s) / len(group)) for s in STATUSES),
                     str(confirmed_wrong(errors, statuses)),
+                    str(
+                        confirmed_wrong(
+                            [r.errors[SOLVER] for r in group if not r.intrinsics_given],
+                            [r.status for r in group if not r.intrinsics_given],
+                        )
+                    ),
                     str(confirmed_wrong(errors, statuses, WRONG_LOOSE)),
                     _num(float(np.median(unknown)) if unknown else math.nan, 1),
                     str(len(unknown)),
