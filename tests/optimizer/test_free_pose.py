@@ -72,9 +72,10 @@ def errors(pose, pinhole) -> tuple[float, float]:
     return moved, turned
 
 
-def assert_exact(answer, pinhole, radius: float) -> None:
-    """Found, within 1e-3 of the radius and 0.05° of the true camera."""
-    assert answer.status == "found", answer.reason
+def assert_exact(answer, pinhole, radius: float, status: str = "found") -> None:
+    """``status`` (found, unless the boxes pin the view only loosely), its best pose within 1e-3
+    of the radius and 0.05° of the true camera."""
+    assert answer.status == status, answer.reason
     moved, turned = errors(answer.pose, pinhole)
     assert moved < 1e-3 * radius
     assert turned < 0.05
@@ -88,7 +89,9 @@ def test_exact_boxes_give_the_exact_pose(scenes, scene, view):
     answer = solve_free_pose(
         objects, exact_detections(objects, pinhole), W, H, intrinsics_of(pinhole)
     )
-    assert_exact(answer, pinhole, objects.radius)
+    # Straight down on centres at one height, a tilt and a shift move the boxes alike to first
+    # order (an unbounded σ): exact boxes still give the exact pose, but it is not ``found``.
+    assert_exact(answer, pinhole, objects.radius, "ambiguous" if view == "nadir" else "found")
     assert answer.pose.residual_px < 1e-3
     assert answer.pose.intrinsics.source == "given"
     names = {c.object for c in answer.pose.correspondences}

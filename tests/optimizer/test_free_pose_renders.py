@@ -55,11 +55,17 @@ CASES = [
     # shift trade off within the boxes' pixel quantisation (0.24 px RMS at the answer).
     ("demo", FreeCamera(position=(0.3, 0.2, 9.0), yaw_deg=30.0, pitch_deg=90.0), 0.05, 3.0),
 ]
+NADIR = 2
+"""From this case on the views look straight down, which boxes pin only loosely: the best pose
+is within its bounds, but the answer is ``ambiguous``, not ``found``."""
 
 
-@pytest.mark.parametrize(("scene_id", "camera", "max_position", "max_rotation_deg"), CASES)
+@pytest.mark.parametrize(
+    ("scene_id", "camera", "max_position", "max_rotation_deg", "status"),
+    [(*case, "found" if i < NADIR else "ambiguous") for i, case in enumerate(CASES)],
+)
 def test_rendered_boxes_give_the_camera(
-    engine, catalog, scene_id, camera, max_position, max_rotation_deg
+    engine, catalog, scene_id, camera, max_position, max_rotation_deg, status
 ):
     objects, annotations, detections = annotated(engine, catalog, scene_id, camera)
     truth = annotations.camera
@@ -68,7 +74,7 @@ def test_rendered_boxes_give_the_camera(
     assert np.allclose(objects.centroids, centroids, atol=1e-5)
     intrinsics = Intrinsics(truth.fx, truth.fy, truth.cx, truth.cy)
     answer = solve_free_pose(objects, detections, W, H, intrinsics)
-    assert answer.status == "found", answer.reason
+    assert answer.status == status, answer.reason
     moved, turned = errors(answer.pose, truth)
     assert moved < max_position * objects.radius
     assert turned < max_rotation_deg

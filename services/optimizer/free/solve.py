@@ -27,7 +27,16 @@ Status
     ``max(best RMS, NOISE_FLOOR_PX)``.
 ``ambiguous``
     Fewer than three pairs, or such a distinct pose exists (a symmetric layout, look-alikes
-    that can swap): the best pose and the alternatives, with their residuals.
+    that can swap): the best pose and the alternatives, with their residuals. Also a pose the
+    boxes pin only loosely, which is never ``found``:
+
+    * without given intrinsics and too few pairs to fit the focal, the scene camera's field of
+      view is assumed, and distance trades against focal length along the view axis;
+    * its own uncertainty reaches a wrong answer: ``FIRM_SIGMAS · σ_position > WRONG_POSITION ·
+      r`` or ``FIRM_SIGMAS · σ_rotation > WRONG_ROTATION_DEG`` (``r`` the scene radius).
+      Measured on free targets of generated scenes (``python -m cosmos.bench.free_targets
+      --random-scenes 4``), the error over σ reached about 2 in one answer in ten, and a third of
+      ``found`` answers off by more than 10 % / 5° had no given intrinsics.
 ``failed``
     No usable detection: none, none confident enough, or none whose label names an object of
     the scene.
@@ -85,6 +94,13 @@ FOCAL_STARTS: Final = (0.75, 1.0, 1.33)
 NOISE_FLOOR_PX: Final = 0.7
 """Edge RMS that any pose is granted: about the detector's measured box-edge error."""
 AMBIGUITY_RATIO: Final = 2.0
+WRONG_POSITION: Final = 0.10
+"""A position error (fraction of the scene radius) past which an answer is wrong."""
+WRONG_ROTATION_DEG: Final = 5.0
+"""A rotation error past which an answer is wrong."""
+FIRM_SIGMAS: Final = 3.0
+"""How many standard deviations of its own uncertainty a ``found`` pose keeps inside
+:data:`WRONG_POSITION` and :data:`WRONG_ROTATION_DEG`."""
 UNIQUE_RATIO_3: Final = 3.0
 INLIER_MIN_PX: Final = 3.0
 INLIER_BOX_FRACTION: Final = 0.15
@@ -384,6 +400,15 @@ def solve_free_pose(
             "symmetric layout or look-alike objects; more objects in view would decide"
         )
         return FreePoseAnswer("ambiguous", reason, best, rivals[:MAX_ALTERNATIVES], len(index))
+    loose = _loose(best, objects.radius)
+    if loose:
+        return FreePoseAnswer(
+            "ambiguous",
+            f"ambiguous: {loose}",
+            best,
+            tuple(poses[1 : 1 + MAX_ALTERNATIVES]),
+            len(index),
+        )
     focal = {
         "estimated": "focal length estimated",
         "scene": "the scene camera's field of view assumed (too few objects to estimate it)",
@@ -394,6 +419,26 @@ def solve_free_pose(
         f"{focal[best.intrinsics.source]}"
     )
     return FreePoseAnswer("found", reason, best, (), len(index))
+
+
+def _loose(best: PoseCandidate, radius: float) -> str:
+    """Why the boxes pin ``best`` too loosely to call it found (module docstring), or ''."""
+    if best.intrinsics.source == "scene":
+        return (
+            f"only {best.inliers} objects paired and no intrinsics given: the scene camera's "
+            "field of view was assumed, and distance trades against focal length; give the "
+            "photo's intrinsics, or a view with at least 4 of the scene's objects"
+        )
+    if (
+        FIRM_SIGMAS * best.position_sigma > WRONG_POSITION * radius
+        or FIRM_SIGMAS * best.rotation_sigma_deg > WRONG_ROTATION_DEG
+    ):
+        return (
+            f"the boxes pin the pose only loosely (1σ {best.position_sigma:.2g} scene units, "
+            f"{best.rotation_sigma_deg:.2g}°): more objects in view, or the photo's intrinsics, "
+            "would decide"
+        )
+    return ""
 
 
 def _failure(
