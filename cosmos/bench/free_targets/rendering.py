@@ -12,6 +12,7 @@ from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 from services.renderer.settings import RendererSettings
 from services.renderer.view import resolve_view
+from services.renderer.wiring import build_renderer
 
 __all__ = ["LocalRenderer", "Renderer"]
 
@@ -43,7 +44,7 @@ class LocalRenderer:
         self._settings = settings or RendererSettings()
         self._catalog = catalog or SceneCatalog(self._settings.scene_directories())
         self._own = engine is None
-        self._engine = engine or RenderEngine(self._settings.renderer_mitsuba_variant)
+        self._engine = engine or build_renderer(self._settings).engine
 
     def __enter__(self) -> Self:
         if self._own:
