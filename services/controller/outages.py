@@ -104,7 +104,7 @@ class OutagePolicy:
                         exc.stage,
                         exc,
                     )
-                left = since + self.budget_s - now
+                left = self.budget_s - (now - since)  # exactly the budget at the first failure
                 if left <= 0 or not await self.stages.wait_for_replica(exc.stage, left):
                     raise outage(exc, search_id, self.budget_s) from exc
                 continue
