@@ -103,6 +103,11 @@ class SearchRunner:
         return len(self._running)
 
     @property
+    def stopping(self) -> int:
+        """Cancelled searches whose runs have yet to stop (a finished run forgets its cancel)."""
+        return len(self._cancelled)
+
+    @property
     def idle(self) -> bool:
         """Whether a search submitted now would start at once (a worker is free, none waits)."""
         return self._queue.empty() and len(self._running) < self.max_concurrent
@@ -134,7 +139,6 @@ class SearchRunner:
             raise StillStopping(search_id)
         deleted = self.store.delete_finished(search_id)
         if deleted is not None:
-            self._cancelled.discard(search_id)
             self.notifier.publish(search_id)  # its followers end
         return deleted
 
@@ -190,6 +194,7 @@ class SearchRunner:
         search, image = self._submitted.pop(search_id, None) or (self.store.get(search_id), None)
         if search is None or search.status in TERMINAL_STATUSES or search_id in self._cancelled:
             self.stages.forget_early(search_id)
+            self._cancelled.discard(search_id)  # its run, the only one to come, is over
             return
         try:
             await self.loop.run(search, image or self.store.image(search_id))
@@ -217,4 +222,5 @@ class SearchRunner:
             )
         finally:
             self.stages.forget_early(search_id)  # a start view the search did not take
+            self._cancelled.discard(search_id)  # a cancelled search is never run again
             self.notifier.publish(search_id)
