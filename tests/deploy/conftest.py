@@ -4,61 +4,15 @@ file interpolated from ``.env.example`` given values, and each kustomization und
 
 from __future__ import annotations
 
-import re
 import shutil
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
+from tests.deploy.compose import COMPOSE_ENV, filled, load_compose
 from tests.deploy.kustomize import Document, build, env_file
-from tests.support import ROOT
-
-K8S = ROOT / "deploy" / "k8s"
-KUSTOMIZATIONS = ("", "external-database")
-"""The directories under deploy/k8s that `kubectl apply -k` is pointed at."""
-SECRETS = "secrets.env"
-COMPOSE = ROOT / "docker-compose.yml"
-COMPOSE_ENV = ROOT / ".env.example"
-IMAGE_SERVICES = ("renderer", "detector", "optimizer", "controller")
-"""The services of the project's image (the value of its SERVICE variable)."""
-
-_VARIABLE = re.compile(r"\$(?:\$|\{(?P<name>[A-Za-z_]\w*)(?::?(?P<op>[-?])(?P<arg>[^}]*))?\})")
-
-
-def filled(env: Mapping[str, str]) -> dict[str, str]:
-    """An example env file's pairs with a value, 32 characters long, for each left empty."""
-    return {key: value or f"test-{key}-".ljust(32, "x") for key, value in env.items()}
-
-
-def interpolate(value: Any, env: Mapping[str, str]) -> Any:
-    """``value`` (a compose file's data) with ``${NAME}``, ``${NAME:-default}`` and
-    ``${NAME:?error}`` replaced as `docker compose` does (``$$`` is a literal ``$``); a
-    required variable unset or empty raises ``KeyError`` with its error."""
-    if isinstance(value, dict):
-        return {key: interpolate(item, env) for key, item in value.items()}
-    if isinstance(value, list):
-        return [interpolate(item, env) for item in value]
-    if not isinstance(value, str):
-        return value
-
-    def replace(match: re.Match[str]) -> str:
-        name, op, arg = match.group("name", "op", "arg")
-        if name is None:
-            return "$"
-        given = env.get(name, "")
-        if op == "?" and not given:
-            raise KeyError(f"{name}: {arg}")
-        return given or (arg if op == "-" else "")
-
-    return _VARIABLE.sub(replace, value)
-
-
-def load_compose(env: Mapping[str, str]) -> dict[str, Any]:
-    """docker-compose.yml as `docker compose config` sees it with ``env`` as its .env."""
-    return interpolate(yaml.safe_load(COMPOSE.read_text()), env)
+from tests.deploy.manifests import K8S, KUSTOMIZATIONS, SECRETS
 
 
 @pytest.fixture(scope="session")

@@ -16,9 +16,9 @@ import jsonschema
 import pytest
 
 from cosmos.environment import SERVICE_SETTINGS
-from tests.deploy.conftest import COMPOSE_ENV, IMAGE_SERVICES, load_compose
+from tests.deploy.compose import COMPOSE_ENV, load_compose
 from tests.deploy.kustomize import env_file
-from tests.deploy.test_kubernetes import containers, env_of
+from tests.deploy.manifests import IMAGE_SERVICES, containers, env_of
 
 
 def compose_schema() -> dict[str, Any]:
@@ -54,7 +54,9 @@ def test_the_specification_refuses_a_misspelt_field(compose):
 
 
 def test_compose_stops_without_each_secret(compose_env):
-    for name in env_file(COMPOSE_ENV):
+    example = env_file(COMPOSE_ENV)
+    assert set(example.values()) == {""}, ".env.example ships a secret"
+    for name in example:
         with pytest.raises(KeyError, match=name):
             load_compose({**compose_env, name: ""})
 

@@ -10,9 +10,7 @@ import base64
 import copy
 import shutil
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 from urllib.parse import urlsplit
 
 import kubernetes_validate
@@ -20,37 +18,26 @@ import pytest
 import yaml
 
 from cosmos.environment import SERVICE_SETTINGS
-from tests.deploy.conftest import IMAGE_SERVICES, K8S, KUSTOMIZATIONS, SECRETS
+from tests.deploy.image import dockerfile_user_id
 from tests.deploy.kustomize import Document, build, env_file
-from tests.deploy.test_image import dockerfile_user_id
+from tests.deploy.manifests import (
+    IMAGE_SERVICES,
+    K8S,
+    KUSTOMIZATIONS,
+    SECRETS,
+    WORKLOADS,
+    containers,
+    env_of,
+    of_kind,
+    selects,
+)
 from tests.support import ROOT
 
 OLDEST_KUBERNETES = "1.29"
 """The oldest Kubernetes the manifests are checked against (HPA autoscaling/v2 and PDB policy/v1
 are GA there), besides the newest kubernetes-validate knows."""
 
-WORKLOADS = ("Deployment", "StatefulSet")
 STAGES = ("renderer", "detector", "optimizer")
-
-
-def of_kind(documents: list[Document], kind: str) -> dict[str, Document]:
-    return {doc["metadata"]["name"]: doc for doc in documents if doc["kind"] == kind}
-
-
-def containers(documents: list[Document]) -> Iterator[tuple[Document, dict[str, Any]]]:
-    for doc in documents:
-        if doc["kind"] in WORKLOADS:
-            for container in doc["spec"]["template"]["spec"]["containers"]:
-                yield doc, container
-
-
-def env_of(container: dict[str, Any]) -> dict[str, Any]:
-    return {item["name"]: item.get("value", item.get("valueFrom")) for item in container["env"]}
-
-
-def selects(selector: dict[str, str], workload: Document) -> bool:
-    labels = workload["spec"]["template"]["metadata"]["labels"]
-    return all(labels.get(key) == value for key, value in selector.items())
 
 
 @pytest.fixture(params=KUSTOMIZATIONS, ids=lambda name: name or "k8s")
@@ -235,8 +222,8 @@ def test_the_database_url_names_the_statefulset_and_its_user(rendered):
 def test_the_secrets_are_examples_only():
     for name in KUSTOMIZATIONS:
         example = env_file(K8S / name / f"{SECRETS}.example")
-        token = example["service-token"]
-        assert token == "", f"deploy/k8s/{name} ships a service token"
+        assert example["service-token"] == "", f"deploy/k8s/{name} ships a service token"
+        assert not example.get("postgres-password"), f"deploy/k8s/{name} ships a password"
         ignored = subprocess.run(
             ["git", "check-ignore", "-q", str(K8S / name / SECRETS)], cwd=ROOT, check=False
         )
