@@ -4,8 +4,8 @@ Each stage (renderer, detector, optimizer) has a pool of replica URLs. For every
 picks a replica with a configurable heuristic (:mod:`~services.controller.placement`, pure, which
 ``benchmarks.broker_sim`` runs too):
 
-* ``least-loaded``: fewest tasks in flight (this controller's, or what the replica reports in
-  ``/health``, whichever is larger);
+* ``least-loaded``: fewest tasks ahead (this controller's in flight, plus those the replica's
+  last ``/health`` counted beyond this controller's own at that moment);
 * ``shortest-expected-completion``: smallest ``(load + 1) · expected duration``, where the expected
   duration is an exponential moving average of that replica's recent durations for that kind of
   task (a replica with no history is assumed as fast as the pool's mean);

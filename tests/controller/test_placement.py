@@ -45,10 +45,21 @@ def test_least_loaded_takes_the_fewest_in_flight_and_ties_take_turns():
     assert picks == {"b", "c"}
 
 
-def test_reported_load_counts_when_larger_than_in_flight():
+def test_reported_load_counts_what_is_beyond_this_controllers_own():
     replicas = pool(0, 1)
-    replicas[0].reported_load = 3.0
+    replicas[0].reported_load = 3.0  # another controller's tasks
+    assert replicas[0].load == 3.0
     assert choose(Heuristic.LEAST_LOADED, replicas, "render", turn=0, now=0).name == "b"
+
+
+def test_a_report_of_this_controllers_own_tasks_goes_stale_with_them():
+    replica = pool(4)[0]
+    replica.answered_health(5.0)  # its 4 and one from another controller
+    assert replica.load == 5.0
+    replica.in_flight = 0  # this controller's 4 answered since
+    assert replica.load == 1.0  # not 5 until the next probe
+    replica.in_flight = 2
+    assert replica.load == 3.0
 
 
 def test_shortest_expected_weighs_load_by_duration():
