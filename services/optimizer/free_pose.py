@@ -34,14 +34,12 @@ from services.common.contracts.free import (
     FreePoseResponse,
     IntrinsicsUsed,
     PhotoIntrinsics,
+    nearest_grid_pose,
 )
-from services.common.contracts.optimize import GridPose
 from services.common.errors import UnprocessableError
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.free_camera import LensDistortion
-from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.lens import distort, image_folds, undistort_pixels
-from services.common.geometry.pose import Pose
 from services.common.geometry.scene import LoadedScene
 from services.optimizer.free import (
     FreePoseAnswer,
@@ -56,7 +54,7 @@ from services.optimizer.free.solve import NOISE_FLOOR_PX
 from services.optimizer.geometry import FloatArray
 from services.optimizer.planning import check_box
 
-__all__ = ["EDGE_SAMPLES", "SceneObjectCache", "free_pose", "nearest_grid_pose"]
+__all__ = ["EDGE_SAMPLES", "SceneObjectCache", "free_pose"]
 
 EDGE_SAMPLES: Final = 16
 """Points per box side undistorted (or distorted) to map a box through the lens."""
@@ -238,17 +236,6 @@ def _pose(
         position_sigma=_sigma(candidate.position_sigma),
         rotation_sigma_deg=_sigma(candidate.rotation_sigma_deg),
     )
-
-
-def nearest_grid_pose(position: tuple[float, float, float], grid: HemisphereGrid) -> GridPose:
-    """The grid pose nearest the direction of ``position`` from the scene centre (the origin):
-    ``θ = acos(z / |p|)``, ``φ = atan2(y, x)``, then :meth:`HemisphereGrid.nearest`."""
-    x, y, z = position
-    norm = math.sqrt(x * x + y * y + z * z)
-    theta = math.degrees(math.acos(max(-1.0, min(1.0, z / norm)))) if norm > 0 else 0.0
-    index = grid.nearest(Pose(theta_deg=min(theta, 90.0), phi_deg=math.degrees(math.atan2(y, x))))
-    pose = grid.pose(index)
-    return GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg)
 
 
 def free_pose(

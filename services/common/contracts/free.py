@@ -21,7 +21,9 @@ from services.common.geometry.free_camera import (
     FreeCamera,
     LensDistortion,
     PixelCoordinate,
+    direction_pose,
 )
+from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import SCENE_ID_PATTERN
 
 __all__ = [
@@ -34,6 +36,7 @@ __all__ = [
     "IntrinsicsSource",
     "IntrinsicsUsed",
     "PhotoIntrinsics",
+    "nearest_grid_pose",
 ]
 
 FreeStatus = Literal["found", "ambiguous", "failed"]
@@ -173,3 +176,11 @@ class FreeAnswer(FrozenModel):
         description="Box-edge RMS between the target's detections and those of the render at "
         "the pose (target pixels); null when no pair was found.",
     )
+
+
+def nearest_grid_pose(position: tuple[float, float, float], grid: HemisphereGrid) -> GridPose:
+    """The grid pose nearest the direction of ``position`` from the scene centre
+    (:func:`~services.common.geometry.free_camera.direction_pose`)."""
+    index = grid.nearest(direction_pose(position))
+    pose = grid.pose(index)
+    return GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg)
