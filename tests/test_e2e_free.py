@@ -6,23 +6,21 @@ hemisphere (lower than its radius, looking down past the centre, rolled), search
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from cosmos.cli import main
-from cosmos.stack import Stack, local_stack
+from cosmos.stack import Stack
 from services.common.contracts.search import Search
 from services.common.geometry.free_camera import FreeCamera
 from services.controller.client import ControllerClient
 from services.renderer.client import RendererClient
+from tests.support import e2e_stack
 
 pytestmark = pytest.mark.slow
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "detector.onnx"
 RADIUS = 8.0  # the demo scene's hemisphere radius
 DRONE = FreeCamera(position=(-3.5, 3.0, 4.5), look_at=(0.3, -0.4, 0.0), roll_deg=12.0)
 """|position| ≈ 6.4 < 8: inside the hemisphere, 45° down, looking past the scene's centre."""
@@ -30,9 +28,7 @@ DRONE = FreeCamera(position=(-3.5, 3.0, 4.5), look_at=(0.3, -0.4, 0.0), roll_deg
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    if not MODEL.exists() and "COSMOS_DETECTOR_MODEL" not in os.environ:
-        pytest.fail(f"the shipped detector model {MODEL} is missing")
-    with local_stack(tmp_path_factory.mktemp("stack")) as running:
+    with e2e_stack(tmp_path_factory.mktemp("stack")) as running:
         yield running
 
 
