@@ -25,6 +25,7 @@ with the candidate after its last recorded iteration.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import NoReturn
 
 from pydantic import ValidationError
@@ -125,6 +126,64 @@ def _result(
     )
 
 
+@dataclass(frozen=True)
+class _Step:
+    """Which candidate an iteration renders: its index, of how many, whether the optimizer's
+    answer was ambiguous, and the optimizer's milliseconds spent for it (the first's)."""
+
+    index: int
+    count: int
+    ambiguous: bool
+    optimize_ms: float
+
+
+@dataclass(frozen=True)
+class _Seen:
+    """A candidate's render: the camera rendered, its detections, how they compare with the
+    target's, render and detect milliseconds."""
+
+    camera: FreeCamera
+    found: DetectResponse
+    check: FreeMatch
+    render_ms: float
+    detect_ms: float
+
+
+def _iteration(
+    step: _Step, pose: FreePose, following: FreePose | None, seen: _Seen, grid: HemisphereGrid
+) -> Iteration:
+    """The iteration that rendered ``pose``, going on to ``following`` if it disagreed."""
+    nearest = nearest_grid_pose(pose.position, grid)
+    check = seen.check
+    next_pose = (
+        nearest_grid_pose(following.position, grid)
+        if following is not None and not check.agree
+        else None
+    )
+    return Iteration(
+        index=step.index,
+        pose=nearest,
+        image_size=seen.found.image_size,
+        detections=seen.found.detections,
+        timings=StageTimings(
+            render_ms=seen.render_ms,
+            detect_ms=seen.detect_ms,
+            optimize_ms=step.optimize_ms,
+            total_ms=seen.render_ms + seen.detect_ms + step.optimize_ms,
+        ),
+        estimate=direction_pose(pose.position),
+        estimate_grid=nearest,
+        confidence=pose.confidence * check.match.score,
+        ambiguous=step.ambiguous,
+        next_pose=next_pose,
+        done=check.agree,
+        reason=f"pose {step.index + 1} of {step.count}: {_agreement(check)}",
+        match=check.match,
+        detector_sha256=seen.found.model.sha256,
+        camera=seen.camera,
+    )
+
+
 class FreeSearchLoop:
     """Runs one free search to its end over the stages (through the outage policy), recording
     it in the store and waking its followers."""
@@ -209,9 +268,10 @@ class FreeSearchLoop:
         budget = min(len(candidates), search.max_iterations)
         for k in range(len(history), budget):
             writes.flush()
-            iteration = await self._render_and_compare(
-                search, scene, (target, size), answer, k, (optimize_ms, budget)
-            )
+            seen_view = await self._render_and_compare(search, scene, (target, size), candidates[k])
+            step = _Step(k, len(candidates), answer.status != "found", optimize_ms)
+            following = candidates[k + 1] if k + 1 < budget else None
+            iteration = _iteration(step, candidates[k], following, seen_view, grid)
             optimize_ms = 0.0
             history.append(iteration)
             if iteration.done:
@@ -227,16 +287,12 @@ class FreeSearchLoop:
         search: Search,
         scene: SceneDetail,
         target: tuple[tuple[Detection, ...], tuple[int, int]],
-        answer: FreePoseResponse,
-        k: int,
-        extra: tuple[float, int],
-    ) -> Iteration:
-        """Candidate ``k`` rendered, detected and compared with the target: its iteration."""
+        pose: FreePose,
+    ) -> _Seen:
+        """``pose`` rendered, detected and compared with the ``target`` (its detections and
+        size)."""
         sid = search.id
         detections, size = target
-        optimize_ms, budget = extra
-        candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
-        pose = candidates[k]
         settings = self.stages.settings_for(search.view_settings)
         film, scale = view_film(size, settings.width or scene.spec.camera.width)
         camera = scaled_camera(pose, scale)
@@ -250,28 +306,6 @@ class FreeSearchLoop:
         detected = time.perf_counter()
         paired = [c.detection for c in pose.correspondences]
         check = compare_view(detections, size, paired, found.detections, found.image_size)
-        grid = scene.spec.search.grid()
-        more = not check.agree and k + 1 < budget
-        total_ms = (detected - started) * 1000 + optimize_ms
-        return Iteration(
-            index=k,
-            pose=nearest_grid_pose(pose.position, grid),
-            image_size=found.image_size,
-            detections=found.detections,
-            timings=StageTimings(
-                render_ms=(rendered - started) * 1000,
-                detect_ms=(detected - rendered) * 1000,
-                optimize_ms=optimize_ms,
-                total_ms=total_ms,
-            ),
-            estimate=direction_pose(pose.position),
-            estimate_grid=nearest_grid_pose(pose.position, grid),
-            confidence=pose.confidence * check.match.score,
-            ambiguous=answer.status != "found",
-            next_pose=nearest_grid_pose(candidates[k + 1].position, grid) if more else None,
-            done=check.agree,
-            reason=f"pose {k + 1} of {len(candidates)}: {_agreement(check)}",
-            match=check.match,
-            detector_sha256=found.model.sha256,
-            camera=camera,
+        return _Seen(
+            camera, found, check, (rendered - started) * 1000, (detected - rendered) * 1000
         )

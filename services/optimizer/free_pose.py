@@ -20,6 +20,7 @@ box-edge noise), halved when the answer is ``ambiguous``.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Final
 
 import numpy as np
@@ -256,7 +257,7 @@ def free_pose(
         if lens is not None and detections:
             detections = _undistorted(detections, k, lens, (width, height))
     objects = cache.get(scene)
-    answer: FreePoseAnswer = solve_free_pose(objects, detections, width, height, k)
+    answer = _renderable(solve_free_pose(objects, detections, width, height, k), objects)
     grid = scene.spec.search.grid()
     ambiguous = answer.status == "ambiguous"
     usable = answer.usable_detections
@@ -273,3 +274,25 @@ def free_pose(
         nearest_grid=nearest_grid_pose(best.position, grid) if best is not None else None,
         usable_detections=usable,
     )
+
+
+def _renderable(answer: FreePoseAnswer, objects: SceneObjects) -> FreePoseAnswer:
+    """``answer`` without the poses inside an object's world bounding box (the box of its
+    points, as the renderer refuses such a camera): a wrong pose that no render could check.
+    When the best one goes, the next alternative takes its place (``ambiguous`` still), and
+    with none left the answer is ``failed``."""
+    lo = np.minimum.reduceat(objects.points, objects.starts)
+    hi = np.maximum.reduceat(objects.points, objects.starts)
+
+    def outside(p: PoseCandidate) -> bool:
+        c = np.asarray(p.position)
+        return not bool(np.any(np.all((c > lo) & (c < hi), axis=1)))
+
+    poses = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+    kept = [p for p in poses if outside(p)]
+    if len(kept) == len(poses):
+        return answer
+    if not kept:
+        reason = "failed: every camera pose that explains the detections stands inside an object"
+        return replace(answer, status="failed", reason=reason, pose=None, alternatives=())
+    return replace(answer, pose=kept[0], alternatives=tuple(kept[1:]))

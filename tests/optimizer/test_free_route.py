@@ -6,14 +6,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import AsyncIterator
+from dataclasses import replace
 
 import httpx
 import numpy as np
 import pytest
 
+from services.common.contracts.detect import Detection
 from services.common.geometry.free_camera import FreeCamera, LensDistortion
 from services.optimizer.app import create_app
-from services.optimizer.free import scene_objects
+from services.optimizer.free import scene_objects, solve_free_pose
+from services.optimizer.free_pose import _renderable
 from services.optimizer.settings import OptimizerSettings
 from services.renderer.view import resolve_free_camera
 from tests.support import in_process
@@ -178,3 +181,23 @@ async def test_bad_requests_are_problems_naming_the_field(client, change, status
     assert answer.headers["content-type"].startswith("application/problem+json")
     problem = answer.json()
     assert problem["field"].startswith(field), problem
+
+
+def test_a_pose_inside_an_object_is_never_answered(engine, catalog):
+    """The renderer refuses a camera inside an object's box, and such a pose is wrong anyway:
+    the next alternative takes its place, and with none the answer is failed."""
+    image, _ = target(engine, catalog, "garden", TILTED)
+    scene = catalog.get("garden")
+    objects = scene_objects(scene.spec, scene.assets)
+    detections = [Detection.model_validate(d) for d in image["detections"]]
+    answer = solve_free_pose(objects, detections, W, H)
+    assert answer.pose is not None
+    assert _renderable(answer, objects) is answer
+    inside = replace(answer.pose, position=tuple(float(v) for v in objects.centroids[0]))
+    promoted = _renderable(replace(answer, pose=inside, alternatives=(answer.pose,)), objects)
+    assert promoted.pose == answer.pose
+    assert promoted.alternatives == ()
+    failed = _renderable(replace(answer, pose=inside, alternatives=()), objects)
+    assert failed.status == "failed"
+    assert failed.pose is None
+    assert "inside an object" in failed.reason
