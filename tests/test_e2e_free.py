@@ -8,14 +8,18 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 
+import cv2
+import httpx
 import numpy as np
 import pytest
 
 from cosmos.cli import main
 from cosmos.stack import Stack
+from services.common.auth import bearer
 from services.common.contracts.search import Search
 from services.common.geometry.free_camera import FreeCamera
 from services.controller.client import ControllerClient
+from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
 from tests.support import e2e_stack
 
@@ -38,6 +42,10 @@ def search_for(stack: Stack, image: bytes, **options) -> Search:
         for _ in client.follow(search.id, timeout_s=120):
             pass
         return client.get(search.id)
+
+
+def pixels(png: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
 
 
 def rotation_error_deg(quaternion_wxyz, truth: FreeCamera) -> float:
@@ -71,6 +79,17 @@ def test_a_free_camera_is_found_through_the_services(stack):
     (iteration,) = final.iterations
     assert iteration.camera is not None
     assert iteration.done
+    # the iteration's view is its camera rendered again, identically
+    with httpx.Client(base_url=stack.controller, headers=bearer(stack.api_key)) as http:
+        view = http.get(f"/searches/{final.id}/iterations/0/view.png")
+    assert view.status_code == 200, view.text
+    spp = ControllerSettings.model_fields["controller_view_spp"].default
+    width, height = iteration.image_size
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        direct, _ = renderer.render_camera(
+            "demo", iteration.camera, width=width, height=height, spp=spp
+        )
+    assert np.array_equal(pixels(view.content), pixels(direct))
 
 
 def test_without_intrinsics_the_focal_length_is_estimated_and_said_so(stack):
