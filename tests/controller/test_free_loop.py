@@ -391,3 +391,19 @@ def _png() -> bytes:
 
 
 PNG_IMAGE = _png()
+
+
+def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, detail):
+    first = FakeStages(detail)
+    store = stored(tmp_path, first)
+    run_stored(store, first)
+    done = store.get("s1")
+    assert done is not None
+    assert done.result is not None
+    # as if the run had stopped after recording its last iteration, before its result
+    store.reopen("s1")
+    again = FakeStages(detail)
+    final = run_stored(store, again)
+    assert final.status == "succeeded", final.error
+    assert final.result == done.result
+    assert again.calls == {"scene": 1, "free-pose": 1}  # answered from its iterations
