@@ -20,10 +20,14 @@ function colourOf(detection) {
 
 const percent = (value) => `${(100 * value).toFixed(3)}%`;
 
-/** A detection's box, placed in percent of an image of `width` × `height` pixels. */
+/** A detection's box, placed in percent of an image of `width` × `height` pixels; a predicted
+ * box (`detection.predicted`: where the answer's pose projects an object) is dashed, its label
+ * the object's. */
 function boxOf(detection, width, height) {
   const [x1, y1, x2, y2] = detection.box;
-  const box = h("div", { class: y1 / height < 0.06 ? "box below" : "box" }, h("span", {}, `${detection.label} ${detection.confidence.toFixed(2)}`));
+  const predicted = Boolean(detection.predicted);
+  const text = predicted ? `${detection.predicted} (predicted)` : `${detection.label} ${detection.confidence.toFixed(2)}`;
+  const box = h("div", { class: `box${predicted ? " predicted" : ""}${y1 / height < 0.06 ? " below" : ""}` }, h("span", {}, text));
   box.style.setProperty("--colour", colourOf(detection));
   box.style.left = percent(x1 / width);
   box.style.top = percent(y1 / height);
@@ -45,16 +49,18 @@ export class Picture {
 
   /**
    * Show `src` (an image URL, or null) with `detections`, whose boxes are in the pixels of the
-   * image the detector saw (`size`: [width, height], else the image's own), and a `note` over it.
+   * image the detector saw (`size`: [width, height], else the image's own), and a `note` over it;
+   * `predicted`: boxes drawn dashed beside them (see predictedBoxes).
    * A new image replaces the old once it is decoded: the picture never shows blank between two.
    * Resolves to the image's [width, height] once it is shown; null if it is not (no image, an
    * image that cannot be shown, or another asked for meanwhile).
    */
-  show(src, detections = [], size = null, note = "") {
+  show(src, detections = [], size = null, note = "", predicted = []) {
     this.note.textContent = note;
     this.note.hidden = !note;
     if (size) this.element.style.aspectRatio = `${size[0]} / ${size[1]}`;
-    const place = (width, height) => this.boxes.replaceChildren(...(detections || []).map((d) => boxOf(d, width, height)));
+    this.element.dataset.predicted = String(predicted.length);
+    const place = (width, height) => this.boxes.replaceChildren(...[...(detections || []), ...predicted].map((d) => boxOf(d, width, height)));
     if (size) place(...size);
     if (src === this.src) {
       if (!size && src) place(this.img.naturalWidth, this.img.naturalHeight);
@@ -89,6 +95,14 @@ export class Picture {
         return null;
       });
   }
+}
+
+/** The boxes a free answer's pose predicts for its paired objects (`correspondences`), in the
+ * target's pixels, coloured as the target's detection each is paired with. */
+export function predictedBoxes(correspondences, detections = []) {
+  return correspondences
+    .filter((c) => c.predicted_box)
+    .map((c) => ({ ...(detections[c.detection] || { label: c.label }), box: c.predicted_box, predicted: c.object }));
 }
 
 const SVG = "http://www.w3.org/2000/svg";

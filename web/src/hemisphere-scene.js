@@ -1,6 +1,7 @@
 // The hemisphere of camera poses in 3D (three.js), drawn in a worker (hemisphere-worker.js) on
 // an OffscreenCanvas: the scene's objects on the ground, the grid poses, the visited poses joined
-// in order, the current pose looking at the centre, the estimate, the start and the answer. It
+// in order, the current pose looking at the centre, the estimate, the start and the answer; for a
+// free search, its cameras as frusta (the answer, its alternatives, the views rendered). It
 // draws only when something changed (no animation loop): a search streaming costs a frame per
 // event. The camera orbits the scene's centre on a sphere: position = target + d·(sin ϑ cos α,
 // sin ϑ sin α, cos ϑ), z up; a drag turns α and ϑ, the wheel scales d. (three.js's
@@ -24,6 +25,7 @@ import {
   PerspectiveCamera,
   Points,
   PointsMaterial,
+  Quaternion,
   Raycaster,
   Scene,
   SphereGeometry,
@@ -34,7 +36,7 @@ import {
 import { mergeGeometries } from "three/examples/jsm/utils/BufferGeometryUtils.js";
 import { gridPoses, poseXYZ } from "./geometry.js";
 
-const COLOURS = { grid: 0x8b949e, path: 0x58a6ff, current: 0x58a6ff, start: 0x3fb950, estimate: 0xf0883e, answer: 0xff4d4f, picked: 0xd2a8ff };
+const COLOURS = { grid: 0x8b949e, path: 0x58a6ff, current: 0x58a6ff, start: 0x3fb950, estimate: 0xf0883e, answer: 0xff4d4f, picked: 0xd2a8ff, nearest: 0xe3b341 };
 
 // Every material is Lambert (with or without vertex colours), LineBasic or Points: the four
 // shader programs the scene's first frame compiles. A new kind of material would be compiled (synchronously, ~0.4 s without a
@@ -49,6 +51,36 @@ const GRID_POINT = 0.14;
 // the same program as the grid's points (one kind of material, other uniforms)
 const VISITED = new PointsMaterial({ color: COLOURS.path, size: 2.2 * GRID_POINT });
 const WORLD = new MeshLambertMaterial({ vertexColors: true });
+// A free camera's frustum, by its role: LineBasic, the program the hemisphere's lines compiled.
+// The alternatives are "fainter" by a darker colour, not by transparency (another blending pass).
+const FRUSTA = {
+  answer: new LineBasicMaterial({ color: COLOURS.answer }),
+  alternative: new LineBasicMaterial({ color: 0x8f3a3c }),
+  view: new LineBasicMaterial({ color: 0x2f5f8f }),
+  current: new LineBasicMaterial({ color: COLOURS.current }),
+};
+const FRUSTUM_DEPTH = 0.25; // the image rectangle's distance from the apex, in hemisphere radii
+
+/**
+ * The 16 line segments of a free camera's frustum (pairs of points, flat): the apex at
+ * `position`, the image rectangle at `depth` along the optical axis, and a notch on its top edge
+ * (the image's up, so roll shows). A pixel (u, v) is the ray d_c = ((u − cx)/fx, (v − cy)/fy, 1)
+ * in the camera's axes (x right, y down, z forward), in the world R·d_c·depth + position with R
+ * the camera-to-world rotation `quaternion_wxyz`. `width`, `height`: the film the intrinsics
+ * are in pixels of.
+ */
+export function frustumSegments({ position, quaternion_wxyz: [w, x, y, z], fx_px, fy_px, cx_px, cy_px, width, height }, depth) {
+  const rotation = new Quaternion(x, y, z, w).normalize();
+  const apex = new Vector3(...position);
+  const at = (u, v) =>
+    new Vector3(((u - cx_px) / fx_px) * depth, ((v - cy_px) / fy_px) * depth, depth).applyQuaternion(rotation).add(apex).toArray();
+  const corners = [at(0, 0), at(width, 0), at(width, height), at(0, height)];
+  const notch = [at(0.38 * width, 0), at(0.5 * width, -0.22 * height), at(0.62 * width, 0)];
+  const points = [];
+  for (let i = 0; i < 4; i++) points.push(apex.toArray(), corners[i], corners[i], corners[(i + 1) % 4]);
+  points.push(notch[0], notch[1], notch[1], notch[2]);
+  return points.flat();
+}
 
 /** `geometry` with a colour attribute of `rgb` (0-1) at every vertex. */
 function coloured(geometry, rgb) {
@@ -210,9 +242,11 @@ export class HemisphereScene {
 
   /**
    * What to show of a search: `visited` (grid poses in order), `current` (a grid pose or null),
-   * `estimate` and `answer` (poses with theta_deg, phi_deg, or null), `start`, `picked`.
+   * `estimate` and `answer` (poses with theta_deg, phi_deg, or null), `start`, `picked`; for a
+   * free search, `frusta` (cameras as frustumSegments takes them, each with a `role`: answer,
+   * alternative, view or current) and `nearest` (the grid pose nearest the answer).
    */
-  setTrack({ visited = [], current = null, estimate = null, answer = null, start = null, picked = null }) {
+  setTrack({ visited = [], current = null, estimate = null, answer = null, start = null, picked = null, frusta = [], nearest = null }) {
     for (const child of this.track.children) if (child.isLine || child.isPoints) child.geometry.dispose();
     this.track.clear();
     const r = this.radius;
@@ -236,6 +270,15 @@ export class HemisphereScene {
     if (estimate) this.put(marker(COLOURS.estimate, 0.18), estimate);
     if (answer) this.put(marker(COLOURS.answer, 0.3), answer);
     if (picked) this.put(marker(COLOURS.picked, 0.25), picked);
+    if (nearest) this.put(marker(COLOURS.nearest, 0.22), nearest);
+    // one LineSegments per role, whatever the number of cameras: a draw call each
+    for (const [role, material] of Object.entries(FRUSTA)) {
+      const lines = frusta.filter((f) => f.role === role).flatMap((f) => frustumSegments(f, FRUSTUM_DEPTH * r));
+      if (!lines.length) continue;
+      const geometry = new BufferGeometry();
+      geometry.setAttribute("position", new Float32BufferAttribute(lines, 3));
+      this.track.add(new LineSegments(geometry, material));
+    }
     this.draw();
   }
 

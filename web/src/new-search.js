@@ -1,5 +1,6 @@
 // A new search: a scene (with a preview and its grid size), a target (a dropped or chosen file,
-// or a pose picked on the hemisphere, rendered), a strategy and an optional start; then go.
+// or a pose picked on the hemisphere, rendered), a strategy and an optional start, or a free
+// search (any camera: its pose and lens from the target, optionally with the photo's fov); then go.
 
 import { Problem, imageURL } from "./api.js";
 import { Picture } from "./draw.js";
@@ -36,6 +37,13 @@ export function showNewSearch({ view, api }, params) {
   const targetInfo = h("p", { class: "muted", id: "target-info" }, "No target yet: drop an image here, choose a file, or click a pose on the hemisphere.");
   const drop = h("div", { class: "drop", id: "drop" }, targetPicture.element, targetInfo, h("label", { class: "button" }, "Choose an image…", fileInput));
   const hemiBox = h("div", { class: "hemisphere small", id: "pick-hemisphere" });
+  const mode = h(
+    "select",
+    { name: "mode", id: "mode" },
+    h("option", { value: "hemisphere" }, "hemisphere (the paper's grid)"),
+    h("option", { value: "free" }, "free (any camera)"),
+  );
+  const fov = h("input", { name: "fov_deg", id: "fov_deg", type: "number", min: 0, max: 180, step: "any", placeholder: "estimated", disabled: true });
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
   const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
   const phi = h("input", { name: "start_phi_deg", id: "start_phi_deg", type: "number", step: "any", placeholder: "random" });
@@ -51,6 +59,8 @@ export function showNewSearch({ view, api }, params) {
       "section",
       { class: "panel" },
       h("h2", {}, "Search"),
+      h("label", {}, "Mode ", mode),
+      h("label", {}, "Photo's horizontal fov° (free mode, optional) ", fov),
       h("label", {}, "Strategy ", strategy),
       h("fieldset", {}, h("legend", {}, "Start (optional, snapped to the grid)"), h("label", {}, "θ° ", theta), h("label", {}, "φ° ", phi)),
       h("label", {}, "Max iterations ", maxIterations),
@@ -140,6 +150,11 @@ export function showNewSearch({ view, api }, params) {
     }
     loadScene(sceneSelect.value);
   });
+  mode.addEventListener("change", () => {
+    const free = mode.value === "free"; // a free search has no strategy or start, a grid one no fov
+    fov.disabled = !free;
+    for (const input of [strategy, theta, phi]) input.disabled = free;
+  });
   fileInput.addEventListener("change", () => useFile(fileInput.files[0]));
   drop.addEventListener("dragover", (e) => {
     e.preventDefault();
@@ -163,8 +178,10 @@ export function showNewSearch({ view, api }, params) {
     const body = new FormData();
     body.append("image", target.blob, target.name);
     body.append("scene", sceneSelect.value);
-    body.append("strategy", strategy.value);
-    for (const input of [theta, phi, maxIterations]) if (input.value !== "") body.append(input.name, input.value);
+    body.append("mode", mode.value);
+    const options = mode.value === "free" ? [fov, maxIterations] : [theta, phi, maxIterations];
+    if (mode.value !== "free") body.append("strategy", strategy.value);
+    for (const input of options) if (input.value !== "") body.append(input.name, input.value);
     go.disabled = true;
     try {
       const search = await api("/searches", { method: "POST", body, signal: controller.signal });

@@ -1,9 +1,12 @@
 // One search, live while it runs (server-sent events, no polling) and replayed once it ended:
 // the target and the current view with their detections, the hemisphere, the distance to the
 // estimate per iteration, the iterations with their stage times, a step slider, a cancel button.
+// A free search (mode free) shows its cameras as frusta, its answer's pose and the boxes it
+// predicts over the target (free-answer.js).
 
 import { follow, imageURL } from "./api.js";
-import { DistancePlot, Picture } from "./draw.js";
+import { DistancePlot, Picture, predictedBoxes } from "./draw.js";
+import { freeAnswer, freeTrack } from "./free-answer.js";
 import { h, ms, notice, update, when } from "./dom.js";
 import { angularDistanceDeg, poseText } from "./geometry.js";
 import { Hemisphere } from "./hemisphere.js";
@@ -32,10 +35,12 @@ export function showSearch({ view, api }, id) {
   const cancel = h("button", { type: "button", id: "cancel", class: "danger", hidden: true }, "Cancel");
   const targetPicture = new Picture({ id: "target-canvas", "aria-label": "The target image with its detections" });
   const viewPicture = new Picture({ id: "view-canvas", "aria-label": "The current view with its detections" });
+  const targetCaption = h("figcaption", { id: "target-caption" }, "Target");
   const viewCaption = h("figcaption", { id: "view-caption" }, "Current view");
   const slider = h("input", { type: "range", id: "replay", min: 0, max: 0, value: 0, step: 1, disabled: true, "aria-label": "Iteration" });
   const sliderLabel = h("span", { id: "replay-label", class: "muted" }, "no iteration yet");
   const hemiBox = h("div", { class: "hemisphere", id: "hemisphere", role: "img", "aria-label": "The hemisphere of camera poses in 3D" });
+  const hemiCaption = h("figcaption", { id: "hemisphere-caption" }, "The hemisphere: grid poses (grey), visited (blue, in order), start (green), estimate (orange), answer (red). Drag to turn.");
   const plot = new DistancePlot({ id: "distance-plot", "aria-label": "Angle to the estimate per iteration" });
   let plotted = "";
   const rows = h("tbody", {});
@@ -53,14 +58,14 @@ export function showSearch({ view, api }, id) {
     h(
       "div",
       { class: "pair" },
-      h("figure", {}, targetPicture.element, h("figcaption", {}, "Target")),
+      h("figure", {}, targetPicture.element, targetCaption),
       h("figure", {}, viewPicture.element, viewCaption),
     ),
     h("div", { class: "slider" }, slider, sliderLabel),
     h(
       "div",
       { class: "pair" },
-      h("figure", {}, hemiBox, h("figcaption", {}, "The hemisphere: grid poses (grey), visited (blue, in order), start (green), estimate (orange), answer (red). Drag to turn.")),
+      h("figure", {}, hemiBox, hemiCaption),
       h("figure", {}, plot.element, h("figcaption", {}, "Angle from each visited pose to the estimate (paper Fig. 8)")),
     ),
     h("h3", {}, "Iterations"),
@@ -80,16 +85,21 @@ export function showSearch({ view, api }, id) {
     status.textContent = search.status;
     status.className = `badge ${search.status}`;
     cancel.hidden = TERMINAL.has(search.status);
+    const free = search.mode === "free";
+    const given = search.intrinsics;
     const parts = [
       h("span", {}, `scene ${search.scene}`),
-      h("span", {}, `strategy ${search.strategy}`),
-      h("span", {}, `start ${poseText(search.start)}`),
+      free ? h("span", {}, "mode free") : h("span", {}, `strategy ${search.strategy}`),
+      free ? h("span", {}, given ? `lens given (${given.fov_deg ? `fov ${given.fov_deg}°` : `fx ${given.fx_px}, fy ${given.fy_px}`})` : "lens not given") : h("span", {}, `start ${poseText(search.start)}`),
       h("span", {}, `created ${when(search.created_at)}`),
     ];
     if (TERMINAL.has(search.status)) parts.push(h("span", {}, `wall time ${((new Date(search.updated_at) - new Date(search.created_at)) / 1000).toFixed(1)} s`));
     const children = [h("p", { class: "facts" }, parts)];
     const result = search.result;
-    if (result) {
+    if (result?.free) {
+      children.push(...freeAnswer(result));
+      if (result.reason) children.push(h("p", { class: "muted" }, result.reason));
+    } else if (result) {
       children.push(
         h(
           "p",
@@ -179,8 +189,14 @@ export function showSearch({ view, api }, id) {
       row.classList.add("current");
     }
     const answer = search?.result && current === n - 1 ? search.result.refined_pose : null;
-    const track = `${current} ${n} ${Boolean(answer)} ${Boolean(search?.start)}`;
-    if (track !== tracked) {
+    const track = `${current} ${n} ${Boolean(answer)} ${Boolean(search?.start)} ${search?.mode}`;
+    if (track !== tracked && search?.mode === "free") {
+      const free = freeTrack(search, iterations, current);
+      hemisphere.setTrack(free);
+      hemiBox.dataset.frusta = String(free.frusta.length);
+      update(hemiCaption, "textContent", "Free cameras as frusta: views rendered (blue, the shown one brighter), the answer (red), its alternatives (dark red), the grid pose nearest it (yellow). Drag to turn.");
+      tracked = track;
+    } else if (track !== tracked) {
       hemisphere.setTrack({
         visited: iterations.slice(0, current + 1).map((v) => v.pose),
         current: it?.pose || null,
@@ -191,13 +207,16 @@ export function showSearch({ view, api }, id) {
       tracked = track;
     }
     // the target changes twice at most (its image, then its detections)
-    const targetNow = `${target} ${Boolean(search?.target_detections)}`;
+    const predicted = search?.result?.free ? predictedBoxes(search.result.free.pose.correspondences, search.target_detections || []) : [];
+    const targetNow = `${target} ${Boolean(search?.target_detections)} ${predicted.length}`;
     if (target !== undefined && targetNow !== targetDrawn) {
-      targetPicture.show(target, search?.target_detections || [], search?.target_size);
+      targetPicture.show(target, search?.target_detections || [], search?.target_size, "", predicted);
+      if (predicted.length) update(targetCaption, "textContent", `Target: its detections, and dashed the ${predicted.length} boxes predicted at the answer`);
       targetDrawn = targetNow;
     }
     if (!it) return;
-    update(viewCaption, "textContent", `View ${it.index}: ${poseText(it.pose)}, ${it.detections.length} detections${it.match ? `, match ${it.match.score.toFixed(2)}` : ""}`);
+    const where = it.camera ? `free camera at (${it.camera.position.map((v) => v.toFixed(2)).join(", ")}), nearest ${poseText(it.pose)}` : poseText(it.pose);
+    update(viewCaption, "textContent", `View ${it.index}: ${where}, ${it.detections.length} detections${it.match ? `, match ${it.match.score.toFixed(2)}` : ""}`);
     if (current === viewShown) return;
     const shown = current;
     viewShown = current;
