@@ -1,0 +1,87 @@
+"""A free search from the page in a real browser (Debian's Chromium under Playwright) against the
+real stack: a target rendered at a free camera off the hemisphere, its answer's pose in the
+panel, its camera drawn as a frustum in the 3D view, the boxes predicted at the answer over the
+target. It writes the README's ``free-search`` screenshot (``SCREENSHOTS_DIR``)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from services.common.geometry.free_camera import FreeCamera
+from services.renderer.client import RendererClient
+from tests.web.conftest import api
+from tests.web.test_page import TIMEOUT_MS, colours, decoded, open_new_search, shoot
+
+pytestmark = pytest.mark.slow
+
+DRONE = FreeCamera(position=(-3.5, 3.0, 4.5), look_at=(0.3, -0.4, 0.0), roll_deg=12.0)
+"""|position| ≈ 6.4, inside the hemisphere (radius 8): 45° down, rolled, looking past the centre."""
+ANSWER_RGB = (255, 77, 79)  # the answer's frustum (hemisphere-scene.js, COLOURS.answer): unlit
+
+
+def fixed(values, digits: int) -> str:
+    return ", ".join(f"{v:.{digits}f}" for v in values)
+
+
+def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, stack, tmp_path):
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, truth = renderer.render_camera("demo", DRONE)
+    target = tmp_path / "drone.png"
+    target.write_bytes(image)
+    open_new_search(page, stack)
+    page.set_input_files("#target-file", str(target))
+    assert page.is_disabled("#fov_deg")  # a lens is for free searches only
+    page.select_option("#mode", "free")
+    assert page.is_disabled("#strategy")
+    assert page.is_disabled("#start_theta_deg")
+    page.fill("#fov_deg", f"{truth.camera.fov_deg}")
+    page.click("#go")
+    page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
+    search_id = page.url.rsplit("/", 1)[1]
+    page.wait_for_selector("#status.succeeded", timeout=TIMEOUT_MS)
+    page.wait_for_selector("#free-answer")
+
+    with api(stack) as http:
+        final = http.get(f"/searches/{search_id}").json()
+    assert final["mode"] == "free"
+    free = final["result"]["free"]
+    pose = free["pose"]
+
+    def field(name: str) -> str:
+        return page.inner_text(f"#free-answer td[data-field={name}]")
+
+    assert field("status") == free["status"] == "found"
+    assert field("position") == fixed(pose["position"], 3)
+    assert field("yaw-pitch-roll") == f"{fixed(pose['yaw_pitch_roll_deg'], 2)}°"
+    assert field("fov").startswith(f"{pose['intrinsics']['fov_deg']:.2f}°, given ")
+    assert field("residual").startswith(f"{pose['residual_px']:.2f} px")
+    assert field("renders") == str(free["renders"]) == "1"
+    assert page.inner_text("#renders") == f"{final['result']['renders']} renders"
+    assert page.inner_text("#result").startswith("Found: camera at (")
+    expect_view = f"free camera at ({fixed(final['iterations'][0]['camera']['position'], 2)})"
+    assert expect_view in page.inner_text("#view-caption")
+
+    # the target with the boxes predicted at the answer, beside the detected ones
+    predicted = [c for c in pose["correspondences"] if c["predicted_box"] is not None]
+    assert len(predicted) >= 4
+    target_view = page.locator("#target-canvas")
+    assert target_view.get_attribute("data-predicted") == str(len(predicted))
+    assert target_view.locator(".box.predicted").count() == len(predicted)
+    detected = len(final["target_detections"])
+    assert target_view.locator(".box:not(.predicted)").count() == detected
+
+    # the 3D view: the answer's frustum and its alternatives (the one view is the answer's camera)
+    hemisphere = page.locator("#hemisphere")
+    frusta = len(final["iterations"]) - 1 + 1 + len(free["alternatives"])
+    assert hemisphere.get_attribute("data-frusta") == str(frusta)
+    page.wait_for_timeout(500)  # the worker's frame
+    shot = page.locator("#hemisphere canvas").screenshot()
+    assert colours(shot) > 50
+    drawn = decoded(shot)
+    near_answer = np.all(np.abs(drawn[:, :, ::-1].astype(int) - ANSWER_RGB) <= 40, axis=2)
+    # the frustum's red lines are drawn (the lit red ball stays > 80 away: at most (169, 54, 54))
+    assert near_answer.sum() > 60, near_answer.sum()
+    shoot(page, "free-search")
