@@ -31,8 +31,10 @@ export function freeTrack(search, iterations, current) {
   const film = search.target_size;
   const answer = frustum({ ...free.pose.intrinsics, ...free.pose }, film, "answer");
   const alternatives = free.alternatives.map((p) => frustum({ ...p.intrinsics, ...p }, film, "alternative"));
-  // the answer is drawn over the view that rendered it (the same camera)
-  return { frusta: [...frusta.filter((f) => f.role === "view"), answer, ...alternatives], nearest: free.nearest_grid };
+  // a view that rendered the answer or an alternative is drawn as that (the same camera)
+  const candidates = new Set([answer, ...alternatives].map((f) => f.position.join()));
+  const others = frusta.filter((f) => !candidates.has(f.position.join())).map((f) => ({ ...f, role: "view" }));
+  return { frusta: [...others, answer, ...alternatives], nearest: free.nearest_grid };
 }
 
 /** The answer's paragraph and table (ids result, renders, free-answer). */
