@@ -26,10 +26,11 @@ def fixed(values, digits: int) -> str:
     return ", ".join(f"{v:.{digits}f}" for v in values)
 
 
-def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, stack, tmp_path):
+def free_search(page, stack, target, camera: FreeCamera, *, give_fov: bool) -> dict:
+    """A free search from the page for ``camera`` rendered (its fov given or not), once it
+    succeeded: the search as the API has it."""
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
-        image, truth = renderer.render_camera("demo", DRONE)
-    target = tmp_path / "drone.png"
+        image, truth = renderer.render_camera("demo", camera)
     target.write_bytes(image)
     open_new_search(page, stack)
     page.set_input_files("#target-file", str(target))
@@ -37,15 +38,19 @@ def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, s
     page.select_option("#mode", "free")
     assert page.is_disabled("#strategy")
     assert page.is_disabled("#start_theta_deg")
-    page.fill("#fov_deg", f"{truth.camera.fov_deg}")
+    if give_fov:
+        page.fill("#fov_deg", f"{truth.camera.fov_deg}")
     page.click("#go")
     page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
     search_id = page.url.rsplit("/", 1)[1]
     page.wait_for_selector("#status.succeeded", timeout=TIMEOUT_MS)
     page.wait_for_selector("#free-answer")
-
     with api(stack) as http:
-        final = http.get(f"/searches/{search_id}").json()
+        return http.get(f"/searches/{search_id}").json()
+
+
+def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, stack, tmp_path):
+    final = free_search(page, stack, tmp_path / "drone.png", DRONE, give_fov=True)
     assert final["mode"] == "free"
     free = final["result"]["free"]
     pose = free["pose"]
@@ -93,20 +98,7 @@ def test_an_ambiguous_free_answer_shows_its_alternatives(page, stack, tmp_path):
     camera = FreeCamera(
         position=(1.2, -3.5, 3.0), look_at=(0.6, -0.7, 0.3), fov_deg=40, roll_deg=10
     )
-    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
-        image, _ = renderer.render_camera("demo", camera)
-    target = tmp_path / "few.png"
-    target.write_bytes(image)
-    open_new_search(page, stack)
-    page.set_input_files("#target-file", str(target))
-    page.select_option("#mode", "free")
-    page.click("#go")
-    page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
-    search_id = page.url.rsplit("/", 1)[1]
-    page.wait_for_selector("#status.succeeded", timeout=TIMEOUT_MS)
-    page.wait_for_selector("#free-answer")
-    with api(stack) as http:
-        final = http.get(f"/searches/{search_id}").json()
+    final = free_search(page, stack, tmp_path / "few.png", camera, give_fov=False)
     free = final["result"]["free"]
     assert free["status"] == "ambiguous"
     assert not final["result"]["confirmed"]
