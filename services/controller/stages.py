@@ -1,4 +1,5 @@
-"""The three stage calls a search makes, each through the broker: render, detect, optimize.
+"""The three stage calls a search makes, each through the broker: render, detect, optimize
+(and, for a search without a given start, the predicted start pose).
 
 Every call forwards the search's request id (``X-Request-ID``). A 4xx answer from a stage is a
 :class:`StageError` carrying that stage's problem details (the search fails with it); transport
@@ -21,6 +22,7 @@ from services.common.contracts.detect import DetectResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import ViewSettings
+from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
 from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE
@@ -155,6 +157,15 @@ class Stages:
         call = StageRequest.json("/next-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "optimize", call)
         return NextPoseResponse.model_validate_json(response.content)
+
+    async def start_pose(
+        self, request: StartPoseRequest, request_id: str = ""
+    ) -> StartPoseResponse:
+        """The optimizer's answer to ``POST /start-pose`` (a ValidationError if malformed)."""
+        body = request.model_dump_json(exclude_none=True)
+        call = StageRequest.json("/start-pose", body, {"X-Request-ID": request_id})
+        response = await self._call("optimizer", "start-pose", call)
+        return StartPoseResponse.model_validate_json(response.content)
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         """Wait until a replica of ``stage`` answers again (see
