@@ -439,7 +439,9 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
         random_run, "model_status", lambda url, scene, token: "refused: wrong classes"
     )
     models: list = []
-    config = BenchConfig(scenes=("a", "b", "c"), strategies=("reprojection",), onboard="tiny")
+    config = BenchConfig(
+        scenes=("a", "b", "c"), strategies=("reprojection",), starts=("given",), onboard="tiny"
+    )
     endpoints = Endpoints("http://c", "http://r", detectors=("http://d",))
     records = random_run._scene_arm(
         config, endpoints, targets, tmp_path, tmp_path / "work", onboard, models
