@@ -155,3 +155,48 @@ def test_an_answer_the_search_finds_ambiguous_is_never_confirmed(tmp_path, detai
     assert result.ambiguous
     assert not result.confirmed
     assert result.reason.startswith("not confirmed: the answer is ambiguous")
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_only_a_given_start_is_rendered_before_the_search_is_stored(tmp_path, detail, given):
+    """A given start's view is rendered while the submission is checked and stored; a search
+    without one records that it was not given, and renders nothing before its target is seen."""
+    import asyncio
+
+    import cv2
+    import numpy as np
+
+    from services.common.contracts.search import SearchOptions, ViewSettings
+    from services.controller.settings import ControllerSettings
+    from services.controller.submit import create_search
+
+    class SubmitStages:
+        view_settings = ViewSettings()
+
+        def __init__(self) -> None:
+            self.early: list[GridIndex] = []
+
+        async def scene(self, scene_id: str, request_id: str = ""):
+            return detail
+
+        def render_early(self, scene_id, index, request_id, view_settings=None) -> None:
+            self.early.append(index)
+
+        def forget_early(self, request_id: str) -> None:
+            pass
+
+    ok, png = cv2.imencode(".png", np.zeros((240, 320, 3), np.uint8))
+    assert ok
+    stages = SubmitStages()
+    start = {"start_theta_deg": 45.0, "start_phi_deg": 90.0} if given else {}
+    options = SearchOptions(scene="demo", seed=3, **start)
+    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    settings = ControllerSettings(controller_database_url=f"sqlite:///{tmp_path}/c.sqlite3")
+    search = asyncio.run(
+        create_search(store, stages, png.tobytes(), options, settings, start_early=True)  # type: ignore[arg-type]
+    )
+    assert search.start_given is given
+    assert stages.early == ([search.start.index] if given else [])
+    recorded = store.get(search.id)
+    assert recorded is not None
+    assert recorded.start_given is given
