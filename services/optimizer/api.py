@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass
 from typing import Annotated, get_args
 
@@ -101,9 +102,9 @@ def map_objects(body: MapRequest, state: State) -> MapResponse:
 async def predict_start_pose(request: Request, state: State) -> Response:
     """The grid pose whose predicted view explains the target's detections best, before
     anything is rendered: where a hemisphere search without a given start takes its first view
-    (``found``), or why not (``ambiguous``, ``failed``). A scene's first request projects its
-    objects into every grid pose (kept per scene); later ones take about a millisecond, so this
-    runs on the event loop as ``/next-pose`` does."""
+    (``found``), or why not (``ambiguous``, ``failed``). Run on a worker thread: a scene's
+    first request projects its objects into every grid pose (kept per scene), which takes
+    seconds on a 1° grid, and a fine grid's scoring tens of milliseconds."""
     body = await read_json(request, StartPoseRequest)
-    answer = start_pose(body, state.context)
+    answer = await asyncio.to_thread(start_pose, body, state.context)
     return Response(answer.model_dump_json(), media_type="application/json")

@@ -39,8 +39,9 @@ score); the :data:`NEAR_CANDIDATES` best are scored exactly.
 Status
 ------
 ``ambiguous``
-    A pose more than 1.5 grid steps from the best scores within ``ratio · S_best +``
-    :data:`AMBIGUITY_MARGIN` (the reprojection strategy's test, ``ratio`` its default 1.25):
+    A pose more than 1.5 grid steps (and :data:`MIN_RIVAL_DEG`) from the best scores within
+    ``ratio · S_best +`` :data:`AMBIGUITY_MARGIN` (the reprojection strategy's test, ``ratio``
+    its default 1.25):
     every distant pose whose cheap score is that low is scored exactly, so none is missed. Also
     a best pose that pairs a single detection.
 ``failed``
@@ -93,9 +94,13 @@ AMBIGUITY_MARGIN: Final = 1.0
 SHAPE_MISMATCH_COST: Final = 4.0
 """Cost of pairing a general-detector box with an object of another shape: as if its edges were
 off by 2 s = 8 px."""
+MIN_RIVAL_DEG: Final = 10.0
+"""A rival pose is at least this far from the best (and 1.5 grid steps): on a fine grid the
+poses a few degrees off look alike without making the layout ambiguous (the search's strategy
+refines from the start)."""
 MIN_EXPECTED_INSIDE: Final = 0.3
 MIN_SIDE_PX: Final = 2.0
-_POINTS_PER_CHUNK: Final = 2_000_000
+_POINTS_PER_CHUNK: Final = 250_000
 _COSTS_PER_CHUNK: Final = 4_000_000
 MAX_ALTERNATIVES: Final = 5
 
@@ -275,9 +280,8 @@ def predict_start(
     best_i = int(order[0])
     best, best_score, best_pairs = int(near[best_i]), float(scores[best_i]), pairs[best_i]
     threshold = best_score * ambiguity_ratio + AMBIGUITY_MARGIN
-    far = views.directions @ views.directions[best] < math.cos(
-        math.radians(1.5 * grid.angle_step_deg)
-    )
+    separation = max(1.5 * grid.angle_step_deg, MIN_RIVAL_DEG)
+    far = views.directions @ views.directions[best] < math.cos(math.radians(separation))
     rivals_coarse = np.flatnonzero(far & (coarse <= threshold))
     rivals_coarse = rivals_coarse[np.argsort(coarse[rivals_coarse], kind="stable")][:MAX_RIVALS]
     rival_scores, _ = _exact(views, target, rivals_coarse.astype(np.intp))

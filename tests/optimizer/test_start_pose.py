@@ -222,3 +222,19 @@ async def test_bad_start_pose_requests_are_problems_naming_the_field(client, dem
         assert response.status_code == status, (field, response.text)
         assert response.headers["content-type"] == "application/problem+json"
         assert response.json()["field"] == field, response.json()
+
+
+def test_on_a_fine_grid_near_poses_are_no_rivals(catalog):
+    """At 3° the poses a couple of steps from the zenith look almost alike (4.5° away, beyond
+    1.5 steps); they are not a distant rival (MIN_RIVAL_DEG), so the prediction stays found."""
+    from services.common.geometry.grid import grid_for
+
+    scene = catalog.get("demo")
+    grid = grid_for(3.0, 3.0, 87.0)
+    views = GridViews.of(scene_objects(scene.spec), grid, scene.spec.camera)
+    for index in (GridIndex(lat=0, lon=0), GridIndex(lat=1, lon=1), GridIndex(lat=4, lon=0)):
+        flat = grid.flat(index)
+        seen = views.expected[flat]
+        target = Observation.from_arrays(["sphere"] * int(seen.sum()), views.boxes[flat][seen])
+        prediction = predict_start(views, grid, target)
+        assert (prediction.status, prediction.flat) == ("found", flat), prediction.reason
