@@ -1,13 +1,15 @@
-"""Optimizer routes: thin HTTP wrappers over planning (:mod:`services.optimizer.planning`)."""
+"""Optimizer routes: thin HTTP wrappers over planning (:mod:`services.optimizer.planning`) and the
+free pose (:mod:`services.optimizer.free_pose`)."""
 
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, get_args
 
 from fastapi import APIRouter, Depends, Request, Response
 
+from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import (
     MapRequest,
     MapResponse,
@@ -19,6 +21,7 @@ from services.common.contracts.optimize import (
 )
 from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
 from services.common.http import app_state, problem_responses
+from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.optimizer.json_body import json_request_body, read_json
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
 from services.optimizer.start_planning import start_pose
@@ -34,6 +37,7 @@ class OptimizerState:
     """What the routes need, built in the app's lifespan."""
 
     context: OptimizerContext
+    free_objects: SceneObjectCache = field(default_factory=SceneObjectCache)
 
 
 State = Annotated[OptimizerState, Depends(app_state("optimizer"))]
@@ -108,3 +112,15 @@ async def predict_start_pose(request: Request, state: State) -> Response:
     body = await read_json(request, StartPoseRequest)
     answer = await asyncio.to_thread(start_pose, body, state.context)
     return Response(answer.model_dump_json(), media_type="application/json")
+
+
+@router.post(
+    "/free-pose",
+    response_model=FreePoseResponse,
+    responses=problem_responses(400, 404, 413, 422),
+)
+def solve_free(body: FreePoseRequest, state: State) -> FreePoseResponse:
+    """Any camera's pose (position, orientation, intrinsics) from the target's boxes alone:
+    ``found``, ``ambiguous`` with the alternatives, or ``failed`` with why. Run on a worker
+    thread: a solve is tens of milliseconds of numpy and scipy."""
+    return free_pose(body, state.context.catalog, state.free_objects)
