@@ -25,7 +25,7 @@ from cosmos.stack import Stack, plan_local_stack, plan_stack, running_stack
 from services.common.auth import bearer
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search
-from services.common.geometry.pose import PoseQuery
+from services.common.geometry.pose import GridIndex, PoseQuery
 from services.common.images import encode_ppm
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
@@ -73,17 +73,21 @@ def grid_of(stack: Stack, scene: str):
 
 @pytest.mark.parametrize(("scene", "count"), [("demo", 5), ("garden", 2)])
 def test_searches_find_the_targets_grid_pose(stack, scene, count):
+    """Without a start: the controller predicts it from the target's detections, and the
+    search ends after that one render (a target near the zenith among them)."""
     grid = grid_of(stack, scene)
     rng = np.random.default_rng(99 if scene == "demo" else 7)
-    for flat in rng.choice(grid.size, size=count, replace=False):
+    near_zenith = grid.flat(GridIndex(lat=0, lon=2))
+    for flat in [near_zenith, *rng.choice(grid.size, size=count - 1, replace=False)]:
         target = grid.unflat(int(flat))
         image = render(stack, scene, target.lat, target.lon)
         final = run_search(stack, image, scene, seed=int(flat))
         assert final.status == "succeeded", (target, final.error)
+        assert not final.start_given
         assert final.result is not None
         assert final.result.confirmed, final.result
-        assert final.result is not None
         assert final.result.pose.index == target, (target, final.result)
+        assert final.result.renders == 1, (target, final.iterations)
         assert final.result.renders == len(
             {(i.pose.index.lat, i.pose.index.lon) for i in final.iterations}
         )

@@ -27,6 +27,7 @@ from typing import Any
 from cosmos.bench.machine import machine_info
 from cosmos.bench.plots import write_plots
 from cosmos.bench.profile import profile_searches, profile_summary
+from cosmos.bench.random_report import band_cells, band_table
 from cosmos.bench.results_md import write_results_md
 from cosmos.bench.runner import BenchTarget, make_targets, run_searches
 from cosmos.bench.session import (
@@ -38,7 +39,7 @@ from cosmos.bench.session import (
     services_info,
     write_report,
 )
-from cosmos.bench.stats import percentile, summarize
+from cosmos.bench.stats import percentile, strategy_label, summarize
 from cosmos.bench.tables import text_tables
 from services.common.contracts.optimize import StrategyName
 
@@ -54,6 +55,8 @@ def run_main(config: BenchConfig) -> int:
         summaries = summarize(records)
         say("")
         say(text_tables(summaries))
+        say("\nby θ band (found; given start = the bench's random one, the paper's protocol)")
+        say(band_table(band_cells(records, strategy_label), title="strategy"))
         profile = None
         if config.profile:
             sample = _profile_sample(targets, config)
@@ -86,6 +89,7 @@ def run_main(config: BenchConfig) -> int:
             "scenes": config.scenes,
             "strategies": config.strategies,
             "variants": config.variants,
+            "starts": config.starts,
             "seed": config.seed,
             "spp": config.spp,
             "width": config.width,

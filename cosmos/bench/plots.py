@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cosmos.bench.runner import SearchRecord
-from cosmos.bench.stats import STRATEGY_ORDER, ranked
+from cosmos.bench.stats import STRATEGY_ORDER, ranked, strategy_label
 from cosmos.bench.variants import VARIANTS
 
 __all__ = ["write_plots"]
@@ -26,7 +26,7 @@ def write_plots(records: Sequence[SearchRecord], out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     out.mkdir(parents=True, exist_ok=True)
-    strategies = ranked((r.strategy for r in records), STRATEGY_ORDER)
+    strategies = ranked((strategy_label(r) for r in records), STRATEGY_ORDER)
     written: list[Path] = []
     if not strategies:
         return written
@@ -35,7 +35,7 @@ def write_plots(records: Sequence[SearchRecord], out: Path) -> list[Path]:
         1, len(strategies), figsize=(4.2 * len(strategies), 3.4), squeeze=False
     )
     for ax, strategy in zip(axes[0], strategies, strict=True):
-        mine = [r for r in records if r.strategy == strategy and r.status != "error"]
+        mine = [r for r in records if strategy_label(r) == strategy and r.status != "error"]
         top = max((r.renders for r in mine), default=1)
         bins = np.arange(0.5, top + 1.5, 1.0)
         for variant in VARIANTS:
@@ -56,7 +56,7 @@ def write_plots(records: Sequence[SearchRecord], out: Path) -> list[Path]:
         1, len(strategies), figsize=(4.2 * len(strategies), 3.4), squeeze=False, sharey=True
     )
     for ax, strategy in zip(axes[0], strategies, strict=True):
-        mine = [r for r in records if r.strategy == strategy and r.variant == "clean"]
+        mine = [r for r in records if strategy_label(r) == strategy and r.variant == "clean"]
         curves = [[t.distance_deg for t in r.trajectory] for r in mine if r.trajectory]
         for curve in curves:
             ax.plot(range(1, len(curve) + 1), curve, color="0.6", linewidth=0.6, alpha=0.5)

@@ -30,7 +30,7 @@ import numpy as np
 
 from cosmos.bench.machine import machine_info
 from cosmos.bench.random_report import GOALS, band_cells, band_table, goal_checks
-from cosmos.bench.runner import BenchTarget, SearchRecord, run_searches
+from cosmos.bench.runner import BenchTarget, SearchRecord, run_searches, with_starts
 from cosmos.bench.scenes import generate_scene, scene_summary
 from cosmos.bench.session import (
     BenchConfig,
@@ -172,7 +172,12 @@ def _scene_arm(
             status = model_status(endpoints.detectors[0], scene, endpoints.service_token)
             models[-1]["served"] += f"; the scene's own model: {status}"
             say(f"  the detector does not serve {scene}'s own model ({status})")
-    jobs = [(t, s) for t in targets if t.scene in ready for s in config.strategies]
+    jobs = [
+        (t, s)
+        for t in with_starts(targets, config.starts)
+        if t.scene in ready
+        for s in config.strategies
+    ]
     if not jobs:
         return []
     firsts = {t.scene: t for t in reversed(targets) if t.scene in ready}
@@ -239,6 +244,7 @@ def _run(config: BenchConfig, root: Path) -> int:
             "seed": config.seed,
             "strategies": config.strategies,
             "variants": config.variants,
+            "starts": config.starts,
             "onboard": config.onboard,
             "spp": config.spp,
             "width": config.width,

@@ -22,7 +22,7 @@ from cosmos.bench.random_report import (
 )
 from cosmos.bench.runner import SearchRecord
 from cosmos.bench.settings_choice import CHOICE_RULE, choose_setting
-from cosmos.bench.stats import summarize
+from cosmos.bench.stats import strategy_label, summarize
 from cosmos.bench.tables import SUMMARY_COLUMNS, markdown_tables, md_table, summary_cells
 
 __all__ = [
@@ -96,7 +96,11 @@ def section_of_bench(data: Mapping[str, Any], plots: Path) -> str:
     """The bench's section: its tables, eq. 9, the plots (linked from ``plots``), its profile."""
     text = io.StringIO()
     text.write(_section_head("Searches through the local stack", data, duration=True))
-    text.write(markdown_tables(summarize(_records(data))))
+    records = _records(data)
+    text.write(markdown_tables(summarize(records)))
+    text.write("\n#### By θ band and start\n\n")
+    cells = band_cells(records, strategy_label)
+    text.write(band_table(cells, markdown=True, title="strategy") + "\n")
     text.write(
         f"\n![renders per search]({(plots / 'renders_hist.png').as_posix()})\n\n"
         f"![angle to the true pose per iteration]({(plots / 'distance.png').as_posix()})\n\n"

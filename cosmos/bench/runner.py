@@ -2,7 +2,8 @@
 
 A bench run first renders every target (through a renderer, with its own seed and the
 renderer's default sampling, so a target is never pixel-identical to a view the search renders),
-then submits each (target, strategy) pair to ``POST /searches`` with the target's start pose,
+then submits each (target, strategy) pair to ``POST /searches`` with the target's start pose
+(or, for the predicted-start runs, without one: :func:`with_starts`),
 follows the search's server-sent events until its ``end`` event and fetches the search. The wall
 time of a search runs from sending the ``POST`` to receiving ``end``: everything a client waits
 for. The client is aiohttp, as in the controller's own stage calls: httpx costs ~4 ms more per
@@ -25,7 +26,7 @@ import time
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -56,6 +57,7 @@ __all__ = [
     "local_stack",
     "make_targets",
     "run_searches",
+    "with_starts",
 ]
 
 TARGET_SPP = 16
@@ -75,6 +77,9 @@ class BenchTarget(Target):
     """The modified copy the target was rendered from (``photo``, ``changed``)."""
     change: str = ""
     """What the copy changed, in words."""
+    given_start: bool = True
+    """Whether its search is given ``start`` (the paper's protocol), or none: the controller
+    then starts at the pose it predicts from the target (``start`` only if it predicts none)."""
 
     @property
     def key(self) -> tuple[str, str, int]:
@@ -132,6 +137,10 @@ class SearchRecord(FrozenModel):
     )
     change: str = ""
     trace: FailureTrace | None = None
+    start_given: bool = Field(
+        default=True,
+        description="Whether the search was given its start (else the controller predicted it).",
+    )
 
     @property
     def found_truth(self) -> bool:
@@ -151,6 +160,16 @@ class SearchRecord(FrozenModel):
     def other_ms(self) -> float:
         """HTTP and queueing: the wall time not spent in a render, detection or optimizer call."""
         return max(0.0, self.wall_ms - self.stage_ms)
+
+
+def with_starts(targets: Sequence[BenchTarget], starts: Sequence[str]) -> list[BenchTarget]:
+    """Each target once per start mode: ``given`` (its drawn start, the paper's protocol) and
+    ``predicted`` (no start given: the controller predicts it from the target)."""
+    return [
+        target if start == "given" else replace(target, given_start=False)
+        for start in starts
+        for target in targets
+    ]
 
 
 def _rng(seed: int, scene: str, variant: Variant) -> np.random.Generator:
@@ -293,6 +312,7 @@ def record_of(
         confirmed=confirmed,
         change=target.change,
         trace=failure_trace(raw, target.truth) if not success or confirmed is False else None,
+        start_given=target.given_start,
     )
 
 
@@ -315,20 +335,23 @@ def _failed(
         arm=arm,
         change=target.change,
         trace=FailureTrace(truth_visited=False, status="error", final_reason=detail),
+        start_given=target.given_start,
     )
 
 
 def _search_query(
     target: BenchTarget, strategy: StrategyName, max_iterations: int
 ) -> dict[str, str]:
-    return {
+    query = {
         "scene": target.scene,
         "strategy": strategy,
-        "start_theta_deg": repr(target.start_pose.theta_deg),
-        "start_phi_deg": repr(target.start_pose.phi_deg),
         "seed": str(target.seed),
         "max_iterations": str(max_iterations),
     }
+    if target.given_start:
+        query["start_theta_deg"] = repr(target.start_pose.theta_deg)
+        query["start_phi_deg"] = repr(target.start_pose.phi_deg)
+    return query
 
 
 async def _one_search(

@@ -22,7 +22,14 @@ from typing import Any, Literal
 import httpx
 
 from cosmos.bench.results_md import write_results_md
-from cosmos.bench.runner import BenchTarget, SearchRecord, local_stack, make_targets, run_searches
+from cosmos.bench.runner import (
+    BenchTarget,
+    SearchRecord,
+    local_stack,
+    make_targets,
+    run_searches,
+    with_starts,
+)
 from cosmos.bench.variants import Variant
 from services.common.auth import bearer, token_from_environment
 from services.common.catalog import SceneCatalog
@@ -30,6 +37,7 @@ from services.common.contracts.optimize import StrategyName
 from services.common.geometry.scene import LoadedScene
 
 __all__ = [
+    "START_MODES",
     "BenchConfig",
     "Endpoints",
     "load_at_end",
@@ -42,6 +50,10 @@ __all__ = [
 ]
 
 
+StartMode = Literal["given", "predicted"]
+START_MODES: tuple[StartMode, ...] = ("given", "predicted")
+
+
 @dataclass(frozen=True)
 class BenchConfig:
     """Everything ``cosmos bench`` was asked to do."""
@@ -50,6 +62,9 @@ class BenchConfig:
     scenes: tuple[str, ...] = ("demo", "garden")
     strategies: tuple[StrategyName, ...] = ("simple", "paper", "reprojection")
     variants: tuple[Variant, ...] = ("clean", "jpeg", "noise", "offgrid")
+    starts: tuple[StartMode, ...] = ("given", "predicted")
+    """How searches start: ``given`` the target's drawn start (the paper's protocol), and
+    ``predicted`` none (the controller predicts it from the target)."""
     seed: int = 2024
     out: Path = Path("docs/results")
     results_md: Path | None = Path("docs/RESULTS.md")
@@ -276,7 +291,7 @@ def search_all(
         max_iterations=config.max_iterations,
         api_key=endpoints.api_key,
     )
-    jobs = [(t, s) for t in targets for s in strategies]
+    jobs = [(t, s) for t in with_starts(targets, config.starts) for s in strategies]
     say(f"{len(jobs)} searches, {config.concurrency} in flight")
     records = run_searches(
         endpoints.controller,

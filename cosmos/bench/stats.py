@@ -44,6 +44,7 @@ __all__ = [
     "percentile",
     "rank",
     "ranked",
+    "strategy_label",
     "summarize",
 ]
 
@@ -51,6 +52,12 @@ PAPER_SIMPLE_STEPS: Final = 36
 PAPER_OPTIMISED_STEPS: Final = 2
 PAPER_EQ9: Final = (PAPER_OPTIMISED_STEPS - PAPER_SIMPLE_STEPS) / PAPER_SIMPLE_STEPS
 STRATEGY_ORDER: Final = ("simple", "paper", "reprojection")
+
+
+def strategy_label(record: SearchRecord) -> str:
+    """A search's strategy, and how it started when not given its start: ``reprojection`` (the
+    bench's random start, given), ``reprojection, predicted start``."""
+    return record.strategy if record.start_given else f"{record.strategy}, predicted start"
 
 
 def percentile(values: Sequence[float], q: float) -> float:
@@ -76,7 +83,8 @@ def ranked(values: Iterable[str], order: Sequence[str]) -> list[str]:
 
 @dataclass(frozen=True)
 class Summary:
-    """One (scene, strategy, variant) cell of the bench."""
+    """One (scene, strategy, variant) cell of the bench; ``strategy`` is
+    :func:`strategy_label`'s."""
 
     scene: str
     strategy: str
@@ -109,7 +117,8 @@ def summarize(records: Iterable[SearchRecord]) -> list[Summary]:
     """One summary per (scene, strategy, variant), ordered by variant, scene, strategy."""
     groups: dict[tuple[str, str, str], list[SearchRecord]] = {}
     for record in records:
-        groups.setdefault((record.scene, record.strategy, record.variant), []).append(record)
+        key = (record.scene, strategy_label(record), record.variant)
+        groups.setdefault(key, []).append(record)
     out = []
     for (scene, strategy, variant), group in groups.items():
         ran = [r for r in group if r.status != "error"]
@@ -144,7 +153,12 @@ def summarize(records: Iterable[SearchRecord]) -> list[Summary]:
         )
     variant_rank: dict[str, int] = {v: i for i, v in enumerate(VARIANTS)}
     out.sort(
-        key=lambda s: (variant_rank.get(s.variant, 99), s.scene, rank(s.strategy, STRATEGY_ORDER))
+        key=lambda s: (
+            variant_rank.get(s.variant, 99),
+            s.scene,
+            rank(s.strategy.split(",")[0], STRATEGY_ORDER),
+            s.strategy,
+        )
     )
     return out
 

@@ -16,6 +16,7 @@ def _csv(value: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from cosmos.bench import VARIANTS, BenchConfig, run
+    from cosmos.bench.session import START_MODES
 
     # Random scenes: the project's strategy on every variant; otherwise the paper's comparison.
     random = args.random_scenes > 0
@@ -23,9 +24,11 @@ def run(args: argparse.Namespace) -> int:
         args.strategies or ("reprojection" if random else "simple,paper,reprojection")
     )
     variants = _csv(args.variants or (",".join(VARIANTS) if random else "clean,jpeg,noise,offgrid"))
+    starts = _csv(args.starts)
     for name, given, allowed in (
         ("strategy", strategies, ("simple", "paper", "reprojection")),
         ("variant", variants, VARIANTS),
+        ("start", starts, START_MODES),
     ):
         unknown = [v for v in given if v not in allowed]
         if unknown or not given:
@@ -35,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
         scenes=_csv(args.scenes),
         strategies=strategies,  # type: ignore[arg-type]
         variants=variants,  # type: ignore[arg-type]
+        starts=starts,  # type: ignore[arg-type]
         seed=args.seed,
         out=Path(args.out),
         results_md=Path(args.results_md) if args.results_md else None,
@@ -83,6 +87,12 @@ def register(commands: Commands) -> None:
         "--variants",
         help="of clean,jpeg,noise,offgrid,photo,changed; default the first four (all six with "
         "--random-scenes)",
+    )
+    bench.add_argument(
+        "--starts",
+        default="given,predicted",
+        help="how searches start: given (the target's random start, the paper's protocol), "
+        "predicted (none given: the controller predicts it from the target); default both",
     )
     bench.add_argument("--seed", type=int, default=2024)
     bench.add_argument("--out", default="docs/results", help="folder for the JSON and plots")

@@ -16,8 +16,9 @@ The optimizer's question is made from what the search has seen
 
 The target's detection overlaps the start view's render, which a search submitted to an idle
 runner had started before its submission was even stored (:meth:`Stages.render_early`: its first
-render time is then the part the search waited for). A pose already rendered in this search is
-never rendered again: its detections are reused.
+render time is then the part the search waited for). A search submitted without a start detects
+its target first and starts where the target's detections predict (:mod:`.start`). A pose
+already rendered in this search is never rendered again: its detections are reused.
 Every view is rendered with the settings the search recorded when it was submitted
 (``Search.view_settings``: samples per pixel, film width), so a search resumed by a controller
 started with other settings goes on seeing what it saw; a search stored by an earlier version,
@@ -54,6 +55,7 @@ from services.controller.failures import SearchFailed, failure, unreadable_answe
 from services.controller.outages import OutagePolicy
 from services.controller.progress import Progress, View, at
 from services.controller.stages import Stages
+from services.controller.start import StartPicker, predicts_start
 from services.controller.store import SearchStore
 from services.controller.writes import Writes
 
@@ -69,16 +71,21 @@ def _retrieve(task: asyncio.Task[Any]) -> None:
 
 
 def _result_of(last: Iteration, renders: int) -> SearchResult:
-    """The search's result from its final iteration."""
+    """The search's result from its final iteration: confirmed unless the optimizer found it
+    ambiguous (a confirmed answer is one the search vouches for)."""
     found = last.estimate_grid or last.pose
     refined = last.estimate or Pose(theta_deg=found.theta_deg, phi_deg=found.phi_deg)
+    reason = last.reason
+    if last.ambiguous:
+        reason = f"not confirmed: the answer is ambiguous; {reason}"
     return SearchResult(
         pose=found,
         refined_pose=refined,
         confidence=last.confidence,
         renders=renders,
         ambiguous=last.ambiguous,
-        reason=last.reason,
+        confirmed=not last.ambiguous,
+        reason=reason,
     )
 
 
@@ -128,6 +135,7 @@ class SearchLoop:
         self.stages = stages
         self.notifier = notifier
         self.outages = outages
+        self.start = StartPicker(stages, outages)
 
     async def _detect(self, image: bytes, media_type: str, sid: str, scene: str) -> DetectResponse:
         return await self.outages.call(
@@ -209,6 +217,9 @@ class SearchLoop:
         if progress.finished:  # by an older controller, which recorded no result
             return writes.succeed(_result_of(progress.history[-1], progress.renders))
         pose = progress.pose
+        if predicts_start(progress):  # no start given: the target says where to look first
+            pose = await self.start.first_pose(progress, image)
+            self._target(progress)  # nothing detected in the target fails before any render
         while pose is not None and len(progress.history) < search.max_iterations:
             started = time.perf_counter()
             view, render_ms, detect_ms = await self._look(progress, pose, image, writes)

@@ -1,5 +1,6 @@
 """The stage calls a search makes, each through the broker: render (a grid pose, or a free
-camera), detect, optimize (the next pose, or the free pose from the target's boxes).
+camera), detect, optimize (the next pose, the free pose from the target's boxes, or a
+hemisphere search's predicted start pose).
 
 Every call forwards the search's request id (``X-Request-ID``). A 4xx answer from a stage is a
 :class:`StageError` carrying that stage's problem details (the search fails with it); transport
@@ -23,6 +24,7 @@ from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import ViewSettings
+from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
 from services.common.errors import ProblemDetails
 from services.common.geometry.free_camera import FreeCamera
 from services.common.geometry.pose import GridIndex
@@ -182,6 +184,15 @@ class Stages:
         call = StageRequest.json("/next-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "optimize", call)
         return NextPoseResponse.model_validate_json(response.content)
+
+    async def start_pose(
+        self, request: StartPoseRequest, request_id: str = ""
+    ) -> StartPoseResponse:
+        """The optimizer's answer to ``POST /start-pose`` (a ValidationError if malformed)."""
+        body = request.model_dump_json(exclude_none=True)
+        call = StageRequest.json("/start-pose", body, {"X-Request-ID": request_id})
+        response = await self._call("optimizer", "start-pose", call)
+        return StartPoseResponse.model_validate_json(response.content)
 
     async def free_pose(self, request: FreePoseRequest, request_id: str = "") -> FreePoseResponse:
         """The optimizer's answer to ``POST /free-pose`` (a ValidationError if it is malformed)."""

@@ -108,11 +108,14 @@ async def create_search(
     The image must decode (PNG, JPEG or binary PPM within the size caps; its header is checked
     first, its pixels decoded off the event loop); the scene must be known to the renderers. A
     start pose given by angles is snapped to the nearest grid pose; without one, a grid pose is
-    drawn from ``seed`` (itself drawn when absent, and recorded); a free search (``mode=free``)
-    records it too but starts from the pose the optimizer solves for, with the photo's
-    intrinsics when given (:func:`~services.controller.form.photo_intrinsics`). With
-    ``start_early`` the start view's render is under way while the pixels are decoded and the
-    search stored (:meth:`Stages.render_early`; dropped again if the image turns out broken).
+    drawn from ``seed`` (itself drawn when absent, and recorded), which a hemisphere search
+    starts from only when the pose predicted from its target cannot be used (:mod:`.start`);
+    a free search (``mode=free``) records it too but starts from the pose the optimizer
+    solves for, with the photo's intrinsics when given
+    (:func:`~services.controller.form.photo_intrinsics`). With ``start_early`` a given start
+    view's render is under way while the pixels are decoded and the search stored
+    (:meth:`Stages.render_early`; dropped again if the image turns out broken); a predicted
+    start needs the target's detections first, so nothing is rendered early for it.
     ``owner`` is the id of the API key that submits it. A large image is written to the store
     off the event loop (:data:`INLINE_WRITE_BYTES`), and the search deleted again if the caller
     is cancelled meanwhile (:func:`_store_large`): stored means answered and handed to the
@@ -162,6 +165,7 @@ async def create_search(
             title="Grid not supported",
         ) from exc
     seed = options.seed if options.seed is not None else random.SystemRandom().randrange(2**31)
+    start_given = options.start_theta_deg is not None and options.start_phi_deg is not None
     if options.start_theta_deg is not None and options.start_phi_deg is not None:
         try:
             asked = Pose(theta_deg=options.start_theta_deg, phi_deg=options.start_phi_deg)
@@ -176,7 +180,7 @@ async def create_search(
     pose = grid.pose(index)
     search_id = uuid.uuid4().hex
     view_settings = stages.view_settings  # its views are rendered so from now on, always
-    if start_early and options.mode == "hemisphere":  # a free search's first view is solved for
+    if start_early and start_given and options.mode == "hemisphere":  # else solved for
         stages.render_early(options.scene, index, search_id, view_settings)
         # One turn of the loop puts the render request on the wire (on a kept-alive connection
         # that is the task's first step) before the decode's thread hop: ~0.5 ms sooner.
@@ -192,6 +196,7 @@ async def create_search(
             scene=options.scene,
             strategy=options.strategy,
             start=GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg),
+            start_given=start_given,
             seed=seed,
             max_iterations=max_iterations,
             created_at=now,

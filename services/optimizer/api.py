@@ -3,6 +3,7 @@ free pose (:mod:`services.optimizer.free_pose`)."""
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from typing import Annotated, get_args
 
@@ -18,10 +19,12 @@ from services.common.contracts.optimize import (
     StrategyInfo,
     StrategyName,
 )
+from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
 from services.common.http import app_state, problem_responses
 from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.optimizer.json_body import json_request_body, read_json
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
+from services.optimizer.start_planning import start_pose
 from services.optimizer.strategies import STRATEGIES
 
 __all__ = ["OptimizerState", "router"]
@@ -92,6 +95,23 @@ async def plan(request: Request, state: State) -> Response:
 def map_objects(body: MapRequest, state: State) -> MapResponse:
     """Ground positions of the detections of one view seen from a known pose (paper §3.2)."""
     return map_detections(body, state.context.calibrations)
+
+
+@router.post(
+    "/start-pose",
+    response_model=StartPoseResponse,
+    responses=problem_responses(400, 404, 413, 422),
+    openapi_extra={"requestBody": json_request_body(StartPoseRequest)},
+)
+async def predict_start_pose(request: Request, state: State) -> Response:
+    """The grid pose whose predicted view explains the target's detections best, before
+    anything is rendered: where a hemisphere search without a given start takes its first view
+    (``found``), or why not (``ambiguous``, ``failed``). Run on a worker thread: a scene's
+    first request projects its objects into every grid pose (kept per scene), which takes
+    seconds on a 1° grid, and a fine grid's scoring tens of milliseconds."""
+    body = await read_json(request, StartPoseRequest)
+    answer = await asyncio.to_thread(start_pose, body, state.context)
+    return Response(answer.model_dump_json(), media_type="application/json")
 
 
 @router.post(

@@ -49,6 +49,7 @@ from services.optimizer.matching import ViewComparison, compare_views
 from services.optimizer.observations import Observation, merge_duplicates
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 from services.optimizer.proxies import ProxyKind, kind_of
+from services.optimizer.start_pose import GridViewCache
 from services.optimizer.strategies import (
     LOOSE_FACTOR,
     NOISE_SIGMAS,
@@ -79,6 +80,7 @@ class OptimizerContext:
     max_history_detections: int = 4_000
     mappings: ViewMappings = field(default_factory=ViewMappings, compare=False, repr=False)
     images: ImageCache = field(default_factory=ImageCache, compare=False, repr=False)
+    grid_views: GridViewCache = field(default_factory=GridViewCache, compare=False, repr=False)
 
 
 def _invalid(detail: str, field: str, slug: str = "invalid-request") -> UnprocessableError:

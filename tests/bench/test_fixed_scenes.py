@@ -216,12 +216,15 @@ def test_a_ci_sized_bench_through_the_real_stack(tmp_path, capsys):
     assert status == 0, printed
     report = json.loads((out / "bench.json").read_text())
     records = [SearchRecord.model_validate(r) for r in report["records"]]
-    assert len(records) == 2 * 4 * 3
+    assert len(records) == 2 * 4 * 3 * 2  # scenes, variants, targets, starts (given, predicted)
     assert all(r.status != "error" for r in records), [r.error for r in records]
     clean = [r for r in records if r.variant == "clean"]
     assert sum(r.success for r in clean) / len(clean) >= 0.8, printed
     assert sum(r.success for r in records) / len(records) >= 0.7, printed
     assert float(np.median([r.renders for r in clean])) <= 3
+    predicted = [r for r in clean if not r.start_given]
+    assert float(np.median([r.renders for r in predicted])) == 1, printed
+    assert "reprojection, predicted start" in printed
     for r in records:
         assert r.renders == len({(t.lat, t.lon) for t in r.trajectory})
         assert r.wall_ms >= r.stage_ms * 0.5
@@ -280,3 +283,31 @@ def test_sweep_matching_maps_a_smaller_film_onto_the_scene_film():
     found, expected, correct, errors = _match([half], truth, fit((160, 120), (320, 240)))
     assert (found, expected, correct) == (1, 1, 1)
     assert errors == [pytest.approx(0.0)]
+
+
+def test_predicted_start_searches_send_no_start_and_stand_apart_in_the_tables():
+    from cosmos.bench.random_report import band_cells, band_table
+    from cosmos.bench.runner import BenchTarget, _search_query, with_starts
+    from cosmos.bench.stats import strategy_label
+    from services.common.geometry.pose import Pose
+
+    pose = Pose(theta_deg=30.0, phi_deg=0.0)
+    index = GridIndex(lat=1, lon=0)
+    target = BenchTarget(
+        "demo", b"png", index, pose, start=index, start_pose=pose, seed=1, variant="clean", number=0
+    )
+    given, predicted = with_starts([target], ("given", "predicted"))
+    assert "start_theta_deg" in _search_query(given, "reprojection", 10)
+    query = _search_query(predicted, "reprojection", 10)
+    assert "start_theta_deg" not in query
+    assert "start_phi_deg" not in query
+    records = [
+        _record("reprojection", 3),
+        _record("reprojection", 1).model_copy(update={"start_given": False}),
+    ]
+    labels = {s.strategy: s for s in summarize(records)}
+    assert labels["reprojection"].renders_p50 == 3
+    assert labels["reprojection, predicted start"].renders_p50 == 1
+    assert [strategy_label(r) for r in records] == ["reprojection", "reprojection, predicted start"]
+    table = band_table(band_cells(records, strategy_label), title="strategy")
+    assert "reprojection, predicted start" in table

@@ -327,6 +327,7 @@ def test_a_ci_sized_random_scene_bench_through_the_real_stack(tmp_path, capsys):
             "--n", "1",
             "--onboard", "none",
             "--variants", "clean,photo,changed",
+            "--starts", "predicted",
             "--max-iterations", "20",
             "--seed", "3",
             "--scenes-out", str(tmp_path / "scenes"),
@@ -340,6 +341,8 @@ def test_a_ci_sized_random_scene_bench_through_the_real_stack(tmp_path, capsys):
     records = [SearchRecord.model_validate(r) for r in report["records"]]
     assert [r.variant for r in records] == ["clean", "photo", "changed"]
     assert all(r.arm == "general" and r.status != "error" for r in records)
+    assert not any(r.start_given for r in records)  # searched without a start
+    assert "general, predicted start" in printed
     assert all((r.trace is None) == (r.success and r.confirmed is not False) for r in records)
     assert records[1].change.startswith("light turned")
     assert records[2].change
@@ -439,7 +442,9 @@ def test_the_scene_arm_searches_only_scenes_whose_own_model_serves(monkeypatch, 
         random_run, "model_status", lambda url, scene, token: "refused: wrong classes"
     )
     models: list = []
-    config = BenchConfig(scenes=("a", "b", "c"), strategies=("reprojection",), onboard="tiny")
+    config = BenchConfig(
+        scenes=("a", "b", "c"), strategies=("reprojection",), starts=("given",), onboard="tiny"
+    )
     endpoints = Endpoints("http://c", "http://r", detectors=("http://d",))
     records = random_run._scene_arm(
         config, endpoints, targets, tmp_path, tmp_path / "work", onboard, models
@@ -510,6 +515,7 @@ def test_the_scene_arm_runs_with_a_model_the_detector_picks_up_without_restart(
             "--n", "1",
             "--onboard", "tiny",
             "--variants", "clean",
+            "--starts", "given",
             "--max-iterations", "8",
             "--seed", "3",
             "--out", str(out),

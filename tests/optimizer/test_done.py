@@ -117,3 +117,26 @@ def test_a_target_between_grid_poses_is_found_at_the_nearest_one_that_looks_less
     assert answer.estimate is not None
     assert abs(answer.estimate.theta_deg - 22.14) < 1.0
     assert abs(answer.estimate.phi_deg - 265.64) < 1.0
+
+
+@pytest.mark.parametrize(("theta", "edge"), [(15.4, False), (17.5, False), (18.7, True)])
+def test_an_estimate_on_the_edge_between_grid_poses_makes_the_answer_ambiguous(demo, theta, edge):
+    """Done by the loose test at lat 1 lon 0 (θ = 15°, φ = 0): an estimate 0.05° short of the
+    boundary with lat 2 lon 0 (θ = 22.5°) could as well be nearer that pose."""
+    from services.optimizer.problem import Estimate
+    from services.optimizer.strategies.done import done_plan
+
+    _, grid, _ = demo
+    flat = grid.flat(GridIndex(lat=1, lon=0))
+    view = Observation.from_arrays(["sphere"] * 3, row(3))
+    target = Observation.from_arrays(["sphere"] * 3, row(3) + 1.5)  # loose, not strict
+    current = Visit(flat, 15.0, 0.0, view)
+    problem = SearchProblem(grid, demo[0].camera, target, (current,))
+    est = Estimate(flat, theta, 0.0, 0.4, 0.9)
+    plan = done_plan(problem, current, compare_views(view, target), est, True)
+    assert plan is not None
+    assert plan.done
+    assert plan.ambiguous == edge, plan.reason
+    if edge:
+        assert [grid.unflat(f) for f, _ in plan.alternatives] == [GridIndex(lat=2, lon=0)]
+        assert "lies almost as near lat 2 lon 0" in plan.reason

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Final, Literal
 
-from pydantic import BeforeValidator, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BeforeValidator, ConfigDict, Field, field_validator
 
 from services.common.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection
@@ -56,7 +56,18 @@ MappingMethod = Literal["exact", "paper"]
 Move = Literal["start", "stay", "N", "S", "E", "W", "jump"]
 
 ImageSide = Annotated[Integer, Field(ge=1, le=16384)]
-ObjectClasses = Annotated[tuple[ObjectClass, ...], Field(min_length=1, max_length=256)]
+
+
+def _distinct_labels(value: tuple[ObjectClass, ...]) -> tuple[ObjectClass, ...]:
+    if len({c.label for c in value}) != len(value):
+        raise ValueError("object class labels must be distinct")
+    return value
+
+
+ObjectClasses = Annotated[
+    tuple[ObjectClass, ...], Field(min_length=1, max_length=256), AfterValidator(_distinct_labels)
+]
+"""A scene's own detector classes, as a request gives them: distinct labels."""
 
 
 class UnsupportedGridError(ValueError):
@@ -196,15 +207,6 @@ class NextPoseRequest(FrozenModel):
     def _not_null(cls, value: object) -> object:
         if value is None:
             raise ValueError("leave the field out instead of sending null")
-        return value
-
-    @field_validator("object_classes")
-    @classmethod
-    def _distinct_labels(
-        cls, value: tuple[ObjectClass, ...] | None
-    ) -> tuple[ObjectClass, ...] | None:
-        if value is not None and len({c.label for c in value}) != len(value):
-            raise ValueError("object class labels must be distinct")
         return value
 
 

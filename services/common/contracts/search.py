@@ -164,7 +164,9 @@ class SearchResult(FrozenModel):
     ``confirmed`` is false for an any-time answer: no view was confirmed to match the target
     before the search ran out of iterations or went round in circles, so the result is the
     visited pose whose view matched best, its match score as ``confidence``, and ``reason``
-    says why it is not confirmed.
+    says why it is not confirmed. It is false too for an answer the search itself finds
+    ``ambiguous`` (another pose explains the target about as well): a confirmed answer is one
+    the search vouches for.
     """
 
     pose: GridPose
@@ -175,8 +177,8 @@ class SearchResult(FrozenModel):
     reason: str = ""
     confirmed: bool = Field(
         default=True,
-        description="False when no view was confirmed to match the target: the pose is the "
-        "best visited one, not a found one.",
+        description="False when no view was confirmed to match the target (the pose is the "
+        "best visited one, not a found one), or when the answer is ambiguous.",
     )
     free: FreeAnswer | None = Field(
         default=None,
@@ -194,6 +196,12 @@ class Search(FrozenModel):
     scene: str
     strategy: StrategyName
     start: GridPose
+    start_given: bool = Field(
+        default=True,
+        description="Whether the submission gave the start pose. A search without one takes its "
+        "first view at the grid pose the optimizer predicts from the target's detections "
+        "(`POST /start-pose`), and at `start` (drawn from `seed`) when it cannot predict one.",
+    )
     seed: Integer
     max_iterations: Integer
     created_at: datetime

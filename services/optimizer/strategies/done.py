@@ -13,6 +13,11 @@ weighs a third of a sure one. The search is done when
    the map's prediction at the refined continuous estimate matches the target that closely (a
    target between grid poses).
 
+An answer done on the strength of the estimate (2.) whose estimate lies almost on the boundary
+between its grid pose and another (:data:`EDGE_MARGIN_STEPS`) is ambiguous: which of the two is
+nearest the target is then within the estimate's own error (a target between grid poses), and
+a confirmed answer must not hang on it.
+
 The strict test alone needs a tolerance below the smallest difference between adjacent grid
 views, which can be tiny: near the zenith one 7.5° step in θ moves the demo balls by only
 ≈ 2 px RMS, less than a real detector's noise. The loose test lets noisy detections and targets
@@ -40,10 +45,16 @@ out a neighbour.
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Final
 
+import numpy as np
+
+from services.common.geometry.grid import HemisphereGrid
+from services.common.geometry.sphere import pose_to_cartesian
+from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import ViewComparison
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 
@@ -53,6 +64,9 @@ LOOSE_FACTOR: Final = 3.0
 """The loose done test's tolerance before noise, in strict tolerances (module docstring)."""
 NOISE_SIGMAS: Final = 2.0
 """z: standard deviations of edge noise the loose done test allows (module docstring)."""
+EDGE_MARGIN_STEPS: Final = 0.2
+"""An estimate nearer its grid pose than another by less than this many grid steps of angle
+makes a done answer ambiguous (:func:`_on_the_edge`)."""
 
 
 @dataclass(frozen=True)
@@ -116,11 +130,11 @@ def done_plan(
         return None
     loose = comparison.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
     if comparison.within(loose, problem.max_unmatched):
-        return Plan(
+        return _on_the_edge(problem, Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
             f"the estimate puts the target at this grid pose and the views agree within "
             f"{loose:.2f} px ({matched_text(comparison)})",
-        )  # fmt: skip
+        ))  # fmt: skip
     if refined is None or refined.residual_px > loose:
         return None
     # Refined at another view, the prediction pairs the target, not this view (which may look
@@ -132,10 +146,45 @@ def done_plan(
     refined_px = refined.residual_px
     if paired:
         assert est is not None  # a refined residual comes with its estimate
-        return Plan(
+        return _on_the_edge(problem, Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
             f"the target lies between grid poses, nearest this one: at the refined pose "
             f"θ = {est.theta_deg:.2f}°, φ = {est.phi_deg:.2f}° the predicted view matches it "
             f"within {refined_px:.2f} px (the grid view differs by {comparison.rms_px:.2f} px)",
-        )  # fmt: skip
+        ))  # fmt: skip
     return None
+
+
+@functools.lru_cache(maxsize=16)
+def _units(grid: HemisphereGrid) -> FloatArray:
+    """Unit view directions of every grid pose (flat order)."""
+    return pose_to_cartesian(grid.theta_deg, grid.phi_deg).reshape(-1, 3)
+
+
+def _on_the_edge(problem: SearchProblem, plan: Plan) -> Plan:
+    """``plan``, done on the strength of its estimate, made ambiguous when the estimate lies
+    almost as near another grid pose: within :data:`EDGE_MARGIN_STEPS` grid steps of angle
+    (``d₂ − d₁``, the angles to the second nearest and the nearest grid pose) of the boundary
+    between the two, where the estimate's own error (a few tenths of a degree, more from a
+    single view) decides which is nearest. The other pose becomes an alternative."""
+    est = plan.estimate
+    if est is None or not math.isfinite(est.theta_deg + est.phi_deg):
+        return plan
+    grid = problem.grid
+    units = _units(grid)
+    point = pose_to_cartesian(est.theta_deg, est.phi_deg).reshape(3)
+    angles = np.degrees(np.arccos(np.clip(units @ point, -1.0, 1.0)))
+    nearest, second = (int(i) for i in np.argsort(angles, kind="stable")[:2])
+    margin = float(angles[second] - angles[nearest])
+    if nearest != plan.next_flat or margin >= EDGE_MARGIN_STEPS * grid.angle_step_deg:
+        return plan
+    other = grid.unflat(second)
+    residual = est.residual_px if est.residual_px is not None else 0.0
+    return replace(
+        plan,
+        ambiguous=True,
+        alternatives=(*plan.alternatives, (second, float(residual))),
+        reason=plan.reason
+        + f"; ambiguous: the refined pose θ = {est.theta_deg:.2f}°, φ = {est.phi_deg:.2f}° "
+        f"lies almost as near lat {other.lat} lon {other.lon} ({margin:.2f}° nearer this one)",
+    )
