@@ -17,6 +17,7 @@ pose), so the image's depth is the rendered one resampled by the view's warp, ne
 from __future__ import annotations
 
 import io
+import zipfile
 from dataclasses import dataclass
 from typing import Final
 
@@ -55,7 +56,7 @@ class DepthImage:
             with np.load(io.BytesIO(data), allow_pickle=False) as archive:
                 depth = np.asarray(archive["depth"], dtype=np.float32)
                 objects = np.asarray(archive["objects"], dtype=np.int16)
-        except (OSError, KeyError, EOFError) as exc:
+        except (OSError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"not a depth archive: {exc}") from exc
         if depth.ndim != 2 or depth.shape != objects.shape:
             raise ValueError("a depth archive holds two (H, W) arrays of one shape")
