@@ -1,4 +1,4 @@
-"""A camera anywhere from the target's boxes, then by one render: hypotheses, refinement, an honest status.
+"""A camera anywhere from the target's boxes, then refined by one render; an honest status.
 
 :func:`scene_objects` turns a scene file into point sets, :func:`solve_free_pose` answers a
 :class:`FreePoseAnswer` from the target's detections (:mod:`.solve` for the steps and the status),
