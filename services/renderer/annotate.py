@@ -1,13 +1,18 @@
-"""Per-object silhouette statistics from per-pixel object ids (pure numpy)."""
+"""Per-object silhouette statistics from per-pixel object ids (pure numpy), and the objects'
+annotations made of them."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Silhouettes", "silhouettes"]
+from services.common.contracts.render import ObjectAnnotation
+from services.common.geometry.scene import SceneObject
+
+__all__ = ["Silhouettes", "object_annotations", "silhouettes"]
 
 
 @dataclass(frozen=True)
@@ -46,3 +51,33 @@ def silhouettes(object_ids: NDArray[np.integer], count: int) -> Silhouettes:
     boxes = np.stack([x1, y1, x2 + 1, y2 + 1], axis=1).astype(np.float64)
     boxes[pixels == 0] = np.nan
     return Silhouettes(pixels=pixels, boxes=boxes)
+
+
+def object_annotations(
+    objects: Sequence[SceneObject],
+    visible: Silhouettes,
+    full: Silhouettes,
+    centroids: NDArray[np.float64],
+    projected: NDArray[np.float64],
+) -> tuple[ObjectAnnotation, ...]:
+    """Each object's annotation from its visible silhouette (in the whole scene), its full one
+    (alone, unoccluded), its bounding-box centroid and that centroid's projection."""
+    annotations = []
+    for index, obj in enumerate(objects):
+        whole = int(full.pixels[index])
+        seen = int(min(visible.pixels[index], whole)) if whole else int(visible.pixels[index])
+        annotations.append(
+            ObjectAnnotation(
+                name=obj.name,
+                shape=obj.shape,
+                position=(obj.position[0], obj.position[1], 0.0),
+                centroid=tuple(float(v) for v in centroids[index]),
+                box=visible.box(index),
+                visible_pixels=int(visible.pixels[index]),
+                full_box=full.box(index),
+                full_pixels=whole,
+                visible_fraction=seen / whole if whole else 0.0,
+                projected_center=(float(projected[index, 0]), float(projected[index, 1])),
+            )
+        )
+    return tuple(annotations)

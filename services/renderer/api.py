@@ -21,6 +21,7 @@ from services.common.geometry.pose import Pose
 from services.common.geometry.scene import scene_json_schema
 from services.common.http import app_state, problem_responses
 from services.common.images import PPM_MEDIA_TYPE, encode_ppm
+from services.renderer.depth import DEPTH_MEDIA_TYPE
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 from services.renderer.settings import RendererSettings
@@ -152,3 +153,24 @@ async def render_annotations(body: RenderRequest, state: State) -> RenderAnnotat
     return await state.engine.annotate_async(
         view.scene, view.pose, view.width, view.height, view.grid_index
     )
+
+
+@router.post(
+    "/render/depth",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {DEPTH_MEDIA_TYPE: {}},
+            "description": "The view's per-pixel depth along the optical axis (float32, scene "
+            "units, 0 where no surface) and object index (int16, -1 for the ground or nothing) "
+            "as a NumPy .npz archive with arrays depth and objects.",
+        },
+        **problem_responses(400, 404, 413, 422, 503),
+    },
+)
+async def render_depth(body: RenderRequest, state: State) -> Response:
+    """Depth and object ids of a view, one ray through each pixel centre: what a dense
+    refinement back-projects the render's edges through (``spp`` and ``seed`` do not apply)."""
+    view = await _resolve(state, body)
+    image = await state.engine.depth_async(view.scene, view.pose, view.width, view.height)
+    return Response(image.npz(), media_type=DEPTH_MEDIA_TYPE)

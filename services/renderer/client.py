@@ -10,6 +10,7 @@ from services.common.contracts.render import (
     SceneSummary,
 )
 from services.common.geometry.free_camera import FreeCamera
+from services.renderer.depth import DepthImage
 
 __all__ = ["RendererClient", "RendererError"]
 
@@ -43,6 +44,11 @@ class RendererClient(ServiceClient):
         body = request.model_dump(mode="json", exclude_none=True)
         response = self._check(self._http.post("/render/annotations", json=body))
         return RenderAnnotations.model_validate(response.json())
+
+    def depth(self, request: RenderRequest) -> DepthImage:
+        """``POST /render/depth``: the view's depth and object ids."""
+        body = request.model_dump(mode="json", exclude_none=True)
+        return DepthImage.from_npz(self._check(self._http.post("/render/depth", json=body)).content)
 
     def render_camera(
         self,

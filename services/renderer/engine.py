@@ -1,5 +1,5 @@
-"""The render engine: one dedicated Mitsuba worker thread, a cache of loaded scenes, and the two
-products of a view, the RGB image and the per-object ground truth.
+"""The render engine: one dedicated Mitsuba worker thread, a cache of loaded scenes, and the
+products of a view: the RGB image, the per-object ground truth and the per-pixel depth.
 
 Mitsuba is not safe across arbitrary threads, so the variant is set and every Mitsuba call runs on
 a single worker thread; a process scales by running more processes. Each (scene, film size) is
@@ -29,17 +29,24 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.caches import SharedLru
-from services.common.contracts.render import ObjectAnnotation, RenderAnnotations
+from services.common.contracts.render import RenderAnnotations
 from services.common.errors import ServiceUnavailableError
 from services.common.geometry.camera import PinholeCamera, pinhole_camera
 from services.common.geometry.lens import project_lens
 from services.common.geometry.pose import GridIndex, Pose
 from services.common.geometry.scene import LoadedScene
-from services.renderer.annotate import silhouettes
+from services.renderer.annotate import object_annotations, silhouettes
+from services.renderer.depth import GEOMETRY_AOVS, DepthImage, depth_image
 from services.renderer.free_view import FreeView
 from services.renderer.imaging import linear_to_srgb8
 from services.renderer.pool import lower_worker_priority
-from services.renderer.scene_builder import build_object_scene, build_scene, object_index_of
+from services.renderer.scene_builder import (
+    build_object_scene,
+    build_scene,
+    object_index_of,
+    place_sensor,
+    shape_keys,
+)
 from services.renderer.scheduler import (
     DEFAULT_SLICE_SAMPLES,
     Job,
@@ -114,6 +121,7 @@ class RenderEngine:
         self._mi: Any = None
         self._dr: Any = None
         self._aov: Any = None
+        self._geometry: Any = None
         self._render_view: Callable[[Any, Any, Any, int], Any] = self._traced_render
         self.variant = ""
         self.variant_reason = ""
@@ -145,6 +153,7 @@ class RenderEngine:
             mi.set_variant(SCALAR_VARIANT)
         self._mi, self._dr = mi, dr
         self._aov = mi.load_dict({"type": "aov", "aovs": "si:shape_index"})
+        self._geometry = mi.load_dict({"type": "aov", "aovs": GEOMETRY_AOVS})
         if self._freeze and choice.variant != SCALAR_VARIANT:
             # A frozen render replays the recorded kernel launches instead of tracing the
             # integrator in Python again: ~3-5 ms less per view, identical pixels
@@ -274,6 +283,22 @@ class RenderEngine:
         job = single_slice(self._object_map, scene, view)
         return self._run(job, view.rendered.width * view.rendered.height)
 
+    def depth(
+        self, scene: LoadedScene, pose: Pose | FreeView, width: int, height: int
+    ) -> DepthImage:
+        """Per-pixel depth and object ids of the view (blocking; :mod:`.depth`)."""
+        view = self.free_view(scene, pose, width, height)
+        job = single_slice(self._depth, scene, view)
+        return self._run(job, view.rendered.width * view.rendered.height)
+
+    async def depth_async(
+        self, scene: LoadedScene, pose: Pose | FreeView, width: int, height: int
+    ) -> DepthImage:
+        """Per-pixel depth and object ids of the view on the worker."""
+        view = self.free_view(scene, pose, width, height)
+        job = single_slice(self._depth, scene, view)
+        return await self._run_async(job, view.rendered.width * view.rendered.height)
+
     @staticmethod
     def free_view(scene: LoadedScene, pose: Pose | FreeView, width: int, height: int) -> FreeView:
         """The camera of a view as a :class:`FreeView` (a hemisphere pose renders directly)."""
@@ -302,7 +327,7 @@ class RenderEngine:
         # shape, and their objects could no longer be told apart in the shape-id image.
         mi_scene = mi.load_dict(build_scene(mi, scene, width, height), optimize=False)
         shapes = list(mi_scene.shapes())
-        keys = self._shape_keys(shapes)
+        keys = shape_keys(self._mi, self._dr, self.variant, shapes)
         count = len(scene.spec.objects)
         shape_to_object = np.full(max(keys) + 1, -1, dtype=np.int64)
         lo = np.full((count, 3), np.inf)
@@ -338,33 +363,8 @@ class RenderEngine:
         )
         return loaded
 
-    def _shape_keys(self, shapes: list[Any]) -> list[int]:
-        """The value the ``shape_index`` AOV reports for each shape.
-
-        Scalar variants report the 1-based position in ``scene.shapes()``; JIT variants report the
-        shape's id in Dr.Jit's instance registry (what ``ShapePtr`` holds), which counts every shape
-        the process ever created.
-        """
-        if self.variant == SCALAR_VARIANT:
-            return list(range(1, len(shapes) + 1))
-        mi, dr = self._mi, self._dr
-        return [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]) for shape in shapes]
-
     def _place(self, params: Any, sensor: str, camera: PinholeCamera) -> None:
-        """Point the sensor of ``params`` at ``camera``: Mitsuba's camera space is x left, y up,
-        z forward, so its camera-to-world columns are ``(-right, -down, forward, position)``; its
-        principal point sits at ``(0.5 - o_x) W, (0.5 - o_y) H`` for offsets ``o``."""
-        rotation = np.asarray(camera.rotation)
-        matrix = np.eye(4)
-        matrix[:3, 0] = -rotation[0]
-        matrix[:3, 1] = -rotation[1]
-        matrix[:3, 2] = rotation[2]
-        matrix[:3, 3] = camera.position
-        params[f"{sensor}.to_world"] = self._mi.ScalarTransform4f(matrix.tolist())
-        params[f"{sensor}.x_fov"] = camera.fov_deg
-        params[f"{sensor}.principal_point_offset_x"] = 0.5 - camera.cx / camera.width
-        params[f"{sensor}.principal_point_offset_y"] = 0.5 - camera.cy / camera.height
-        params.update()
+        place_sensor(self._mi, params, sensor, camera)
 
     def _check_placement(self, loaded: _Loaded, pose: Pose | FreeView) -> None:
         if isinstance(pose, FreeView):
@@ -437,8 +437,7 @@ class RenderEngine:
         loaded = self.loaded(scene, width, height)
         self._check_placement(loaded, pose)
         visible = silhouettes(self._object_map(scene, view), count)
-        full_pixels = np.zeros(count, dtype=np.int64)
-        full_boxes: list[tuple[float, float, float, float] | None] = []
+        full = silhouettes(np.full((1, 1), -1), count)  # filled object by object
         for index in range(count):
             yield width * height
             alone, params = self._object_scene(loaded, scene, index, width, height)
@@ -446,35 +445,17 @@ class RenderEngine:
             mask = self._shape_ids(alone, alone.sensors()[0], width, height) > 0
             mask = view.warp(mask.astype(np.float32), nearest=True) > 0.5
             stats = silhouettes(np.where(mask, 0, -1), 1)
-            full_pixels[index] = stats.pixels[0]
-            full_boxes.append(stats.box(0))
+            full.pixels[index], full.boxes[index] = stats.pixels[0], stats.boxes[0]
         centroids = (loaded.lo + loaded.hi) / 2.0
         projected, _ = project_lens(centroids, view.camera, view.distortion)
-        objects = []
-        for index, obj in enumerate(spec.objects):
-            full = int(full_pixels[index])
-            seen = int(min(visible.pixels[index], full)) if full else int(visible.pixels[index])
-            objects.append(
-                ObjectAnnotation(
-                    name=obj.name,
-                    shape=obj.shape,
-                    position=(obj.position[0], obj.position[1], 0.0),
-                    centroid=tuple(float(v) for v in centroids[index]),
-                    box=visible.box(index),
-                    visible_pixels=int(visible.pixels[index]),
-                    full_box=full_boxes[index],
-                    full_pixels=full,
-                    visible_fraction=seen / full if full else 0.0,
-                    projected_center=(float(projected[index, 0]), float(projected[index, 1])),
-                )
-            )
+        objects = object_annotations(spec.objects, visible, full, centroids, projected)
         return RenderAnnotations(
             scene=scene.id,
             pose=pose if isinstance(pose, Pose) else None,
             grid_index=grid_index,
             camera=view.camera,
             distortion=view.distortion,
-            objects=tuple(objects),
+            objects=objects,
         )
 
     def _object_map(self, scene: LoadedScene, view: FreeView) -> NDArray[np.int64]:
@@ -487,6 +468,16 @@ class RenderEngine:
         warped = view.warp(mapped.astype(np.float32), nearest=True)
         result: NDArray[np.int64] = np.rint(warped).astype(np.int64)
         return result
+
+    def _depth(self, scene: LoadedScene, view: FreeView) -> DepthImage:
+        width, height = view.rendered.width, view.rendered.height
+        loaded = self.loaded(scene, width, height)
+        self._check_placement(loaded, view)
+        self._place(loaded.params, "mask_camera", view.rendered)
+        sensor, geometry = loaded.mask_sensor, self._geometry
+        image = self._mi.render(loaded.scene, sensor=sensor, integrator=geometry, spp=1)
+        channels = np.asarray(image, dtype=np.float32).reshape(height, width, -1)
+        return depth_image(channels, loaded.shape_to_object, view)
 
     def _object_scene(
         self, loaded: _Loaded, scene: LoadedScene, index: int, width: int, height: int

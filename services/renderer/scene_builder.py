@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from services.common.geometry.camera import mitsuba_to_world
+from services.common.geometry.camera import PinholeCamera, mitsuba_to_world
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import (
     ConeObject,
@@ -32,6 +32,7 @@ from services.common.geometry.scene import (
     SceneObject,
     SphereObject,
 )
+from services.renderer.variant import SCALAR_VARIANT
 
 __all__ = [
     "CONE_SEGMENTS",
@@ -41,6 +42,8 @@ __all__ = [
     "build_scene",
     "object_index_of",
     "object_centroid",
+    "place_sensor",
+    "shape_keys",
 ]
 
 RGB_SENSOR = 0
@@ -255,3 +258,32 @@ def build_object_scene(
     }
     data.update(_object_shapes(mi, scene, index))
     return data
+
+
+def shape_keys(mi: Any, dr: Any, variant: str, shapes: list[Any]) -> list[int]:
+    """The value the ``shape_index`` AOV reports for each shape.
+
+    Scalar variants report the 1-based position in ``scene.shapes()``; JIT variants report the
+    shape's id in Dr.Jit's instance registry (what ``ShapePtr`` holds), which counts every shape
+    the process ever created.
+    """
+    if variant == SCALAR_VARIANT:
+        return list(range(1, len(shapes) + 1))
+    return [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]) for shape in shapes]
+
+
+def place_sensor(mi: Any, params: Any, sensor: str, camera: PinholeCamera) -> None:
+    """Point the sensor of ``params`` at ``camera``: Mitsuba's camera space is x left, y up,
+    z forward, so its camera-to-world columns are ``(-right, -down, forward, position)``; its
+    principal point sits at ``(0.5 - o_x) W, (0.5 - o_y) H`` for offsets ``o``."""
+    rotation = np.asarray(camera.rotation)
+    matrix = np.eye(4)
+    matrix[:3, 0] = -rotation[0]
+    matrix[:3, 1] = -rotation[1]
+    matrix[:3, 2] = rotation[2]
+    matrix[:3, 3] = camera.position
+    params[f"{sensor}.to_world"] = mi.ScalarTransform4f(matrix.tolist())
+    params[f"{sensor}.x_fov"] = camera.fov_deg
+    params[f"{sensor}.principal_point_offset_x"] = 0.5 - camera.cx / camera.width
+    params[f"{sensor}.principal_point_offset_y"] = 0.5 - camera.cy / camera.height
+    params.update()

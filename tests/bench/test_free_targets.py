@@ -30,9 +30,11 @@ from cosmos.bench.free_targets import (
     summarize,
     text_table,
 )
+from cosmos.bench.free_targets.dense import dense_method
 from cosmos.bench.free_targets.draw import (
     DISTANCE_RANGE,
     FOV_SPREAD,
+    FREE_VARIANTS,
     MIN_OBJECTS,
     MIN_VISIBLE,
     NADIR_SHARE,
@@ -41,7 +43,7 @@ from cosmos.bench.free_targets.draw import (
 )
 from cosmos.bench.free_targets.estimate import intrinsics_matrix
 from cosmos.bench.free_targets.metrics import MISSED
-from cosmos.bench.free_targets.report import TargetResult, solver_table
+from cosmos.bench.free_targets.report import TargetResult, dense_line, solver_table
 from cosmos.bench.free_targets.solver import SOLVER, answer_estimate, confirmed_wrong
 from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
@@ -317,3 +319,21 @@ def test_confirmed_wrong_counts_found_answers_far_from_the_truth() -> None:
     # n, found, ambiguous, failed, wrong >10%/5° (of them no K), found >5%/2°, fov median and n
     # without K
     assert total[2:] == ["3", "67%", "0%", "33%", "1", "1", "1", "0.0", "2"]
+
+
+def test_the_dense_stage_renders_once_per_target_and_reports_every_variant(
+    targets: list[FreeTarget], garden: LoadedScene, renderer: LocalRenderer
+) -> None:
+    shapes = scene_shapes(garden)
+    radius = garden.spec.camera.radius
+    objects = scene_objects(garden.spec, garden.assets)
+    results = evaluate(targets[:3], shapes, radius, SEED, objects, renderer, spp=1)
+    methods = [dense_method(v) for v in FREE_VARIANTS]
+    for result in results:
+        assert result.renders == (1 if result.status != "failed" else 0)
+        assert set(methods) <= set(result.errors)
+        assert all(result.errors[m].position < math.inf for m in methods)
+    table = text_table(results, by="given")
+    assert table.splitlines()[0].split()[2] == "intrinsics"
+    assert all(any(m in line for line in table.splitlines()) for m in methods)
+    assert dense_line(results).startswith("dense: renders per search median 1")

@@ -13,6 +13,7 @@ from pydantic import ValidationError
 from services.common.contracts.render import SceneDetail
 from services.common.images import decode_image
 from services.renderer.app import create_app
+from services.renderer.depth import DepthImage
 from services.renderer.settings import RendererSettings
 from tests.support import in_process
 
@@ -159,7 +160,7 @@ BAD_REQUESTS = [
 
 
 @pytest.mark.parametrize(("body", "status", "field"), BAD_REQUESTS)
-@pytest.mark.parametrize("path", ["/render", "/render/annotations"])
+@pytest.mark.parametrize("path", ["/render", "/render/annotations", "/render/depth"])
 async def test_bad_requests_get_problem_details_naming_the_field(client, path, body, status, field):
     response = await client.post(path, json=body)
     assert response.status_code == status
@@ -255,6 +256,29 @@ async def test_a_distorted_free_camera_reports_its_lens(client):
     assert ann["distortion"] == lens
 
 
+async def test_depth_is_the_distance_along_the_optical_axis_with_the_objects_masks(client):
+    """Straight down from 6 units over the ground: the ground's depth is 6 on every pixel,
+    a ball of radius 0.45 (the top 0.9 above the ground) comes 0.9 closer, and the object ids
+    cover the same pixels as the annotated visible boxes."""
+    camera = {"position": [0.0, 0.0, 6.0], "yaw_deg": 0.0, "pitch_deg": 90.0}
+    body = {"scene": "demo", "camera": camera, "width": 160, "height": 120}
+    response = await client.post("/render/depth", json=body)
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/x-npz"
+    image = DepthImage.from_npz(response.content)
+    assert image.depth.shape == image.objects.shape == (120, 160)
+    ground = image.objects == -1
+    assert np.allclose(image.depth[ground], 6.0, atol=1e-4)
+    assert image.depth[~ground].min() == pytest.approx(5.1, abs=0.01)
+    ann = (await client.post("/render/annotations", json=body)).json()
+    for index, obj in enumerate(ann["objects"]):
+        ys, xs = np.nonzero(image.objects == index)
+        if obj["box"] is None:
+            assert xs.size == 0
+        else:
+            assert [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1] == obj["box"]
+
+
 def free(**camera):
     return {"scene": "demo", "camera": {**NADIR, **camera}, "width": 96, "spp": 1}
 
@@ -298,7 +322,7 @@ BAD_FREE_CAMERAS = [
 
 
 @pytest.mark.parametrize(("body", "field", "slug"), BAD_FREE_CAMERAS)
-@pytest.mark.parametrize("path", ["/render", "/render/annotations"])
+@pytest.mark.parametrize("path", ["/render", "/render/annotations", "/render/depth"])
 async def test_bad_free_cameras_get_problem_details_naming_the_field(
     client, path, body, field, slug
 ):

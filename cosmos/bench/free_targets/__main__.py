@@ -1,6 +1,8 @@
 """``python -m cosmos.bench.free_targets --scene demo --random-scenes 4 --n 20 --seed 1``: draw
-free targets, run the baseline, the box-only bound and the box solver on them, print the table
-per elevation band and per count of objects in view, and the solver's statuses.
+free targets, run the baseline, the box-only bound, the box solver and the dense stage after it
+(one render per target, on each image variant) on them, print the table per elevation band, per
+given or estimated intrinsics and per count of objects in view, the solver's statuses and the
+dense stage's renders and time.
 
 ``--random-scenes N`` adds N scenes of :func:`cosmos.bench.scenes.generate_scene` (scene ``i``
 from the seed ``[seed, i]``, written to a temporary folder): their targets are tabled together
@@ -21,7 +23,13 @@ import numpy as np
 
 from cosmos.bench.free_targets.draw import DrawError, draw_targets
 from cosmos.bench.free_targets.rendering import LocalRenderer, Renderer
-from cosmos.bench.free_targets.report import TargetResult, evaluate, solver_table, text_table
+from cosmos.bench.free_targets.report import (
+    TargetResult,
+    dense_line,
+    evaluate,
+    solver_table,
+    text_table,
+)
 from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.scenes import generate_scene
 from services.common.auth import token_from_environment
@@ -45,6 +53,13 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--height", type=int)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--url", help="a running renderer instead of rendering in-process")
+    parser.add_argument(
+        "--dense-renders",
+        type=int,
+        default=1,
+        metavar="N",
+        help="renders the dense stage spends per target (0: no dense stage)",
+    )
     parser.add_argument(
         "--random-scenes",
         type=int,
@@ -73,7 +88,16 @@ def _scene_results(
     )
     drawn_s = time.perf_counter() - started
     objects = scene_objects(scene.spec, scene.assets)
-    results = evaluate(targets, shapes, scene.spec.camera.radius, args.seed, objects)
+    results = evaluate(
+        targets,
+        shapes,
+        scene.spec.camera.radius,
+        args.seed,
+        objects,
+        renderer if args.dense_renders > 0 else None,
+        spp=args.spp,
+        renders=max(args.dense_renders, 1),
+    )
     sys.stderr.write(
         f"{scene_id}: {len(targets)} targets drawn in {drawn_s:.1f} s, solved in "
         f"{time.perf_counter() - started - drawn_s:.1f} s, "
@@ -100,7 +124,14 @@ def _run(
             skipped.append(scene_id)
             sys.stderr.write(f"free targets: skipped: {exc}\n")
     results += [replace(r, scene="random") for r in randoms]
-    out = [text_table(results), text_table(results, by="objects"), solver_table(results)]
+    out = [
+        text_table(results),
+        text_table(results, by="given"),
+        text_table(results, by="objects"),
+        solver_table(results),
+    ]
+    if args.dense_renders > 0:
+        out.append(dense_line(results))
     if randoms:
         out += [text_table(randoms, totals_only=True), solver_table(randoms)]
     if skipped:

@@ -1,4 +1,4 @@
-"""What draws free targets renders through: the renderer's two routes, over HTTP
+"""What draws free targets renders through: the renderer's three routes, over HTTP
 (:class:`~services.renderer.client.RendererClient`) or in this process (:class:`LocalRenderer`)."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from typing import Protocol, Self
 
 from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
+from services.renderer.depth import DepthImage
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 from services.renderer.settings import RendererSettings
@@ -18,7 +19,8 @@ __all__ = ["LocalRenderer", "Renderer"]
 
 
 class Renderer(Protocol):
-    """``POST /render`` and ``POST /render/annotations``, as :class:`RendererClient` has them."""
+    """``POST /render``, ``/render/annotations`` and ``/render/depth``, as
+    :class:`RendererClient` has them."""
 
     def render_png(self, request: RenderRequest) -> bytes:
         """The view's PNG bytes."""
@@ -26,6 +28,10 @@ class Renderer(Protocol):
 
     def annotations(self, request: RenderRequest) -> RenderAnnotations:
         """The view's ground truth."""
+        ...
+
+    def depth(self, request: RenderRequest) -> DepthImage:
+        """The view's depth and object ids (``POST /render/depth``)."""
         ...
 
 
@@ -70,3 +76,7 @@ class LocalRenderer:
     def annotations(self, request: RenderRequest) -> RenderAnnotations:
         view = resolve_view(self._catalog, self._settings, request)
         return self._engine.annotate(view.scene, view.pose, view.width, view.height, None)
+
+    def depth(self, request: RenderRequest) -> DepthImage:
+        view = resolve_view(self._catalog, self._settings, request)
+        return self._engine.depth(view.scene, view.pose, view.width, view.height)

@@ -10,7 +10,8 @@ from typing import Final, Literal
 
 import numpy as np
 
-from cosmos.bench.free_targets.draw import BANDS, FreeTarget
+from cosmos.bench.free_targets.dense import dense_method, run_dense
+from cosmos.bench.free_targets.draw import BANDS, FREE_VARIANTS, FreeTarget
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.metrics import (
     THRESHOLDS,
@@ -19,6 +20,7 @@ from cosmos.bench.free_targets.metrics import (
     pose_error,
     summarize,
 )
+from cosmos.bench.free_targets.rendering import Renderer
 from cosmos.bench.free_targets.shapes import SceneShapes
 from cosmos.bench.free_targets.solve import baseline, box_only_bound
 from cosmos.bench.free_targets.solver import (
@@ -35,13 +37,15 @@ from services.optimizer.free import SceneObjects
 __all__ = [
     "METHODS",
     "TargetResult",
+    "dense_line",
     "evaluate",
     "group_rows",
     "solver_table",
     "text_table",
 ]
 
-METHODS: Final = ("baseline", "box-only bound", SOLVER)
+METHODS: Final = ("baseline", "box-only bound", SOLVER, *(dense_method(v) for v in FREE_VARIANTS))
+Grouping = Literal["band", "objects", "given"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +61,15 @@ class TargetResult:
     errors: dict[str, PoseError]
     status: str | None = field(default=None)
     """The box solver's answer status (None when it did not run)."""
+    renders: int = 0
+    """Renders the dense stage spent (0 when it did not run or the renderer refused the pose)."""
+    dense_ms: float = 0.0
+    """The dense refinements' wall time over all image variants, renders left out."""
+
+    @property
+    def given(self) -> str:
+        """Whether the target gave its intrinsics, as a table key."""
+        return "K given" if self.intrinsics_given else "K estimated"
 
 
 def evaluate(
@@ -65,10 +78,15 @@ def evaluate(
     radius: float,
     seed: int,
     objects: SceneObjects | None = None,
+    renderer: Renderer | None = None,
+    *,
+    spp: int = 16,
+    renders: int = 1,
 ) -> list[TargetResult]:
     """The baseline, the box-only bound and, given the scene's ``objects``, the box solver
     (their noise seeded by ``seed`` and the target's index) on every target, against its true
-    camera."""
+    camera; given a ``renderer`` too, the dense stage after the box solver
+    (:func:`~.dense.run_dense`, ``renders`` renders at ``spp``)."""
     results = []
     for target in targets:
         camera = target.annotations.camera
@@ -78,11 +96,15 @@ def evaluate(
             "baseline": baseline(target),
             "box-only bound": box_only_bound(target, shapes, rng),
         }
-        status = None
+        status, spent, dense_ms = None, 0, 0.0
         if objects is not None:
             answer = solve_target(target, objects, np.random.default_rng([seed, target.index, 2]))
             estimates[SOLVER] = answer_estimate(answer)
             status = answer.status
+            if renderer is not None:
+                dense = run_dense(target, answer, renderer, seed, spp=spp, renders=renders)
+                estimates.update(dense.estimates)
+                spent, dense_ms = dense.renders, dense.refine_ms
         results.append(
             TargetResult(
                 scene=target.scene,
@@ -92,19 +114,25 @@ def evaluate(
                 objects=len(target.usable),
                 errors={name: pose_error(e, truth, radius) for name, e in estimates.items()},
                 status=status,
+                renders=spent,
+                dense_ms=dense_ms,
             )
         )
     return results
 
 
 def group_rows(
-    results: Sequence[TargetResult], method: str, by: Literal["band", "objects"] = "band"
+    results: Sequence[TargetResult], method: str, by: Grouping = "band"
 ) -> list[tuple[str, ErrorSummary]]:
-    """``method``'s summary per elevation band (or per count of objects in view) that has
-    targets, then for all of them."""
-    keys: list[str] = (
-        list(BANDS) if by == "band" else [str(n) for n in sorted({r.objects for r in results})]
-    )
+    """``method``'s summary per elevation band (or per count of objects in view, or whether the
+    target gave its intrinsics) that has targets, then for all of them."""
+    keys: list[str]
+    if by == "band":
+        keys = list(BANDS)
+    elif by == "objects":
+        keys = [str(n) for n in sorted({r.objects for r in results})]
+    else:
+        keys = ["K given", "K estimated"]
     rows: list[tuple[str, ErrorSummary]] = []
     for key in keys:
         errors = [
@@ -135,13 +163,14 @@ HEADER: Final = (
     "pos p95 %r",
     "rot med °",
     "rot p95 °",
+    "fov med %",
     "no pose",
 )
 
 
 def text_table(
     results: Sequence[TargetResult],
-    by: Literal["band", "objects"] = "band",
+    by: Grouping = "band",
     totals_only: bool = False,
 ) -> str:
     """Per scene, per method, per elevation band (or count of objects at least 60 % visible;
@@ -168,11 +197,12 @@ def text_table(
                         _num(100 * s.position_p95, 1),
                         _num(s.rotation_median_deg, 2),
                         _num(s.rotation_p95_deg, 2),
+                        _num(s.fov_median_pct, 2),
                         str(s.missed),
                     ]
                 )
     header = list(HEADER)
-    header.insert(2, "band" if by == "band" else "objects")
+    header.insert(2, {"band": "band", "objects": "objects", "given": "intrinsics"}[by])
     return plain_table(header, rows)
 
 
@@ -228,3 +258,18 @@ def solver_table(results: Sequence[TargetResult]) -> str:
                 ]
             )
     return plain_table(list(SOLVER_HEADER), rows)
+
+
+def dense_line(results: Sequence[TargetResult]) -> str:
+    """The dense stage's cost: renders per search (median, max) and refinement time per target
+    and image variant (median, ms)."""
+    ran = [r for r in results if r.dense_ms > 0.0]
+    if not ran:
+        return "dense: no target refined"
+    renders = [r.renders for r in results]
+    per_variant = [r.dense_ms / len(FREE_VARIANTS) for r in ran]
+    return (
+        f"dense: renders per search median {np.median(renders):g}, max {max(renders)}; "
+        f"refinement median {np.median(per_variant):.0f} ms (p95 "
+        f"{np.percentile(per_variant, 95):.0f} ms) per target and image variant"
+    )

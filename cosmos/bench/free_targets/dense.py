@@ -1,0 +1,151 @@
+"""The dense stage on a free target: one render at the box solver's pose, then
+:func:`services.optimizer.free.dense.refine_dense` against the target image.
+
+The render (RGB at the target's spp, and its depth: ``POST /render`` and ``POST /render/depth``)
+is made once per target at the box solver's best pose, with the intrinsics the solver used (the
+target's when it gives them, else its estimate); the refinement then runs on each image
+variant of the target (:data:`~.draw.FREE_VARIANTS`: clean, JPEG, noise), with the focal length
+free when the target did not give its intrinsics. A pose the renderer refuses (below the ground,
+inside an object) keeps the box solver's estimate, with no render spent; with
+``renders=2`` the refined pose is rendered once more and refined again from there.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Final
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from cosmos.bench.free_targets.draw import FREE_VARIANTS, FreeTarget, FreeVariant
+from cosmos.bench.free_targets.estimate import Estimate
+from cosmos.bench.free_targets.rendering import Renderer
+from services.common.contracts.render import RenderRequest
+from services.common.errors import UnprocessableError
+from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    free_pinhole_camera,
+    quaternion_of_rotation,
+)
+from services.optimizer.free import FreePoseAnswer
+from services.optimizer.free.dense import DenseFit, refine_dense
+from services.renderer.client import RendererError
+
+__all__ = ["DENSE", "DenseRun", "dense_method", "run_dense"]
+
+DENSE: Final = "dense"
+
+
+def dense_method(variant: FreeVariant) -> str:
+    """The dense stage's name in the tables for one image variant."""
+    return f"{DENSE} {variant}"
+
+
+@dataclass(frozen=True)
+class DenseRun:
+    """The dense estimates per method name (:func:`dense_method`), the renders one search spends
+    (on the clean variant), and the refinements' wall time (all variants, no render) in ms."""
+
+    estimates: dict[str, Estimate | None]
+    renders: int
+    refine_ms: float
+
+
+def _decode_gray(data: bytes) -> NDArray[np.uint8]:
+    gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if gray is None:
+        raise ValueError("a target image does not decode")
+    return np.asarray(gray, dtype=np.uint8)
+
+
+def _free_camera(camera: PinholeCamera) -> FreeCamera:
+    rotation = np.asarray(camera.rotation, dtype=np.float64)
+    return FreeCamera(
+        position=camera.position,
+        quaternion_wxyz=quaternion_of_rotation(rotation.T),
+        fx_px=camera.fx,
+        fy_px=camera.fy,
+        cx_px=camera.cx,
+        cy_px=camera.cy,
+    )
+
+
+def _render(
+    renderer: Renderer, target: FreeTarget, camera: FreeCamera, spp: int
+) -> tuple[NDArray[np.uint8], NDArray[np.float32], PinholeCamera] | None:
+    """The render and depth at ``camera`` on the target's film; None when refused (422)."""
+    film = target.annotations.camera
+    request = RenderRequest(
+        scene=target.scene,
+        camera=camera,
+        width=film.width,
+        height=film.height,
+        spp=spp,
+        seed=target.index,
+    )
+    try:
+        depth = renderer.depth(request)
+        png = renderer.render_png(request)
+    except (UnprocessableError, RendererError) as exc:
+        if getattr(exc, "status", 422) != 422:
+            raise
+        return None
+    bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError("the renderer's PNG does not decode")
+    pinhole = free_pinhole_camera(camera, film.width, film.height, film.fov_deg)
+    return np.asarray(bgr[..., ::-1], dtype=np.uint8), depth.depth, pinhole
+
+
+def _estimate(fit: DenseFit, width: int) -> Estimate:
+    return Estimate.of_world_to_camera(fit.rotation, fit.translation, fit.intrinsics.fov_deg(width))
+
+
+def run_dense(
+    target: FreeTarget,
+    answer: FreePoseAnswer,
+    renderer: Renderer,
+    seed: int,
+    *,
+    spp: int = 16,
+    renders: int = 1,
+) -> DenseRun:
+    """The dense stage on ``target`` from the box solver's ``answer`` (module docstring); the
+    image variants' noise is seeded by ``seed`` and the target's index."""
+    methods = [dense_method(v) for v in FREE_VARIANTS]
+    if answer.pose is None:
+        return DenseRun(dict.fromkeys(methods), 0, 0.0)
+    width = target.annotations.camera.width
+    images = {
+        v: _decode_gray(target.image(v, np.random.default_rng([seed, target.index, 3])))
+        for v in FREE_VARIANTS
+    }
+    estimates: dict[str, Estimate | None] = {}
+    fallback = Estimate(
+        answer.pose.rotation(),
+        np.asarray(answer.pose.position, dtype=np.float64),
+        answer.pose.intrinsics.fov_deg,
+    )
+    first = _render(renderer, target, answer.pose.free_camera(), spp)
+    spent, elapsed = int(first is not None), 0.0
+    for variant in FREE_VARIANTS:
+        rendered, estimate = first, fallback
+        for step in range(renders):
+            if rendered is None:
+                break
+            rgb, depth, pinhole = rendered
+            started = time.perf_counter()
+            fit = refine_dense(
+                images[variant], rgb, depth, pinhole, fit_focal=not target.intrinsics_given
+            )
+            elapsed += (time.perf_counter() - started) * 1000.0
+            estimate = _estimate(fit, width)
+            if step + 1 < renders:
+                rendered = _render(renderer, target, _free_camera(fit.camera(pinhole)), spp)
+                spent += int(rendered is not None and variant == FREE_VARIANTS[0])
+        estimates[dense_method(variant)] = estimate
+    return DenseRun(estimates, spent, elapsed)

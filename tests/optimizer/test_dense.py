@@ -1,0 +1,155 @@
+"""Dense refinement by one render against the renderer's ground truth: the target is a real
+render at the true camera, the start a pose a few percent and degrees off (or the box solver's
+answer), and the refinement gets one render with depth at the start, as a search would."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from services.common.contracts.detect import Detection
+from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
+from services.optimizer.free import Intrinsics, scene_objects, solve_free_pose
+from services.optimizer.free.dense import refine_dense
+from services.renderer.view import resolve_free_camera
+
+W, H = 320, 240
+SPP = 16
+BOX_NOISE_PX = 0.7
+
+
+def rendered(engine, scene, camera: FreeCamera):
+    """The view's RGB, depth and pinhole camera."""
+    view = resolve_free_camera(scene, camera, W, H)
+    rgb = engine.render(scene, view, W, H, SPP, 0).rgb
+    return rgb, engine.depth(scene, view, W, H).depth, view.camera
+
+
+def gray(rgb):
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+def moved(camera: FreeCamera, angle_deg: float, shift: float, seed: int, fov_deg: float):
+    """``camera`` turned by ``angle_deg`` about a random axis and moved by ``shift`` units in a
+    random direction, with ``fov_deg``."""
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * math.radians(angle_deg))
+    direction = rng.normal(size=3)
+    position = np.asarray(camera.position) + shift * direction / np.linalg.norm(direction)
+    x, y, z, w = (turn * Rotation.from_matrix(camera.rotation())).as_quat()
+    return FreeCamera(position=tuple(position), quaternion_wxyz=(w, x, y, z), fov_deg=fov_deg)
+
+
+def errors(fit_rotation, fit_position, truth: FreeCamera) -> tuple[float, float]:
+    """Position error in scene units and rotation error in degrees (camera-to-world given)."""
+    relative = Rotation.from_matrix(np.asarray(fit_rotation).T @ truth.rotation())
+    distance = float(np.linalg.norm(np.asarray(fit_position) - truth.position))
+    return distance, math.degrees(relative.magnitude())
+
+
+# (scene, true camera): an oblique view, a nadir view, a rolled view.
+VIEWS = [
+    ("demo", FreeCamera(position=(5.0, -4.0, 5.0), look_at=(0.0, 0.0, 0.0), fov_deg=45.0)),
+    ("demo", FreeCamera(position=(0.3, 0.2, 9.0), yaw_deg=30.0, pitch_deg=90.0, fov_deg=40.0)),
+    (
+        "garden",
+        FreeCamera(position=(-6.0, 2.0, 4.0), look_at=(0.5, 0.0, 0.0), roll_deg=20.0, fov_deg=50.0),
+    ),
+]
+
+
+@pytest.mark.parametrize(("scene_id", "truth"), VIEWS, ids=["oblique", "nadir", "rolled"])
+def test_a_pose_a_few_percent_off_is_refined_to_the_true_one(engine, catalog, scene_id, truth):
+    """2 % of the radius and 2° off; measured first on demo: 0.1 %/0.06° (oblique), 0.4 %/0.18°
+    (nadir)."""
+    scene = catalog.get(scene_id)
+    radius = scene.spec.camera.radius
+    target, _, _ = rendered(engine, scene, truth)
+    start = moved(truth, 2.0, 0.02 * radius, seed=3, fov_deg=truth.fov_deg)
+    rgb, depth, camera = rendered(engine, scene, start)
+    fit = refine_dense(gray(target), rgb, depth, camera, fit_focal=False)
+    distance, angle = errors(fit.rotation.T, fit.position, truth)
+    assert distance < 0.006 * radius
+    assert angle < 0.3
+    assert fit.inliers > 0.8 * fit.points > 100
+    assert fit.inliers > fit.start_inliers
+    assert fit.residual_px < 1.0
+
+
+def test_the_focal_length_is_refined_when_not_given(engine, catalog):
+    """The rolled view, started 8 % wide in fov and 2 %/2° off."""
+    scene = catalog.get("garden")
+    _, truth = VIEWS[2]
+    target, _, true_camera = rendered(engine, scene, truth)
+    start = moved(truth, 2.0, 0.02 * scene.spec.camera.radius, seed=4, fov_deg=54.0)
+    rgb, depth, camera = rendered(engine, scene, start)
+    fit = refine_dense(gray(target), rgb, depth, camera, fit_focal=True)
+    assert fit.intrinsics.fx == pytest.approx(true_camera.fx, rel=0.01)
+    distance, angle = errors(fit.rotation.T, fit.position, truth)
+    assert distance < 0.01 * scene.spec.camera.radius
+    assert angle < 0.5
+
+
+@pytest.mark.parametrize(("scene_id", "truth"), VIEWS, ids=["oblique", "nadir", "rolled"])
+def test_dense_refinement_beats_the_box_only_fit_on_the_same_target(
+    engine, catalog, scene_id, truth
+):
+    """The issue's "done when": the box solver on the target's rendered boxes with the
+    detector's edge noise (0.7 px at 320 wide), then one render at its answer and the dense
+    refinement: the dense pose is closer in position and rotation."""
+    scene = catalog.get(scene_id)
+    objects = scene_objects(scene.spec, scene.assets)
+    view = resolve_free_camera(scene, truth, W, H)
+    annotations = engine.annotate(scene, view, W, H, None)
+    rng = np.random.default_rng(7)
+    detections = [
+        Detection(
+            label=objects.labels[i],
+            class_id=i,
+            confidence=0.9,
+            box=tuple(np.clip(np.asarray(obj.box) + rng.normal(0.0, BOX_NOISE_PX, 4), 0, W)),
+        )
+        for i, obj in enumerate(annotations.objects)
+        if obj.box is not None and obj.visible_fraction >= 0.6
+    ]
+    true = annotations.camera
+    intrinsics = Intrinsics(true.fx, true.fy, true.cx, true.cy)
+    answer = solve_free_pose(objects, detections, W, H, intrinsics)
+    assert answer.pose is not None
+    box_errors = errors(answer.pose.rotation(), answer.pose.position, truth)
+    target, _, _ = rendered(engine, scene, truth)
+    rgb, depth, camera = rendered(engine, scene, answer.pose.free_camera())
+    fit = refine_dense(gray(target), rgb, depth, camera, fit_focal=False)
+    dense_errors = errors(fit.rotation.T, fit.position, truth)
+    assert dense_errors[0] < box_errors[0]
+    assert dense_errors[1] < box_errors[1]
+    assert dense_errors[0] < 0.02 * scene.spec.camera.radius  # the issue's 2 %
+
+
+def test_a_render_without_edges_keeps_the_start_pose(catalog):
+    """Nothing to align (a blank render): the start comes back, with no point used."""
+    camera = free_pinhole_camera(VIEWS[0][1], W, H, 45.0)
+    blank = np.full((H, W, 3), 128, np.uint8)
+    fit = refine_dense(
+        blank[..., 0], blank, np.full((H, W), 5.0, np.float32), camera, fit_focal=True
+    )
+    assert fit.points == 0
+    assert np.allclose(fit.translation, camera.translation)
+    assert fit.intrinsics.fx == pytest.approx(camera.fx)
+
+
+def test_images_of_another_film_are_refused():
+    camera = free_pinhole_camera(VIEWS[0][1], W, H, 45.0)
+    with pytest.raises(ValueError, match="film"):
+        refine_dense(
+            np.zeros((H // 2, W // 2), np.uint8),
+            np.zeros((H, W, 3), np.uint8),
+            np.zeros((H, W), np.float32),
+            camera,
+            fit_focal=False,
+        )
