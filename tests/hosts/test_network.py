@@ -94,20 +94,23 @@ def test_a_host_answers_on_its_address_and_a_cut_link_carries_nothing_until_heal
 
 def test_latency_delays_a_round_trip_by_twice_the_one_way_delay(network, tmp_path, say):
     host = network.add_host("web")
+    delay_s = 0.3
     with http_server(host, tmp_path) as url:
         before = min(fetch_s(url) for _ in range(3))
-        host.impair(delay_ms=150)
+        host.impair(delay_ms=delay_s * 1000)
         slowed = min(fetch_s(url) for _ in range(3))
         host.clear()
         after = min(fetch_s(url) for _ in range(3))
-    say(f"GET {before * 1e3:.0f} ms; +150 ms each way {slowed * 1e3:.0f} ms; {after * 1e3:.0f} ms")
-    assert slowed - before >= 0.25  # a request and its answer: 2 x 150 ms, less jitter
-    assert slowed - after >= 0.25  # and cleared, it is gone
+    say(
+        f"GET {before * 1e3:.0f} ms; {delay_s * 1e3:.0f} ms each way {slowed * 1e3:.0f} ms; "
+        f"cleared {after * 1e3:.0f} ms"
+    )
+    assert slowed >= 2 * delay_s  # a request and its answer, each delayed
+    assert after < 2 * delay_s  # cleared, the delay is gone
 
 
 def test_loss_drops_about_the_fraction_asked_for(network, say):
     host = network.add_host("sink")
-    host.impair(loss=0.3)
     receiver = subprocess.Popen(
         host.command(sys.executable, "-c", ECHO, host.address, "9999", "2"),
         stdout=subprocess.PIPE,
@@ -117,6 +120,9 @@ def test_loss_drops_about_the_fraction_asked_for(network, say):
     assert receiver.stdout.readline() == "ready\n"
     sent = 2000
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+        sender.sendto(b"", (host.address, 9))  # the host's address resolved before the loss
+        time.sleep(0.5)
+        host.impair(loss=0.3)
         for _ in range(sent):
             sender.sendto(b"x", (host.address, 9999))
             time.sleep(0.0002)
