@@ -47,20 +47,36 @@ class Counts:
 
 
 class Searches:
-    """Searches submitted to the controller at ``url`` with ``headers`` (the API key)."""
+    """Searches submitted to the controllers at ``urls`` with ``headers`` (the API key): each
+    request goes to the first controller that answers it, so with controllers sharing a
+    database, a search is followed through whichever is up."""
 
-    def __init__(self, url: str, headers: Mapping[str, str]) -> None:
-        self._http = httpx.Client(base_url=url, headers=dict(headers), timeout=10.0)
+    def __init__(self, urls: Sequence[str], headers: Mapping[str, str]) -> None:
+        self._controllers = [
+            httpx.Client(base_url=url, headers=dict(headers), timeout=10.0) for url in urls
+        ]
         self.truth: dict[str, GridIndex] = {}
         self.seen: dict[str, Search] = {}
         self.at_kill: dict[str, Search] = {}
         self.vanished: set[str] = set()
 
     def close(self) -> None:
-        self._http.close()
+        for client in self._controllers:
+            client.close()
+
+    def _ask(self, method: str, path: str, **request: Any) -> httpx.Response:
+        """``method path`` of the first controller that answers; the last one's error if none
+        does."""
+        for client in self._controllers[:-1]:
+            try:
+                return client.request(method, path, **request)
+            except httpx.TransportError:
+                continue
+        return self._controllers[-1].request(method, path, **request)
 
     def submit(self, image: bytes, truth: GridIndex, params: Mapping[str, Any]) -> str:
-        answer = self._http.post(
+        answer = self._ask(
+            "POST",
             "/searches",
             content=image,
             headers={"Content-Type": "image/png"},
@@ -73,10 +89,14 @@ class Searches:
 
     def health(self) -> dict[str, Any]:
         """The controller's ``/health`` (its replicas by name, with their loads and counts)."""
-        answer = self._http.get("/health")
+        answer = self._ask("GET", "/health")
         answer.raise_for_status()
         found: dict[str, Any] = answer.json()
         return found
+
+    def replicas(self, stage: str) -> list[dict[str, Any]]:
+        """What the controller knows of each replica of ``stage``."""
+        return [r for r in self.health()["replicas"] if r["stage"] == stage]
 
     def replica(self, name: str) -> dict[str, Any]:
         (found,) = [r for r in self.health()["replicas"] if r["name"] == name]
@@ -89,7 +109,7 @@ class Searches:
             if search_id in self.seen and self._ended(search_id):
                 continue
             try:
-                answer = self._http.get(f"/searches/{search_id}")
+                answer = self._ask("GET", f"/searches/{search_id}")
             except httpx.TransportError:
                 continue  # the controller is down or unreachable: ask again later
             if answer.status_code == 404:
