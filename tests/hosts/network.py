@@ -34,11 +34,14 @@ import fcntl
 import os
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
+
+from cosmos.launch import ROOT
 
 __all__ = [
     "BRIDGE",
@@ -218,14 +221,12 @@ class Host:
     def relay(self, port: int, upstream_port: int, log: Path) -> Relay:
         """Start a relay on this host's ``address:port`` that forwards to ``address:upstream
         _port`` (without delay until :meth:`impair` says otherwise)."""
-        from cosmos.launch import ROOT  # the relay runs from the repository, as services do
-
         log.parent.mkdir(parents=True, exist_ok=True)
         argv = ["-m", "tests.hosts.relay", f"{self.address}:{port}", f"{upstream_port}"]
         with log.open("ab") as sink:
             process = subprocess.Popen(
-                self.command(_python(), *argv),
-                cwd=ROOT,
+                self.command(sys.executable, *argv),
+                cwd=ROOT,  # the relay runs from the repository, as the services do
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 stderr=sink,
@@ -238,12 +239,6 @@ class Host:
             relay.stop()
             raise NetworkError(f"the relay on {self.address}:{port} did not start (log: {log})")
         return relay
-
-
-def _python() -> str:
-    import sys
-
-    return sys.executable
 
 
 class Network:
