@@ -11,7 +11,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,12 +63,15 @@ def spawn_service(
     host: str = "127.0.0.1",
     env: Mapping[str, str] | None = None,
     append_log: bool = False,
+    prefix: Sequence[str] = (),
 ) -> ServiceProcess:
     """Start ``<app>`` under uvicorn without waiting for it (see :func:`wait_healthy`), with the
     request head limits of :mod:`services.common.server` and ``COSMOS_SERVICE_TOKEN`` from
     ``env``, else from this process's environment, else a new one. Its output goes to
     ``<service>-<port>.log`` in ``log_dir`` (after what is there with ``append_log``, for a
-    process started again)."""
+    process started again). ``prefix`` runs it through a command that execs it (``ip netns exec
+    NAME``: a host of its own, ``host`` its address there), so the process's id is the
+    service's."""
     port = port or free_port(host)
     log_dir.mkdir(parents=True, exist_ok=True)
     log = log_dir / f"{app.split('.')[1] if app.count('.') >= 1 else app}-{port}.log"
@@ -77,7 +80,7 @@ def spawn_service(
     server = [sys.executable, "-m", "services.common.server"]
     with log.open("ab" if append_log else "wb") as sink:
         process = subprocess.Popen(
-            [*server, app, "--host", host, "--port", str(port)],
+            [*prefix, *server, app, "--host", host, "--port", str(port)],
             cwd=ROOT,
             env=environ,
             stdout=sink,

@@ -37,6 +37,16 @@ if [[ ! -x /usr/bin/chromium ]]; then
   fi
 fi
 
+# Debian's iproute2 (`ip`, `tc`) for the hosts tests (tests/hosts: network namespaces, veth pairs,
+# a bridge). Without it, or without root, those tests skip, except on CI, where they fail.
+if ! command -v ip >/dev/null && [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
+  echo "bootstrap: installing iproute2 for the hosts tests"
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iproute2 >/dev/null 2>&1 \
+    || { apt-get update -qq >/dev/null 2>&1 \
+         && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iproute2 >/dev/null 2>&1; } \
+    || echo "bootstrap: could not install iproute2; the hosts tests (tests/hosts) cannot run" >&2
+fi
+
 PYTHON=${PYTHON:-python3}
 if [[ ! -x .venv/bin/python ]]; then
   "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \

@@ -26,6 +26,7 @@ __all__ = [
     "ServiceProcess",
     "assert_token_required",
     "e2e_stack",
+    "skip_unless_on_ci",
     "free_port",
     "fuzz_service",
     "running_service",
@@ -43,6 +44,16 @@ def e2e_stack(workdir: Path) -> Iterator[Stack]:
         pytest.fail(f"the shipped detector model {MODEL} is missing")
     with local_stack(workdir) as running:
         yield running
+
+
+def skip_unless_on_ci(why: str | None, tests: str) -> None:
+    """Skip the ``tests`` (e.g. "the browser tests") for the reason ``why``, if there is one;
+    on CI (``CI`` set), where they must run, fail instead."""
+    if why is None:
+        return
+    if os.environ.get("CI"):
+        pytest.fail(f"{tests} must run on CI: {why}")
+    pytest.skip(why)
 
 
 def assert_token_required(

@@ -23,6 +23,7 @@ from cosmos.stack import Stack, local_stack
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import PoseQuery
 from services.renderer.client import RendererClient
+from tests.support import skip_unless_on_ci
 
 CHROMIUM = Path("/usr/bin/chromium")
 # The README's screenshots are rewritten only when asked (SCREENSHOTS_DIR=docs/screenshots), so a
@@ -49,11 +50,7 @@ def _install_chromium() -> str | None:
 
 @pytest.fixture(scope="session")
 def chromium() -> str:
-    why = _install_chromium()
-    if why is not None:
-        if os.environ.get("CI"):
-            pytest.fail(f"the browser tests must run on CI: {why}")
-        pytest.skip(why)
+    skip_unless_on_ci(_install_chromium(), "the browser tests")
     return str(CHROMIUM)
 
 
