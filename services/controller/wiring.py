@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import secrets
+import socket
 from dataclasses import dataclass, field
 from datetime import timedelta
 
@@ -18,7 +21,7 @@ from services.controller.readiness import ControllerReadiness
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import Leases, SearchStore, open_database, utcnow
 from services.controller.submit import Admission
 from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
 from services.controller.views import ViewStore
@@ -34,6 +37,12 @@ async def _discover(broker: Broker, settings: ControllerSettings) -> None:
         for stage, urls in settings.pools().items():
             await broker.set_pool(stage, await expand_urls(urls))
         await asyncio.sleep(settings.controller_discovery_interval_s)
+
+
+def _holder() -> str:
+    """This controller's name in the leases it holds: host, process, and a random part (a
+    restarted process with a reused id is another holder)."""
+    return f"{socket.gethostname()}:{os.getpid()}:{secrets.token_hex(3)}"
 
 
 async def _expire(store: SearchStore, settings: ControllerSettings) -> None:
@@ -103,8 +112,14 @@ async def build_controller(
     hand requests to in-process apps), each with the service token; ``stages_class`` makes the
     stage calls (a benchmark records them with a subclass).
     """
-    store = await asyncio.to_thread(SearchStore, settings.controller_database_url)
-    keys = await asyncio.to_thread(KeyStore, settings.controller_database_url)
+    database = await asyncio.to_thread(open_database, settings.controller_database_url)
+    store = SearchStore(database)
+    keys = KeyStore(database)
+    leases = (
+        Leases(database, _holder(), settings.controller_lease_s)
+        if database.dialect == "postgresql"
+        else None
+    )
     quotas = Quotas(
         store,
         Limits(
@@ -141,6 +156,7 @@ async def build_controller(
         notifier,
         settings.controller_max_concurrent_searches,
         outage_budget_s=settings.controller_outage_budget_s,
+        leases=leases,
     )
     admission = Admission(settings, store, stages, broker, runner, quotas)
     readiness = ControllerReadiness(store, broker, to_stages)

@@ -37,7 +37,7 @@ from services.controller.broker import BrokerError
 from services.controller.events import Notifier
 from services.controller.runner import NotRetryable, SearchRunner, StillStopping
 from services.controller.stages import StageError
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import SearchStore, open_store, utcnow
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"target"
 GENERAL = ModelInfo(name="general", classes=("sphere",), input_size=(640, 640), sha256="g")
@@ -175,7 +175,7 @@ def stored(
     tmp_path, stages: FakeStages, max_iterations: int = 6, view_settings=None
 ) -> SearchStore:
     """A store holding search ``s1`` as submitted: queued, its target image, nothing else."""
-    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store = open_store(f"sqlite:///{tmp_path}/c.sqlite3")
     now = utcnow()
     search = Search(
         id="s1",
