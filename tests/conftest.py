@@ -74,12 +74,13 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 
 
 @pytest.fixture
-def opened(database_url: str) -> Iterator[Callable[..., SearchStore]]:
-    """Opens search stores on :func:`database_url` (or the URL given), closed after the test."""
+def opened(request: pytest.FixtureRequest) -> Iterator[Callable[..., SearchStore]]:
+    """Opens search stores on the URL given, or else on :func:`database_url` (the test then
+    runs on both back ends); closed after the test."""
     stores: list[SearchStore] = []
 
     def open_(url: str | None = None, **options: Any) -> SearchStore:
-        stores.append(open_store(url or database_url, **options))
+        stores.append(open_store(url or request.getfixturevalue("database_url"), **options))
         return stores[-1]
 
     yield open_

@@ -134,7 +134,7 @@ async def test_an_image_larger_than_the_whole_quota_is_a_413(start_controller):
         assert "storage quota" in response.json()["detail"]
 
 
-def test_admissions_not_yet_recorded_count(opened):
+def test_admissions_not_yet_recorded_count(database_url, opened):
     """Between admitting a search and recording it the route awaits; a burst of one key's
     submissions must not all pass the same check, whichever quota it would exceed."""
     store = opened()

@@ -29,7 +29,7 @@ def rows(store: SearchStore, table: str) -> int:
         return int(session.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
 
 
-def test_finished_searches_expire_with_their_images_and_iterations(opened):
+def test_finished_searches_expire_with_their_images_and_iterations(database_url, opened):
     store = opened()
     for name in ("done", "cancelled", "running", "queued"):
         store.create(search(name), b"\x89PNG-" + name.encode())
@@ -52,7 +52,7 @@ def test_finished_searches_expire_with_their_images_and_iterations(opened):
     store.close()
 
 
-def test_a_search_expires_after_the_retention_time_from_when_it_finished(opened):
+def test_a_search_expires_after_the_retention_time_from_when_it_finished(database_url, opened):
     store = opened()
     store.create(search("old", minutes=-60), b"x")  # created an hour ago, finished now
     store.update("old", status="succeeded")
@@ -60,7 +60,7 @@ def test_a_search_expires_after_the_retention_time_from_when_it_finished(opened)
     store.close()
 
 
-def test_expiry_goes_in_batches(opened):
+def test_expiry_goes_in_batches(database_url, opened):
     store = opened()
     for n in range(7):
         store.create(search(f"s{n}"), b"x")
@@ -70,7 +70,7 @@ def test_expiry_goes_in_batches(opened):
     store.close()
 
 
-def test_a_failed_search_loses_its_image_and_keeps_its_record(opened):
+def test_a_failed_search_loses_its_image_and_keeps_its_record(database_url, opened):
     store = opened()
     store.create(search("a"), b"\x89PNG-a")
     store.update("a", status="failed", error=FAILED)
@@ -95,7 +95,7 @@ def test_a_search_the_runner_fails_loses_its_image(tmp_path, detail):
     store.close()
 
 
-def test_the_store_reports_its_size(opened):
+def test_the_store_reports_its_size(database_url, opened):
     store = opened()
     empty = store.size()
     assert (empty.searches, empty.image_bytes) == (0, 0)
@@ -175,7 +175,7 @@ async def test_the_controller_sweeps_expired_searches_and_health_reports_the_sto
 OUTAGE_ERROR = ProblemDetails(type=OUTAGE, title="No detector available", status=503)
 
 
-def test_a_search_an_outage_failed_keeps_its_image_until_retried_or_expired(opened):
+def test_a_search_an_outage_failed_keeps_its_image_until_retried_or_expired(database_url, opened):
     """It may be retried (POST /searches/{id}/retry), which needs the image; queued again, it
     no longer counts as finished, so it does not expire while it runs."""
     store = opened()

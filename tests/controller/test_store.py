@@ -16,10 +16,12 @@ from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex, Pose
 from services.controller.checkpoint import Checkpointer
 from services.controller.store import (
+    DatabaseUnavailable,
     database_path,
     open_store,
     utcnow,
 )
+from services.controller.store.migrations import MIGRATIONS
 
 START = GridPose(index=GridIndex(lat=2, lon=3), theta_deg=22.5, phi_deg=60.0)
 
@@ -50,7 +52,7 @@ def iteration(index: int) -> Iteration:
     )
 
 
-def test_searches_iterations_and_results_survive_reopening(opened):
+def test_searches_iterations_and_results_survive_reopening(database_url, opened):
     store = opened()
     store.create(search("a"), b"\x89PNG-a")
     store.add_iteration("a", iteration(0))
@@ -72,7 +74,7 @@ def test_searches_iterations_and_results_survive_reopening(opened):
     again.close()
 
 
-def test_unfinished_searches_come_back_oldest_first(opened):
+def test_unfinished_searches_come_back_oldest_first(database_url, opened):
     store = opened()
     for name, minutes in [("late", 5), ("early", 1), ("done", 0), ("middle", 3)]:
         store.create(search(name, minutes), b"x")
@@ -84,7 +86,7 @@ def test_unfinished_searches_come_back_oldest_first(opened):
     assert [s.id for s in page] == ["late", "middle"]
 
 
-def test_a_resumed_iteration_replaces_its_earlier_record(opened):
+def test_a_resumed_iteration_replaces_its_earlier_record(database_url, opened):
     store = opened()
     store.create(search("a"), b"x")
     store.add_iteration("a", iteration(0))
@@ -92,7 +94,7 @@ def test_a_resumed_iteration_replaces_its_earlier_record(opened):
     assert [it.reason for it in store.iterations("a")] == ["again"]
 
 
-def test_unknown_searches_and_bad_urls(opened):
+def test_unknown_searches_and_bad_urls(database_url, opened):
     store = opened()
     assert store.get("nope") is None
     with pytest.raises(KeyError):
@@ -102,7 +104,7 @@ def test_unknown_searches_and_bad_urls(opened):
     assert database_path("sqlite:///:memory:") == ":memory:"
 
 
-def test_an_iteration_and_the_target_detections_are_recorded_together(opened):
+def test_an_iteration_and_the_target_detections_are_recorded_together(database_url, opened):
     store = opened()
     store.create(search("a"), b"\x89PNG-a")
     seen = (Detection(label="sphere", class_id=0, confidence=0.9, box=(1.0, 2.0, 30.0, 40.0)),)
@@ -120,7 +122,7 @@ def test_an_iteration_and_the_target_detections_are_recorded_together(opened):
     store.close()
 
 
-def test_the_last_iteration_and_the_result_are_recorded_together(opened):
+def test_the_last_iteration_and_the_result_are_recorded_together(database_url, opened):
     store = opened()
     store.create(search("a"), b"\x89PNG-a")
     store.add_iteration("a", iteration(0))
@@ -231,3 +233,30 @@ def test_memory_databases_have_no_checkpointer():
 def test_the_checkpoint_interval_must_be_positive(tmp_path):
     with pytest.raises(ValueError, match="every_s"):
         Checkpointer(str(tmp_path / "c.sqlite3"), every_s=0)
+
+
+def test_the_schema_is_versioned_and_migrated_once(database_url, opened):
+    store = opened()
+    last = MIGRATIONS[-1].version
+    assert [m.version for m in MIGRATIONS] == list(range(1, last + 1))
+    with store.database.read() as session:
+        versions = [row[0] for row in session.execute("SELECT version FROM schema_migrations")]
+    assert sorted(versions) == list(range(1, last + 1))
+    store.create(search("a"), b"x")
+    again = opened()  # a second controller, or a restart: nothing applied again, nothing lost
+    with again.database.read() as session:
+        assert session.execute("SELECT count(*) FROM schema_migrations").fetchone()[0] == last
+    assert again.image("a") == b"x"
+
+
+def test_an_unreachable_postgresql_or_wrong_credentials_fail_in_one_line(postgres):
+    with pytest.raises(DatabaseUnavailable) as wrong:
+        open_store(postgres.url(password="not-the-password"))
+    message = str(wrong.value)
+    assert message.startswith("COSMOS_CONTROLLER_DATABASE_URL: PostgreSQL at 127.0.0.1:")
+    assert "password authentication failed" in message
+    assert "not-the-password" not in message
+    assert "\n" not in message
+    closed_port = postgres.port + 1 if postgres.port < 18699 else postgres.port - 1
+    with pytest.raises(DatabaseUnavailable, match="COSMOS_CONTROLLER_DATABASE_URL.*refused"):
+        open_store(f"postgresql://cosmos:x@127.0.0.1:{closed_port}/nope")

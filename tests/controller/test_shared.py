@@ -1,0 +1,48 @@
+"""Controllers sharing one PostgreSQL database: keys, quotas and retention hold across them
+(two stores on one database are two controllers)."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import pytest
+
+from services.controller.keys import KeyStore
+from services.controller.quotas import Limits, QuotaExceededError, Quotas
+from services.controller.store import open_database, utcnow
+from tests.controller.test_store import search
+
+
+def test_keys_hold_across_controllers(database_url):
+    """On either back end: a key created through one store is verified, and once revoked
+    refused, through another on the same database."""
+    first, second = KeyStore(database_url), KeyStore(open_database(database_url))
+    try:
+        record, key = first.create("alice")
+        assert second.verify(key) == record
+        assert [k.id for k in second.all()] == [record.id]
+        assert second.revoke(record.id).revoked_at is not None
+        assert first.verify(key) is None
+        assert first.get(record.id).revoked_at == second.get(record.id).revoked_at
+        admin, admin_key = second.create("ops", admin=True)
+        assert first.verify(admin_key).admin
+    finally:
+        first.close()
+        second.close()
+        second.database.close()
+
+
+def test_quotas_and_retention_hold_across_controllers(postgres, opened):
+    url = postgres.new_database()
+    one, other = opened(url), opened(url)
+    limits = Limits(active_searches=2, searches_per_minute=99, stored_bytes=10**6, retention_s=60)
+    for name in ("a", "b"):
+        one.create(search(name), b"x" * 10, owner="k")
+    with pytest.raises(QuotaExceededError) as refused:  # the other controller counts them
+        Quotas(other, limits).check("k", 10)
+    assert refused.value.extra["quota"] == "active_searches"
+    other.update("a", status="succeeded")
+    Quotas(one, limits).check("k", 10)  # a finished one no longer counts, on either
+    assert one.expire(utcnow() + timedelta(seconds=1)) == 1  # expired by either
+    assert other.get("a") is None
+    assert other.expire(utcnow() + timedelta(seconds=1)) == 0
