@@ -13,14 +13,32 @@ from contextlib import AbstractContextManager
 from datetime import datetime
 from typing import Any, Literal, Protocol
 
-__all__ = ["Database", "DatabaseUnavailable", "Dialect", "Rows", "Session"]
+from services.common.errors import ServiceUnavailableError
+
+__all__ = ["RETRY_AFTER_S", "Database", "DatabaseUnavailable", "Dialect", "Rows", "Session"]
+
+RETRY_AFTER_S = 5
+"""``Retry-After`` of a request refused while the database is away."""
 
 Dialect = Literal["sqlite", "postgresql"]
 
 
-class DatabaseUnavailable(Exception):
-    """The database cannot be reached or refuses the controller (its message is one line that
-    names the setting, for an operator)."""
+class DatabaseUnavailable(ServiceUnavailableError):
+    """The database cannot be reached or refuses the controller: a request that needs it is
+    answered 503 (``Retry-After``, no address in it); ``str()`` is one line for an operator,
+    naming the setting and the server."""
+
+    slug = "database-unavailable"
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(
+            "the controller's database does not answer; try again after Retry-After seconds",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        )
+        self.reason = reason
+
+    def __str__(self) -> str:
+        return self.reason
 
 
 class Rows(Protocol):

@@ -60,11 +60,20 @@ class _Translated:
 class PostgresDatabase:
     """A PostgreSQL database; safe to share between threads (each block borrows a pooled
     connection). Raises :class:`DatabaseUnavailable` at once when the server does not answer
-    within ``connect_timeout_s`` or refuses the credentials."""
+    within ``connect_timeout_s`` or refuses the credentials, and from a block that waited
+    ``wait_s`` for a connection that works (the server went away: the pool reconnects in the
+    background)."""
 
     dialect: Dialect = "postgresql"
 
-    def __init__(self, url: str, *, pool_size: int = 8, connect_timeout_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        url: str,
+        *,
+        pool_size: int = 8,
+        connect_timeout_s: float = 5.0,
+        wait_s: float = 2.0,
+    ) -> None:
         if not is_postgres_url(url):
             raise ValueError(f"not a PostgreSQL URL: {_where(url)}")
         self.where = _where(url)
@@ -84,7 +93,7 @@ class PostgresDatabase:
             max_size=pool_size,
             open=True,
             check=ConnectionPool.check_connection,  # a connection the server dropped is replaced
-            timeout=connect_timeout_s,
+            timeout=wait_s,
             reconnect_timeout=3600.0,
             name="cosmos-controller",
         )
