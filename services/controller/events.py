@@ -126,7 +126,12 @@ async def search_events(
     queued or running, ``search`` with the search without its iterations whenever it changed;
     ``iteration`` for each recorded iteration; then one ``end`` with the search without its
     iterations. The stored JSON documents are sent as they are. Ends when the server stops (the
-    client follows again, elsewhere)."""
+    client follows again, elsewhere).
+
+    On a database that several controllers share (PostgreSQL), the search may run on another
+    controller, whose changes wake nobody here: the store is read again every
+    :data:`STOP_CHECK_S` as well."""
+    shared = store.database.dialect == "postgresql"
     sent = 0
     last_doc = ""
     with notifier.following(search_id):  # a client that goes away stops following
@@ -150,3 +155,5 @@ async def search_events(
             while not await _set_within(changed, STOP_CHECK_S):
                 if STOPPING.is_set():
                     return  # the server is stopping: the client follows again elsewhere
+                if shared:
+                    break  # another controller may run it: look again

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from datetime import timedelta
 
 import pytest
@@ -10,6 +11,8 @@ import pytest
 from services.controller.keys import KeyStore
 from services.controller.quotas import Limits, QuotaExceededError, Quotas
 from services.controller.store import open_database, utcnow
+from tests.controller.clients import key_client
+from tests.controller.test_quotas import submit
 from tests.controller.test_store import search
 
 
@@ -46,3 +49,33 @@ def test_quotas_and_retention_hold_across_controllers(postgres, opened):
     assert one.expire(utcnow() + timedelta(seconds=1)) == 1  # expired by either
     assert other.get("a") is None
     assert other.expire(utcnow() + timedelta(seconds=1)) == 0
+
+
+@pytest.mark.anyio
+async def test_any_controller_answers_and_follows_a_search_another_runs(postgres, start_controller):
+    """Two in-process controllers on one database: a search submitted to the first (which
+    waits 1.5 s for a detector, then fails) is seen and followed to its end through the
+    second, with the same key."""
+    url = postgres.new_database()
+    async with (
+        start_controller(controller_database_url=url, controller_outage_budget_s=1.5) as (
+            first,
+            client,
+        ),
+        start_controller(controller_database_url=url) as (second, _),
+    ):
+        key = client.headers["Authorization"].removeprefix("Bearer ")
+        async with key_client(second, key) as other:
+            submitted = await submit(client)
+            assert submitted.status_code == 202, submitted.text
+            search_id = submitted.json()["id"]
+            seen = await other.get(f"/searches/{search_id}")
+            assert seen.status_code == 200
+            assert seen.json()["status"] in {"queued", "running"}
+            events = await asyncio.wait_for(other.get(f"/searches/{search_id}/events"), 30)
+            assert events.status_code == 200
+            assert "event: end" in events.text
+            assert (await other.get(f"/searches/{search_id}")).json()["status"] == "failed"
+        with first.state.controller.store.database.read() as session:
+            holder = session.execute("SELECT holder FROM leases").fetchone()[0]
+        assert holder == first.state.controller.runner.leases.holder  # the first ran it
