@@ -48,7 +48,7 @@ def test_a_database_that_cannot_be_used_fails_start_up_in_one_line(postgres):
         assert "wrong-password" not in output
 
 
-def _allow_connections(postgres, database: str, allowed: bool) -> None:
+def allow_connections(postgres, database: str, allowed: bool) -> None:
     with psycopg.connect(postgres.url(), autocommit=True) as admin:
         admin.execute(f'ALTER DATABASE "{database}" ALLOW_CONNECTIONS {str(allowed).lower()}')
         if not allowed:
@@ -66,7 +66,7 @@ async def test_a_database_that_goes_away_makes_the_controller_unready_and_refuse
     database = url.rsplit("/", 1)[1]
     async with start_controller(controller_database_url=url) as (_, client):
         assert (await client.get("/searches")).status_code == 200
-        _allow_connections(postgres, database, allowed=False)
+        allow_connections(postgres, database, allowed=False)
         try:
             ready = await client.get("/readyz")
             assert ready.status_code == 503
@@ -78,7 +78,7 @@ async def test_a_database_that_goes_away_makes_the_controller_unready_and_refuse
                 assert int(response.headers["retry-after"]) >= 1
                 assert "127.0.0.1" not in response.text
         finally:
-            _allow_connections(postgres, database, allowed=True)
+            allow_connections(postgres, database, allowed=True)
         assert (await client.get("/searches")).status_code == 200  # back: the pool reconnects
         ready = await client.get("/readyz")
         assert "the search database does not answer" not in ready.json()["reasons"]

@@ -22,6 +22,7 @@ from services.controller.store import (
     open_database,
     utcnow,
 )
+from tests.controller.test_database_faults import allow_connections
 from tests.controller.test_runner import PNG, FakeStages
 from tests.controller.test_store import iteration, search
 
@@ -163,3 +164,34 @@ async def test_a_controller_that_stops_beating_is_taken_over_and_fenced(
     assert final.status == "succeeded"
     assert [it.index for it in final.iterations] == [0, 1, 2, 3, 4, 5]
     assert final.updated_at <= utcnow()
+
+
+@pytest.mark.anyio
+async def test_a_search_pauses_while_the_database_is_away_and_resumes(postgres, detail):
+    """The database goes away between two iterations: the run stops where it was recorded,
+    and once the database is back the search is claimed again and finished, nothing lost and
+    nothing recorded twice."""
+    url = postgres.new_database()
+    landed: list[tuple[str, int]] = []
+    store = Recording(url, "A", landed)
+    record = search("s1").model_copy(update={"max_iterations": 6})
+    store.create(
+        record.model_copy(update={"start": FakeStages(detail).grid_pose(record.start.index)}), PNG
+    )
+    stages = Gated(detail, pause_after=2)
+    runner = SearchRunner(store, stages, Notifier(), 1, leases=Leases(store.database, "A", LEASE_S))  # noqa: E501
+    database = url.rsplit("/", 1)[1]
+    try:
+        await runner.start()
+        await _until(lambda: len(store.iterations("s1")) == 2)
+        allow_connections(postgres, database, allowed=False)
+        try:
+            stages.gate.set()
+            await _until(lambda: runner.running == 0)  # its next write failed: it stopped
+        finally:
+            allow_connections(postgres, database, allowed=True)
+        await _until(lambda: store.get("s1").status == "succeeded", timeout_s=20)
+    finally:
+        await runner.close()
+        store.close()
+    assert [index for _, index in landed] == [0, 1, 2, 3, 4, 5]
