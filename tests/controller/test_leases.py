@@ -195,3 +195,44 @@ async def test_a_search_pauses_while_the_database_is_away_and_resumes(postgres, 
         await runner.close()
         store.close()
     assert [index for _, index in landed] == [0, 1, 2, 3, 4, 5]
+
+
+@pytest.mark.anyio
+async def test_a_cancel_through_another_controller_stops_the_run(postgres, detail):
+    """B cancels a search A runs: A hears of it at its next heartbeat, stops the run and
+    writes nothing more; the search stays cancelled with what was recorded before."""
+    url = postgres.new_database()
+    landed: list[tuple[str, int]] = []
+    a_store, b_store = Recording(url, "A", landed), Recording(url, "B", landed)
+    record = search("s1").model_copy(update={"max_iterations": 6})
+    a_store.create(
+        record.model_copy(update={"start": FakeStages(detail).grid_pose(record.start.index)}), PNG
+    )
+    a_stages = Gated(detail, pause_after=2)
+    a = SearchRunner(
+        a_store, a_stages, Notifier(), 1, leases=Leases(a_store.database, "A", LEASE_S)
+    )  # noqa: E501
+    b = SearchRunner(
+        b_store, FakeStages(detail), Notifier(), 1, leases=Leases(b_store.database, "B", LEASE_S)
+    )  # noqa: E501
+    try:
+        await a.start()
+        await b.start()
+        await _until(lambda: len(a_store.iterations("s1")) == 2)
+        assert b.cancel("s1").status == "cancelled"
+        stopped = await _until(lambda: a.running == 0)
+        a_stages.gate.set()
+        await asyncio.sleep(2 * LEASE_S)  # nobody claims a cancelled search
+        assert b.running == a.running == 0
+    finally:
+        await a.close()
+        await b.close()
+        a_store.close()
+        b_store.close()
+    assert stopped < LEASE_S
+    assert landed == [("A", 0), ("A", 1)]
+    reader = Recording(url, "C", [])
+    final = reader.get("s1")
+    reader.close()
+    assert final.status == "cancelled"
+    assert [it.index for it in final.iterations] == [0, 1]
