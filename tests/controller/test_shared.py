@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from datetime import timedelta
 
 import pytest
@@ -13,7 +14,7 @@ from services.controller.quotas import Limits, QuotaExceededError, Quotas
 from services.controller.store import open_database, utcnow
 from tests.controller.clients import key_client
 from tests.controller.test_quotas import submit
-from tests.controller.test_store import search
+from tests.controller.test_store import iteration, search
 
 
 def test_keys_hold_across_controllers(database_url):
@@ -79,3 +80,22 @@ async def test_any_controller_answers_and_follows_a_search_another_runs(postgres
         with first.state.controller.store.database.read() as session:
             holder = session.execute("SELECT holder FROM leases").fetchone()[0]
         assert holder == first.state.controller.runner.leases.holder  # the first ran it
+
+
+def test_changes_are_announced_to_every_listener_once_committed(postgres, opened):
+    url = postgres.new_database()
+    writer, reader = opened(url), opened(url)
+    heard: list[str | None] = []
+    listener = reader.database.listen(heard.append)
+    try:
+        assert listener.connected.wait(10)
+        writer.create(search("a"), b"x")
+        with pytest.raises(KeyError):  # rolled back: nothing announced
+            writer.update("nope", status="running")
+        writer.add_iteration("a", iteration(0))
+        deadline = time.monotonic() + 10
+        while heard.count("a") < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        listener.close()
+    assert heard == [None, "a", "a"]  # connected (changes may have been missed), then each write

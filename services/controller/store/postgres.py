@@ -9,7 +9,7 @@ works) is :class:`~services.controller.store.database.DatabaseUnavailable`, whos
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from typing import Any
@@ -18,6 +18,7 @@ import psycopg
 from psycopg.conninfo import conninfo_to_dict
 from psycopg_pool import ConnectionPool, PoolTimeout
 
+from services.controller.store.changes import ChangeListener
 from services.controller.store.database import DatabaseUnavailable, Dialect, Rows, Session
 from services.controller.store.migrations import migrate
 
@@ -77,6 +78,7 @@ class PostgresDatabase:
         if not is_postgres_url(url):
             raise ValueError(f"not a PostgreSQL URL: {_where(url)}")
         self.where = _where(url)
+        self._url = url  # with its password: never logged
         self.connect_timeout_s = connect_timeout_s
         timeout = max(1, round(connect_timeout_s))
         try:
@@ -137,6 +139,10 @@ class PostgresDatabase:
     def ping(self) -> None:
         with self.read() as session:
             session.execute("SELECT 1").fetchone()
+
+    def listen(self, on_change: Callable[[str | None], None]) -> ChangeListener:
+        """Follow the changes every controller announces (:mod:`.changes`)."""
+        return ChangeListener(self._url, on_change)
 
     def close(self) -> None:
         self.pool.close()

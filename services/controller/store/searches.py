@@ -37,6 +37,7 @@ from services.common.contracts.search import (
     SearchStatus,
 )
 from services.common.errors import ProblemDetails
+from services.controller.store.changes import announce
 from services.controller.store.database import Database, Session
 from services.controller.store.leases import Lease, fence
 
@@ -102,6 +103,11 @@ class SearchStore:
     def _visible(self, visible_to: str | None) -> tuple[str | None, str | None]:
         return visible_to, visible_to
 
+    def _changed(self, session: Session, search_id: str) -> None:
+        """Announce the change to the other controllers (PostgreSQL: :mod:`.changes`)."""
+        if self.database.dialect == "postgresql":
+            announce(session, search_id)
+
     def create(self, search: Search, image: bytes, *, owner: str | None = None) -> None:
         """Record a new search and its target image; ``owner`` is the submitting key's id."""
         doc = search.model_copy(update={"iterations": ()}).model_dump_json()
@@ -115,12 +121,14 @@ class SearchStore:
             session.execute(
                 "INSERT INTO images (search_id, image) VALUES (?, ?)", (search.id, image)
             )
+            self._changed(session, search.id)
 
     def discard(self, search_id: str) -> bool:
         """Delete a search with its image and iterations, as if never recorded (a submission
         cancelled while it was being stored); whether it was there."""
         with self.database.write() as session:
             rows = session.execute("DELETE FROM searches WHERE id = ?", (search_id,))
+            self._changed(session, search_id)
             return rows.rowcount > 0
 
     def delete_finished(self, search_id: str) -> tuple[str | None, datetime] | None:
@@ -132,6 +140,7 @@ class SearchStore:
                 "RETURNING owner, created_at",
                 (search_id,),
             ).fetchall()
+            self._changed(session, search_id)
         return (rows[0][0], self.database.when(rows[0][1])) if rows else None
 
     def get(self, search_id: str, *, visible_to: str | None = None) -> Search | None:
@@ -274,6 +283,7 @@ class SearchStore:
         if search.status == "failed" and (search.error is None or search.error.type != OUTAGE):
             session.execute("DELETE FROM images WHERE search_id = ?", (search_id,))
             session.execute("UPDATE searches SET image_bytes = 0 WHERE id = ?", (search_id,))
+        self._changed(session, search_id)
         return search
 
     def reopen(self, search_id: str) -> Search:
@@ -290,6 +300,7 @@ class SearchStore:
                 "UPDATE searches SET status = ?, doc = ?, finished_at = NULL WHERE id = ?",
                 (search.status, search.model_dump_json(), search_id),
             )
+            self._changed(session, search_id)
         return search
 
     def unfinished(self) -> list[str]:
