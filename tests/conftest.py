@@ -65,12 +65,12 @@ def postgres() -> Iterator[PostgresServer]:
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    """A fresh controller database, once of each back end: a SQLite file, then a database of
-    its own on the session's PostgreSQL server."""
+    """A fresh controller database, once of each back end: a SQLite file, then a schema of its
+    own on the session's PostgreSQL server."""
     if request.param == "sqlite":
         return f"sqlite:///{tmp_path}/db/controller.sqlite3"
     server: PostgresServer = request.getfixturevalue("postgres")
-    return server.new_database()
+    return server.new_schema()
 
 
 @pytest.fixture

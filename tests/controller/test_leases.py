@@ -31,7 +31,7 @@ LEASE_S = 0.6
 
 @pytest.fixture
 def url(postgres) -> str:
-    return postgres.new_database()
+    return postgres.new_schema()
 
 
 def test_one_lease_at_a_time_and_stale_writes_are_refused(url, opened):
@@ -201,7 +201,7 @@ async def test_a_search_pauses_while_the_database_is_away_and_resumes(postgres, 
 async def test_a_cancel_through_another_controller_stops_the_run(postgres, detail):
     """B cancels a search A runs: A hears of it at its next heartbeat, stops the run and
     writes nothing more; the search stays cancelled with what was recorded before."""
-    url = postgres.new_database()
+    url = postgres.new_schema()
     landed: list[tuple[str, int]] = []
     a_store, b_store = Recording(url, "A", landed), Recording(url, "B", landed)
     record = search("s1").model_copy(update={"max_iterations": 6})

@@ -180,7 +180,7 @@ _OPENED: list[SearchStore] = []
 def _back_end(request):
     """Every runner test on both back ends: :func:`stored` opens a fresh database of each."""
     if request.param == "postgresql":
-        _BACK_END["url"] = request.getfixturevalue("postgres").new_database()
+        _BACK_END["url"] = request.getfixturevalue("postgres").new_schema()
     yield
     _BACK_END["url"] = ""
     while _OPENED:

@@ -37,7 +37,7 @@ def test_keys_hold_across_controllers(database_url):
 
 
 def test_quotas_and_retention_hold_across_controllers(postgres, opened):
-    url = postgres.new_database()
+    url = postgres.new_schema()
     one, other = opened(url), opened(url)
     limits = Limits(active_searches=2, searches_per_minute=99, stored_bytes=10**6, retention_s=60)
     for name in ("a", "b"):
@@ -57,7 +57,7 @@ async def test_any_controller_answers_and_follows_a_search_another_runs(postgres
     """Two in-process controllers on one database: a search submitted to the first (which
     waits 1.5 s for a detector, then fails) is seen and followed to its end through the
     second, with the same key."""
-    url = postgres.new_database()
+    url = postgres.new_schema()
     async with (
         start_controller(controller_database_url=url, controller_outage_budget_s=1.5) as (
             first,
@@ -83,7 +83,7 @@ async def test_any_controller_answers_and_follows_a_search_another_runs(postgres
 
 
 def test_changes_are_announced_to_every_listener_once_committed(postgres, opened):
-    url = postgres.new_database()
+    url = postgres.new_schema()
     writer, reader = opened(url), opened(url)
     heard: list[str | None] = []
     listener = reader.database.listen(heard.append)
