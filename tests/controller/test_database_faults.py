@@ -33,17 +33,26 @@ def _start(database_url: str, port: int) -> subprocess.Popen[str]:
 def test_a_database_that_cannot_be_used_fails_start_up_in_one_line(postgres):
     closed = 18699 if postgres.port != 18699 else 18697
     cases = [
-        (postgres.url(password="wrong-password"), "password authentication failed"),
-        (f"postgresql://cosmos:x@127.0.0.1:{closed}/cosmos", "Connection refused"),
+        (
+            postgres.url(password="wrong-password"),
+            ("PostgreSQL at 127.0.0.1:", "password authentication failed"),
+        ),
+        (
+            f"postgresql://cosmos:x@127.0.0.1:{closed}/cosmos",
+            ("PostgreSQL at 127.0.0.1:", "Connection refused"),
+        ),
+        (
+            "mysql://cosmos@db/cosmos",
+            ("must look like sqlite:///path/to/file.db or postgresql://",),
+        ),
     ]
     started = [(_start(url, 18695 + n), why) for n, (url, why) in enumerate(cases)]  # at once
-    for process, why in started:
+    for process, whys in started:
         output, _ = process.communicate(timeout=120)
         assert process.returncode != 0, output
         lines = [line for line in output.splitlines() if "COSMOS_CONTROLLER_DATABASE_URL" in line]
         assert len(lines) == 1, output
-        assert "PostgreSQL at 127.0.0.1:" in lines[0]
-        assert why in lines[0]
+        assert all(why in lines[0] for why in whys), lines[0]
         assert "Traceback" not in output
         assert "wrong-password" not in output
 
