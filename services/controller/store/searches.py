@@ -227,9 +227,7 @@ class SearchStore:
         ``changes`` of the search (the target's detections, the final status and result) in one
         transaction; refused whole if ``lease`` is given and no longer the search's."""
         with self.database.write() as session:
-            if lease is not None:
-                fence(session, lease)
-            self._update(session, search_id, changes)
+            self._update(session, search_id, changes, lease)
             session.execute(
                 "INSERT INTO iterations (search_id, idx, doc) VALUES (?, ?, ?) "
                 "ON CONFLICT (search_id, idx) DO UPDATE SET doc = excluded.doc",
@@ -248,12 +246,14 @@ class SearchStore:
         A cancelled search stays cancelled: its status, result and error are not changed again
         (a run winding down after the cancel writes what it did, never over the cancel)."""
         with self.database.write() as session:
-            if lease is not None:
-                fence(session, lease)
-            return self._update(session, search_id, changes)
+            return self._update(session, search_id, changes, lease)
 
-    def _update(self, session: Session, search_id: str, changes: SearchChanges) -> Search:
-        """:meth:`update`, in the transaction of ``session``."""
+    def _update(
+        self, session: Session, search_id: str, changes: SearchChanges, lease: Lease | None
+    ) -> Search:
+        """:meth:`update`, in the transaction of ``session``. The search's row is locked
+        before its lease is checked, the order in which a claim takes them (it skips a locked
+        search), so a write and a claim never wait for each other in a cycle."""
         row = session.execute(
             "SELECT doc, status FROM searches WHERE id = ? FOR UPDATE"
             if self.database.dialect == "postgresql"
@@ -262,6 +262,8 @@ class SearchStore:
         ).fetchone()
         if row is None:
             raise KeyError(search_id)
+        if lease is not None:
+            fence(session, lease)
         given = {key: value for key, value in changes.items() if value is not None}
         if row[1] == "cancelled":
             given = {k: v for k, v in given.items() if k not in {"status", "result", "error"}}
