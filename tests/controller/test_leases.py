@@ -236,3 +236,33 @@ async def test_a_cancel_through_another_controller_stops_the_run(postgres, detai
     reader.close()
     assert final.status == "cancelled"
     assert [it.index for it in final.iterations] == [0, 1]
+
+
+def test_writes_and_claims_of_one_search_at_once_end_in_one_owner(url, opened):
+    """A holder writes while another controller claims the same search over and over (a lease
+    that runs out at once): no deadlock, no error; the writes before the first takeover land,
+    every later one is refused."""
+    one, other = opened(url), opened(url)
+    one.create(search("s"), b"x")
+    lease = Leases(one.database, "A", 0.001).take("s")
+    theirs = Leases(other.database, "B", 0.001)
+    outcomes: Counter[str] = Counter()
+
+    def write() -> None:
+        for n in range(100):
+            try:
+                one.add_iteration("s", iteration(n), lease)
+                outcomes["written"] += 1
+            except LeaseLost:
+                outcomes["refused"] += 1
+
+    def claim() -> None:
+        for _ in range(100):
+            outcomes["claimed"] += len(theirs.claim(1))
+
+    with ThreadPoolExecutor(2) as pool:
+        for done in [pool.submit(write), pool.submit(claim)]:
+            done.result()  # a deadlock or any other error raises here
+    assert outcomes["written"] + outcomes["refused"] == 100
+    assert outcomes["claimed"] >= 1
+    assert [it.index for it in other.iterations("s")] == list(range(outcomes["written"]))
