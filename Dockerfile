@@ -22,7 +22,8 @@ ENV COSMOS_SCENES_DIR=/app/scenes \
     COSMOS_DETECTOR_MODEL=/app/models/detector.onnx \
     SERVICE=renderer \
     PORT=8001
-RUN useradd --create-home cosmos && mkdir -p /data && chown cosmos /data
+# A fixed id: the Kubernetes manifests run the containers as it (runAsUser, deploy/k8s).
+RUN useradd --create-home --uid 1000 cosmos && mkdir -p /data && chown cosmos /data
 USER cosmos
 EXPOSE 8000 8001 8002 8003
 # Healthy when ready to serve (GET /readyz; /livez only says the process answers). The stages

@@ -3,11 +3,14 @@ schema-driven fuzzing of a running service."""
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+import os
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager, contextmanager
+from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 import schemathesis
 from asgi_lifespan import LifespanManager
 from hypothesis import HealthCheck, given, settings
@@ -15,16 +18,31 @@ from schemathesis.checks import positive_data_acceptance
 from starlette.types import ASGIApp
 
 from cosmos.launch import ROOT, ServiceProcess, free_port, running_service
+from cosmos.stack import Stack, local_stack
 from services.common.auth import PROBE_PATHS, bearer, new_token
 
 __all__ = [
     "ROOT",
     "ServiceProcess",
     "assert_token_required",
+    "e2e_stack",
     "free_port",
     "fuzz_service",
     "running_service",
 ]
+
+
+MODEL = ROOT / "models" / "detector.onnx"
+
+
+@contextmanager
+def e2e_stack(workdir: Path) -> Iterator[Stack]:
+    """The four real services on loopback (:func:`~cosmos.stack.local_stack`) for end-to-end
+    tests; fails at once without the shipped detector model."""
+    if not MODEL.exists() and "COSMOS_DETECTOR_MODEL" not in os.environ:
+        pytest.fail(f"the shipped detector model {MODEL} is missing")
+    with local_stack(workdir) as running:
+        yield running
 
 
 def assert_token_required(

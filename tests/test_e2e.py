@@ -14,7 +14,6 @@ import os
 import signal
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import cv2
 import httpx
@@ -22,7 +21,7 @@ import numpy as np
 import pytest
 
 from cosmos.launch import free_port, spawn_service, stop_service, wait_healthy
-from cosmos.stack import Stack, local_stack, plan_local_stack, plan_stack, running_stack
+from cosmos.stack import Stack, plan_local_stack, plan_stack, running_stack
 from services.common.auth import bearer
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search
@@ -31,18 +30,14 @@ from services.common.images import encode_ppm
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
 from services.renderer.client import RendererClient
-from tests.support import fuzz_service
+from tests.support import e2e_stack, fuzz_service
 
 pytestmark = pytest.mark.slow
-
-MODEL = Path(__file__).resolve().parents[1] / "models" / "detector.onnx"
 
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    if not MODEL.exists() and "COSMOS_DETECTOR_MODEL" not in os.environ:
-        pytest.fail(f"the shipped detector model {MODEL} is missing")
-    with local_stack(tmp_path_factory.mktemp("stack")) as running:
+    with e2e_stack(tmp_path_factory.mktemp("stack")) as running:
         yield running
 
 

@@ -1,5 +1,6 @@
 """``docs/RESULTS.md`` from the bench's JSON reports: one section per report (bench and profile,
-sweep, throughput, random scenes), each headed by its command, machine and notes.
+sweep, throughput, random scenes, the simulated broker), each headed by its command, machine and
+notes.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from cosmos.bench.tables import SUMMARY_COLUMNS, markdown_tables, md_table, summ
 
 __all__ = [
     "section_of_bench",
+    "section_of_broker_sim",
     "section_of_profile",
     "section_of_random",
     "section_of_sweep",
@@ -45,7 +47,8 @@ def _escape(text: str) -> str:
 
 
 def write_results_md(path: Path, out: Path) -> None:
-    """``docs/RESULTS.md`` from the JSON reports in ``out`` (bench, sweep, throughput, random)."""
+    """``docs/RESULTS.md`` from the JSON reports in ``out`` (bench, sweep, throughput, random,
+    broker_sim)."""
     rel = Path(os.path.relpath(out, path.parent))
     text = io.StringIO()
     text.write(
@@ -69,6 +72,9 @@ def write_results_md(path: Path, out: Path) -> None:
     random = out / "random.json"
     if random.exists():
         text.write(section_of_random(json.loads(random.read_text())))
+    broker_sim = out / "broker_sim.json"
+    if broker_sim.exists():
+        text.write(section_of_broker_sim(json.loads(broker_sim.read_text())))
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text.getvalue())
 
@@ -275,4 +281,58 @@ def section_of_random(data: Mapping[str, Any]) -> str:
         text.write(
             md_table(FAILURE_HEADER, [[_escape(c) for c in row] for row in failures]) + "\n\n"
         )
+    return text.getvalue()
+
+
+def section_of_broker_sim(data: Mapping[str, Any]) -> str:
+    """``python -m benchmarks.broker_sim``'s section: per scenario, each policy's p50 / p99
+    search latency at each replica count, the default's throughput and its p99 ratios."""
+    text = io.StringIO()
+    text.write("## The broker at scale, simulated (`python -m benchmarks.broker_sim`)\n\n")
+    text.write(f"```sh\n{data['command']}\n```\n\n")
+    tasks = data["tasks"]
+    sources = ", ".join(
+        f"`{s['report']}` ({s['searches']} searches, `{s['command']}`, commit {s['commit']})"
+        for s in tasks["sources"]
+    )
+    text.write(
+        "A discrete-event simulation (SimPy) of searches through the controller's broker, whose "
+        "replica choice is the live code (`services/controller/placement.py`), against "
+        "power-of-two-choices on tasks in flight (Ray Serve's default) and an oracle (the "
+        "replica that would finish the task first, knowing every speed, queue, failure and "
+        f"task length). Task lengths: `{tasks['command']}` from {sources}.\n\n"
+        "Assumptions:\n\n" + "".join(f"- {a}\n" for a in data["assumptions"]) + "\n"
+    )
+    default = data["default_policy"]
+    policies = list(data["rows"][0]["policies"]) if data["rows"] else []
+    header = (
+        "renderers / detectors / optimizers",
+        *(f"{p}{' (default)' if p == default else ''} p50 / p99 ms" for p in policies),
+        "searches/s (default)",
+        "default p99 ÷ p2c",
+        "default p99 ÷ oracle",
+        "goal",
+    )
+    for scenario, description in data["scenarios"].items():
+        rows = []
+        for row in data["rows"]:
+            if row["scenario"] != scenario:
+                continue
+            results, goal = row["policies"], row["goal"]
+            rows.append(
+                [
+                    f"{row['renderer']} / {row['detector']} / {row['optimizer']}",
+                    *(f"{results[p]['p50_ms']:.0f} / {results[p]['p99_ms']:.0f}" for p in policies),
+                    f"{results[default]['per_s']:.1f}",
+                    f"{goal['vs_p2c']:.2f}",
+                    f"{goal['vs_oracle']:.2f}",
+                    "met" if goal["met"] else "**missed**",
+                ]
+            )
+        text.write(f"### Scenario {scenario}: {description}\n\n")
+        text.write(md_table(header, rows) + "\n\n")
+    text.write(
+        f"Goal: the default ({default}) has a p99 at most power-of-two-choices' and within 1.15× "
+        "of the oracle's at every size.\n\n"
+    )
     return text.getvalue()

@@ -1,5 +1,8 @@
 """``cosmos search target.png --scene demo``: submit a search (waiting out a controller that says
-when to come back, for up to ``--retry-for`` seconds), follow it, save its plots."""
+when to come back, for up to ``--retry-for`` seconds), follow it, save its plots.
+
+``--free`` searches for any camera (``mode=free``), optionally with the photo's ``--fov DEG`` or
+``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2`` (the controller checks them)."""
 
 from __future__ import annotations
 
@@ -37,7 +40,14 @@ def _not_taken(refusal: ControllerError, budget_s: float) -> str:
     )
 
 
+_FREE_ONLY = ("fov", "intrinsics", "distortion")
+
+
 def run(args: argparse.Namespace) -> int:
+    given = [f"--{name}" for name in _FREE_ONLY if getattr(args, name) is not None]
+    if given and not args.free:
+        print(f"cosmos: {', '.join(given)} go with --free", file=sys.stderr)
+        return 2
     image = Path(args.image).read_bytes()
     with ControllerClient(args.url, api_key=client_api_key()) as client:
         try:
@@ -51,16 +61,23 @@ def run(args: argparse.Namespace) -> int:
                 start_phi_deg=args.start_phi,
                 seed=args.seed,
                 max_iterations=args.max_iterations,
+                mode="free" if args.free else None,
+                fov_deg=args.fov,
+                intrinsics=args.intrinsics,
+                distortion=args.distortion,
             )
         except ControllerError as exc:
             if exc.status not in RETRYABLE_STATUSES or exc.retry_after_s is None:
                 raise
             print(f"cosmos: {_not_taken(exc, args.retry_for)}", file=sys.stderr)
             return 1
-        print(
-            f"search {search.id} queued: {search.strategy} on {search.scene} from lat "
-            f"{search.start.index.lat} lon {search.start.index.lon}"
-        )
+        if search.mode == "free":
+            print(f"search {search.id} queued: any camera on {search.scene}")
+        else:
+            print(
+                f"search {search.id} queued: {search.strategy} on {search.scene} from lat "
+                f"{search.start.index.lat} lon {search.start.index.lon}"
+            )
         final = follow(client, search, Path(args.out))
     return 0 if final.status == "succeeded" else 3
 
@@ -77,6 +94,15 @@ def register(commands: Commands) -> None:
     search.add_argument("--seed", type=int)
     search.add_argument("--max-iterations", type=int)
     search.add_argument("--out", default="out", help="folder for the trajectory plots")
+    free = search.add_argument_group("any camera (not on the hemisphere)")
+    free.add_argument(
+        "--free", action="store_true", help="find any camera's position, orientation and lens"
+    )
+    free.add_argument("--fov", type=float, metavar="DEG", help="the photo's horizontal fov")
+    free.add_argument(
+        "--intrinsics", metavar="FX,FY,CX,CY", help="the photo's OpenCV intrinsics in its pixels"
+    )
+    free.add_argument("--distortion", metavar="K1,K2,P1,P2", help="the photo's lens distortion")
     search.add_argument(
         "--retry-for",
         type=float,

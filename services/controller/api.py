@@ -53,7 +53,7 @@ from services.controller.runner import NotRetryable, StillStopping
 from services.controller.stages import StageError
 from services.controller.submit import RETRY_AFTER_S
 from services.controller.transport import StageRequest
-from services.controller.views import UnknownIteration, displayable, iteration_pose
+from services.controller.views import UnknownIteration, displayable, iteration_pose, to_png
 from services.controller.wiring import Controller
 
 __all__ = ["router"]
@@ -420,12 +420,19 @@ async def iteration_view(
     """The view the search rendered at iteration ``index``: kept from the search, or rendered
     again, identically (the same scene, grid pose, and the film and samples the search recorded
     when it was submitted, whatever the controller's settings now; and the renderer's fixed
-    seed). 404 for an iteration not recorded (yet)."""
+    seed; a free search's camera on the film it was rendered on). 404 for an iteration not
+    recorded (yet)."""
     search = _search_or_404(state, key, search_id)
     try:
         pose = iteration_pose(search, index)
         settings = state.stages.settings_for(search.view_settings)
-        png = await state.views.png(search.scene, pose, settings)
+        camera = search.iterations[index].camera
+        if camera is None:
+            png = await state.views.png(search.scene, pose, settings)
+        else:  # a free search's view: its camera on its film, rendered again (not kept)
+            size = search.iterations[index].image_size
+            image = await state.stages.render_camera(search.scene, camera, size, "", settings)
+            png = await asyncio.to_thread(to_png, image)
     except UnknownIteration as exc:
         raise NotFoundError(
             str(exc), field="index", slug="unknown-iteration", title="Unknown iteration"

@@ -1,10 +1,11 @@
 """The COSMOS Broker: spreads render, detect and optimize tasks over service replicas.
 
 Each stage (renderer, detector, optimizer) has a pool of replica URLs. For every task the broker
-picks a replica with a configurable heuristic:
+picks a replica with a configurable heuristic (:mod:`~services.controller.placement`, pure, which
+``benchmarks.broker_sim`` runs too):
 
-* ``least-loaded``: fewest tasks in flight (this controller's, or what the replica reports in
-  ``/health``, whichever is larger);
+* ``least-loaded``: fewest tasks ahead (this controller's in flight, plus those the replica's
+  last ``/health`` counted beyond this controller's own at that moment);
 * ``shortest-expected-completion``: smallest ``(load + 1) · expected duration``, where the expected
   duration is an exponential moving average of that replica's recent durations for that kind of
   task (a replica with no history is assumed as fast as the pool's mean);
@@ -38,11 +39,10 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any
 
-from services.common.contracts.search import ReplicaHealth, ReplicaState
+from services.common.contracts.search import ReplicaHealth
+from services.controller.placement import Heuristic, Replica, choose
 from services.controller.transport import (
     AiohttpTransport,
     StageAnswer,
@@ -54,15 +54,7 @@ from services.controller.transport import (
 __all__ = ["Broker", "BrokerError", "Heuristic", "Replica"]
 
 _log = logging.getLogger("cosmos.broker")
-EWMA_WEIGHT = 0.3
-DEFAULT_EXPECTED_MS = 100.0
 HEALTH_TIMEOUT_S = 2.0
-
-
-class Heuristic(StrEnum):
-    LEAST_LOADED = "least-loaded"
-    SHORTEST_EXPECTED = "shortest-expected-completion"
-    ROUND_ROBIN = "round-robin"
 
 
 class BrokerError(RuntimeError):
@@ -72,37 +64,6 @@ class BrokerError(RuntimeError):
         self.stage, self.kind, self.reasons = stage, kind, list(reasons)
         summary = "; ".join(self.reasons) or "no replica configured"
         super().__init__(f"no {stage} replica could {kind}: {summary}")
-
-
-@dataclass
-class Replica:
-    """One service replica and what the broker knows of it; ``name`` is what the public sees
-    of it, ``url`` is for the log."""
-
-    stage: str
-    url: str
-    name: str
-    in_flight: int = 0
-    reported_load: float = 0.0
-    expected_ms: dict[str, float] = field(default_factory=dict)
-    consecutive_failures: int = 0
-    down_until: float = 0.0
-    served: int = 0
-    failed: int = 0
-
-    @property
-    def load(self) -> float:
-        return max(float(self.in_flight), self.reported_load)
-
-    def available(self, now: float) -> bool:
-        return now >= self.down_until
-
-    def state(self, now: float) -> ReplicaState:
-        """``out`` while taken out after failures, ``failing`` while its last task or probe
-        failed (it still gets tasks), else ``up``."""
-        if not self.available(now):
-            return "out"
-        return "failing" if self.consecutive_failures else "up"
 
 
 class Broker:
@@ -227,31 +188,17 @@ class Broker:
 
     # -- placement ----------------------------------------------------------------------------
 
-    def _expected_ms(self, replica: Replica, kind: str, pool: Sequence[Replica]) -> float:
-        if kind in replica.expected_ms:
-            return replica.expected_ms[kind]
-        known = [r.expected_ms[kind] for r in pool if kind in r.expected_ms]
-        return sum(known) / len(known) if known else DEFAULT_EXPECTED_MS
-
     def choose(self, stage: str, kind: str, exclude: set[str] | None = None) -> Replica:
         """The replica for the next ``kind`` task of ``stage`` (never one in ``exclude`` or out
-        for cooldown, unless every replica is)."""
+        for cooldown, unless every replica is): :func:`~services.controller.placement.choose`."""
         pool = self._replicas.get(stage, [])
         if not pool:
             self._outages.setdefault(stage, time.monotonic())
             raise BrokerError(stage, kind, [])
-        now = time.monotonic()
-        exclude = exclude or set()
-        candidates = [r for r in pool if r.available(now) and r.url not in exclude]
-        if not candidates:
-            candidates = [r for r in pool if r.url not in exclude] or list(pool)
         turn = next(self._turns[stage])
-        if self.heuristic is Heuristic.ROUND_ROBIN:
-            return candidates[turn % len(candidates)]
-        rotated = candidates[turn % len(candidates) :] + candidates[: turn % len(candidates)]
-        if self.heuristic is Heuristic.LEAST_LOADED:
-            return min(rotated, key=lambda r: r.load)
-        return min(rotated, key=lambda r: (r.load + 1.0) * self._expected_ms(r, kind, pool))
+        return choose(
+            self.heuristic, pool, kind, turn=turn, now=time.monotonic(), exclude=exclude or ()
+        )
 
     # -- calls --------------------------------------------------------------------------------
 
@@ -301,20 +248,11 @@ class Broker:
         raise BrokerError(stage, kind, reasons)
 
     def _succeeded(self, replica: Replica, kind: str, elapsed_ms: float) -> None:
-        previous = replica.expected_ms.get(kind)
-        replica.expected_ms[kind] = (
-            elapsed_ms if previous is None else previous + EWMA_WEIGHT * (elapsed_ms - previous)
-        )
-        replica.consecutive_failures = 0
-        replica.down_until = 0.0
-        replica.served += 1
+        replica.succeeded(kind, elapsed_ms)
         self._answered(replica.stage)
 
     def _failed(self, replica: Replica, reason: str) -> None:
-        replica.failed += 1
-        replica.consecutive_failures += 1
-        if replica.consecutive_failures >= self.failure_threshold:
-            replica.down_until = time.monotonic() + self.cooldown_s
+        if replica.failed_at(time.monotonic(), self.failure_threshold, self.cooldown_s):
             _log.warning(
                 "taking %s (%s) out for %.1f s (%s)",
                 replica.name,
@@ -346,11 +284,9 @@ class Broker:
                 self._failed(replica, "health probe failed")
             return
         load = body.get("in_flight")
-        replica.reported_load = float(load) if isinstance(load, int | float) else 0.0
         if not replica.available(time.monotonic()):
             _log.info("%s (%s) answers /health again", replica.name, replica.url)
-        replica.down_until = 0.0
-        replica.consecutive_failures = 0
+        replica.answered_health(float(load) if isinstance(load, int | float) else 0.0)
         self._answered(replica.stage)
 
     def _answered(self, stage: str) -> None:

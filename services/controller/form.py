@@ -9,16 +9,20 @@ FastAPI parameter would, naming the field.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any, Final
 
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
+from services.common.contracts.free import PhotoIntrinsics
 from services.common.contracts.search import SearchOptions
+from services.common.errors import UnprocessableError
+from services.common.geometry.free_camera import LensDistortion
 from services.common.upload import request_body
 
-__all__ = ["OPENAPI", "search_options"]
+__all__ = ["OPENAPI", "photo_intrinsics", "search_options"]
 
 
 def _plain(schema: dict[str, Any]) -> dict[str, Any]:
@@ -90,3 +94,53 @@ def search_options(form: Mapping[str, str], query: Sequence[tuple[str, str]]) ->
                 for err in exc.errors(include_url=False, include_context=False)
             ]
         ) from exc
+
+
+def _four(text: str, field: str) -> tuple[float, float, float, float]:
+    values = [float(part) for part in text.split(",")]  # the option's pattern: four numbers
+    if not all(math.isfinite(v) for v in values):
+        raise UnprocessableError(f"{field} must be four finite numbers", field=field)
+    return values[0], values[1], values[2], values[3]
+
+
+def photo_intrinsics(options: SearchOptions) -> PhotoIntrinsics | None:
+    """The photo's intrinsics a free search was given (``fov_deg`` or ``intrinsics``
+    ``fx,fy,cx,cy``, and ``distortion`` ``k1,k2,p1,p2``), None when none were. Raises
+    :class:`UnprocessableError` naming the field for intrinsics of a hemisphere search, both
+    ``fov_deg`` and ``intrinsics``, a distortion without either, or values out of range."""
+    given = {
+        name: value
+        for name, value in (
+            ("fov_deg", options.fov_deg),
+            ("intrinsics", options.intrinsics),
+            ("distortion", options.distortion),
+        )
+        if value is not None
+    }
+    if not given:
+        return None
+    if options.mode != "free":
+        field = next(iter(given))
+        raise UnprocessableError(f"{field} is for a free search (mode=free)", field=field)
+    if options.fov_deg is not None and options.intrinsics is not None:
+        raise UnprocessableError("give fov_deg or intrinsics, not both", field="intrinsics")
+    if options.fov_deg is None and options.intrinsics is None:
+        raise UnprocessableError(
+            "distortion needs the focal length: give fov_deg or intrinsics too",
+            field="distortion",
+        )
+    fields: dict[str, object] = {"fov_deg": options.fov_deg}
+    if options.intrinsics is not None:
+        fx, fy, cx, cy = _four(options.intrinsics, "intrinsics")
+        fields = {"fx_px": fx, "fy_px": fy, "cx_px": cx, "cy_px": cy}
+    name = "intrinsics"
+    try:
+        if options.distortion is not None:
+            name = "distortion"
+            k1, k2, p1, p2 = _four(options.distortion, "distortion")
+            fields["distortion"] = LensDistortion(k1=k1, k2=k2, p1=p1, p2=p2)
+            name = "intrinsics" if options.intrinsics is not None else "fov_deg"
+        return PhotoIntrinsics.model_validate(fields)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        raise UnprocessableError(f"{name}: {first['msg']}", field=name) from exc

@@ -47,15 +47,16 @@ def trajectory_png(search: Search, grid: HemisphereGrid) -> bytes:
         phis = np.radians([p.phi_deg for p in poses])
         thetas = [p.theta_deg for p in poses]
         ax.plot(phis, thetas, "-o", c="#1f77b4", ms=4, lw=1.2, label="visited")
-    ax.scatter(
-        [math.radians(search.start.phi_deg)],
-        [search.start.theta_deg],
-        s=60,
-        c="#2ca02c",
-        marker="s",
-        label="start",
-        zorder=3,
-    )
+    if search.mode == "hemisphere":  # a free search starts where the optimizer solved for
+        ax.scatter(
+            [math.radians(search.start.phi_deg)],
+            [search.start.theta_deg],
+            s=60,
+            c="#2ca02c",
+            marker="s",
+            label="start",
+            zorder=3,
+        )
     if search.result is not None:
         refined = search.result.refined_pose
         ax.scatter(

@@ -1,7 +1,8 @@
 """The controller's queue of searches and its workers: queueing, cancelling, deleting, retrying.
 
 Searches run concurrently on ``max_concurrent`` workers, each through the search loop
-(:mod:`~services.controller.loop`); the rest wait in a FIFO queue. A search whose stage stayed
+(:mod:`~services.controller.loop`, or :mod:`~services.controller.free_loop` for a free
+search); the rest wait in a FIFO queue. A search whose stage stayed
 away longer than the outage budget (:mod:`~services.controller.outages`) can be queued again
 with :meth:`SearchRunner.retry`.
 
@@ -30,6 +31,7 @@ from services.common.errors import ProblemDetails, problem_type
 from services.controller.broker import BrokerError
 from services.controller.events import Notifier
 from services.controller.failures import SearchFailed
+from services.controller.free_loop import FreeSearchLoop
 from services.controller.loop import SearchLoop
 from services.controller.outages import OutagePolicy, why_not_retryable
 from services.controller.stages import Stages
@@ -73,7 +75,9 @@ class SearchRunner:
         self.notifier = notifier
         self.max_concurrent = max_concurrent
         self.outage_budget_s = outage_budget_s
-        self.loop = SearchLoop(store, stages, notifier, OutagePolicy(stages, outage_budget_s))
+        outages = OutagePolicy(stages, outage_budget_s)
+        self.loop = SearchLoop(store, stages, notifier, outages)
+        self.free_loop = FreeSearchLoop(store, stages, notifier, outages)
         self._queue: asyncio.Queue[str] = asyncio.Queue()
         self._workers: list[asyncio.Task[None]] = []
         self._running: dict[str, asyncio.Task[None]] = {}
@@ -154,6 +158,11 @@ class SearchRunner:
         return len(self._running)
 
     @property
+    def stopping(self) -> int:
+        """Cancelled searches whose runs have yet to stop (a finished run forgets its cancel)."""
+        return len(self._cancelled)
+
+    @property
     def idle(self) -> bool:
         """Whether a search submitted now would start at once (a worker is free, none waits)."""
         return self._queue.empty() and len(self._running) < self.max_concurrent
@@ -185,7 +194,6 @@ class SearchRunner:
             raise StillStopping(search_id)
         deleted = self.store.delete_finished(search_id)
         if deleted is not None:
-            self._cancelled.discard(search_id)
             self.notifier.publish(search_id)  # its followers end
         return deleted
 
@@ -279,9 +287,11 @@ class SearchRunner:
         search, image = self._submitted.pop(search_id, None) or (self.store.get(search_id), None)
         if search is None or search.status in TERMINAL_STATUSES or search_id in self._cancelled:
             self.stages.forget_early(search_id)
+            self._cancelled.discard(search_id)  # its run, the only one to come, is over
             return
         try:
-            await self.loop.run(search, image or self.store.image(search_id), lease)
+            loop = self.free_loop if search.mode == "free" else self.loop
+            await loop.run(search, image or self.store.image(search_id), lease)
         except asyncio.CancelledError:
             if search_id in self._cancelled or search_id in self._lost:
                 return
@@ -310,6 +320,7 @@ class SearchRunner:
             )
         finally:
             self.stages.forget_early(search_id)  # a start view the search did not take
+            self._cancelled.discard(search_id)  # a cancelled search is never run again
             self.notifier.publish(search_id)
 
     def _record_failure(self, search_id: str, lease: Lease | None, problem: ProblemDetails) -> None:

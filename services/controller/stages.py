@@ -1,4 +1,5 @@
-"""The three stage calls a search makes, each through the broker: render, detect, optimize.
+"""The stage calls a search makes, each through the broker: render (a grid pose, or a free
+camera), detect, optimize (the next pose, or the free pose from the target's boxes).
 
 Every call forwards the search's request id (``X-Request-ID``). A 4xx answer from a stage is a
 :class:`StageError` carrying that stage's problem details (the search fails with it); transport
@@ -18,10 +19,12 @@ from typing import Any
 from urllib.parse import urlencode
 
 from services.common.contracts.detect import DetectResponse
+from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import ViewSettings
 from services.common.errors import ProblemDetails
+from services.common.geometry.free_camera import FreeCamera
 from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE
 from services.controller.broker import Broker
@@ -136,6 +139,30 @@ class Stages:
             self.on_render(scene_id, index, settings, image)
         return image
 
+    async def render_camera(
+        self,
+        scene_id: str,
+        camera: FreeCamera,
+        size: tuple[int, int],
+        request_id: str = "",
+        view_settings: ViewSettings | None = None,
+    ) -> bytes:
+        """The scene seen from the free ``camera`` on a film of ``size`` (width, height; the
+        camera's pixel intrinsics are in its pixels), sampled as ``view_settings`` say (their
+        width is the caller's to apply): binary PPM bytes, or PNG, as :meth:`render`."""
+        settings = self.settings_for(view_settings)
+        body: dict[str, Any] = {
+            "scene": scene_id,
+            "camera": camera.model_dump(mode="json", exclude_none=True),
+            "width": size[0],
+            "height": size[1],
+        }
+        if settings.spp is not None:
+            body["spp"] = settings.spp
+        headers = {"X-Request-ID": request_id, "Accept": f"{PPM_MEDIA_TYPE}, image/png;q=0.5"}
+        request = StageRequest.json("/render", json.dumps(body), headers)
+        return (await self._call("renderer", "render", request)).content
+
     async def detect(
         self, image: bytes, media_type: str, request_id: str = "", *, scene: str | None = None
     ) -> DetectResponse:
@@ -155,6 +182,13 @@ class Stages:
         call = StageRequest.json("/next-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "optimize", call)
         return NextPoseResponse.model_validate_json(response.content)
+
+    async def free_pose(self, request: FreePoseRequest, request_id: str = "") -> FreePoseResponse:
+        """The optimizer's answer to ``POST /free-pose`` (a ValidationError if it is malformed)."""
+        body = request.model_dump_json(exclude_none=True)
+        call = StageRequest.json("/free-pose", body, {"X-Request-ID": request_id})
+        response = await self._call("optimizer", "solve", call)
+        return FreePoseResponse.model_validate_json(response.content)
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         """Wait until a replica of ``stage`` answers again (see

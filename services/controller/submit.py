@@ -23,6 +23,7 @@ from services.common.geometry.pose import Pose
 from services.common.geometry.scene import SCENE_ID_PATTERN
 from services.common.images import checked_header, decode_image
 from services.controller.broker import Broker
+from services.controller.form import photo_intrinsics
 from services.controller.keys import ApiKey
 from services.controller.quotas import Quotas
 from services.controller.runner import NotRetryable, SearchRunner
@@ -107,14 +108,16 @@ async def create_search(
     The image must decode (PNG, JPEG or binary PPM within the size caps; its header is checked
     first, its pixels decoded off the event loop); the scene must be known to the renderers. A
     start pose given by angles is snapped to the nearest grid pose; without one, a grid pose is
-    drawn from ``seed`` (itself drawn when absent, and recorded). With ``start_early`` the start
-    view's render is under way while the pixels are decoded and the search stored
-    (:meth:`Stages.render_early`; dropped again if the image turns out broken). ``owner`` is
-    the id of the API key that submits it. A large image is written to the store off the event
-    loop (:data:`INLINE_WRITE_BYTES`), and the search deleted again if the caller is cancelled
-    meanwhile (:func:`_store_large`): stored means answered and handed to the runner. The search
-    records the controller's current view settings (:attr:`Stages.view_settings`): all its views
-    are rendered with them.
+    drawn from ``seed`` (itself drawn when absent, and recorded); a free search (``mode=free``)
+    records it too but starts from the pose the optimizer solves for, with the photo's
+    intrinsics when given (:func:`~services.controller.form.photo_intrinsics`). With
+    ``start_early`` the start view's render is under way while the pixels are decoded and the
+    search stored (:meth:`Stages.render_early`; dropped again if the image turns out broken).
+    ``owner`` is the id of the API key that submits it. A large image is written to the store
+    off the event loop (:data:`INLINE_WRITE_BYTES`), and the search deleted again if the caller
+    is cancelled meanwhile (:func:`_store_large`): stored means answered and handed to the
+    runner. The search records the controller's current view settings
+    (:attr:`Stages.view_settings`): all its views are rendered with them.
     """
     max_image_pixels = settings.controller_max_image_pixels
     max_image_side = settings.controller_max_image_side
@@ -128,6 +131,7 @@ async def create_search(
         raise UnprocessableError(
             "give start_theta_deg and start_phi_deg together", field="start_theta_deg"
         )
+    intrinsics = photo_intrinsics(options)
     if re.match(SCENE_ID_PATTERN, options.scene) is None:
         raise NotFoundError(
             f"unknown scene {options.scene!r}",
@@ -172,7 +176,7 @@ async def create_search(
     pose = grid.pose(index)
     search_id = uuid.uuid4().hex
     view_settings = stages.view_settings  # its views are rendered so from now on, always
-    if start_early:
+    if start_early and options.mode == "hemisphere":  # a free search's first view is solved for
         stages.render_early(options.scene, index, search_id, view_settings)
         # One turn of the loop puts the render request on the wire (on a kept-alive connection
         # that is the task's first step) before the decode's thread hop: ~0.5 ms sooner.
@@ -194,6 +198,8 @@ async def create_search(
             updated_at=now,
             target_size=(header.width, header.height),
             view_settings=view_settings,
+            mode=options.mode,
+            intrinsics=intrinsics,
         )
         if len(image) <= INLINE_WRITE_BYTES:
             store.create(record, image, owner=owner)

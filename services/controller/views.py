@@ -29,6 +29,7 @@ __all__ = [
     "ViewStore",
     "displayable",
     "iteration_pose",
+    "to_png",
 ]
 
 Render = Callable[[str, GridIndex, ViewSettings], Awaitable[bytes]]

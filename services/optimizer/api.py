@@ -1,12 +1,14 @@
-"""Optimizer routes: thin HTTP wrappers over planning (:mod:`services.optimizer.planning`)."""
+"""Optimizer routes: thin HTTP wrappers over planning (:mod:`services.optimizer.planning`) and the
+free pose (:mod:`services.optimizer.free_pose`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, get_args
 
 from fastapi import APIRouter, Depends, Request, Response
 
+from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import (
     MapRequest,
     MapResponse,
@@ -17,6 +19,7 @@ from services.common.contracts.optimize import (
     StrategyName,
 )
 from services.common.http import app_state, problem_responses
+from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.optimizer.json_body import json_request_body, read_json
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
 from services.optimizer.strategies import STRATEGIES
@@ -31,6 +34,7 @@ class OptimizerState:
     """What the routes need, built in the app's lifespan."""
 
     context: OptimizerContext
+    free_objects: SceneObjectCache = field(default_factory=SceneObjectCache)
 
 
 State = Annotated[OptimizerState, Depends(app_state("optimizer"))]
@@ -88,3 +92,15 @@ async def plan(request: Request, state: State) -> Response:
 def map_objects(body: MapRequest, state: State) -> MapResponse:
     """Ground positions of the detections of one view seen from a known pose (paper §3.2)."""
     return map_detections(body, state.context.calibrations)
+
+
+@router.post(
+    "/free-pose",
+    response_model=FreePoseResponse,
+    responses=problem_responses(400, 404, 413, 422),
+)
+def solve_free(body: FreePoseRequest, state: State) -> FreePoseResponse:
+    """Any camera's pose (position, orientation, intrinsics) from the target's boxes alone:
+    ``found``, ``ambiguous`` with the alternatives, or ``failed`` with why. Run on a worker
+    thread: a solve is tens of milliseconds of numpy and scipy."""
+    return free_pose(body, state.context.catalog, state.free_objects)

@@ -57,7 +57,7 @@ from services.optimizer.strategies import (
 )
 from services.optimizer.view_cache import ViewMappings
 
-__all__ = ["STUCK_VISITS", "OptimizerContext", "map_detections", "next_pose"]
+__all__ = ["STUCK_VISITS", "OptimizerContext", "check_box", "map_detections", "next_pose"]
 
 STUCK_VISITS: Final = 3
 """A proposed pose already visited this often means the strategy is going round in circles."""
@@ -126,10 +126,11 @@ def _check_image(image: ImageDetections, camera: CameraSpec, where: str) -> None
             "inconsistent-image",
         )
     for i, detection in enumerate(image.detections):
-        _check_box(detection, width, height, f"{where}.detections[{i}].box")
+        check_box(detection, width, height, f"{where}.detections[{i}].box")
 
 
-def _check_box(detection: Detection, width: int, height: int, field: str) -> None:
+def check_box(detection: Detection, width: int, height: int, field: str) -> None:
+    """422 ``box-outside-image`` naming ``field`` unless the box lies inside the image."""
     x1, y1, x2, y2 = detection.box
     inside = (
         -_BOX_SLACK <= x1 < x2 <= width + _BOX_SLACK

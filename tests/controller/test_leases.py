@@ -130,11 +130,11 @@ async def test_a_controller_that_stops_beating_is_taken_over_and_fenced(
     a_stages = Gated(detail, pause_after=2)
     a = SearchRunner(
         a_store, a_stages, Notifier(), 1, leases=Leases(a_store.database, "A", LEASE_S)
-    )  # noqa: E501
+    )
     b_stages = FakeStages(detail)
     b = SearchRunner(
         b_store, b_stages, Notifier(), 1, leases=Leases(b_store.database, "B", LEASE_S)
-    )  # noqa: E501
+    )
     try:
         await a.start()
         await _until(lambda: len(a_store.iterations("s1")) == 2)
@@ -143,7 +143,7 @@ async def test_a_controller_that_stops_beating_is_taken_over_and_fenced(
         assert b.running == 0
         assert a._heartbeat is not None
         a._heartbeat.cancel()  # A is cut off: no more heartbeats
-        took = await _until(lambda: "s1" in b._held)
+        took = await _until(lambda: any(name == "B" for name, _ in landed))  # B's first write
         await _until(lambda: b_store.get("s1").status == "succeeded")
         a_stages.gate.set()  # A comes back, and writes the iteration it was on
         await _until(lambda: a.running == 0)
@@ -211,14 +211,14 @@ async def test_a_cancel_through_another_controller_stops_the_run(postgres, detai
     a_stages = Gated(detail, pause_after=2)
     a = SearchRunner(
         a_store, a_stages, Notifier(), 1, leases=Leases(a_store.database, "A", LEASE_S)
-    )  # noqa: E501
+    )
     b = SearchRunner(
         b_store, FakeStages(detail), Notifier(), 1, leases=Leases(b_store.database, "B", LEASE_S)
-    )  # noqa: E501
+    )
     try:
         await a.start()
+        await _until(lambda: len(a_store.iterations("s1")) == 2)  # A runs it
         await b.start()
-        await _until(lambda: len(a_store.iterations("s1")) == 2)
         assert b.cancel("s1").status == "cancelled"
         stopped = await _until(lambda: a.running == 0)
         a_stages.gate.set()

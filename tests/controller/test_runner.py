@@ -811,6 +811,7 @@ def test_a_cancel_is_never_lost_whenever_it_arrives(tmp_path, detail, call):
                 break
             await asyncio.sleep(0.01)
         assert runner.running == 0
+        assert runner.stopping == 0  # the cancel is forgotten once its run stopped
         await closed_at_once(runner)
 
     asyncio.run(go())

@@ -12,6 +12,7 @@ import json
 import os
 import shutil
 import subprocess
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -24,7 +25,9 @@ from services.common.geometry.pose import PoseQuery
 from services.renderer.client import RendererClient
 
 CHROMIUM = Path("/usr/bin/chromium")
-SCREENSHOTS = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
+# The README's screenshots are rewritten only when asked (SCREENSHOTS_DIR=docs/screenshots), so a
+# test run leaves the working tree as it found it; otherwise they go to a temporary folder.
+SCREENSHOTS = Path(os.environ.get("SCREENSHOTS_DIR") or tempfile.mkdtemp(prefix="cosmos-shots-"))
 # SwiftShader: WebGL without a GPU (headless Chromium refuses the software fallback otherwise)
 CHROMIUM_ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
 

@@ -1,7 +1,7 @@
 """The page in a real browser (Debian's Chromium under Playwright) against the real stack: a full
 search from an uploaded target, watched live and replayed; the error paths; the API key asked
 once; past searches paged; the broker panel refreshed. The tests write the README's screenshots
-(``docs/screenshots/``)."""
+(``docs/screenshots/`` when ``SCREENSHOTS_DIR`` says so)."""
 
 from __future__ import annotations
 

@@ -9,8 +9,10 @@ from pydantic import ConfigDict, Field, Strict
 
 from services.common.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection, ModelInfo
+from services.common.contracts.free import FreeAnswer, PhotoIntrinsics
 from services.common.contracts.optimize import GridPose, StrategyName, ViewMatch
 from services.common.errors import ProblemDetails, problem_type
+from services.common.geometry.free_camera import FreeCamera
 from services.common.geometry.pose import Pose
 
 __all__ = [
@@ -22,6 +24,7 @@ __all__ = [
     "ReplicaHealth",
     "ReplicaState",
     "Search",
+    "SearchMode",
     "SearchOptions",
     "SearchPage",
     "SearchResult",
@@ -34,6 +37,10 @@ __all__ = [
 ]
 
 SearchStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+SearchMode = Literal["hemisphere", "free"]
+"""``hemisphere``: the paper's search over the scene's grid of poses; ``free``: any camera,
+solved from the target's boxes and confirmed by rendering it
+(:mod:`services.controller.free_loop`)."""
 TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 
 OUTAGE: Final = problem_type("stage-unavailable")
@@ -46,6 +53,10 @@ Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
 Count = Annotated[Integer, Field(ge=0)]
 
 MAX_ITERATIONS: Final = 500
+
+_NUMBER = r"\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*"
+_FOUR_NUMBERS = rf"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}$"
+"""Four comma-separated decimal numbers, as a form field carries a camera's four parameters."""
 
 ViewSpp = Annotated[int, Field(ge=1, le=1024)]
 """Samples per pixel of a search's views (the controller's ``COSMOS_CONTROLLER_VIEW_SPP``)."""
@@ -87,6 +98,24 @@ class SearchOptions(FrozenModel):
     max_iterations: Annotated[int, Field(ge=1, le=MAX_ITERATIONS)] | None = Field(
         default=None, description="Give up after this many views (default: the controller's)."
     )
+    mode: SearchMode = Field(
+        default="hemisphere",
+        description="`hemisphere`: the paper's search over the scene's grid; `free`: any camera "
+        "(position, orientation, intrinsics) from the target's boxes, confirmed by a render.",
+    )
+    fov_deg: Annotated[float, Field(gt=0.0, lt=180.0)] | None = Field(
+        default=None, description="Free mode: the photo's horizontal field of view in degrees."
+    )
+    intrinsics: Annotated[str, Field(max_length=200, pattern=_FOUR_NUMBERS)] | None = Field(
+        default=None,
+        description="Free mode: the photo's OpenCV intrinsics `fx,fy,cx,cy` in its pixels "
+        "(instead of fov_deg).",
+    )
+    distortion: Annotated[str, Field(max_length=200, pattern=_FOUR_NUMBERS)] | None = Field(
+        default=None,
+        description="Free mode: the photo's OpenCV lens distortion `k1,k2,p1,p2` (with fov_deg "
+        "or intrinsics).",
+    )
 
 
 class StageTimings(FrozenModel):
@@ -122,6 +151,11 @@ class Iteration(FrozenModel):
         default=None,
         description="The detector model that found this view's detections (its sha256).",
     )
+    camera: FreeCamera | None = Field(
+        default=None,
+        description="A free search's view: the camera rendered, intrinsics in pixels of this "
+        "view (`image_size`); `pose` is then the grid pose nearest it. Null for a grid view.",
+    )
 
 
 class SearchResult(FrozenModel):
@@ -143,6 +177,12 @@ class SearchResult(FrozenModel):
         default=True,
         description="False when no view was confirmed to match the target: the pose is the "
         "best visited one, not a found one.",
+    )
+    free: FreeAnswer | None = Field(
+        default=None,
+        description="A free search's answer: the camera's position, orientation and "
+        "intrinsics, the pairs, residual and alternatives; `pose` is then the grid pose nearest "
+        "it and `refined_pose` its direction from the scene centre. Null for a hemisphere search.",
     )
 
 
@@ -170,6 +210,13 @@ class Search(FrozenModel):
     iterations: tuple[Iteration, ...] = ()
     result: SearchResult | None = None
     error: ProblemDetails | None = None
+    mode: SearchMode = Field(
+        default="hemisphere",
+        description="`free`: any camera from the target's boxes (`start` is not used).",
+    )
+    intrinsics: PhotoIntrinsics | None = Field(
+        default=None, description="A free search's photo intrinsics, when they were given."
+    )
     view_settings: ViewSettings | None = Field(
         default=None,
         description="How the search's views are rendered, recorded when it was submitted: its "

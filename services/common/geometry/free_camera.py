@@ -52,6 +52,7 @@ from services.common.geometry.pose import Pose
 __all__ = [
     "FreeCamera",
     "LensDistortion",
+    "direction_pose",
     "free_camera_of_pose",
     "free_pinhole_camera",
     "look_at_angles",
@@ -340,3 +341,14 @@ def free_camera_of_pose(pose: Pose, radius: float, fov_deg: float | None = None)
         pitch_deg=90.0 - pose.theta_deg,
         fov_deg=fov_deg,
     )
+
+
+def direction_pose(position: ArrayLike) -> Pose:
+    """The hemisphere pose in the direction of ``position`` from the scene centre (the origin):
+    ``θ = acos(z / |p|)`` (at most 90°: a camera below the horizon counts as on it) and
+    ``φ = atan2(y, x)``; θ = 0 at the origin itself. A free camera's nearest grid pose is the
+    grid's nearest to this one."""
+    x, y, z = (float(v) for v in np.asarray(position, dtype=np.float64))
+    norm = math.sqrt(x * x + y * y + z * z)
+    theta = math.degrees(math.acos(max(-1.0, min(1.0, z / norm)))) if norm > 0.0 else 0.0
+    return Pose(theta_deg=min(theta, 90.0), phi_deg=math.degrees(math.atan2(y, x)))

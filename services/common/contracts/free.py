@@ -1,0 +1,186 @@
+"""Messages of the free-camera pose: the optimizer's ``POST /free-pose`` and what a free search
+answers with it.
+
+A free pose is any camera in the scene's world frame (z up, the ground the plane z = 0, scene
+units), with the conventions of :mod:`services.common.geometry.free_camera`: the quaternion is
+the camera-to-world rotation, camera axes x right, y down, z forward (OpenCV). Intrinsics are in
+pixels of the target image.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from services.common.base import BoxXYXY, FrozenModel, Integer, Number
+from services.common.contracts.optimize import MAX_DETECTIONS, GridPose, ImageDetections
+from services.common.geometry.free_camera import (
+    FocalPx,
+    FovDeg,
+    FreeCamera,
+    LensDistortion,
+    PixelCoordinate,
+    direction_pose,
+)
+from services.common.geometry.grid import HemisphereGrid
+from services.common.geometry.scene import SCENE_ID_PATTERN
+
+__all__ = [
+    "FreeAnswer",
+    "FreeCorrespondence",
+    "FreePose",
+    "FreePoseRequest",
+    "FreePoseResponse",
+    "FreeStatus",
+    "IntrinsicsSource",
+    "IntrinsicsUsed",
+    "PhotoIntrinsics",
+    "nearest_grid_pose",
+]
+
+FreeStatus = Literal["found", "ambiguous", "failed"]
+IntrinsicsSource = Literal["given", "estimated", "scene"]
+Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
+NonNeg = Annotated[Number, Field(ge=0.0)]
+
+
+class PhotoIntrinsics(FrozenModel):
+    """The photo's intrinsics, when known: ``fov_deg`` (horizontal, square pixels, centred
+    principal point) or OpenCV's ``fx_px``, ``fy_px`` (with ``cx_px``, ``cy_px``: the image's
+    centre when left out), and optionally OpenCV's lens ``distortion`` (which needs one of them).
+    """
+
+    fov_deg: FovDeg | None = None
+    fx_px: FocalPx | None = None
+    fy_px: FocalPx | None = None
+    cx_px: PixelCoordinate | None = None
+    cy_px: PixelCoordinate | None = None
+    distortion: LensDistortion | None = None
+
+    @model_validator(mode="after")
+    def _one_focal(self) -> PhotoIntrinsics:
+        focal = (self.fx_px is not None, self.fy_px is not None)
+        if any(focal) and not all(focal):
+            raise ValueError("fx_px and fy_px go together")
+        if self.fov_deg is not None and any(focal):
+            raise ValueError("give fov_deg or fx_px/fy_px, not both")
+        if (self.cx_px is None) != (self.cy_px is None):
+            raise ValueError("cx_px and cy_px go together")
+        if self.cx_px is not None and not all(focal):
+            raise ValueError("cx_px and cy_px go with fx_px and fy_px")
+        if self.fov_deg is None and not any(focal):
+            raise ValueError("give fov_deg or fx_px/fy_px (distortion needs the focal length)")
+        return self
+
+    def camera_fields(self) -> dict[str, object]:
+        """These intrinsics as the fields of a :class:`FreeCamera`."""
+        return self.model_dump(exclude_none=True)
+
+
+class FreePoseRequest(FrozenModel):
+    """``POST /free-pose``: the scene, the target image's size and detections (boxes in its
+    pixels; none is a ``failed`` answer, not an error), and the photo's intrinsics if known
+    (otherwise the scene camera's field of view is the start and the focal length is estimated
+    from four paired objects on)."""
+
+    scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)]
+    target: ImageDetections
+    intrinsics: PhotoIntrinsics | None = None
+
+
+class IntrinsicsUsed(FrozenModel):
+    """The intrinsics a pose was computed with, in pixels of the target image: ``given`` by the
+    request, ``estimated`` from the boxes, or the ``scene`` camera's field of view (not given,
+    too few objects to estimate it). ``distortion`` is the given lens, if any."""
+
+    fx_px: Number
+    fy_px: Number
+    cx_px: Number
+    cy_px: Number
+    fov_deg: Number
+    source: IntrinsicsSource
+    distortion: LensDistortion | None = None
+
+
+class FreeCorrespondence(FrozenModel):
+    """Target detection ``detection`` (its index in the request) is scene object ``object``;
+    ``residual_px`` is the pair's box-edge RMS, ``predicted_box`` the object's box projected at
+    the pose (target pixels, unclipped)."""
+
+    detection: Annotated[Integer, Field(ge=0, lt=MAX_DETECTIONS)]
+    object: str
+    label: str
+    residual_px: NonNeg
+    predicted_box: BoxXYXY | None = None
+
+
+class FreePose(FrozenModel):
+    """A camera pose from the target's boxes: position (scene units), camera-to-world quaternion
+    ``(w, x, y, z)`` and yaw/pitch/roll in degrees, the intrinsics used, the pairs, the edge RMS
+    residual in pixels, a confidence in [0, 1] and the 1-σ position (scene units) and rotation
+    (degrees) uncertainty under the detector's edge noise (null when the boxes do not pin it)."""
+
+    position: tuple[Number, Number, Number]
+    quaternion_wxyz: tuple[Number, Number, Number, Number]
+    yaw_pitch_roll_deg: tuple[Number, Number, Number]
+    intrinsics: IntrinsicsUsed
+    correspondences: tuple[FreeCorrespondence, ...]
+    residual_px: NonNeg
+    confidence: Unit
+    position_sigma: NonNeg | None
+    rotation_sigma_deg: NonNeg | None
+
+    def camera(self) -> FreeCamera:
+        """This pose as the renderer takes it (target pixels)."""
+        k = self.intrinsics
+        return FreeCamera(
+            position=self.position,
+            quaternion_wxyz=self.quaternion_wxyz,
+            fx_px=k.fx_px,
+            fy_px=k.fy_px,
+            cx_px=k.cx_px,
+            cy_px=k.cy_px,
+            distortion=k.distortion,
+        )
+
+
+class FreePoseResponse(FrozenModel):
+    """``POST /free-pose``: ``found`` (a pose the boxes pin, unique), ``ambiguous`` (the best and
+    its ``alternatives``: too few objects, a symmetric layout, look-alikes, a loose fit) or
+    ``failed`` (no usable detection: ``pose`` null), and why. ``nearest_grid`` is the scene's
+    hemisphere grid pose nearest the camera's direction from the scene centre, for comparison
+    with a hemisphere search."""
+
+    status: FreeStatus
+    reason: str
+    pose: FreePose | None
+    alternatives: tuple[FreePose, ...] = ()
+    nearest_grid: GridPose | None = None
+    usable_detections: Annotated[Integer, Field(ge=0)] = 0
+
+
+class FreeAnswer(FrozenModel):
+    """What a free search found (``SearchResult.free``): the pose from the target's boxes
+    confirmed (or not) by rendering it. ``status`` is ``found`` only when the pose was unique
+    and its render's detections agreed with the target's box by box; ``renders`` counts the
+    views rendered to check it; ``alternatives`` are the other poses that explain the target."""
+
+    status: FreeStatus
+    pose: FreePose
+    alternatives: tuple[FreePose, ...] = ()
+    nearest_grid: GridPose
+    renders: Annotated[Integer, Field(ge=0)]
+    match_rms_px: NonNeg | None = Field(
+        default=None,
+        description="Box-edge RMS between the target's detections and those of the render at "
+        "the pose (target pixels); null when no pair was found.",
+    )
+
+
+def nearest_grid_pose(position: tuple[float, float, float], grid: HemisphereGrid) -> GridPose:
+    """The grid pose nearest the direction of ``position`` from the scene centre
+    (:func:`~services.common.geometry.free_camera.direction_pose`)."""
+    index = grid.nearest(direction_pose(position))
+    pose = grid.pose(index)
+    return GridPose(index=index, theta_deg=pose.theta_deg, phi_deg=pose.phi_deg)

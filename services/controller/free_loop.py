@@ -1,0 +1,315 @@
+"""The free search: any camera's pose from the target's boxes, confirmed by rendering it.
+
+1. detect the target's objects (once; a resumed search reuses those it recorded);
+2. ask the optimizer for the pose from the boxes alone (``POST /free-pose``): the best pose and,
+   when it is ``ambiguous``, its alternatives; ``failed`` (no usable detection) fails the
+   search with the optimizer's reason;
+3. render the scene at the pose (a free camera with the intrinsics used, through the broker),
+   on the target's shape at most the search's view width wide, and detect its objects;
+4. compare them with the target's box by box (:mod:`~services.controller.free_match`): if they
+   agree the search ends; if not, the next alternative is rendered, while renders remain
+   (``max_iterations``).
+
+The answer (:class:`~services.common.contracts.free.FreeAnswer`) is ``found`` and
+``confirmed`` only when the optimizer found a unique pose and its render agreed. An ambiguous
+pose whose render agrees is answered ``ambiguous`` with its alternatives, never confirmed; when
+no render agrees, the rendered pose whose render matched best is answered, ``ambiguous`` and
+unconfirmed, saying so.
+
+Every render is an iteration (its ``camera`` the free camera rendered, its ``pose`` the grid
+pose nearest it), recorded as the hemisphere loop records its own (:class:`Writes`); the
+optimizer's answer is a pure function of the target, so a resumed search asks again and goes on
+with the candidate after its last recorded iteration.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import NoReturn
+
+from pydantic import ValidationError
+
+from services.common.contracts.detect import Detection, DetectResponse
+from services.common.contracts.free import (
+    FreeAnswer,
+    FreePose,
+    FreePoseRequest,
+    FreePoseResponse,
+    nearest_grid_pose,
+)
+from services.common.contracts.optimize import ImageDetections
+from services.common.contracts.render import SceneDetail
+from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
+from services.common.geometry.free_camera import FreeCamera, direction_pose
+from services.common.geometry.grid import HemisphereGrid
+from services.common.images import media_type_of
+from services.controller.events import Notifier
+from services.controller.failures import failure, unreadable_answer
+from services.controller.free_match import FreeMatch, compare_view, view_film
+from services.controller.outages import OutagePolicy
+from services.controller.stages import Stages
+from services.controller.store import Lease, SearchStore
+from services.controller.writes import Writes
+
+__all__ = ["FreeSearchLoop", "scaled_camera"]
+
+
+def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
+    """``pose``'s camera on a film ``scale`` times the target's: the pixel intrinsics scaled
+    (the lens, on normalised coordinates, is unchanged)."""
+    k = pose.intrinsics
+    return pose.camera().model_copy(
+        update={
+            "fx_px": k.fx_px * scale,
+            "fy_px": k.fy_px * scale,
+            "cx_px": k.cx_px * scale,
+            "cy_px": k.cy_px * scale,
+        }
+    )
+
+
+def _agreement(check: FreeMatch) -> str:
+    m = check.match
+    if check.agree:
+        return f"its render agrees with the target box by box (RMS {m.rms_px or 0.0:.2f} px)"
+    return (
+        f"its render disagrees with the target: {len(check.missing)} paired object(s) not seen "
+        f"where the target shows them ({m.pairs} seen again)"
+    )
+
+
+def _result(
+    answer: FreePoseResponse, history: list[Iteration], grid: HemisphereGrid
+) -> SearchResult:
+    """The search's answer from its rendered candidates (module docstring)."""
+    candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+    agreed = bool(history) and history[-1].done
+    chosen = (
+        history[-1]
+        if agreed
+        else max(history, key=lambda it: (it.match.score if it.match else 0.0, -it.index))
+    )
+    pose = candidates[chosen.index]
+    score = chosen.match.score if chosen.match is not None else 0.0
+    found = agreed and answer.status == "found"
+    if found:
+        reason = f"{answer.reason}; the render at the pose agrees with the target box by box"
+    elif agreed:
+        reason = (
+            f"{answer.reason}; the render at pose {chosen.index + 1} agrees with the target, "
+            "but the alternatives explain its boxes too: not confirmed"
+        )
+    else:
+        reason = (
+            f"not confirmed: no render of the {len(history)} pose(s) tried agreed with the "
+            f"target box by box; the best was pose {chosen.index + 1} (match score "
+            f"{score:.2f}); {answer.reason}"
+        )
+    nearest = nearest_grid_pose(pose.position, grid)
+    return SearchResult(
+        pose=nearest,
+        refined_pose=direction_pose(pose.position),
+        confidence=pose.confidence * score,
+        renders=len(history),
+        ambiguous=not found,
+        reason=reason,
+        confirmed=found,
+        free=FreeAnswer(
+            status="found" if found else "ambiguous",
+            pose=pose,
+            alternatives=tuple(p for i, p in enumerate(candidates) if i != chosen.index),
+            nearest_grid=nearest,
+            renders=len(history),
+            match_rms_px=chosen.match.rms_px if chosen.match is not None else None,
+        ),
+    )
+
+
+@dataclass(frozen=True)
+class _Step:
+    """Which candidate an iteration renders: its index, of how many, whether the optimizer's
+    answer was ambiguous, and the optimizer's milliseconds spent for it (the first's)."""
+
+    index: int
+    count: int
+    ambiguous: bool
+    optimize_ms: float
+
+
+@dataclass(frozen=True)
+class _Seen:
+    """A candidate's render: the camera rendered, its detections, how they compare with the
+    target's, render and detect milliseconds."""
+
+    camera: FreeCamera
+    found: DetectResponse
+    check: FreeMatch
+    render_ms: float
+    detect_ms: float
+
+
+def _iteration(
+    step: _Step, pose: FreePose, following: FreePose | None, seen: _Seen, grid: HemisphereGrid
+) -> Iteration:
+    """The iteration that rendered ``pose``, going on to ``following`` if it disagreed."""
+    nearest = nearest_grid_pose(pose.position, grid)
+    check = seen.check
+    next_pose = (
+        nearest_grid_pose(following.position, grid)
+        if following is not None and not check.agree
+        else None
+    )
+    return Iteration(
+        index=step.index,
+        pose=nearest,
+        image_size=seen.found.image_size,
+        detections=seen.found.detections,
+        timings=StageTimings(
+            render_ms=seen.render_ms,
+            detect_ms=seen.detect_ms,
+            optimize_ms=step.optimize_ms,
+            total_ms=seen.render_ms + seen.detect_ms + step.optimize_ms,
+        ),
+        estimate=direction_pose(pose.position),
+        estimate_grid=nearest,
+        confidence=pose.confidence * check.match.score,
+        ambiguous=step.ambiguous,
+        next_pose=next_pose,
+        done=check.agree,
+        reason=f"pose {step.index + 1} of {step.count}: {_agreement(check)}",
+        match=check.match,
+        detector_sha256=seen.found.model.sha256,
+        camera=seen.camera,
+    )
+
+
+class FreeSearchLoop:
+    """Runs one free search to its end over the stages (through the outage policy), recording
+    it in the store and waking its followers."""
+
+    def __init__(
+        self, store: SearchStore, stages: Stages, notifier: Notifier, outages: OutagePolicy
+    ) -> None:
+        self.store = store
+        self.stages = stages
+        self.notifier = notifier
+        self.outages = outages
+
+    async def run(self, search: Search, image: bytes, lease: Lease | None = None) -> SearchResult:
+        """Run a free search to its result, recording every render (under ``lease``, when
+        several controllers share the database); raises
+        :class:`~services.controller.failures.SearchFailed`, and
+        :class:`~services.controller.store.LeaseLost` once another controller holds it."""
+        writes = Writes(self.store, self.notifier, search, lease)
+        try:
+            return await self._solve(search, image, writes)
+        finally:
+            writes.flush()
+
+    async def _detect(self, search: Search, image: bytes) -> DetectResponse:
+        sid = search.id
+        return await self.outages.call(
+            sid, lambda: self.stages.detect(image, media_type_of(image), sid, scene=search.scene)
+        )
+
+    async def _target(
+        self, search: Search, image: bytes
+    ) -> tuple[tuple[Detection, ...], tuple[int, int], DetectResponse | None]:
+        """The target's detections and size: recorded, or detected now (then also returned, to
+        be recorded with the first iteration)."""
+        if search.target_detections is not None:
+            return search.target_detections, search.target_size, None
+        seen = await self._detect(search, image)
+        return seen.detections, seen.image_size, seen
+
+    async def _ask(
+        self, search: Search, target: tuple[Detection, ...], size: tuple[int, int]
+    ) -> tuple[FreePoseResponse, float]:
+        """The optimizer's pose from the target's boxes, and its milliseconds."""
+        request = FreePoseRequest(
+            scene=search.scene,
+            target=ImageDetections(image_size=size, detections=target),
+            intrinsics=search.intrinsics,
+        )
+        t0 = time.perf_counter()
+        try:
+            answer = await self.outages.call(
+                search.id, lambda: self.stages.free_pose(request, search.id)
+            )
+        except ValidationError as exc:
+            raise unreadable_answer(exc) from exc
+        return answer, (time.perf_counter() - t0) * 1000
+
+    def _fail_without_pose(
+        self, writes: Writes, search: Search, seen: DetectResponse | None, detail: str, slug: str
+    ) -> NoReturn:
+        if seen is not None:
+            self.store.update(
+                search.id, writes.lease, target_detections=seen.detections, target_model=seen.model
+            )
+        title = "Nothing to search for" if slug == "no-target-objects" else "No camera pose"
+        raise failure(slug, title, detail, status=422)
+
+    async def _solve(self, search: Search, image: bytes, writes: Writes) -> SearchResult:
+        sid = search.id
+        scene = await self.outages.call(sid, lambda: self.stages.scene(search.scene, sid))
+        grid = scene.spec.search.grid()
+        target, size, seen = await self._target(search, image)
+        if not target:
+            detail = (
+                "the detector found no objects in the target image: a photo showing some of "
+                "the scene's objects (at least 3 for a pose, 4 without intrinsics)"
+            )
+            self._fail_without_pose(writes, search, seen, detail, "no-target-objects")
+        answer, optimize_ms = await self._ask(search, target, size)
+        if answer.pose is None:
+            self._fail_without_pose(writes, search, seen, answer.reason, "no-free-pose")
+        candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+        history = list(search.iterations)
+        if history and history[-1].done:  # finished by an older run, no result recorded
+            return writes.succeed(_result(answer, history, grid))
+        budget = min(len(candidates), search.max_iterations)
+        for k in range(len(history), budget):
+            writes.flush()
+            seen_view = await self._render_and_compare(search, scene, (target, size), candidates[k])
+            step = _Step(k, len(candidates), answer.status != "found", optimize_ms)
+            following = candidates[k + 1] if k + 1 < budget else None
+            iteration = _iteration(step, candidates[k], following, seen_view, grid)
+            optimize_ms = 0.0
+            history.append(iteration)
+            if iteration.done:
+                # The dense edge refinement (issue 23: services/optimizer/free/dense.py) plugs
+                # in here: the pose refined against the target image from this render.
+                return writes.succeed(_result(answer, history, grid), iteration, seen)
+            writes.hold(iteration, seen)
+            seen = None
+        return writes.succeed(_result(answer, history, grid))
+
+    async def _render_and_compare(
+        self,
+        search: Search,
+        scene: SceneDetail,
+        target: tuple[tuple[Detection, ...], tuple[int, int]],
+        pose: FreePose,
+    ) -> _Seen:
+        """``pose`` rendered, detected and compared with the ``target`` (its detections and
+        size)."""
+        sid = search.id
+        detections, size = target
+        settings = self.stages.settings_for(search.view_settings)
+        film, scale = view_film(size, settings.width or scene.spec.camera.width)
+        camera = scaled_camera(pose, scale)
+        started = time.perf_counter()
+        view = await self.outages.call(
+            sid,
+            lambda: self.stages.render_camera(search.scene, camera, film, sid, settings),
+        )
+        rendered = time.perf_counter()
+        found = await self._detect(search, view)
+        detected = time.perf_counter()
+        paired = [c.detection for c in pose.correspondences]
+        check = compare_view(detections, size, paired, found.detections, found.image_size)
+        return _Seen(
+            camera, found, check, (rendered - started) * 1000, (detected - rendered) * 1000
+        )

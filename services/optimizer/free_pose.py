@@ -1,0 +1,298 @@
+"""``POST /free-pose`` as a plain function: a request checked, solved from its boxes
+(:func:`~services.optimizer.free.solve_free_pose`) and answered in the contract's terms.
+
+What a request can get wrong that its schema cannot say is refused with a 422 naming the field:
+a scene that does not exist (404), a box outside the target image, intrinsics whose field of
+view reaches 180°, a lens whose distortion folds the image.
+
+Lens distortion: the solver is a pinhole one, so a distorted target's boxes are undistorted
+first: :data:`EDGE_SAMPLES` points along each side of a box are undistorted
+(:func:`~services.common.geometry.lens.undistort_pixels`) and the box of their pinhole pixels
+``(fx x + cx, fy y + cy)`` is the box the solver sees; a side on the image border stays on it
+(it is masked: it says only that the object goes on). The predicted boxes are distorted back the
+same way. A box's side is curved by the lens; its extreme is sampled to within the spacing.
+
+Confidence of a pose: ``c = (n_paired / n_usable) · exp(−½ (r / (3 σ))²)`` with ``r`` its edge
+RMS residual and ``σ`` = :data:`~services.optimizer.free.solve.NOISE_FLOOR_PX` (the detector's
+box-edge noise), halved when the answer is ``ambiguous``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Final
+
+import numpy as np
+
+from services.common.caches import SharedLru
+from services.common.catalog import SceneCatalog
+from services.common.contracts.detect import Detection
+from services.common.contracts.free import (
+    FreeCorrespondence,
+    FreePose,
+    FreePoseRequest,
+    FreePoseResponse,
+    IntrinsicsUsed,
+    PhotoIntrinsics,
+    nearest_grid_pose,
+)
+from services.common.errors import UnprocessableError
+from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.free_camera import LensDistortion
+from services.common.geometry.lens import distort, image_folds, undistort_pixels
+from services.common.geometry.scene import LoadedScene
+from services.optimizer.free import (
+    FreePoseAnswer,
+    Intrinsics,
+    PoseCandidate,
+    SceneObjects,
+    project_boxes,
+    scene_objects,
+    solve_free_pose,
+)
+from services.optimizer.free.solve import NOISE_FLOOR_PX
+from services.optimizer.geometry import FloatArray
+from services.optimizer.planning import check_box
+
+__all__ = ["EDGE_SAMPLES", "SceneObjectCache", "free_pose"]
+
+EDGE_SAMPLES: Final = 16
+"""Points per box side undistorted (or distorted) to map a box through the lens."""
+MAX_FOV_DEG: Final = 179.0
+_BORDER_PX: Final = 1e-6
+
+
+class SceneObjectCache:
+    """Each scene's objects as the solver sees them (:func:`scene_objects`: meshes read, hulls
+    taken), built once per scene file version and kept in a :class:`SharedLru`."""
+
+    def __init__(self, max_scenes: int = 16) -> None:
+        self._lru = SharedLru[SceneObjects](max_scenes)
+
+    @property
+    def hits(self) -> int:
+        return self._lru.hits
+
+    def get(self, scene: LoadedScene) -> SceneObjects:
+        """The objects of ``scene`` (built on a miss)."""
+        return self._lru.get(
+            (scene.id, scene.path, scene.version), lambda: scene_objects(scene.spec, scene.assets)
+        )
+
+
+def _invalid(detail: str, field: str, slug: str = "invalid-request") -> UnprocessableError:
+    return UnprocessableError(detail, field=field, slug=slug)
+
+
+def _pinhole(intrinsics: Intrinsics, width: int, height: int) -> PinholeCamera:
+    """A pinhole of these intrinsics at the origin (the lens functions want one)."""
+    return PinholeCamera(
+        width=width,
+        height=height,
+        fov_deg=intrinsics.fov_deg(width),
+        fx=intrinsics.fx,
+        fy=intrinsics.fy,
+        cx=intrinsics.cx,
+        cy=intrinsics.cy,
+        rotation=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+        translation=(0.0, 0.0, 0.0),
+        position=(0.0, 0.0, 0.0),
+    )
+
+
+def _given(
+    photo: PhotoIntrinsics, width: int, height: int
+) -> tuple[Intrinsics, LensDistortion | None]:
+    """The request's intrinsics in target pixels, checked; the lens (None without distortion)."""
+    if photo.fx_px is not None and photo.fy_px is not None:
+        cx = photo.cx_px if photo.cx_px is not None else width / 2.0
+        cy = photo.cy_px if photo.cy_px is not None else height / 2.0
+        k = Intrinsics(fx=photo.fx_px, fy=photo.fy_px, cx=cx, cy=cy)
+    else:
+        k = Intrinsics.of_fov(photo.fov_deg or 0.0, width, height)
+    for name, side, focal in (("fx_px", width, k.fx), ("fy_px", height, k.fy)):
+        if not math.degrees(2.0 * math.atan(side / (2.0 * focal))) < MAX_FOV_DEG:
+            raise _invalid(
+                f"{name} {focal:g} gives a field of view of 180° or more over {side} pixels",
+                f"intrinsics.{name}",
+                "field-of-view-too-wide",
+            )
+    lens = photo.distortion
+    if lens is None or lens.is_zero:
+        return k, None
+    if image_folds(_pinhole(k, width, height), lens):
+        raise _invalid(
+            "the radial distortion (k1, k2) stops increasing before the image's corners, so it "
+            "folds the image: dr_d/dr = 1 + 3 k1 r² + 5 k2 r⁴ must stay positive",
+            "intrinsics.distortion.k1",
+            "distortion-folds-image",
+        )
+    return k, lens
+
+
+def _edge_points(boxes: FloatArray) -> FloatArray:
+    """``(n, 4·S, 2)`` points along the sides of ``(n, 4)`` boxes, S = :data:`EDGE_SAMPLES`."""
+    s = np.linspace(0.0, 1.0, EDGE_SAMPLES)
+    x1, y1, x2, y2 = (boxes[:, i, np.newaxis] for i in range(4))
+    xs = x1 + (x2 - x1) * s
+    ys = y1 + (y2 - y1) * s
+    ones = np.ones_like(s)
+    u = np.concatenate([xs, xs, x1 * ones, x2 * ones], axis=1)
+    v = np.concatenate([y1 * ones, y2 * ones, ys, ys], axis=1)
+    return np.stack([u, v], axis=-1)
+
+
+def _bounds(points: FloatArray) -> FloatArray:
+    return np.concatenate([points.min(axis=1), points.max(axis=1)], axis=1)
+
+
+def _undistorted(
+    detections: tuple[Detection, ...], k: Intrinsics, lens: LensDistortion, size: tuple[int, int]
+) -> tuple[Detection, ...]:
+    """The detections with their boxes in the pinhole image of the same intrinsics (module
+    docstring); sides on the border stay there."""
+    width, height = size
+    boxes = np.array([d.box for d in detections], dtype=np.float64).reshape(-1, 4)
+    try:
+        xy = undistort_pixels(_edge_points(boxes), _pinhole(k, width, height), lens)
+    except ValueError as exc:
+        raise _invalid(str(exc), "intrinsics.distortion", "distortion-folds-image") from exc
+    pixels = np.stack([k.fx * xy[..., 0] + k.cx, k.fy * xy[..., 1] + k.cy], axis=-1)
+    out = _bounds(pixels)
+    border = np.array([0.0, 0.0, width, height])
+    on_border = np.isclose(boxes, border, atol=_BORDER_PX)
+    out = np.where(on_border, border, out)
+    return tuple(
+        d.model_copy(update={"box": tuple(float(v) for v in row)})
+        for d, row in zip(detections, out, strict=True)
+    )
+
+
+def _predicted(
+    objects: SceneObjects, pose: PoseCandidate, lens: LensDistortion | None
+) -> dict[str, tuple[float, float, float, float] | None]:
+    """Each paired object's box projected at ``pose`` (through the lens), by object name."""
+    names = [c.object for c in pose.correspondences]
+    subset = objects.subset([objects.names.index(n) for n in names])
+    k = pose.intrinsics
+    rotation = pose.rotation().T
+    translation = -rotation @ np.asarray(pose.position)
+    boxes = project_boxes(subset, rotation, translation, (k.fx_px, k.fy_px), (k.cx_px, k.cy_px))
+    if lens is not None and np.isfinite(boxes).all():
+        points = _edge_points(boxes)
+        xy = np.stack(
+            [(points[..., 0] - k.cx_px) / k.fx_px, (points[..., 1] - k.cy_px) / k.fy_px], -1
+        )
+        d = distort(xy, lens)
+        boxes = _bounds(
+            np.stack([k.fx_px * d[..., 0] + k.cx_px, k.fy_px * d[..., 1] + k.cy_px], -1)
+        )
+    return {
+        name: (tuple(float(v) for v in box) if np.isfinite(box).all() else None)  # type: ignore[misc]
+        for name, box in zip(names, boxes, strict=True)
+    }
+
+
+def _sigma(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def _pose(
+    candidate: PoseCandidate,
+    objects: SceneObjects,
+    lens: LensDistortion | None,
+    usable: int,
+    ambiguous: bool,
+) -> FreePose:
+    k = candidate.intrinsics
+    predicted = _predicted(objects, candidate, lens)
+    fit = math.exp(-0.5 * (candidate.residual_px / (3.0 * NOISE_FLOOR_PX)) ** 2)
+    confidence = min(1.0, candidate.inliers / max(usable, 1)) * fit * (0.5 if ambiguous else 1.0)
+    return FreePose(
+        position=candidate.position,
+        quaternion_wxyz=candidate.quaternion_wxyz,
+        yaw_pitch_roll_deg=candidate.yaw_pitch_roll_deg,
+        intrinsics=IntrinsicsUsed(
+            fx_px=k.fx_px,
+            fy_px=k.fy_px,
+            cx_px=k.cx_px,
+            cy_px=k.cy_px,
+            fov_deg=k.fov_deg,
+            source=k.source,
+            distortion=lens,
+        ),
+        correspondences=tuple(
+            FreeCorrespondence(
+                detection=c.detection,
+                object=c.object,
+                label=c.label,
+                residual_px=c.residual_px,
+                predicted_box=predicted[c.object],
+            )
+            for c in candidate.correspondences
+        ),
+        residual_px=candidate.residual_px,
+        confidence=confidence,
+        position_sigma=_sigma(candidate.position_sigma),
+        rotation_sigma_deg=_sigma(candidate.rotation_sigma_deg),
+    )
+
+
+def free_pose(
+    request: FreePoseRequest, catalog: SceneCatalog | None, cache: SceneObjectCache
+) -> FreePoseResponse:
+    """The camera pose of the request's target from its boxes alone (module docstring)."""
+    if catalog is None:
+        raise _invalid("this optimizer has no scene catalog", "scene")
+    scene = catalog.get(request.scene)  # NotFoundError (404) names the field
+    width, height = request.target.image_size
+    detections = request.target.detections
+    for i, detection in enumerate(detections):
+        check_box(detection, width, height, f"target.detections[{i}].box")
+    k: Intrinsics | None = None
+    lens = None
+    if request.intrinsics is not None:
+        k, lens = _given(request.intrinsics, width, height)
+        if lens is not None and detections:
+            detections = _undistorted(detections, k, lens, (width, height))
+    objects = cache.get(scene)
+    answer = _renderable(solve_free_pose(objects, detections, width, height, k), objects)
+    grid = scene.spec.search.grid()
+    ambiguous = answer.status == "ambiguous"
+    usable = answer.usable_detections
+
+    def pose(candidate: PoseCandidate) -> FreePose:
+        return _pose(candidate, objects, lens, usable, ambiguous)
+
+    best = answer.pose
+    return FreePoseResponse(
+        status=answer.status,
+        reason=answer.reason,
+        pose=pose(best) if best is not None else None,
+        alternatives=tuple(pose(a) for a in answer.alternatives),
+        nearest_grid=nearest_grid_pose(best.position, grid) if best is not None else None,
+        usable_detections=usable,
+    )
+
+
+def _renderable(answer: FreePoseAnswer, objects: SceneObjects) -> FreePoseAnswer:
+    """``answer`` without the poses inside an object's world bounding box (the box of its
+    points, as the renderer refuses such a camera): a wrong pose that no render could check.
+    When the best one goes, the next alternative takes its place (``ambiguous`` still), and
+    with none left the answer is ``failed``."""
+    lo = np.minimum.reduceat(objects.points, objects.starts)
+    hi = np.maximum.reduceat(objects.points, objects.starts)
+
+    def outside(p: PoseCandidate) -> bool:
+        c = np.asarray(p.position)
+        return not bool(np.any(np.all((c > lo) & (c < hi), axis=1)))
+
+    poses = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+    kept = [p for p in poses if outside(p)]
+    if len(kept) == len(poses):
+        return answer
+    if not kept:
+        reason = "failed: every camera pose that explains the detections stands inside an object"
+        return replace(answer, status="failed", reason=reason, pose=None, alternatives=())
+    return replace(answer, pose=kept[0], alternatives=tuple(kept[1:]))

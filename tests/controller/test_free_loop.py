@@ -1,0 +1,409 @@
+"""The free search with fake stages (no HTTP), as tests/controller/test_runner.py tests the
+hemisphere one: a found pose confirmed by its render, an ambiguous one never confirmed, the
+next alternative rendered when a render disagrees (within the render budget), failures a user
+can act on, resumption, the film scaled to the view width; and the free options of a
+submission."""
+
+from __future__ import annotations
+
+import asyncio
+from collections import Counter
+
+import cv2
+import numpy as np
+import pytest
+
+from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
+from services.common.contracts.free import (
+    FreeCorrespondence,
+    FreePose,
+    FreePoseRequest,
+    FreePoseResponse,
+    IntrinsicsUsed,
+    PhotoIntrinsics,
+    nearest_grid_pose,
+)
+from services.common.contracts.render import SceneDetail
+from services.common.contracts.search import Search, SearchOptions, ViewSettings
+from services.common.errors import UnprocessableError
+from services.common.geometry.free_camera import FreeCamera
+from services.controller.events import Notifier
+from services.controller.form import photo_intrinsics
+from services.controller.free_match import compare_view
+from services.controller.runner import SearchRunner
+from services.controller.store import SearchStore, open_store, utcnow
+
+PNG = b"\x89PNG\r\n\x1a\n" + b"target"
+MODEL = ModelInfo(name="demo", classes=("red",), input_size=(640, 640), sha256="d", scene="demo")
+BOXES = ((20.0, 30.0, 60.0, 70.0), (100.0, 40.0, 150.0, 90.0), (200.0, 120.0, 260.0, 180.0))
+LABELS = ("red", "green", "blue")
+
+
+def candidate(x: float, source: str = "given") -> FreePose:
+    """A pose at (x, -4, 5) that pairs the three target boxes."""
+    return FreePose(
+        position=(x, -4.0, 5.0),
+        quaternion_wxyz=(1.0, 0.0, 0.0, 0.0),
+        yaw_pitch_roll_deg=(0.0, 90.0, 0.0),
+        intrinsics=IntrinsicsUsed(
+            fx_px=386.0, fy_px=386.0, cx_px=160.0, cy_px=120.0, fov_deg=45.0, source=source
+        ),
+        correspondences=tuple(
+            FreeCorrespondence(detection=i, object=label, label=label, residual_px=0.5)
+            for i, label in enumerate(LABELS)
+        ),
+        residual_px=0.5,
+        confidence=0.9,
+        position_sigma=0.01,
+        rotation_sigma_deg=0.05,
+    )
+
+
+class FakeStages:
+    """The target shows :data:`BOXES`; the optimizer answers ``status`` with the candidates at
+    x = 0, 1, 2, ... (the first is the pose, the rest alternatives); a render at candidate
+    ``right`` shows the target's boxes, any other shows them 30 px to the right. ``faults``
+    as in test_runner: a call answers ``n`` times, then raises."""
+
+    def __init__(
+        self,
+        scene: SceneDetail,
+        *,
+        status: str = "found",
+        count: int = 1,
+        right: int = 0,
+        target_size: tuple[int, int] = (320, 240),
+        boxes: tuple[tuple[float, float, float, float], ...] = BOXES,
+        faults: dict[str, tuple[int, BaseException]] | None = None,
+    ):
+        self.detail = scene
+        self.status = status
+        self.count = count
+        self.right = right
+        self.target_size = target_size
+        self.boxes = boxes
+        self.faults = faults or {}
+        self.calls: Counter[str] = Counter()
+        self.rendered: list[tuple[FreeCamera, tuple[int, int]]] = []
+        self.requests: list[FreePoseRequest] = []
+
+    def _call(self, name: str) -> None:
+        self.calls[name] += 1
+        if name in self.faults:
+            answers, error = self.faults[name]
+            if self.calls[name] > answers:
+                raise error
+
+    async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
+        return False
+
+    async def scene(self, scene_id: str, request_id: str = "") -> SceneDetail:
+        self._call("scene")
+        return self.detail
+
+    def forget_early(self, request_id: str) -> None:
+        pass
+
+    def settings_for(self, view_settings: ViewSettings | None) -> ViewSettings:
+        return view_settings or ViewSettings()
+
+    async def render_camera(self, scene_id, camera, size, request_id="", view_settings=None):
+        self._call("render")
+        self.rendered.append((camera, size))
+        return f"P6 {camera.position[0]:g} {size[0]} {size[1]}".encode()
+
+    async def detect(self, image, media_type, request_id="", scene=None) -> DetectResponse:
+        if image == PNG:
+            self._call("detect target")
+            size, shift, scale = self.target_size, 0.0, 1.0
+            boxes = self.boxes
+        else:
+            self._call("detect view")
+            _, x, w, h = image.decode().split()
+            size, scale = (int(w), int(h)), int(w) / self.target_size[0]
+            shift = 0.0 if round(float(x)) == self.right else 30.0
+            boxes = BOXES
+        detections = tuple(
+            Detection(
+                label=label,
+                class_id=i,
+                confidence=0.9,
+                box=((x1 + shift) * scale, y1 * scale, (x2 + shift) * scale, y2 * scale),
+            )
+            for i, (label, (x1, y1, x2, y2)) in enumerate(zip(LABELS, boxes, strict=False))
+        )
+        return DetectResponse(detections=detections, image_size=size, model=MODEL)
+
+    async def free_pose(self, request: FreePoseRequest, request_id: str = "") -> FreePoseResponse:
+        self._call("free-pose")
+        self.requests.append(request)
+        if self.status == "failed":
+            return FreePoseResponse(status="failed", reason="failed: no detection names", pose=None)
+        poses = [candidate(float(x)) for x in range(self.count)]
+        grid = self.detail.spec.search.grid()
+        return FreePoseResponse(
+            status=self.status,  # type: ignore[arg-type]
+            reason=f"{self.status}: the boxes",
+            pose=poses[0],
+            alternatives=tuple(poses[1:]),
+            nearest_grid=nearest_grid_pose(poses[0].position, grid),
+            usable_detections=3,
+        )
+
+
+def stored(tmp_path, stages: FakeStages, max_iterations: int = 4, **fields) -> SearchStore:
+    store = open_store(f"sqlite:///{tmp_path}/c.sqlite3")
+    grid = stages.detail.spec.search.grid()
+    start = nearest_grid_pose((0.0, 0.0, 1.0), grid)
+    now = utcnow()
+    search = Search(
+        id="s1",
+        status="queued",
+        scene="demo",
+        strategy="reprojection",
+        start=start,
+        seed=1,
+        max_iterations=max_iterations,
+        created_at=now,
+        updated_at=now,
+        target_size=stages.target_size,
+        mode="free",
+        **fields,
+    )
+    store.create(search, PNG)
+    return store
+
+
+def run_stored(store: SearchStore, stages: FakeStages) -> Search:
+    runner = SearchRunner(store, stages, Notifier(), max_concurrent=1)  # type: ignore[arg-type]
+    asyncio.run(runner._run("s1"))
+    final = store.get("s1")
+    assert final is not None
+    return final
+
+
+def run(tmp_path, stages: FakeStages, max_iterations: int = 4, **fields) -> Search:
+    return run_stored(stored(tmp_path, stages, max_iterations, **fields), stages)
+
+
+def test_a_found_pose_whose_render_agrees_is_confirmed_after_one_render(tmp_path, detail):
+    stages = FakeStages(detail)
+    intrinsics = PhotoIntrinsics(fov_deg=45.0)
+    final = run(tmp_path, stages, intrinsics=intrinsics)
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    assert result.confirmed
+    assert not result.ambiguous
+    assert result.renders == 1
+    free = result.free
+    assert free is not None
+    assert free.status == "found"
+    assert free.pose.position == (0.0, -4.0, 5.0)
+    assert free.pose.intrinsics.source == "given"
+    assert free.match_rms_px == pytest.approx(0.0)
+    assert free.nearest_grid == result.pose
+    assert result.pose == nearest_grid_pose((0.0, -4.0, 5.0), detail.spec.search.grid())
+    assert result.confidence == pytest.approx(0.9)
+    # the optimizer was asked with the photo's intrinsics; the render is the pose's camera
+    assert stages.requests[0].intrinsics == intrinsics
+    (iteration,) = final.iterations
+    assert iteration.done
+    assert iteration.camera == stages.rendered[0][0]
+    assert iteration.camera is not None
+    assert iteration.camera.position == (0.0, -4.0, 5.0)
+    assert stages.calls == {"scene": 1, "detect target": 1, "free-pose": 1, "render": 1,
+                            "detect view": 1}  # fmt: skip
+    assert final.target_detections is not None
+    assert final.target_model == MODEL
+
+
+def test_a_found_pose_whose_render_disagrees_is_not_confirmed(tmp_path, detail):
+    final = run(tmp_path, FakeStages(detail, right=5))
+    result = final.result
+    assert result is not None
+    assert not result.confirmed
+    assert result.ambiguous
+    assert result.free is not None
+    assert result.free.status == "ambiguous"
+    assert result.renders == 1
+    assert result.reason.startswith("not confirmed: no render of the 1 pose(s) tried agreed")
+
+
+def test_an_ambiguous_answer_renders_the_next_alternative_and_is_never_confirmed(tmp_path, detail):
+    stages = FakeStages(detail, status="ambiguous", count=3, right=1)
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert result.renders == 2
+    assert not result.confirmed
+    assert result.ambiguous
+    free = result.free
+    assert free is not None
+    assert free.status == "ambiguous"
+    assert free.pose.position[0] == 1.0
+    assert sorted(p.position[0] for p in free.alternatives) == [0.0, 2.0]
+    first, second = final.iterations
+    assert not first.done
+    assert second.done
+    assert first.next_pose == second.pose
+    assert "alternatives explain its boxes too" in result.reason
+
+
+def test_the_render_budget_bounds_the_alternatives_tried(tmp_path, detail):
+    stages = FakeStages(detail, status="ambiguous", count=4, right=9)
+    final = run(tmp_path, stages, max_iterations=2)
+    assert final.result is not None
+    assert final.result.renders == 2
+    assert stages.calls["render"] == 2
+    assert not final.result.confirmed
+    assert final.iterations[-1].next_pose is None
+
+
+def test_no_detection_in_the_target_fails_with_what_to_do(tmp_path, detail):
+    final = run(tmp_path, FakeStages(detail, boxes=()))
+    assert final.status == "failed"
+    assert final.error is not None
+    assert final.error.type == "urn:cosmos:problem:no-target-objects"
+    assert "at least 3" in (final.error.detail or "")
+    assert final.target_detections == ()
+
+
+def test_no_pose_fails_with_the_optimizer_s_reason(tmp_path, detail):
+    final = run(tmp_path, FakeStages(detail, status="failed"))
+    assert final.status == "failed"
+    assert final.error is not None
+    assert final.error.type == "urn:cosmos:problem:no-free-pose"
+    assert final.error.detail == "failed: no detection names"
+    assert final.target_detections is not None
+    assert len(final.target_detections) == 3
+
+
+def test_an_interrupted_free_search_resumes_with_the_next_alternative(tmp_path, detail):
+    first = FakeStages(
+        detail, status="ambiguous", count=3, right=2,
+        faults={"render": (2, asyncio.CancelledError())},
+    )  # fmt: skip
+    store = stored(tmp_path, first)
+    with pytest.raises(asyncio.CancelledError):
+        run_stored(store, first)
+    interrupted = store.get("s1")
+    assert interrupted is not None
+    assert [it.index for it in interrupted.iterations] == [0, 1]
+    assert interrupted.target_detections is not None
+    again = FakeStages(detail, status="ambiguous", count=3, right=2)
+    final = run_stored(store, again)
+    assert final.status == "succeeded", final.error
+    assert again.calls["detect target"] == 0
+    assert again.calls["render"] == 1
+    assert [it.index for it in final.iterations] == [0, 1, 2]
+    assert final.result is not None
+    assert final.result.renders == 3
+    assert final.result.free is not None
+    assert final.result.free.pose.position[0] == 2.0
+
+
+def test_a_large_photo_is_rendered_at_the_view_width_with_its_intrinsics_scaled(tmp_path, detail):
+    stages = FakeStages(detail, target_size=(640, 480))
+    final = run(tmp_path, stages, view_settings=ViewSettings(width=160))
+    assert final.result is not None
+    assert final.result.confirmed
+    camera, size = stages.rendered[0]
+    assert size == (160, 120)
+    assert camera.fx_px == pytest.approx(386.0 / 4)
+    assert camera.cx_px == pytest.approx(40.0)
+
+
+def test_compare_view_pairs_by_label_within_the_gate():
+    target = [Detection(label=label, class_id=0, confidence=0.9, box=box)
+              for label, box in zip(LABELS, BOXES, strict=True)]  # fmt: skip
+    close = [d.model_copy(update={"box": tuple(v + 1.0 for v in d.box)}) for d in target]
+    check = compare_view(target, (320, 240), [0, 1, 2], close, (320, 240))
+    assert check.agree
+    assert check.match.rms_px == pytest.approx(1.0)
+    assert check.match.pairs == 3
+    swapped = [close[0].model_copy(update={"label": "green"}), *close[1:]]
+    check = compare_view(target, (320, 240), [0, 1, 2], swapped, (320, 240))
+    assert not check.agree
+    assert check.missing == (0,)
+    assert check.match.unpaired_current == pytest.approx(0.9)
+
+
+@pytest.mark.parametrize(
+    ("fields", "field"),
+    [
+        ({"fov_deg": "50"}, "fov_deg"),  # not a free search
+        ({"mode": "free", "fov_deg": "50", "intrinsics": "300,300,160,120"}, "intrinsics"),
+        ({"mode": "free", "distortion": "0.1,0,0,0"}, "distortion"),
+        ({"mode": "free", "intrinsics": "0,300,160,120"}, "intrinsics"),
+        ({"mode": "free", "intrinsics": "1e999,300,160,120"}, "intrinsics"),
+        ({"mode": "free", "fov_deg": "50", "distortion": "5000,0,0,0"}, "distortion"),
+    ],
+)
+def test_bad_free_options_name_their_field(fields, field):
+    options = SearchOptions.model_validate({"scene": "demo", **fields})
+    with pytest.raises(UnprocessableError) as raised:
+        photo_intrinsics(options)
+    assert raised.value.field == field
+
+
+def test_free_options_give_the_photo_s_intrinsics():
+    options = SearchOptions.model_validate(
+        {"scene": "demo", "mode": "free", "intrinsics": "300, 310,160.5,120", "distortion":
+         "-0.1,0.01,0,0"}
+    )  # fmt: skip
+    intrinsics = photo_intrinsics(options)
+    assert intrinsics is not None
+    assert (intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px) == (300.0, 310.0, 160.5)
+    assert intrinsics.distortion is not None
+    assert intrinsics.distortion.k1 == -0.1
+    free = SearchOptions.model_validate({"scene": "demo", "mode": "free"})
+    assert photo_intrinsics(free) is None
+
+
+@pytest.mark.anyio
+async def test_a_free_search_is_taken_with_its_intrinsics(controller):
+    app, client = controller
+    response = await client.post(
+        "/searches",
+        params={"scene": "demo", "mode": "free", "fov_deg": "50"},
+        content=PNG_IMAGE,
+        headers={"Content-Type": "image/png"},
+    )
+    assert response.status_code == 202, response.text
+    body = response.json()
+    assert body["mode"] == "free"
+    assert body["intrinsics"]["fov_deg"] == 50.0
+    bad = await client.post(
+        "/searches",
+        params={"scene": "demo", "mode": "free", "intrinsics": "1,2,3"},
+        content=PNG_IMAGE,
+        headers={"Content-Type": "image/png"},
+    )
+    assert bad.status_code == 422
+    assert bad.json()["field"] == "intrinsics"
+
+
+def _png() -> bytes:
+    ok, data = cv2.imencode(".png", np.zeros((24, 32, 3), np.uint8))
+    assert ok
+    return bytes(data)
+
+
+PNG_IMAGE = _png()
+
+
+def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, detail):
+    first = FakeStages(detail)
+    store = stored(tmp_path, first)
+    run_stored(store, first)
+    done = store.get("s1")
+    assert done is not None
+    assert done.result is not None
+    # as if the run had stopped after recording its last iteration, before its result
+    store.reopen("s1")
+    again = FakeStages(detail)
+    final = run_stored(store, again)
+    assert final.status == "succeeded", final.error
+    assert final.result == done.result
+    assert again.calls == {"scene": 1, "free-pose": 1}  # answered from its iterations

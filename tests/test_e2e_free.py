@@ -1,0 +1,124 @@
+"""End to end, a free-camera search: the four real services as separate processes on loopback
+(real renderer, real ONNX detector, real HTTP), a target rendered at a camera off the
+hemisphere (lower than its radius, looking down past the centre, rolled), searched with
+``mode=free`` through the controller's public API."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from cosmos.cli import main
+from cosmos.stack import Stack
+from services.common.auth import bearer
+from services.common.contracts.search import Search
+from services.common.geometry.free_camera import FreeCamera
+from services.controller.client import ControllerClient
+from services.controller.settings import ControllerSettings
+from services.renderer.client import RendererClient
+from tests.support import e2e_stack
+
+pytestmark = pytest.mark.slow
+
+RADIUS = 8.0  # the demo scene's hemisphere radius
+DRONE = FreeCamera(position=(-3.5, 3.0, 4.5), look_at=(0.3, -0.4, 0.0), roll_deg=12.0)
+"""|position| ≈ 6.4 < 8: inside the hemisphere, 45° down, looking past the scene's centre."""
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+    with e2e_stack(tmp_path_factory.mktemp("stack")) as running:
+        yield running
+
+
+def search_for(stack: Stack, image: bytes, **options) -> Search:
+    with ControllerClient(stack.controller, api_key=stack.api_key) as client:
+        search = client.submit(image, "demo", mode="free", **options)
+        for _ in client.follow(search.id, timeout_s=120):
+            pass
+        return client.get(search.id)
+
+
+def pixels(png: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+
+
+def rotation_error_deg(quaternion_wxyz, truth: FreeCamera) -> float:
+    found = FreeCamera(position=(0.0, 0.0, 1.0), quaternion_wxyz=quaternion_wxyz).rotation()
+    relative = found.T @ truth.rotation()
+    return math.degrees(math.acos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def test_a_free_camera_is_found_through_the_services(stack):
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, truth = renderer.render_camera("demo", DRONE)
+    final = search_for(stack, image, fov_deg=truth.camera.fov_deg)
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    free = result.free
+    assert free is not None
+    assert free.status == "found", result.reason
+    assert result.confirmed
+    assert result.renders == 1
+    assert math.dist(free.pose.position, DRONE.position) < 0.05 * RADIUS
+    assert rotation_error_deg(free.pose.quaternion_wxyz, DRONE) < 3.0
+    assert free.pose.yaw_pitch_roll_deg[2] == pytest.approx(12.0, abs=3.0)
+    assert free.pose.intrinsics.source == "given"
+    assert free.pose.intrinsics.fov_deg == pytest.approx(truth.camera.fov_deg)
+    assert len(free.pose.correspondences) >= 4
+    # the grid pose nearest the camera's direction from the scene centre: θ 45°, φ ≈ 139°
+    assert free.nearest_grid == result.pose
+    assert abs(result.pose.theta_deg - 45.3) <= 7.5
+    assert abs(result.pose.phi_deg - 139.4) <= 7.5
+    (iteration,) = final.iterations
+    assert iteration.camera is not None
+    assert iteration.done
+    # the iteration's view is its camera rendered again, identically
+    with httpx.Client(base_url=stack.controller, headers=bearer(stack.api_key)) as http:
+        view = http.get(f"/searches/{final.id}/iterations/0/view.png")
+    assert view.status_code == 200, view.text
+    spp = ControllerSettings.model_fields["controller_view_spp"].default
+    width, height = iteration.image_size
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        direct, _ = renderer.render_camera(
+            "demo", iteration.camera, width=width, height=height, spp=spp
+        )
+    assert np.array_equal(pixels(view.content), pixels(direct))
+
+
+def test_without_intrinsics_the_focal_length_is_estimated_and_said_so(stack):
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, truth = renderer.render_camera("demo", DRONE)
+    final = search_for(stack, image)
+    assert final.status == "succeeded", final.error
+    assert final.result is not None
+    free = final.result.free
+    assert free is not None
+    assert free.status == "found", final.result.reason
+    assert free.pose.intrinsics.source == "estimated"
+    assert free.pose.intrinsics.fov_deg == pytest.approx(truth.camera.fov_deg, rel=0.03)
+    assert math.dist(free.pose.position, DRONE.position) < 0.05 * RADIUS
+
+
+def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, capsys):
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, _ = renderer.render_camera("demo", DRONE)
+    photo = tmp_path / "drone.png"
+    photo.write_bytes(image)
+    monkeypatch.setenv("COSMOS_API_KEY", stack.api_key)
+    argv = ["search", str(photo), "--scene", "demo", "--free", "--fov", "45"]
+    argv += ["--url", stack.controller, "--out", str(tmp_path / "out")]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "queued: any camera on demo" in printed
+    assert "\nfound: confidence" in printed
+    assert "intrinsics given: fov 45.00°" in printed
+    assert "yaw/pitch/roll" in printed
+    assert "nearest grid pose: lat" in printed
+    assert len(list((tmp_path / "out").glob("search-*-trajectory.png"))) == 1
