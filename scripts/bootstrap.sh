@@ -22,20 +22,33 @@ if ! have_libllvm; then
   fi
 fi
 
-# Debian's Chromium for the page's browser tests (tests/web: Playwright drives /usr/bin/chromium;
-# no browser is downloaded). Without it those tests skip, except on CI, where they fail.
-if [[ ! -x /usr/bin/chromium ]]; then
+# apt_package PACKAGE PRESENT WHAT: install Debian's PACKAGE unless the test PRESENT succeeds,
+# when this user may (root, apt-get; one apt-get update if the first try fails); else say that
+# WHAT cannot run. Those tests skip without it, except on CI, where they fail.
+apt_package() {
+  local package=$1 present=$2 what=$3
+  if eval "$present"; then
+    return
+  fi
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
-    echo "bootstrap: installing chromium for the page's browser tests"
-    if ! (DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 \
+    echo "bootstrap: installing $package for $what"
+    if ! (DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$package" >/dev/null 2>&1 \
           || { apt-get update -qq >/dev/null 2>&1 \
-               && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1; }); then
-      echo "bootstrap: could not install chromium; the browser tests (tests/web) cannot run" >&2
+               && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$package" >/dev/null 2>&1; }); then
+      echo "bootstrap: could not install $package; $what cannot run" >&2
     fi
   else
-    echo "bootstrap: no /usr/bin/chromium and no way to install it; the browser tests will skip" >&2
+    echo "bootstrap: no $package and no way to install it; $what will skip" >&2
   fi
-fi
+}
+
+# Debian's Chromium for the page's browser tests (Playwright drives /usr/bin/chromium; no
+# browser is downloaded).
+apt_package chromium "[[ -x /usr/bin/chromium ]]" "the browser tests (tests/web)"
+# Debian's PostgreSQL for the store's tests on both back ends (tests/postgres_server.py starts a
+# cluster of its own per test session; the package's own cluster is not used).
+apt_package postgresql 'compgen -G "/usr/lib/postgresql/*/bin/initdb" >/dev/null' \
+  "the PostgreSQL store tests (tests/controller)"
 
 # Debian's iproute2 (`ip`, `tc`) for the hosts tests (tests/hosts: network namespaces, veth pairs,
 # a bridge). Without it, or without root, those tests skip, except on CI, where they fail.

@@ -3,13 +3,18 @@ engine, the built-in catalog. A service's own fixtures live in its folder's conf
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
 
 import pytest
 
 from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
+from services.controller.store import SearchStore, open_store
 from services.renderer.engine import RenderEngine
+from tests.postgres_server import PostgresServer, find_binaries, install_postgres
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -38,3 +43,46 @@ def engine() -> Iterator[RenderEngine]:
 @pytest.fixture(scope="session")
 def catalog() -> SceneCatalog:
     return SceneCatalog([BUILTIN_SCENES_DIR])
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[PostgresServer]:
+    """A real PostgreSQL server for the session (:mod:`tests.postgres_server`); skipped only
+    where it cannot be had (not root and not installed), and on CI (``CI`` set) failed then."""
+    why = install_postgres()
+    binaries = find_binaries()
+    if why is not None or binaries is None:
+        reason = why or "no PostgreSQL binaries under /usr/lib/postgresql"
+        if os.environ.get("CI"):
+            pytest.fail(f"the PostgreSQL tests must run on CI: {reason}")
+        pytest.skip(reason)
+    server = PostgresServer(binaries)
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """A fresh controller database, once of each back end: a SQLite file, then a schema of its
+    own on the session's PostgreSQL server."""
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path}/db/controller.sqlite3"
+    server: PostgresServer = request.getfixturevalue("postgres")
+    return server.new_schema()
+
+
+@pytest.fixture
+def opened(request: pytest.FixtureRequest) -> Iterator[Callable[..., SearchStore]]:
+    """Opens search stores on the URL given, or else on :func:`database_url` (the test then
+    runs on both back ends); closed after the test."""
+    stores: list[SearchStore] = []
+
+    def open_(url: str | None = None, **options: Any) -> SearchStore:
+        stores.append(open_store(url or request.getfixturevalue("database_url"), **options))
+        return stores[-1]
+
+    yield open_
+    for store in stores:
+        store.close()

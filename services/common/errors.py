@@ -20,6 +20,7 @@ __all__ = [
     "ProblemDetails",
     "ServiceError",
     "ServiceUnavailableError",
+    "StartupError",
     "TooManyRequestsError",
     "UnauthorizedError",
     "UnprocessableError",
@@ -144,3 +145,8 @@ class ServiceUnavailableError(ServiceError):
     status = 503
     slug = "unavailable"
     title = "Service unavailable"
+
+
+class StartupError(Exception):
+    """A service cannot start: its message, one line naming the setting to change, is all an
+    operator needs (the server logs it without a traceback)."""

@@ -38,6 +38,7 @@ from services.common.errors import (
     ProblemDetails,
     ServiceError,
     ServiceUnavailableError,
+    StartupError,
     problem_type,
 )
 from services.common.openapi import publish_plain_schema
@@ -296,14 +297,18 @@ def service_app(
             raise
         if guarded and settings.service_auth == "off":
             _log.warning("COSMOS_SERVICE_AUTH=off: this %s serves every caller", name)
-        async with lifespan(app):
-            freeze_heap()
-            app.state.serving = True
-            try:
-                yield
-            finally:
-                app.state.serving = False
-                gc.unfreeze()  # what the app leaves behind can be collected again
+        try:
+            async with lifespan(app):
+                freeze_heap()
+                app.state.serving = True
+                try:
+                    yield
+                finally:
+                    app.state.serving = False
+                    gc.unfreeze()  # what the app leaves behind can be collected again
+        except StartupError as exc:
+            _log.error("%s", exc)  # all an operator needs; the server drops the traceback
+            raise
 
     app = FastAPI(
         title=f"COSMOS {name}",

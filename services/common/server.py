@@ -50,7 +50,7 @@ from uvicorn.config import Config
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.server import ServerState
 
-from services.common.errors import ProblemDetails, problem_type
+from services.common.errors import ProblemDetails, StartupError, problem_type
 from services.common.stopping import STOPPING
 
 __all__ = [
@@ -59,6 +59,7 @@ __all__ = [
     "DEFAULT_MAX_HEAD_BYTES",
     "HttpProtocol",
     "RedactSecrets",
+    "StartupErrorsInOneLine",
     "guarded_protocol",
     "main",
     "redact",
@@ -288,6 +289,14 @@ def redact_logs() -> None:
             handler.addFilter(redacting)
 
 
+class StartupErrorsInOneLine(logging.Filter):
+    """Drops uvicorn's traceback of a start-up that failed with a
+    :class:`~services.common.errors.StartupError`: the app logged its one line already."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return f"{StartupError.__module__}.{StartupError.__name__}:" not in record.getMessage()
+
+
 class _Server(uvicorn.Server):
     """uvicorn's server, which sets :data:`~services.common.stopping.STOPPING` when asked to
     stop."""
@@ -347,6 +356,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         timeout_graceful_shutdown=args.timeout_graceful_shutdown,
     )
     redact_logs()  # after Config, which configures logging
+    logging.getLogger("uvicorn.error").addFilter(StartupErrorsInOneLine())
     _Server(config).run()
 
 

@@ -13,6 +13,7 @@ from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 from starlette.types import Scope
 
+from services.common.errors import StartupError
 from services.common.http import service_app
 from services.common.settings import from_environment
 from services.controller.api import router
@@ -20,6 +21,7 @@ from services.controller.auth import ApiKeyMiddleware, needs_key
 from services.controller.keys import KeyStore
 from services.controller.readiness import ControllerReadiness
 from services.controller.settings import ControllerSettings
+from services.controller.store import DatabaseUnavailable
 from services.controller.transport import Transport
 from services.controller.wiring import Controller, build_controller
 
@@ -45,7 +47,12 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        controller = await build_controller(settings, transport=transport)
+        try:
+            controller = await build_controller(settings, transport=transport)
+        except DatabaseUnavailable as exc:
+            raise StartupError(str(exc)) from None
+        except ValueError as exc:  # a database URL of neither kind
+            raise StartupError(str(exc)) from None
         await controller.start()
         app.state.controller = controller
         app.state.readiness = controller.readiness

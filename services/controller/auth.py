@@ -27,7 +27,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from services.common.auth import PROBE_PATHS
 from services.common.bodies import has_body, send_problem
-from services.common.errors import UnauthorizedError
+from services.common.errors import ServiceUnavailableError, UnauthorizedError
 from services.common.http import app_state
 from services.controller.keys import ApiKey, KeyStore
 from services.controller.wiring import Controller
@@ -76,7 +76,7 @@ def is_admin(keys: KeyStore, authorization: str | None) -> bool:
         return False
     try:
         return authenticate(keys, authorization).admin
-    except UnauthorizedError:
+    except (UnauthorizedError, ServiceUnavailableError):  # a wrong key, or no database
         return False
 
 
@@ -111,7 +111,7 @@ class ApiKeyMiddleware:
             key = authenticate(
                 self._keys(scope), None if given is None else given.decode("latin-1")
             )
-        except UnauthorizedError as exc:
+        except (UnauthorizedError, ServiceUnavailableError) as exc:  # no key, or no database
             # The body is never read: the server closes the connection after the answer.
             await send_problem(send, scope, exc.problem(scope.get("path")), exc.headers)
             return

@@ -1,4 +1,5 @@
-"""Events: change notifications per search (in process, no polling), and the two streams of
+"""Events: change notifications per search (in process, and from the other controllers on a
+shared PostgreSQL database, no polling), and the two streams of
 server-sent events they feed, a search's (``GET /searches/{id}/events``) and the health's
 (``GET /health/events``), served with sse-starlette."""
 
@@ -58,6 +59,12 @@ class Notifier:
         """Wake the waiters of ``search_id``."""
         event = self._events.pop(search_id, None)
         if event is not None:
+            event.set()
+
+    def publish_all(self) -> None:
+        """Wake every waiter (changes may have been missed: they read the store again)."""
+        events, self._events = self._events, {}
+        for event in events.values():
             event.set()
 
     def followed(self) -> int:
@@ -126,7 +133,12 @@ async def search_events(
     queued or running, ``search`` with the search without its iterations whenever it changed;
     ``iteration`` for each recorded iteration; then one ``end`` with the search without its
     iterations. The stored JSON documents are sent as they are. Ends when the server stops (the
-    client follows again, elsewhere)."""
+    client follows again, elsewhere). A search another controller runs (PostgreSQL) wakes
+    its followers here through the database's notifications
+    (:mod:`~services.controller.store.changes`); as these are sometimes missed (seen in about
+    one test run in three, cause not found), the store is also read again every
+    :data:`STOP_CHECK_S` on a shared database."""
+    shared = store.database.dialect == "postgresql"
     sent = 0
     last_doc = ""
     with notifier.following(search_id):  # a client that goes away stops following
@@ -150,3 +162,5 @@ async def search_events(
             while not await _set_within(changed, STOP_CHECK_S):
                 if STOPPING.is_set():
                     return  # the server is stopping: the client follows again elsewhere
+                if shared:
+                    break  # a notification may have been missed: read the store again

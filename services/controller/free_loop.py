@@ -49,7 +49,7 @@ from services.controller.failures import failure, unreadable_answer
 from services.controller.free_match import FreeMatch, compare_view, view_film
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
-from services.controller.store import SearchStore
+from services.controller.store import Lease, SearchStore
 from services.controller.writes import Writes
 
 __all__ = ["FreeSearchLoop", "scaled_camera"]
@@ -196,10 +196,12 @@ class FreeSearchLoop:
         self.notifier = notifier
         self.outages = outages
 
-    async def run(self, search: Search, image: bytes) -> SearchResult:
-        """Run a free search to its result, recording every render; raises
-        :class:`~services.controller.failures.SearchFailed`."""
-        writes = Writes(self.store, self.notifier, search)
+    async def run(self, search: Search, image: bytes, lease: Lease | None = None) -> SearchResult:
+        """Run a free search to its result, recording every render (under ``lease``, when
+        several controllers share the database); raises
+        :class:`~services.controller.failures.SearchFailed`, and
+        :class:`~services.controller.store.LeaseLost` once another controller holds it."""
+        writes = Writes(self.store, self.notifier, search, lease)
         try:
             return await self._solve(search, image, writes)
         finally:
@@ -240,10 +242,12 @@ class FreeSearchLoop:
         return answer, (time.perf_counter() - t0) * 1000
 
     def _fail_without_pose(
-        self, search: Search, seen: DetectResponse | None, detail: str, slug: str
+        self, writes: Writes, search: Search, seen: DetectResponse | None, detail: str, slug: str
     ) -> NoReturn:
         if seen is not None:
-            self.store.update(search.id, target_detections=seen.detections, target_model=seen.model)
+            self.store.update(
+                search.id, writes.lease, target_detections=seen.detections, target_model=seen.model
+            )
         title = "Nothing to search for" if slug == "no-target-objects" else "No camera pose"
         raise failure(slug, title, detail, status=422)
 
@@ -257,10 +261,10 @@ class FreeSearchLoop:
                 "the detector found no objects in the target image: a photo showing some of "
                 "the scene's objects (at least 3 for a pose, 4 without intrinsics)"
             )
-            self._fail_without_pose(search, seen, detail, "no-target-objects")
+            self._fail_without_pose(writes, search, seen, detail, "no-target-objects")
         answer, optimize_ms = await self._ask(search, target, size)
         if answer.pose is None:
-            self._fail_without_pose(search, seen, answer.reason, "no-free-pose")
+            self._fail_without_pose(writes, search, seen, answer.reason, "no-free-pose")
         candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
         history = list(search.iterations)
         if history and history[-1].done:  # finished by an older run, no result recorded

@@ -1,4 +1,5 @@
-"""API keys of the controller's public API: created, listed, revoked, and checked, in SQLite.
+"""API keys of the controller's public API: created, listed, revoked, and checked, in the
+controller's database (SQLite or PostgreSQL, :mod:`services.controller.store`).
 
 A key is ``cosmos_`` and 43 URL-safe characters from :func:`secrets.token_urlsafe` (256 random
 bits). Only its SHA-256 is stored, never the key: a plain hash is enough because the key is
@@ -22,8 +23,6 @@ from __future__ import annotations
 import hashlib
 import os
 import secrets
-import sqlite3
-import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -31,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from services.common.settings import API_KEY_VARIABLE
-from services.controller.store import database_path
+from services.controller.store import Database, database_path, is_postgres_url, open_database
 
 __all__ = [
     "API_KEY_VARIABLE",
@@ -50,17 +49,6 @@ KEY_FILE = "api-key"
 """The local key's file name, in the folder of the controller's database."""
 
 _PREFIX = "cosmos_"
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS api_keys (
-    id TEXT PRIMARY KEY,
-    name TEXT NOT NULL,
-    sha256 TEXT NOT NULL UNIQUE,
-    admin INTEGER NOT NULL,
-    created_at TEXT NOT NULL,
-    revoked_at TEXT
-);
-"""
 
 
 @dataclass(frozen=True)
@@ -84,35 +72,30 @@ def hash_key(key: str) -> str:
     return hashlib.sha256(key.encode()).hexdigest()
 
 
-def _key_of(row: Any) -> ApiKey:
-    return ApiKey(
-        id=row[0],
-        name=row[1],
-        admin=bool(row[2]),
-        created_at=datetime.fromisoformat(row[3]),
-        revoked_at=None if row[4] is None else datetime.fromisoformat(row[4]),
-    )
-
-
 _COLUMNS = "id, name, admin, created_at, revoked_at"
 
 
 class KeyStore:
-    """The API keys in the controller's database (``sqlite:///path``); safe to share between
-    threads. The controller and ``cosmos keys`` open the same file: a key revoked by one is
-    refused by the other on its next request."""
+    """The API keys in the controller's database (a :class:`Database`, or the URL of one it
+    opens and closes); safe to share between threads. The controllers and ``cosmos keys`` open
+    the same database: a key revoked by one is refused by the others on their next request."""
 
-    def __init__(self, url: str) -> None:
-        self._db = sqlite3.connect(
-            database_path(url), check_same_thread=False, isolation_level=None, timeout=10.0
-        )
-        self._lock = threading.Lock()
-        with self._lock:
-            self._db.executescript(_SCHEMA)
+    def __init__(self, database: Database | str) -> None:
+        self._owned = isinstance(database, str)
+        self.database = open_database(database) if isinstance(database, str) else database
 
     def close(self) -> None:
-        with self._lock:
-            self._db.close()
+        if self._owned:
+            self.database.close()
+
+    def _key_of(self, row: Any) -> ApiKey:
+        return ApiKey(
+            id=row[0],
+            name=row[1],
+            admin=bool(row[2]),
+            created_at=self.database.when(row[3]),
+            revoked_at=None if row[4] is None else self.database.when(row[4]),
+        )
 
     def create(self, name: str, *, admin: bool = False) -> tuple[ApiKey, str]:
         """A new key: its record and the key itself, which is not stored and cannot be shown
@@ -123,34 +106,38 @@ class KeyStore:
         record = ApiKey(
             id=secrets.token_hex(6), name=name.strip(), admin=admin, created_at=datetime.now(UTC)
         )
-        with self._lock:
-            self._db.execute(
+        with self.database.write() as session:
+            session.execute(
                 "INSERT INTO api_keys (id, name, sha256, admin, created_at) VALUES (?, ?, ?, ?, ?)",
-                (record.id, record.name, hash_key(key), int(admin), record.created_at.isoformat()),
+                (
+                    record.id,
+                    record.name,
+                    hash_key(key),
+                    admin,
+                    self.database.stamp(record.created_at),
+                ),
             )
         return record, key
 
     def all(self) -> list[ApiKey]:
         """Every key, revoked ones too, oldest first."""
-        with self._lock:
-            rows = self._db.execute(
-                f"SELECT {_COLUMNS} FROM api_keys ORDER BY created_at, id"
-            ).fetchall()
-        return [_key_of(row) for row in rows]
+        with self.database.read() as session:
+            rows = session.execute(f"SELECT {_COLUMNS} FROM api_keys ORDER BY created_at, id")
+            return [self._key_of(row) for row in rows.fetchall()]
 
     def get(self, key_id: str) -> ApiKey | None:
-        with self._lock:
-            row = self._db.execute(
+        with self.database.read() as session:
+            row = session.execute(
                 f"SELECT {_COLUMNS} FROM api_keys WHERE id = ?", (key_id,)
             ).fetchone()
-        return None if row is None else _key_of(row)
+        return None if row is None else self._key_of(row)
 
     def revoke(self, key_id: str) -> ApiKey:
         """Refuse the key from now on (a revoked key stays revoked); KeyError if unknown."""
-        with self._lock:
-            self._db.execute(
+        with self.database.write() as session:
+            session.execute(
                 "UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL",
-                (datetime.now(UTC).isoformat(), key_id),
+                (self.database.stamp(datetime.now(UTC)), key_id),
             )
         key = self.get(key_id)
         if key is None:
@@ -159,12 +146,12 @@ class KeyStore:
 
     def verify(self, key: str) -> ApiKey | None:
         """The key's record if ``key`` is a key of this store and not revoked, else None."""
-        with self._lock:
-            row = self._db.execute(
+        with self.database.read() as session:
+            row = session.execute(
                 f"SELECT {_COLUMNS} FROM api_keys WHERE sha256 = ? AND revoked_at IS NULL",
                 (hash_key(key),),
             ).fetchone()
-        return None if row is None else _key_of(row)
+        return None if row is None else self._key_of(row)
 
 
 def rooted(database_url: str, root: Path) -> str:
@@ -181,7 +168,13 @@ def rooted(database_url: str, root: Path) -> str:
 
 
 def key_file(database_url: str) -> Path:
-    """Where the local key of the controller whose database is ``database_url`` is kept."""
+    """Where the local key of the controller whose database is ``database_url`` is kept (a
+    SQLite file's folder; a PostgreSQL database has none)."""
+    if is_postgres_url(database_url):
+        raise ValueError(
+            "a PostgreSQL controller database has no local key file: create a key with "
+            "cosmos keys create and give it to clients as COSMOS_API_KEY"
+        )
     path = database_path(database_url)
     if path == ":memory:":
         raise ValueError(

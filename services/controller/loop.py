@@ -56,7 +56,7 @@ from services.controller.outages import OutagePolicy
 from services.controller.progress import Progress, View, at
 from services.controller.stages import Stages
 from services.controller.start import StartPicker, predicts_start
-from services.controller.store import SearchStore
+from services.controller.store import Lease, SearchStore
 from services.controller.writes import Writes
 
 __all__ = ["SearchLoop"]
@@ -192,9 +192,11 @@ class SearchLoop:
                 with contextlib.suppress(asyncio.CancelledError, SearchFailed):
                     await observing
 
-    async def run(self, search: Search, image: bytes) -> SearchResult:
-        """Run a search to its result, recording every iteration; raises :class:`SearchFailed`."""
-        writes = Writes(self.store, self.notifier, search)
+    async def run(self, search: Search, image: bytes, lease: Lease | None = None) -> SearchResult:
+        """Run a search to its result, recording every iteration (under ``lease``, when several
+        controllers share the database); raises :class:`SearchFailed`, and
+        :class:`~services.controller.store.LeaseLost` once another controller holds it."""
+        writes = Writes(self.store, self.notifier, search, lease)
         try:
             return await self._iterate(search, image, writes)
         finally:
@@ -223,7 +225,7 @@ class SearchLoop:
         while pose is not None and len(progress.history) < search.max_iterations:
             started = time.perf_counter()
             view, render_ms, detect_ms = await self._look(progress, pose, image, writes)
-            target = self._target(progress)
+            target = self._target(progress, writes)
             answer, optimize_ms = await self._ask_optimizer(progress, target, pose, view)
             timings = _timings(render_ms, detect_ms, optimize_ms, started)
             iteration = progress.add(pose, view, answer, timings)
@@ -283,11 +285,11 @@ class SearchLoop:
             progress.saw_target(seen)
         return view, render_ms, detect_ms
 
-    def _target(self, progress: Progress) -> TargetImage:
+    def _target(self, progress: Progress, writes: Writes) -> TargetImage:
         """What the optimizer looks for; fails the search (recording the empty detections) when
         the detector found nothing in the target image."""
         if not progress.target:
-            self.store.update(progress.search.id, target_detections=progress.target)
+            self.store.update(progress.search.id, writes.lease, target_detections=progress.target)
             raise failure(
                 "no-target-objects",
                 "Nothing to search for",

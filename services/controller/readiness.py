@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import sqlite3
 
 from services.controller.broker import Broker
-from services.controller.store import SearchStore
+from services.controller.store import DatabaseUnavailable, SearchStore
 from services.controller.transport import StageRequest, Transport, TransportError
 
 __all__ = ["PROBE_TIMEOUT_S", "STAGES", "ControllerReadiness"]
@@ -45,8 +44,8 @@ class ControllerReadiness:
 
     async def _database(self) -> str:
         try:
-            await asyncio.to_thread(self.store.status_doc, "")  # one primary-key lookup
-        except sqlite3.Error as exc:
+            await asyncio.to_thread(self.store.database.ping)
+        except DatabaseUnavailable as exc:
             _log.warning("readiness: the database does not answer (%s)", exc)
             return "the search database does not answer"
         return ""

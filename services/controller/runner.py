@@ -9,6 +9,12 @@ with :meth:`SearchRunner.retry`.
 A cancel (:meth:`SearchRunner.cancel`) is never lost, whenever it arrives: it is recorded at
 once, and the store keeps a cancelled search cancelled whatever its stopping run writes after it
 (a run cancelled before its first write used to set it 'running' again, for a restart to resume).
+
+On PostgreSQL, controllers share the searches (:mod:`~services.controller.store.leases`): a
+runner runs a search only under its lease, renews its leases and claims the searches whose lease
+ran out (a controller died or was cut off) every third of the lease time, and stops a run whose
+lease it lost (taken over, cancelled or deleted through another controller) without writing
+again. A run whose database goes away ends; the search stays as recorded, for the next holder.
 """
 
 from __future__ import annotations
@@ -29,7 +35,13 @@ from services.controller.free_loop import FreeSearchLoop
 from services.controller.loop import SearchLoop
 from services.controller.outages import OutagePolicy, why_not_retryable
 from services.controller.stages import Stages
-from services.controller.store import SearchStore
+from services.controller.store import (
+    DatabaseUnavailable,
+    Lease,
+    LeaseLost,
+    Leases,
+    SearchStore,
+)
 
 __all__ = ["NotRetryable", "SearchRunner", "StillStopping"]
 
@@ -56,6 +68,7 @@ class SearchRunner:
         max_concurrent: int,
         *,
         outage_budget_s: float = 60.0,
+        leases: Leases | None = None,
     ) -> None:
         self.store = store
         self.stages = stages
@@ -70,17 +83,55 @@ class SearchRunner:
         self._running: dict[str, asyncio.Task[None]] = {}
         self._cancelled: set[str] = set()
         self._submitted: dict[str, tuple[Search, bytes]] = {}  # new searches, not yet picked up
+        self.leases = leases
+        self._held: dict[str, Lease] = {}  # the leases of the searches queued or run here
+        self._lost: set[str] = set()  # searches whose lease went elsewhere: stop, write nothing
+        self._heartbeat: asyncio.Task[None] | None = None
 
     async def start(self) -> None:
         """Start the workers and queue every search a previous run left unfinished."""
         for _ in range(self.max_concurrent):
             self._workers.append(asyncio.create_task(self._work()))
+        if self.leases is not None:  # the unfinished searches are claimed, by whoever is free
+            self._heartbeat = asyncio.create_task(self._keep_leases(self.leases))
+            return
         for search_id in self.store.unfinished():
             _log.info("resuming search %s", search_id)
             self.submit(search_id)
 
+    async def _keep_leases(self, leases: Leases) -> None:
+        """Renew the leases held, stop the runs of those lost, claim what no one holds."""
+        while True:
+            try:
+                await self.beat(leases)
+            except DatabaseUnavailable as exc:
+                _log.warning("leases not renewed: %s", exc)
+            await asyncio.sleep(leases.lease_s / 3)
+
+    async def beat(self, leases: Leases) -> None:
+        """One heartbeat (:meth:`_keep_leases`)."""
+        held = list(self._held.values())
+        kept = set(await asyncio.to_thread(leases.renew, held))
+        for lease in held:
+            if lease not in kept and self._held.get(lease.search_id) == lease:
+                _log.info("search %s is no longer this controller's", lease.search_id)
+                self._lost.add(lease.search_id)
+                task = self._running.get(lease.search_id)
+                if task is not None:
+                    task.cancel()
+        free = self.max_concurrent - len(self._running) - self._queue.qsize()
+        for lease in await asyncio.to_thread(leases.claim, free):
+            _log.info("taking over search %s (lease %d)", lease.search_id, lease.generation)
+            self._held[lease.search_id] = lease
+            self._lost.discard(lease.search_id)
+            self._queue.put_nowait(lease.search_id)
+
     async def close(self) -> None:
-        """Stop the workers; running searches stay 'running' and resume on the next start."""
+        """Stop the workers; running searches stay 'running' and resume on the next start (or,
+        on PostgreSQL, at once on another controller: their leases are released)."""
+        if self._heartbeat is not None:
+            self._heartbeat.cancel()
+            await asyncio.wait([self._heartbeat])
         for worker in self._workers:
             worker.cancel()
         if self._workers:
@@ -177,6 +228,8 @@ class SearchRunner:
             raise RuntimeError("a worker runs as a task")
         while True:
             search_id = await self._queue.get()
+            if search_id in self._running:  # queued twice (submitted here, and claimed)
+                continue
             task = asyncio.create_task(self._run(search_id))
             self._running[search_id] = task
             try:
@@ -194,7 +247,43 @@ class SearchRunner:
             finally:
                 self._running.pop(search_id, None)
 
+    def _lease(self, search_id: str) -> Lease | None:
+        """The lease to run ``search_id`` under (taken now for a search submitted here), or
+        None when another controller holds it; always None on SQLite."""
+        if self.leases is None:
+            return None
+        lease = self._held.get(search_id) or self.leases.take(search_id)
+        if lease is not None:
+            self._held[search_id] = lease
+        return lease
+
     async def _run(self, search_id: str) -> None:
+        try:
+            lease = self._lease(search_id)
+        except DatabaseUnavailable as exc:
+            _log.warning("search %s not started: %s", search_id, exc)
+            return
+        if self.leases is not None and lease is None:
+            self._submitted.pop(search_id, None)
+            self.stages.forget_early(search_id)
+            return  # another controller runs it
+        try:
+            await self._run_held(search_id, lease)
+        finally:
+            if lease is not None:
+                self._held.pop(search_id, None)
+                self._lost.discard(search_id)
+                self._release(lease)
+
+    def _release(self, lease: Lease) -> None:
+        if self.leases is None:
+            return
+        try:
+            self.leases.release(lease)
+        except DatabaseUnavailable as exc:  # it runs out by itself
+            _log.warning("lease of search %s not released: %s", lease.search_id, exc)
+
+    async def _run_held(self, search_id: str, lease: Lease | None) -> None:
         search, image = self._submitted.pop(search_id, None) or (self.store.get(search_id), None)
         if search is None or search.status in TERMINAL_STATUSES or search_id in self._cancelled:
             self.stages.forget_early(search_id)
@@ -202,23 +291,27 @@ class SearchRunner:
             return
         try:
             loop = self.free_loop if search.mode == "free" else self.loop
-            await loop.run(search, image or self.store.image(search_id))
+            await loop.run(search, image or self.store.image(search_id), lease)
         except asyncio.CancelledError:
-            if search_id in self._cancelled:
+            if search_id in self._cancelled or search_id in self._lost:
                 return
             raise
+        except LeaseLost as lost:
+            _log.info("search %s stopped here: %s", search_id, lost)
+        except DatabaseUnavailable as exc:  # recorded so far stays; the next holder resumes
+            _log.warning("search %s stopped: %s", search_id, exc)
         except SearchFailed as failed:
             # what the error leaves out: the broker's reasons (replica addresses), the answer
             cause = failed.__cause__
             why = f" ({cause})" if isinstance(cause, BrokerError | ValidationError) else ""
             _log.warning("search %s failed: %s%s", search_id, failed.problem.detail, why)
-            self.store.update(search_id, status="failed", error=failed.problem)
+            self._record_failure(search_id, lease, failed.problem)
         except Exception:  # a bug must fail the search, not the worker
             _log.exception("search %s crashed", search_id)
-            self.store.update(
+            self._record_failure(
                 search_id,
-                status="failed",
-                error=ProblemDetails(
+                lease,
+                ProblemDetails(
                     type=problem_type("internal-error"),
                     title="Internal error",
                     status=500,
@@ -229,3 +322,9 @@ class SearchRunner:
             self.stages.forget_early(search_id)  # a start view the search did not take
             self._cancelled.discard(search_id)  # a cancelled search is never run again
             self.notifier.publish(search_id)
+
+    def _record_failure(self, search_id: str, lease: Lease | None, problem: ProblemDetails) -> None:
+        try:
+            self.store.update(search_id, lease, status="failed", error=problem)
+        except (LeaseLost, DatabaseUnavailable) as exc:
+            _log.warning("failure of search %s not recorded: %s", search_id, exc)

@@ -27,7 +27,8 @@ class ControllerSettings(ServiceTokenSettings):
     """Replica URLs per stage (comma-separated), the database, limits, API keys and quotas.
 
     ``COSMOS_CONTROLLER_RENDERER_URLS``, ``COSMOS_CONTROLLER_DETECTOR_URLS``,
-    ``COSMOS_CONTROLLER_OPTIMIZER_URLS``; ``COSMOS_CONTROLLER_DATABASE_URL`` (``sqlite:///path``).
+    ``COSMOS_CONTROLLER_OPTIMIZER_URLS``; ``COSMOS_CONTROLLER_DATABASE_URL`` (``sqlite:///path`` or
+    ``postgresql://…``).
     ``COSMOS_CONTROLLER_AUTH`` (default on: every route but ``/health`` and the docs wants an
     API key; ``off`` for development only), ``COSMOS_CONTROLLER_CORS_ORIGINS`` (none by default),
     ``COSMOS_CONTROLLER_QUOTA_…`` per key, ``COSMOS_CONTROLLER_RETENTION_S``."""
@@ -39,7 +40,12 @@ class ControllerSettings(ServiceTokenSettings):
     controller_optimizer_urls: str = "http://127.0.0.1:8003"
     """The optimizer's replicas, comma-separated."""
     controller_database_url: str = "sqlite:///data/controller.sqlite3"
-    """The searches' database (``sqlite:///path``)."""
+    """The searches' and keys' database: ``sqlite:///path`` (one controller), or
+    ``postgresql://user:password@host:port/database``, which several controllers share."""
+    controller_lease_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    """PostgreSQL only: seconds a controller's lease on a search it runs lasts without a
+    heartbeat (renewed every third of it); a controller that dies or is cut off from the
+    database loses its searches to another after this long."""
     controller_broker_heuristic: Heuristic = Heuristic.SHORTEST_EXPECTED
     """How the broker picks a stage's replica for a task."""
     controller_discover_replicas: bool = False

@@ -4,7 +4,12 @@ app's lifespan, the benchmarks and the tests alike; :class:`Controller` starts a
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import os
+import secrets
+import socket
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import timedelta
 
@@ -18,7 +23,14 @@ from services.controller.readiness import ControllerReadiness
 from services.controller.runner import SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import (
+    Leases,
+    PostgresDatabase,
+    SearchStore,
+    open_database,
+    utcnow,
+)
+from services.controller.store.changes import ChangeListener
 from services.controller.submit import Admission
 from services.controller.transport import AiohttpTransport, Transport, WithServiceToken
 from services.controller.views import ViewStore
@@ -34,6 +46,27 @@ async def _discover(broker: Broker, settings: ControllerSettings) -> None:
         for stage, urls in settings.pools().items():
             await broker.set_pool(stage, await expand_urls(urls))
         await asyncio.sleep(settings.controller_discovery_interval_s)
+
+
+def _waking(notifier: Notifier) -> Callable[[str | None], None]:
+    """What the change listener calls from its thread: wakes the followers of the search that
+    changed (None: of every search) on this event loop."""
+    loop = asyncio.get_running_loop()
+
+    def changed(search_id: str | None) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody follows any more
+            if search_id is None:
+                loop.call_soon_threadsafe(notifier.publish_all)
+            else:
+                loop.call_soon_threadsafe(notifier.publish, search_id)
+
+    return changed
+
+
+def _holder() -> str:
+    """This controller's name in the leases it holds: host, process, and a random part (a
+    restarted process with a reused id is another holder)."""
+    return f"{socket.gethostname()}:{os.getpid()}:{secrets.token_hex(3)}"
 
 
 async def _expire(store: SearchStore, settings: ControllerSettings) -> None:
@@ -68,6 +101,7 @@ class Controller:
     readiness: ControllerReadiness
     plots: PlotCache = field(default_factory=PlotCache)
     _tasks: list[asyncio.Task[None]] = field(default_factory=list, repr=False)
+    _listener: ChangeListener | None = field(default=None, repr=False)
 
     async def start(self) -> None:
         """Probe the stages, discover their replicas (when set to), run the queued searches and
@@ -77,6 +111,9 @@ class Controller:
             self._tasks.append(asyncio.create_task(_discover(self.broker, self.settings)))
         await self.runner.start()
         self._tasks.append(asyncio.create_task(_expire(self.store, self.settings)))
+        database = self.store.database
+        if isinstance(database, PostgresDatabase):  # searches other controllers run, followed
+            self._listener = database.listen(_waking(self.notifier))
 
     async def close(self) -> None:
         """Stop all that :meth:`start` started (running searches resume on the next start) and
@@ -85,6 +122,8 @@ class Controller:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        if self._listener is not None:
+            await asyncio.to_thread(self._listener.close)
         await self.runner.close()
         await self.broker.close()
         self.keys.close()
@@ -103,8 +142,14 @@ async def build_controller(
     hand requests to in-process apps), each with the service token; ``stages_class`` makes the
     stage calls (a benchmark records them with a subclass).
     """
-    store = await asyncio.to_thread(SearchStore, settings.controller_database_url)
-    keys = await asyncio.to_thread(KeyStore, settings.controller_database_url)
+    database = await asyncio.to_thread(open_database, settings.controller_database_url)
+    store = SearchStore(database)
+    keys = KeyStore(database)
+    leases = (
+        Leases(database, _holder(), settings.controller_lease_s)
+        if database.dialect == "postgresql"
+        else None
+    )
     quotas = Quotas(
         store,
         Limits(
@@ -141,6 +186,7 @@ async def build_controller(
         notifier,
         settings.controller_max_concurrent_searches,
         outage_budget_s=settings.controller_outage_budget_s,
+        leases=leases,
     )
     admission = Admission(settings, store, stages, broker, runner, quotas)
     readiness = ControllerReadiness(store, broker, to_stages)

@@ -8,7 +8,7 @@ from typing import Unpack
 from services.common.contracts.detect import DetectResponse
 from services.common.contracts.search import Iteration, Search, SearchResult
 from services.controller.events import Notifier
-from services.controller.store import SearchChanges, SearchStore
+from services.controller.store import Lease, SearchChanges, SearchStore
 
 __all__ = ["Writes"]
 
@@ -28,8 +28,12 @@ class Writes:
     and the last iteration: done while the next view renders, they cost the search no time),
     and its success."""
 
-    def __init__(self, store: SearchStore, notifier: Notifier, search: Search) -> None:
+    def __init__(
+        self, store: SearchStore, notifier: Notifier, search: Search, lease: Lease | None = None
+    ) -> None:
         self.store = store
+        self.lease = lease
+        """What every write carries: refused once another controller took the search over."""
         self.notifier = notifier
         self.sid = search.id
         self._running = search.status == "running"
@@ -45,11 +49,11 @@ class Writes:
         if self._running and self._iteration is None:
             return
         if not self._running:
-            self.store.update(self.sid, status="running")
+            self.store.update(self.sid, self.lease, status="running")
             self._running = True
         if self._iteration is not None:
             iteration, target = self._iteration
-            self.store.add_iteration(self.sid, iteration, **_target_changes(target))
+            self.store.add_iteration(self.sid, iteration, self.lease, **_target_changes(target))
             self._iteration = None
         self.notifier.publish(self.sid)
 
@@ -64,8 +68,8 @@ class Writes:
         search's followers are woken when its run ends."""
         self.flush()
         if final is None:
-            self.store.update(self.sid, status="succeeded", result=result)
+            self.store.update(self.sid, self.lease, status="succeeded", result=result)
         else:
             changes = _target_changes(target, status="succeeded", result=result)
-            self.store.add_iteration(self.sid, final, **changes)
+            self.store.add_iteration(self.sid, final, self.lease, **changes)
         return result

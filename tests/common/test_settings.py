@@ -70,6 +70,7 @@ SAMPLES: dict[str, tuple[str, Any]] = {
     "COSMOS_CONTROLLER_DETECTOR_URLS": ("http://d:1", "http://d:1"),
     "COSMOS_CONTROLLER_OPTIMIZER_URLS": ("http://o:1", "http://o:1"),
     "COSMOS_CONTROLLER_DATABASE_URL": ("sqlite:///srv/c.db", "sqlite:///srv/c.db"),
+    "COSMOS_CONTROLLER_LEASE_S": ("4.5", 4.5),
     "COSMOS_CONTROLLER_BROKER_HEURISTIC": ("round-robin", Heuristic.ROUND_ROBIN),
     "COSMOS_CONTROLLER_DISCOVER_REPLICAS": ("true", True),
     "COSMOS_CONTROLLER_DISCOVERY_INTERVAL_S": ("3", 3.0),

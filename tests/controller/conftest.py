@@ -74,8 +74,10 @@ def start_controller(tmp_path: Path) -> StartController:
             controller_renderer_urls="http://renderer",
             controller_detector_urls="http://detector",
             controller_optimizer_urls="http://optimizer",
-            controller_database_url=f"sqlite:///{tmp_path / 'controller.sqlite3'}",
-            **settings,
+            **{
+                "controller_database_url": f"sqlite:///{tmp_path / 'controller.sqlite3'}",
+                **settings,
+            },
         )
         renderer = create_renderer(RendererSettings(scenes_dir=str(scenes)))
         async with LifespanManager(renderer) as r:

@@ -31,7 +31,7 @@ from services.controller.events import Notifier
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
 from services.controller.runner import SearchRunner
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import SearchStore, open_store, utcnow
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"target"
 MODEL = ModelInfo(name="demo", classes=("red",), input_size=(640, 640), sha256="d", scene="demo")
@@ -152,7 +152,7 @@ class FakeStages:
 
 
 def stored(tmp_path, stages: FakeStages, max_iterations: int = 4, **fields) -> SearchStore:
-    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store = open_store(f"sqlite:///{tmp_path}/c.sqlite3")
     grid = stages.detail.spec.search.grid()
     start = nearest_grid_pose((0.0, 0.0, 1.0), grid)
     now = utcnow()

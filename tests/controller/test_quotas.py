@@ -40,9 +40,11 @@ def stored(
     """A search of ``owner`` created ``minutes_ago``, now in ``status``."""
     store.create(search(search_id, minutes=0), image, owner=owner)
     created = utcnow() - timedelta(minutes=minutes_ago)
-    store._db.execute(
-        "UPDATE searches SET created_at = ? WHERE id = ?", (created.isoformat(), search_id)
-    )
+    with store.database.write() as session:
+        session.execute(
+            "UPDATE searches SET created_at = ? WHERE id = ?",
+            (store.database.stamp(created), search_id),
+        )
     if status != "queued":
         store.update(search_id, status=status)
 
@@ -132,10 +134,10 @@ async def test_an_image_larger_than_the_whole_quota_is_a_413(start_controller):
         assert "storage quota" in response.json()["detail"]
 
 
-def test_admissions_not_yet_recorded_count(tmp_path):
+def test_admissions_not_yet_recorded_count(database_url, opened):
     """Between admitting a search and recording it the route awaits; a burst of one key's
     submissions must not all pass the same check, whichever quota it would exceed."""
-    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store = opened()
     roomy = {"active_searches": 99, "searches_per_minute": 99, "stored_bytes": 10**6}
     for quota, tight in [
         ("active_searches", 2),

@@ -9,7 +9,7 @@ import pytest
 
 from services.controller.broker import Broker, BrokerError
 from services.controller.readiness import ControllerReadiness
-from services.controller.store import SearchStore
+from services.controller.store import SearchStore, open_store
 from services.controller.transport import StageAnswer, StageRequest, TransportError
 
 pytestmark = pytest.mark.anyio
@@ -48,7 +48,7 @@ def readiness(states: dict[str, str], store: SearchStore) -> tuple[ControllerRea
 
 @pytest.fixture
 def store():
-    store = SearchStore("sqlite:///:memory:")
+    store = open_store("sqlite:///:memory:")
     yield store
     store.close()
 
@@ -70,7 +70,7 @@ async def test_a_stage_without_a_ready_replica_is_named(store):
 
 
 async def test_a_closed_database_is_named():
-    store = SearchStore("sqlite:///:memory:")
+    store = open_store("sqlite:///:memory:")
     check, _ = readiness({"r1": "ready", "r2": "ready", "d1": "ready", "o1": "ready"}, store)
     store.close()
     assert await check.unready() == ["the search database does not answer"]

@@ -37,7 +37,7 @@ from services.controller.broker import BrokerError
 from services.controller.events import Notifier
 from services.controller.runner import NotRetryable, SearchRunner, StillStopping
 from services.controller.stages import StageError
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import SearchStore, open_store, utcnow
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"target"
 GENERAL = ModelInfo(name="general", classes=("sphere",), input_size=(640, 640), sha256="g")
@@ -171,11 +171,28 @@ class FakeStages:
         )
 
 
+_BACK_END = {"url": ""}
+"""The database :func:`stored` opens in this module's tests (empty: a SQLite file)."""
+_OPENED: list[SearchStore] = []
+
+
+@pytest.fixture(autouse=True, params=["sqlite", "postgresql"])
+def _back_end(request):
+    """Every runner test on both back ends: :func:`stored` opens a fresh database of each."""
+    if request.param == "postgresql":
+        _BACK_END["url"] = request.getfixturevalue("postgres").new_schema()
+    yield
+    _BACK_END["url"] = ""
+    while _OPENED:
+        _OPENED.pop().close()
+
+
 def stored(
     tmp_path, stages: FakeStages, max_iterations: int = 6, view_settings=None
 ) -> SearchStore:
     """A store holding search ``s1`` as submitted: queued, its target image, nothing else."""
-    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store = open_store(_BACK_END["url"] or f"sqlite:///{tmp_path}/c.sqlite3")
+    _OPENED.append(store)
     now = utcnow()
     search = Search(
         id="s1",

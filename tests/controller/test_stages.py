@@ -23,7 +23,7 @@ from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
 from services.controller.broker import Broker
 from services.controller.settings import ControllerSettings
 from services.controller.stages import Stages
-from services.controller.store import SearchStore
+from services.controller.store import SearchStore, open_store
 from services.controller.submit import create_search
 from services.controller.transport import StageAnswer, StageRequest, WithServiceToken
 from services.detector.app import create_app as create_detector
@@ -238,7 +238,7 @@ async def test_a_submission_starts_its_start_view_before_it_is_stored(apps):
     renderer, detector = apps
     counting = Counting(renderer)
     stages = stages_over(counting, detector)
-    store = SearchStore("sqlite:///:memory:")
+    store = open_store("sqlite:///:memory:")
     try:
         search = await _submit(stages, store, _png())
         assert store.get(search.id) is not None
@@ -258,7 +258,7 @@ async def test_a_submission_starts_its_start_view_before_it_is_stored(apps):
 async def test_a_broken_image_drops_its_early_render_and_records_nothing(apps):
     renderer, detector = apps
     stages = stages_over(renderer, detector)
-    store = SearchStore("sqlite:///:memory:")
+    store = open_store("sqlite:///:memory:")
     png = _png()
     try:
         with pytest.raises(UnprocessableError) as refused:  # the header is fine, the data not

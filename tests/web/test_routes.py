@@ -27,7 +27,7 @@ from services.common.images import encode_ppm
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
 from services.controller.settings import ControllerSettings
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import open_store, utcnow
 from tests.web.conftest import api, render_png
 
 pytestmark = pytest.mark.slow
@@ -252,7 +252,7 @@ def test_a_past_search_s_view_keeps_its_own_settings_after_a_restart_with_others
 def test_a_search_stored_by_an_earlier_version_renders_with_the_current_settings(stack, tmp_path):
     """A search document without ``view_settings`` (an earlier version's) loads, and its
     views are rendered with the controller's current settings, as before."""
-    store = SearchStore(f"sqlite:///{tmp_path / 'controller.sqlite3'}")
+    store = open_store(f"sqlite:///{tmp_path / 'controller.sqlite3'}")
     now = utcnow()
     pose = {"index": {"lat": 3, "lon": 5}, "theta_deg": 30.0, "phi_deg": 75.0}
     search = Search.model_validate(
