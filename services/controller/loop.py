@@ -221,7 +221,7 @@ class SearchLoop:
         pose = progress.pose
         if predicts_start(progress):  # no start given: the target says where to look first
             pose = await self.start.first_pose(progress, image)
-            self._target(progress)  # nothing detected in the target fails before any render
+            self._target(progress, writes)  # nothing detected in the target fails before any render
         while pose is not None and len(progress.history) < search.max_iterations:
             started = time.perf_counter()
             view, render_ms, detect_ms = await self._look(progress, pose, image, writes)
