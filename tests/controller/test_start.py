@@ -14,7 +14,7 @@ from services.common.contracts.start_pose import StartPoseRequest, StartPoseResp
 from services.common.errors import ProblemDetails
 from services.common.geometry.pose import GridIndex
 from services.controller.stages import StageError
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import SearchStore, open_store, utcnow
 from tests.controller.test_runner import OWN, PNG, FakeStages, run_stored
 
 DRAWN = GridIndex(lat=3, lon=0)
@@ -65,7 +65,7 @@ class StartStages(FakeStages):
 
 def stored(tmp_path, stages: FakeStages, *, start: GridIndex = DRAWN, given: bool) -> SearchStore:
     """A store holding search ``s1`` as submitted, its start ``given`` or drawn."""
-    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store = open_store(f"sqlite:///{tmp_path}/c.sqlite3")
     now = utcnow()
     store.create(
         Search(
@@ -190,7 +190,7 @@ def test_only_a_given_start_is_rendered_before_the_search_is_stored(tmp_path, de
     stages = SubmitStages()
     start = {"start_theta_deg": 45.0, "start_phi_deg": 90.0} if given else {}
     options = SearchOptions(scene="demo", seed=3, **start)
-    store = SearchStore(f"sqlite:///{tmp_path}/c.sqlite3")
+    store = open_store(f"sqlite:///{tmp_path}/c.sqlite3")
     settings = ControllerSettings(controller_database_url=f"sqlite:///{tmp_path}/c.sqlite3")
     search = asyncio.run(
         create_search(store, stages, png.tobytes(), options, settings, start_early=True)  # type: ignore[arg-type]
