@@ -19,12 +19,12 @@ from services.common.geometry.scene import SCENE_ID_PATTERN, CameraSpec
 from services.common.scene_models import ObjectClass
 
 __all__ = [
-    "MAX_DETECTIONS",
-    "MAX_HISTORY",
-    "MIN_SEARCH_STEP_DEG",
     "CandidatePose",
     "GridPose",
     "ImageDetections",
+    "MAX_DETECTIONS",
+    "MAX_HISTORY",
+    "MIN_SEARCH_STEP_DEG",
     "MapRequest",
     "MapResponse",
     "MappedObject",
@@ -34,14 +34,15 @@ __all__ = [
     "NextPoseResponse",
     "OptimizerHealth",
     "PoseEstimate",
-    "SearchableGrid",
     "SearchTolerances",
+    "SearchableGrid",
     "StrategyInfo",
     "StrategyName",
     "TargetImage",
     "UnsupportedGridError",
     "ViewMatch",
     "VisitedView",
+    "optional_not_null",
     "searchable_grid",
 ]
 
@@ -154,7 +155,7 @@ class SearchTolerances(FrozenModel):
     ambiguity_ratio: Annotated[Number, Field(ge=1.0, le=100.0)] = 1.25
 
 
-def _optional_not_null(schema: dict[str, Any]) -> None:
+def optional_not_null(schema: dict[str, Any]) -> None:
     """Publish optional fields as what they accept: the value or nothing, never null."""
     for prop in schema.get("properties", {}).values():
         variants = prop.get("anyOf")
@@ -170,9 +171,9 @@ def _optional_not_null(schema: dict[str, Any]) -> None:
 
 
 def _next_pose_schema(schema: dict[str, Any]) -> None:
-    """Optional fields as in :func:`_optional_not_null`, and the one rule among them a schema
+    """Optional fields as in :func:`optional_not_null`, and the one rule among them a schema
     can say: a ``scene``, or both ``camera`` and ``grid``."""
-    _optional_not_null(schema)
+    optional_not_null(schema)
     schema["anyOf"] = [{"required": ["scene"]}, {"required": ["camera", "grid"]}]
 
 

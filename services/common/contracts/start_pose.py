@@ -11,10 +11,16 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import ConfigDict, Field, field_validator
 
 from services.common.base import FrozenModel, Integer, Number
-from services.common.contracts.optimize import CandidatePose, GridPose, ObjectClasses, TargetImage
+from services.common.contracts.optimize import (
+    CandidatePose,
+    GridPose,
+    ObjectClasses,
+    TargetImage,
+    optional_not_null,
+)
 from services.common.geometry.scene import SCENE_ID_PATTERN
 
 __all__ = ["StartPoseRequest", "StartPoseResponse", "StartStatus"]
@@ -29,6 +35,8 @@ class StartPoseRequest(FrozenModel):
     in ``POST /next-pose``): a label is an object class and pairs only with its objects. Left
     out, labels are the general detector's shape classes.
     """
+
+    model_config = ConfigDict(json_schema_extra=optional_not_null)
 
     scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)]
     target: TargetImage
