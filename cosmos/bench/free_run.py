@@ -32,7 +32,7 @@ import numpy as np
 
 from cosmos.bench.free_bench.checkpoint import Checkpoint, Key
 from cosmos.bench.free_bench.records import FreeRecord
-from cosmos.bench.free_bench.report import free_tables, goal_checks, wrong_line
+from cosmos.bench.free_bench.report import free_tables, goal_checks, time_line, wrong_line
 from cosmos.bench.free_bench.searching import StackCalls, search_target
 from cosmos.bench.free_bench.targets import VariantImage, variant_image
 from cosmos.bench.free_targets.draw import DrawError, FreeTarget, draw_targets
@@ -191,6 +191,7 @@ def _run(config: BenchConfig, root: Path) -> int:
     say(f"\n{wrong_line(records)}")
     for line in goal_checks(records):
         say(f"  {line}")
+    say(time_line(records))
     planned = len(scenes) * config.n * len(config.variants)
     if not complete:
         notes.append(

@@ -137,6 +137,7 @@ def section_of_free(data: Mapping[str, Any]) -> str:
     text.write(free_report.free_tables(records, markdown=True) + "\n\n")
     text.write(f"**Goals** ({free_report.GOALS}):\n\n")
     text.write("".join(f"- {line}\n" for line in free_report.goal_checks(records)) + "\n")
+    text.write(_escape(free_report.time_line(records)) + ".\n\n")
     return text.getvalue()
 
 

@@ -149,6 +149,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys):
         assert r.floor_ms is not None
         assert r.floor_ms > 0
         assert r.detections >= 3
+        assert r.render_ms > 0  # the search's own render, from its iterations' timings
         answer = r.poses[ANSWER]
         assert answer is not None
         # the error the tables use is the answer's own distance to the truth
@@ -167,6 +168,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys):
     assert "Confirmed wrong: " in printed
     assert "median renders per search" in printed
     assert "× the floor" in printed
+    assert "time (medians, ms): wall " in printed
     md = results_md.read_text()
     assert "## Free cameras through the local stack (`--free`)" in md
     assert f"```sh\n{report['command']}\n```" in md  # the command that prints it

@@ -105,6 +105,11 @@ class FreeRecord(FrozenModel):
     """The target's detections as the search recorded them."""
     renders: int = 0
     wall_ms: float = 0.0
+    render_ms: float = 0.0
+    """The search's own renders, detections of its views and optimizer calls, as its
+    iterations' timings say (the target's detection is not among them)."""
+    detect_ms: float = 0.0
+    optimize_ms: float = 0.0
     floor_detect_ms: float | None = None
     floor_render_ms: float | None = None
     floor_view_detect_ms: float | None = None

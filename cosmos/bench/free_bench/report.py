@@ -29,6 +29,7 @@ __all__ = [
     "confirmed_wrong",
     "free_tables",
     "goal_checks",
+    "time_line",
     "wall_ratio",
     "wrong_line",
 ]
@@ -124,14 +125,42 @@ def _rows(
 
 def free_tables(records: Sequence[FreeRecord], *, markdown: bool = False) -> str:
     """The table per variant and elevation band, then per variant and whether the fov was
-    given, each with the totals."""
+    given, then per variant and scene, each with the totals."""
     table = md_table if markdown else plain_table
     bands = table(("variant", "elevation", *HEADER), _rows(records, lambda r: r.band, BANDS))
     given = table(
         ("variant", "intrinsics", *HEADER),
         _rows(records, lambda r: r.given, ("fov given", "fov not given")),
     )
-    return f"{bands}\n\n{given}"
+    scenes = list(dict.fromkeys(r.scene for r in records))
+    per_scene = table(("variant", "scene", *HEADER), _rows(records, lambda r: r.scene, scenes))
+    return f"{bands}\n\n{given}\n\n{per_scene}"
+
+
+def time_line(records: Sequence[FreeRecord]) -> str:
+    """Where a search's wall time goes (medians, ms): its renders, view detections and
+    optimizer calls as its iterations time them, the rest (target detection, HTTP, queue,
+    database); and the floor's parts."""
+    ran = [r for r in records if r.outcome != "error"]
+    timed = [r for r in ran if r.floor_ms is not None]
+    if not ran or not timed:
+        return "time: no search timed"
+
+    def med(values: Sequence[float | None]) -> str:
+        return f"{_median([v for v in values if v is not None]):.0f}"
+
+    one = [r for r in timed if r.renders == 1]
+    one_ratio = wall_ratio(one)[2] if one else math.nan
+    return (
+        f"time (medians, ms): wall {med([r.wall_ms for r in ran])} = renders "
+        f"{med([r.render_ms for r in ran])} + view detections {med([r.detect_ms for r in ran])}"
+        f" + optimizer {med([r.optimize_ms for r in ran])} + the rest; floor "
+        f"{med([r.floor_ms for r in timed])} = detect the target "
+        f"{med([r.floor_detect_ms for r in timed])} + render "
+        f"{med([r.floor_render_ms for r in timed])} + detect "
+        f"{med([r.floor_view_detect_ms for r in timed])}; wall ÷ floor over the "
+        f"{len(one)} one-render searches {_num(one_ratio, 2)}"
+    )
 
 
 def wall_ratio(records: Sequence[FreeRecord]) -> tuple[float, float, float]:

@@ -200,6 +200,7 @@ async def search_target(
     fov = film.fov_deg if target.intrinsics_given else objects.fov_deg
     baseline = baseline_of_detections(objects, detections, (int(size[0]), int(size[1])), fov)
     error = raw.get("error") or {}
+    timings = [it.get("timings") or {} for it in raw.get("iterations") or ()]
     return FreeRecord(
         **common,
         search_id=raw.get("id"),
@@ -210,6 +211,9 @@ async def search_target(
         detections=len(detections),
         renders=int(result.get("renders", len(raw.get("iterations") or ()))),
         wall_ms=wall_ms,
+        render_ms=sum(t.get("render_ms", 0.0) for t in timings),
+        detect_ms=sum(t.get("detect_ms", 0.0) for t in timings),
+        optimize_ms=sum(t.get("optimize_ms", 0.0) for t in timings),
         floor_detect_ms=floor[0] if floor else None,
         floor_render_ms=floor[1] if floor else None,
         floor_view_detect_ms=floor[2] if floor else None,
