@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cosmos.bench import free_run
+from cosmos.bench.free_bench import searching
 from cosmos.bench.free_bench.checkpoint import Checkpoint
 from cosmos.bench.free_bench.records import (
     ANSWER,
@@ -25,6 +27,7 @@ from cosmos.bench.free_bench.report import confirmed_wrong, goal_checks, within,
 from cosmos.bench.free_targets.draw import BANDS
 from cosmos.bench.free_targets.metrics import THRESHOLDS
 from cosmos.cli import main
+from services.common.geometry.free_camera import FreeCamera
 
 DEMO_RADIUS = 8.0
 
@@ -114,7 +117,23 @@ def angle_deg(a: CameraRecord, b: CameraRecord) -> float:
 
 @pytest.mark.slow
 @pytest.mark.timeout(120)
-def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys):
+def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch):
+    # Spies that keep what the controller answered and which target each search was for.
+    answered, drawn = {}, {}
+    real_post, real_search = searching.post_and_follow, free_run.search_target
+
+    async def post_spy(http, base_url, image, query):
+        raw, wall_ms = await real_post(http, base_url, image, query)
+        answered[raw["id"]] = (raw, query)
+        return raw, wall_ms
+
+    async def search_spy(http, calls, target, image, **options):
+        record = await real_search(http, calls, target, image, **options)
+        drawn[record.search_id] = target
+        return record
+
+    monkeypatch.setattr(searching, "post_and_follow", post_spy)
+    monkeypatch.setattr(free_run, "search_target", search_spy)
     out = tmp_path / "results"
     results_md = tmp_path / "RESULTS.md"
     status = main(
@@ -150,13 +169,24 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys):
         assert r.floor_ms > 0
         assert r.detections >= 3
         assert r.render_ms > 0  # the search's own render, from its iterations' timings
-        answer = r.poses[ANSWER]
-        assert answer is not None
-        # the error the tables use is the answer's own distance to the truth
+        raw, query = answered[r.search_id]
+        target = drawn[r.search_id]
+        assert query["mode"] == "free"
+        if r.intrinsics_given:  # the fov went to the controller only when the target gives it
+            assert float(query["fov_deg"]) == pytest.approx(target.annotations.camera.fov_deg)
+        else:
+            assert "fov_deg" not in query
+        # the error the tables use is the controller's answer's distance to the drawn camera
+        pose = raw["result"]["free"]["pose"]
         error = r.error(ANSWER)
         assert error.position == pytest.approx(
-            math.dist(answer.position, r.truth.position) / DEMO_RADIUS, abs=1e-6
+            math.dist(pose["position"], target.camera.position) / DEMO_RADIUS, abs=1e-3
         )
+        found = FreeCamera(position=(0.0, 0.0, 1.0), quaternion_wxyz=pose["quaternion_wxyz"])
+        relative = Rotation.from_matrix(found.rotation().T @ target.camera.rotation())
+        assert error.rotation_deg == pytest.approx(relative.magnitude() * 180 / math.pi, abs=0.01)
+        answer = r.poses[ANSWER]
+        assert answer is not None
         assert error.rotation_deg == pytest.approx(angle_deg(answer, r.truth), abs=1e-3)
         # demo targets show ≥ 3 objects: the answer is near the truth, not an arbitrary pose
         assert error.within(0.10, 5.0), (error, r.reason)
