@@ -154,9 +154,13 @@ def _run(config: BenchConfig, root: Path) -> int:
     checkpoint = Checkpoint(config.out / CHECKPOINT, _fingerprint(config, scenes))
     if checkpoint.set_aside:
         say(f"a checkpoint of another run was set aside ({CHECKPOINT}.old)")
+    notes = [*config.notes]
     if checkpoint.records:
         say(f"resuming: {len(checkpoint.records)} searches already in {checkpoint.path}")
-    notes = [*config.notes]
+        notes.append(
+            f"resumed from a checkpoint of {len(checkpoint.records)} searches: the machine and "
+            "duration are this last chunk's"
+        )
     if random_ids:
         notes.append("random scenes are searched with the general detector (not onboarded)")
     complete = True
@@ -192,7 +196,8 @@ def _run(config: BenchConfig, root: Path) -> int:
     for line in goal_checks(records):
         say(f"  {line}")
     say(time_line(records))
-    planned = len(scenes) * config.n * len(config.variants)
+    skipped = sum(note.startswith("skipped ") for note in notes)  # scenes with no targets
+    planned = (len(scenes) - skipped) * config.n * len(config.variants)
     if not complete:
         notes.append(
             f"partial: {len(records)} of {planned} searches; run the same command to resume"
