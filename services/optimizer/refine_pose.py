@@ -16,11 +16,17 @@ not fewer than noise explains), and with at least
     edges on the target's, a fit lost in clutter does not.
 
 Accepted
-    Converged, and moved plausibly: the box fit is within 10 % of the distance and 5° for 97 %
-    of targets (issue 23's box-only simulation), so a move of more than :data:`MAX_MOVE` of the
-    points' median depth ``z̃`` (plus ``|k - 1| z̃`` when the focal length changed by ``k``: a
-    dolly zoom trades the two) or more than :data:`MAX_TURN_DEG` is the fit's error, not the
-    box pose's, and the box pose is kept.
+    Converged, and moved plausibly. A near move (:data:`MAX_MOVE` of the
+    points' median depth ``z̃``, plus ``|k - 1| z̃`` when the focal length changed by ``k``: a
+    dolly zoom trades the two; :data:`MAX_TURN_DEG`) is what the box fit errs by on most
+    targets (issue 23's box-only simulation: 97 % within 10 % and 5°). Through the real
+    detector the box pose is sometimes further off (measured on the built-in and generated
+    scenes: up to 0.4 r and 14°), and the fit brought 4 of 6 such poses to within 0.01 r and
+    0.3° and the other 2 closer, each explaining 1.3-3.3 times the start's edge points; a
+    move beyond the near bounds is accepted only when the image vouches for it, the fit explaining
+    at least :data:`FAR_GAIN` times the start's edge points, and up to :data:`FAR` times the
+    near bounds. Anything further is a slip of the fit into another basin (a repeated texture),
+    and the box pose is kept.
 """
 
 from __future__ import annotations
@@ -49,7 +55,16 @@ from services.optimizer.free import DenseFit, refine_dense
 from services.optimizer.free.dense import MIN_POINTS
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 
-__all__ = ["MAX_MOVE", "MAX_TURN_DEG", "MIN_INLIER_SHARE", "ImageLimits", "refine_pose"]
+__all__ = [
+    "FAR",
+    "FAR_GAIN",
+    "MAX_MOVE",
+    "MAX_TURN_DEG",
+    "MIN_INLIER_SHARE",
+    "ImageLimits",
+    "dense_report",
+    "refine_pose",
+]
 
 MIN_INLIER_SHARE: Final = 0.5
 """The share of the model edge points a converged fit leaves within 2 px of a target edge."""
@@ -57,9 +72,13 @@ KEEP_INLIERS: Final = 0.98
 """A converged fit keeps at least this share of the start's explained points: a start already
 on the target moves by noise, and its count by a few points either way."""
 MAX_MOVE: Final = 0.1
-"""The largest plausible move of the camera, as a share of the points' median depth."""
+"""A near move of the camera, as a share of the points' median depth."""
 MAX_TURN_DEG: Final = 5.0
-"""The largest plausible turn of the camera, in degrees."""
+"""A near turn of the camera, in degrees."""
+FAR: Final = 4.0
+"""A move up to this many times the near bounds is plausible when the image vouches for it."""
+FAR_GAIN: Final = 1.2
+"""…that is, when the fit explains this many times the start's edge points."""
 _SIDE_SLACK_PX: Final = 1.0
 
 
@@ -108,7 +127,9 @@ def _turn_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
 
 
-def _report(fit: DenseFit, start: FreePose, depth: float, scale: float) -> DenseReport:
+def dense_report(fit: DenseFit, start: FreePose, depth: float, scale: float) -> DenseReport:
+    """How the ``fit`` from ``start`` (rendered at ``scale`` times the target's film, its
+    points at median depth ``depth``) went: converged, accepted and why (module docstring)."""
     moved = float(np.linalg.norm(fit.position - np.asarray(start.position)))
     turned = _turn_deg(fit.rotation.T, start.camera().rotation())
     zoom = fit.intrinsics.fx / (start.intrinsics.fx_px * scale)
@@ -118,7 +139,9 @@ def _report(fit: DenseFit, start: FreePose, depth: float, scale: float) -> Dense
         and fit.inliers >= MIN_INLIER_SHARE * fit.points
     )
     allowed = (MAX_MOVE + abs(zoom - 1.0)) * depth
-    plausible = moved <= allowed and turned <= MAX_TURN_DEG
+    near = moved <= allowed and turned <= MAX_TURN_DEG
+    vouched = fit.inliers >= FAR_GAIN * fit.start_inliers
+    plausible = near or (vouched and moved <= FAR * allowed and turned <= FAR * MAX_TURN_DEG)
     if not converged:
         reason = (
             f"the dense fit did not converge: {fit.inliers} of {fit.points} edge points end on "
@@ -126,8 +149,10 @@ def _report(fit: DenseFit, start: FreePose, depth: float, scale: float) -> Dense
         )
     elif not plausible:
         reason = (
-            f"the dense fit moved the pose implausibly far ({moved:.3g} units, {turned:.2g}°; "
-            f"at most {allowed:.3g} units and {MAX_TURN_DEG:g}°)"
+            f"the dense fit moved the pose implausibly far ({moved:.3g} units, {turned:.2g}°, "
+            f"explaining {fit.inliers} edge points where the start explained "
+            f"{fit.start_inliers}; at most {allowed:.3g} units and {MAX_TURN_DEG:g}°, or "
+            f"{FAR:g} times that with {FAR_GAIN:g} times the edge points)"
         )
     else:
         reason = (
@@ -217,7 +242,7 @@ def refine_pose(
     )
     hits = view.depth[view.depth > 0.0]
     depth = float(np.median(hits)) if hits.size else math.inf
-    report = _report(fit, start, depth, scale)
+    report = dense_report(fit, start, depth, scale)
     pose = _refined(fit, start, report, scale, width)
     names = [c.object for c in start.correspondences]
     objects = cache.get(scene)
