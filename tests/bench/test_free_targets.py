@@ -321,7 +321,7 @@ def test_confirmed_wrong_counts_found_answers_far_from_the_truth() -> None:
     assert total[2:] == ["3", "67%", "0%", "33%", "1", "1", "1", "0.0", "2"]
 
 
-def test_the_dense_stage_renders_once_per_target_and_reports_every_variant(
+def test_the_dense_stage_renders_once_or_twice_per_target_and_reports_every_variant(
     targets: list[FreeTarget], garden: LoadedScene, renderer: LocalRenderer
 ) -> None:
     shapes = scene_shapes(garden)
@@ -330,7 +330,9 @@ def test_the_dense_stage_renders_once_per_target_and_reports_every_variant(
     results = evaluate(targets[:3], shapes, radius, SEED, objects, renderer, spp=1)
     methods = [dense_method(v) for v in FREE_VARIANTS]
     for result in results:
-        assert result.renders == (1 if result.status != "failed" else 0)
+        # A second render only where the focal length was fitted and moved far.
+        allowed = {0} if result.status == "failed" else {1} if result.intrinsics_given else {1, 2}
+        assert result.renders in allowed
         assert set(methods) <= set(result.errors)
         assert all(result.errors[m].position < math.inf for m in methods)
     table = text_table(results, by="given")

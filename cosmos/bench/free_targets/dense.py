@@ -7,7 +7,9 @@ target's when it gives them, else its estimate); the refinement then runs on eac
 variant of the target (:data:`~.draw.FREE_VARIANTS`: clean, JPEG, noise), with the focal length
 free when the target did not give its intrinsics. A pose the renderer refuses (below the ground,
 inside an object) keeps the box solver's estimate, with no render spent; with
-``renders=2`` the refined pose is rendered once more and refined again from there.
+``renders=2`` the refined pose is rendered once more and refined again from there. Without
+given intrinsics, a fit whose focal length moved far from the render's
+(:func:`~services.optimizer.free.dense.worth_another_render`) gets one render more.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from services.common.geometry.free_camera import (
     quaternion_of_rotation,
 )
 from services.optimizer.free import FreePoseAnswer
-from services.optimizer.free.dense import DenseFit, refine_dense
+from services.optimizer.free.dense import DenseFit, refine_dense, worth_another_render
 from services.renderer.client import RendererError
 
 __all__ = ["DENSE", "DenseRun", "dense_method", "run_dense"]
@@ -133,10 +135,8 @@ def run_dense(
     first = _render(renderer, target, answer.pose.free_camera(), spp)
     spent, elapsed = int(first is not None), 0.0
     for variant in FREE_VARIANTS:
-        rendered, estimate = first, fallback
-        for step in range(renders):
-            if rendered is None:
-                break
+        rendered, estimate, budget, step = first, fallback, renders, 0
+        while rendered is not None and step < budget:
             rgb, depth, pinhole = rendered
             started = time.perf_counter()
             fit = refine_dense(
@@ -144,7 +144,10 @@ def run_dense(
             )
             elapsed += (time.perf_counter() - started) * 1000.0
             estimate = _estimate(fit, width)
-            if step + 1 < renders:
+            step += 1
+            if step == budget == renders and worth_another_render(fit, pinhole):
+                budget += 1
+            if step < budget:
                 rendered = _render(renderer, target, _free_camera(fit.camera(pinhole)), spp)
                 spent += int(rendered is not None and variant == FREE_VARIANTS[0])
         estimates[dense_method(variant)] = estimate
