@@ -40,6 +40,7 @@ from services.common.contracts.free import (
     nearest_grid_pose,
 )
 from services.common.contracts.optimize import ImageDetections
+from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
 from services.common.depth_archive import DepthImage
@@ -49,7 +50,7 @@ from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
 from services.controller.free_match import FreeMatch, compare_view, view_film
-from services.controller.free_refine import refine_by_render, refined_result
+from services.controller.free_refine import refine_by_render, refined_result, with_refit_renders
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -289,10 +290,38 @@ class FreeSearchLoop:
                 outcome = await refine_by_render(
                     self.stages, self.outages, search, image, candidates[k], seen_view.archive
                 )
-                return writes.succeed(refined_result(_result(answer, history, grid), outcome, grid))
+                outcome, extra = await self._refit(
+                    search, scene, (target, size), image, outcome, len(history)
+                )
+                result = refined_result(_result(answer, history, grid), outcome, grid)
+                return writes.succeed(with_refit_renders(result, extra))
             writes.hold(iteration, seen)
             seen = None
         return writes.succeed(_result(answer, history, grid))
+
+    async def _refit(
+        self,
+        search: Search,
+        scene: SceneDetail,
+        target: tuple[tuple[Detection, ...], tuple[int, int]],
+        image: bytes,
+        outcome: RefinePoseResponse | str,
+        rendered: int,
+    ) -> tuple[RefinePoseResponse | str, int]:
+        """One render more at an accepted fit that asks for it (``render_again``: the focal
+        length was fitted far from the render), within the search's ``max_iterations``, and the
+        refit from there, kept when accepted: the outcome and the renders it added."""
+        if isinstance(outcome, str) or not outcome.fit.render_again:
+            return outcome, 0
+        if rendered >= search.max_iterations:
+            return outcome, 0
+        seen = await self._render_and_compare(search, scene, target, outcome.pose)
+        again = await refine_by_render(
+            self.stages, self.outages, search, image, outcome.pose, seen.archive
+        )
+        if isinstance(again, str) or not again.fit.accepted:
+            return outcome, 1
+        return again, 1
 
     async def _render_and_compare(
         self,

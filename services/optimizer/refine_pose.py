@@ -52,7 +52,7 @@ from services.common.geometry.free_camera import (
 )
 from services.common.images import decode_image
 from services.optimizer.free import DenseFit, refine_dense
-from services.optimizer.free.dense import MIN_POINTS
+from services.optimizer.free.dense import MIN_POINTS, worth_another_render
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 
 __all__ = [
@@ -127,9 +127,13 @@ def _turn_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
 
 
-def dense_report(fit: DenseFit, start: FreePose, depth: float, scale: float) -> DenseReport:
+def dense_report(
+    fit: DenseFit, start: FreePose, depth: float, scale: float, *, render_again: bool = False
+) -> DenseReport:
     """How the ``fit`` from ``start`` (rendered at ``scale`` times the target's film, its
-    points at median depth ``depth``) went: converged, accepted and why (module docstring)."""
+    points at median depth ``depth``) went: converged, accepted and why (module docstring);
+    ``render_again`` (:func:`~services.optimizer.free.dense.worth_another_render`) is kept
+    for an accepted fit only."""
     moved = float(np.linalg.norm(fit.position - np.asarray(start.position)))
     turned = _turn_deg(fit.rotation.T, start.camera().rotation())
     zoom = fit.intrinsics.fx / (start.intrinsics.fx_px * scale)
@@ -171,6 +175,7 @@ def dense_report(fit: DenseFit, start: FreePose, depth: float, scale: float) -> 
         focal_fitted=fit.focal_fitted,
         moved=moved,
         moved_rotation_deg=turned,
+        render_again=render_again and converged and plausible,
     )
 
 
@@ -242,7 +247,8 @@ def refine_pose(
     )
     hits = view.depth[view.depth > 0.0]
     depth = float(np.median(hits)) if hits.size else math.inf
-    report = dense_report(fit, start, depth, scale)
+    again = worth_another_render(fit, pinhole)
+    report = dense_report(fit, start, depth, scale, render_again=again)
     pose = _refined(fit, start, report, scale, width)
     names = [c.object for c in start.correspondences]
     objects = cache.get(scene)

@@ -80,6 +80,7 @@ class FakeStages:
         boxes: tuple[tuple[float, float, float, float], ...] = BOXES,
         faults: dict[str, tuple[int, BaseException]] | None = None,
         refine: str | BaseException = "accepted",
+        refits: int = 0,
     ):
         self.detail = scene
         self.status = status
@@ -92,6 +93,7 @@ class FakeStages:
         self.rendered: list[tuple[FreeCamera, tuple[int, int]]] = []
         self.requests: list[FreePoseRequest] = []
         self.refine = refine
+        self.refits = refits  # how many first fits ask for a render at the refined pose
         self.refinements: list[RefinePoseRequest] = []
 
     def _call(self, name: str) -> None:
@@ -154,6 +156,7 @@ class FakeStages:
             focal_fitted=request.fit_focal,
             moved=0.1,
             moved_rotation_deg=0.0,
+            render_again=len(self.refinements) <= self.refits,
         )
         return RefinePoseResponse(pose=refined, fit=fit)
 
@@ -270,6 +273,30 @@ def test_a_found_pose_whose_render_agrees_is_confirmed_after_one_render(tmp_path
                             "detect view": 1, "refine": 1}  # fmt: skip
     assert final.target_detections is not None
     assert final.target_model == MODEL
+
+
+@pytest.mark.parametrize(("max_iterations", "renders", "y"), [(4, 2, -3.8), (1, 1, -3.9)])
+def test_a_fit_that_asks_for_it_is_refitted_by_one_more_render(
+    tmp_path, detail, max_iterations, renders, y
+):
+    """A fitted focal length far from the render's: one render more at the refined pose and
+    a refit from there, when the search's renders allow; counted in its renders."""
+    stages = FakeStages(detail, refits=5)
+    final = run(tmp_path, stages, max_iterations=max_iterations)
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert result.confirmed
+    assert result.renders == result.free.renders == renders
+    assert stages.calls["render"] == renders
+    assert result.free.pose.position == pytest.approx((0.0, y, 5.0))
+    assert result.free.box_pose is not None
+    assert result.free.box_pose.position == (0.0, -4.0, 5.0)
+    if renders == 2:  # rendered at the first fit's pose, refitted from it, once only
+        assert stages.rendered[1][0].position == pytest.approx((0.0, -3.9, 5.0))
+        assert stages.refinements[1].pose.position == pytest.approx((0.0, -3.9, 5.0))
+        assert "refitted by 1 more render(s)" in result.reason
+    assert len(final.iterations) == 1  # the refit render is not an iteration of the search
 
 
 def test_a_found_pose_whose_render_disagrees_is_not_confirmed(tmp_path, detail):
