@@ -19,10 +19,10 @@ where a drawn start is uniformly random: on 5 generated scenes with the general 
 targets, grids of 349–717 poses), 27 of the 48 unsure predictions' best poses were the true
 grid pose, a drawn one 1 in ~500. The search's own done test then decides from the rendered
 view, and an answer the search finds ambiguous is never confirmed: the start changes where the
-search looks first, not what it accepts. Only without a pose (no detection pairs with an object), when the optimizer refuses
-the request (an optimizer without the route, a scene it does not know) or answers something
-unreadable does the search start as it would without the prediction: at the start pose drawn
-from its seed at submission. A given start keeps the paper's protocol exactly: nothing is
+search looks first, not what it accepts. Only without a pose (no detection pairs with an
+object), when the optimizer refuses the request (an optimizer without the route, a scene it does
+not know) or answers something unreadable does the search start as it would without the
+prediction: at the start pose drawn from its seed at submission. A given start keeps the paper's protocol exactly: nothing is
 predicted.
 """
 
