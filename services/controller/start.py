@@ -22,8 +22,8 @@ view, and an answer the search finds ambiguous is never confirmed: the start cha
 search looks first, not what it accepts. Only without a pose (no detection pairs with an
 object), when the optimizer refuses the request (an optimizer without the route, a scene it does
 not know) or answers something unreadable does the search start as it would without the
-prediction: at the start pose drawn from its seed at submission. A given start keeps the paper's protocol exactly: nothing is
-predicted.
+prediction: at the start pose drawn from its seed at submission. A given start keeps the paper's
+protocol exactly: nothing is predicted.
 """
 
 from __future__ import annotations
