@@ -19,11 +19,14 @@ where a drawn start is uniformly random: on 5 generated scenes with the general 
 targets, grids of 349–717 poses), 27 of the 48 unsure predictions' best poses were the true
 grid pose, a drawn one 1 in ~500. The search's own done test then decides from the rendered
 view, and an answer the search finds ambiguous is never confirmed: the start changes where the
-search looks first, not what it accepts. Only without a pose (no detection pairs with an
-object), when the optimizer refuses the request (an optimizer without the route, a scene it does
-not know) or answers something unreadable does the search start as it would without the
-prediction: at the start pose drawn from its seed at submission. A given start keeps the paper's
-protocol exactly: nothing is predicted.
+search looks first, not what it accepts. Measured with ``cosmos bench --random-scenes R --n N
+--onboard none --starts predicted`` (seed 23 at R = N = 3, seeds 5 and 11 at R = N = 2: 102
+searches, with the matching fixes made alongside): searches ending after one render 58 → 77,
+mean renders 5.3 → 3.8, found 94 → 96, none confirmed wrong before or after. Only without a pose
+(no detection pairs with an object), when the optimizer refuses the request (an optimizer
+without the route, a scene it does not know) or answers something unreadable does the search
+start as it would without the prediction: at the start pose drawn from its seed at submission.
+A given start keeps the paper's protocol exactly: nothing is predicted.
 """
 
 from __future__ import annotations
