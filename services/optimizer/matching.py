@@ -29,7 +29,11 @@ __all__ = [
     "assign",
     "box_rms",
     "compare_views",
+    "without_worst_pair",
 ]
+
+MIN_PAIRS_LEFT: Final = 3
+"""Pairs that must stay when :func:`without_worst_pair` leaves one out."""
 
 PAIR_GATE_PX: Final = 16.0
 """Boxes further apart than this (RMS of the edges, pixels) are never paired between views."""
@@ -142,7 +146,13 @@ def compare_views(a: Observation, b: Observation, gate_px: float = PAIR_GATE_PX)
     cost = distance / gate_px + looks
     gate = 1.0 + COLOUR_GATE
     cost = np.where((looks < COLOUR_GATE) & (distance <= gate_px), cost, np.inf)
-    pairs = assign(cost, gate)
+    return _comparison(a, b, assign(cost, gate), distance)
+
+
+def _comparison(
+    a: Observation, b: Observation, pairs: Assignment, distance: FloatArray
+) -> ViewComparison:
+    """The comparison of ``a`` and ``b`` made of ``pairs`` (``distance``: all boxes' RMS)."""
     matched = distance[pairs.rows, pairs.cols]
     rms = float(np.sqrt(np.mean(matched**2))) if len(matched) else float("inf")
     noise = 0.0
@@ -161,3 +171,31 @@ def compare_views(a: Observation, b: Observation, gate_px: float = PAIR_GATE_PX)
         noise_px=noise,
         paired_weight=paired / total if total > 0.0 else 0.0,
     )
+
+
+def without_worst_pair(
+    a: Observation, b: Observation, comparison: ViewComparison, max_unmatched: float
+) -> ViewComparison | None:
+    """``comparison`` with its worst pair (largest box RMS) left unpaired, when at least
+    :data:`MIN_PAIRS_LEFT` pairs stay and both images' unpaired confidence, the pair's added,
+    stays within ``max_unmatched``; else None.
+
+    One pair of a true match can be far off while the rest agree to a pixel: an object moved
+    since the scene file (the ``changed`` target), or a general detector's doubtful box put on
+    another part of an object in one image (a partly visible object boxed as a cone here and a
+    cube there, 15 px apart). Its two detections then count as unpaired, which the done test
+    already allows up to ``max_unmatched`` of summed confidence in each image; the other pairs,
+    at least three objects, still pin the pose."""
+    pairs = comparison.pairs
+    if len(pairs) < MIN_PAIRS_LEFT + 1:
+        return None
+    distance = box_rms(a.boxes, b.boxes)
+    worst = int(np.argmax(distance[pairs.rows, pairs.cols]))
+    if (
+        comparison.unpaired_a + float(a.confidence[pairs.rows[worst]]) > max_unmatched
+        or comparison.unpaired_b + float(b.confidence[pairs.cols[worst]]) > max_unmatched
+    ):
+        return None
+    keep = np.arange(len(pairs)) != worst
+    kept = Assignment(pairs.rows[keep], pairs.cols[keep], pairs.costs[keep])
+    return _comparison(a, b, kept, distance)

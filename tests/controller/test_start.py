@@ -1,6 +1,7 @@
 """A search's first pose (services.controller.start) with fake stages: without a given start the
 target is detected first and the search starts where the optimizer predicts, ending after one
-render when that view matches; an ambiguous or refused prediction falls back to the drawn start;
+render when that view matches, also when the prediction is unsure (its best pose is still the
+likeliest); a prediction without a pose or a refused one falls back to the drawn start;
 a given start keeps the paper's protocol; an answer the search finds ambiguous is never
 confirmed."""
 
@@ -44,7 +45,7 @@ class StartStages(FakeStages):
         self.start_requests.append(request)
         return StartPoseResponse(
             status=self.status,
-            pose=self.grid_pose(self.predicted),
+            pose=None if self.predicted is None else self.grid_pose(self.predicted),
             score=0.1,
             rms_px=0.5,
             pairs=1,
@@ -110,12 +111,19 @@ def test_the_scene_s_own_model_asks_with_its_object_classes(tmp_path, detail):
 
 
 @pytest.mark.parametrize("status", ["ambiguous", "failed"])
-def test_an_unsure_prediction_falls_back_to_the_drawn_start(tmp_path, detail, status):
+def test_an_unsure_prediction_still_starts_at_its_best_pose(tmp_path, detail, status):
     stages = StartStages(detail, status=status)
     final = run_stored(stored(tmp_path, stages, given=False), stages)
     assert final.status == "succeeded", final.error
-    assert final.iterations[0].pose.index == DRAWN
+    assert [it.pose.index for it in final.iterations] == [TRUTH]
     assert stages.calls["detect target"] == 1  # detected once, for the prediction
+
+
+def test_a_prediction_without_a_pose_falls_back_to_the_drawn_start(tmp_path, detail):
+    stages = StartStages(detail, status="failed", predicted=None)
+    final = run_stored(stored(tmp_path, stages, given=False), stages)
+    assert final.status == "succeeded", final.error
+    assert final.iterations[0].pose.index == DRAWN
 
 
 def test_an_optimizer_that_refuses_the_prediction_does_not_fail_the_search(tmp_path, detail):

@@ -42,6 +42,24 @@ def test_the_class_mismatch_cost_keeps_only_alike_colours_under_the_gate():
     assert appearance_cost(["sphere"], [RED], ["cone"], [BLUE])[0, 0] >= COLOUR_GATE
 
 
+def test_a_dark_object_s_noisy_colour_still_pairs_but_bright_unlike_colours_do_not():
+    """Seen on a generated scene: one near-black cube's mean colour in two renders of the same
+    pose (16 and 8 samples per pixel). Its chromaticities lie 0.18 apart, past the colour gate at
+    the bright colours' scale, which left the true view unmatched and the search wandering."""
+    target, view = (14.8, 0.5, 4.1), (65.6, 0.0, 35.4)
+    assert appearance_cost(["cube"], [target], ["cube"], [view])[0, 0] < ALIKE_COST
+    pair = compare_views(
+        obs(["cube"], [[150.3, 96.4, 185.4, 131.8]], [target]),
+        obs(["cube"], [[149.7, 96.4, 185.4, 131.6]], [view]),
+    )
+    assert len(pair.pairs) == 1
+    # The same hues, bright, are as far apart as ever (and RED/BLUE stay apart when dark).
+    bright = appearance_cost(["cube"], [(176.0, 6.0, 49.0)], ["cube"], [(150.0, 0.0, 81.0)])
+    assert bright[0, 0] > 2.0
+    dark_red, dark_blue = np.divide(RED, 4.0), np.divide(BLUE, 4.0)
+    assert appearance_cost(["cube"], [dark_red], ["cube"], [dark_blue])[0, 0] >= COLOUR_GATE
+
+
 def test_a_mislabelled_object_still_pairs_by_geometry_and_colour():
     """A dome called `sphere` in the target and `mesh` in the view is one object."""
     box = [100.0, 80.0, 140.0, 120.0]

@@ -56,11 +56,12 @@ class StartPoseResponse(FrozenModel):
     ``status`` is ``found`` when that pose is the one to start from; ``ambiguous`` when a pose
     more than 1.5 grid steps away explains the target about as well (``alternatives``: a
     symmetric layout, or too few objects); ``failed`` when no pose explains it (too few of the
-    target's detections pair with the scene's objects). Only ``found`` is meant to be used: the
-    caller otherwise starts as it would without a prediction. ``pose`` is the best pose in any
-    case but ``failed`` without a single pair; ``rms_px`` the RMS box-edge difference of its
-    pairs (camera pixels), ``score`` its score (lower is better, comparable with the
-    alternatives'), ``pairs`` the target detections paired with an object there.
+    target's detections pair with the scene's objects). ``pose`` is the best pose in any case but
+    ``failed`` without a single pair: the likeliest pose the target gives, a better start than a
+    random one even when unsure (the search's controller starts there). ``rms_px`` is the RMS
+    box-edge difference of its pairs (camera pixels), ``score`` its score (lower is better,
+    comparable with the alternatives'), ``pairs`` the target detections paired with an object
+    there.
     """
 
     status: StartStatus

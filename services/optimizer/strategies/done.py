@@ -13,6 +13,12 @@ weighs a third of a sure one. The search is done when
    the map's prediction at the refined continuous estimate matches the target that closely (a
    target between grid poses).
 
+Both tests are tried on the full match and, failing that, on the match with its worst pair
+left unpaired (:func:`~services.optimizer.matching.without_worst_pair`: at least three pairs
+stay and the two detections' confidence fits the ``max_unmatched`` allowance): one object moved
+since the scene file, or a doubtful box of the general detector put on another part of an
+object, must not hold up a view whose other objects agree to a pixel.
+
 An answer done on the strength of the estimate (2.) whose estimate lies almost on the boundary
 between its grid pose and another (:data:`EDGE_MARGIN_STEPS`) is ambiguous: which of the two is
 nearest the target is then within the estimate's own error (a target between grid poses), and
@@ -55,7 +61,7 @@ import numpy as np
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.sphere import pose_to_cartesian
 from services.optimizer.geometry import FloatArray
-from services.optimizer.matching import ViewComparison
+from services.optimizer.matching import ViewComparison, without_worst_pair
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 
 __all__ = ["LOOSE_FACTOR", "NOISE_SIGMAS", "Refined", "done_plan", "matched_text"]
@@ -111,7 +117,12 @@ def done_plan(
     ``refined`` is a map-based strategy's refined continuous estimate nearest the current
     pose: its residual compares the target with the map's prediction at the off-grid pose."""
     tol = problem.tolerance_px
-    if comparison.within(tol, problem.max_unmatched):
+    trimmed = without_worst_pair(
+        current.observation, problem.target, comparison, problem.max_unmatched
+    )
+    strict = next((c for c in (comparison, trimmed) if _within(c, tol, problem)), None)
+    if strict is not None:
+        comparison = strict
         if est is None or est.flat != current.flat:
             # The views match: the target is here, whatever a coarser estimate said.
             coverage = len(comparison.pairs) / max(len(problem.target), 1)
@@ -128,13 +139,17 @@ def done_plan(
         )  # fmt: skip
     if not here:
         return None
+    for agreeing in (comparison, trimmed):
+        if agreeing is None:
+            continue
+        loose = agreeing.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
+        if _within(agreeing, loose, problem):
+            return _on_the_edge(problem, Plan(
+                True, current.flat, "stay", est, ambiguous, alternatives,
+                f"the estimate puts the target at this grid pose and the views agree within "
+                f"{loose:.2f} px ({matched_text(agreeing)})",
+            ))  # fmt: skip
     loose = comparison.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
-    if comparison.within(loose, problem.max_unmatched):
-        return _on_the_edge(problem, Plan(
-            True, current.flat, "stay", est, ambiguous, alternatives,
-            f"the estimate puts the target at this grid pose and the views agree within "
-            f"{loose:.2f} px ({matched_text(comparison)})",
-        ))  # fmt: skip
     if refined is None or refined.residual_px > loose:
         return None
     # Refined at another view, the prediction pairs the target, not this view (which may look
@@ -153,6 +168,10 @@ def done_plan(
             f"within {refined_px:.2f} px (the grid view differs by {comparison.rms_px:.2f} px)",
         ))  # fmt: skip
     return None
+
+
+def _within(comparison: ViewComparison | None, rms_px: float, problem: SearchProblem) -> bool:
+    return comparison is not None and comparison.within(rms_px, problem.max_unmatched)
 
 
 @functools.lru_cache(maxsize=16)
