@@ -217,6 +217,8 @@ class SearchRunner:
         if why is not None:
             raise NotRetryable(why)
         search = self.store.reopen(search_id)
+        if search is None:  # retried through another controller since it was read
+            raise NotRetryable(f"search {search_id} is no longer failed; it was retried already")
         _log.info("retrying search %s", search_id)
         self.submit(search_id)
         self.notifier.publish(search_id)
