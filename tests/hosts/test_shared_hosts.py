@@ -150,6 +150,24 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
     def pid(name: str) -> int:
         return cluster.process(name).process.pid
 
+    def holding(name: str) -> set[str]:
+        """The unfinished searches the controller on ``name`` holds, once it holds some."""
+        load.wait(lambda: ledger.held_by(pid(name)) - ended(), 60, f"{name} running searches")
+        return ledger.held_by(pid(name)) - ended()
+
+    def taken_over(held: set[str], name: str, since: float) -> float:
+        """Seconds from ``since`` until the controller on ``name`` holds ``held`` (or they
+        ended)."""
+        load.wait(
+            lambda: held <= ledger.held_by(pid(name)) | ended(),
+            60,
+            f"{name} to take {len(held)} searches over",
+            poll_s=0.1,
+        )
+        took = time.monotonic() - since
+        say(f"{name} took them over {took:.1f} s later")
+        return took
+
     try:
         submit(4, (0, 1))
 
@@ -203,39 +221,23 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
 
         # 4. SIGKILL controller-1 while it runs searches; controller-2 takes them over
         submit(3, (0,))
-        load.wait(lambda: ledger.held_by(pid("controller-1")) - ended(), 60, "controller-1 busy")
         load.snapshot()
-        orphans = ledger.held_by(pid("controller-1")) - ended()
+        orphans = holding("controller-1")
         cluster.kill("controller-1")
         killed_at = time.monotonic()
         say(f"controller-1 killed holding {len(orphans)} unfinished searches")
-        load.wait(
-            lambda: orphans <= ledger.held_by(pid("controller-2")) | ended(),
-            60,
-            "controller-2 to take controller-1's searches over",
-            poll_s=0.1,
-        )
-        took_kill_s = time.monotonic() - killed_at
-        say(f"controller-2 took them over {took_kill_s:.1f} s after the kill")
+        took_kill_s = taken_over(orphans, "controller-2", killed_at)
         cluster.restart("controller-1")
 
         # 5. partition controller-2 from PostgreSQL for two leases, then heal
         submit(3, (1,))
-        load.wait(lambda: ledger.held_by(pid("controller-2")) - ended(), 60, "controller-2 busy")
-        cut_off = ledger.held_by(pid("controller-2")) - ended()
+        cut_off = holding("controller-2")
         controller_2 = cluster.host("controller-2")
         controller_2.partition(database)
         partitioned_at = time.monotonic()
         say(f"controller-2 partitioned from PostgreSQL holding {len(cut_off)} searches")
         with Probes(cluster.url("controller-2")) as probes:
-            load.wait(
-                lambda: cut_off <= ledger.held_by(pid("controller-1")) | ended(),
-                60,
-                "controller-1 to take controller-2's searches over",
-                poll_s=0.1,
-            )
-            took_partition_s = time.monotonic() - partitioned_at
-            say(f"controller-1 took them over {took_partition_s:.1f} s after the partition")
+            took_partition_s = taken_over(cut_off, "controller-1", partitioned_at)
             time.sleep(max(0.0, partitioned_at + 2 * LEASE_S - time.monotonic()))
         controller_2.rejoin(database)
         healed_at = time.monotonic()
