@@ -137,10 +137,10 @@ async def search_events(
     iterations. The stored JSON documents are sent as they are. Ends when the server stops (the
     client follows again, elsewhere). A search another controller runs (PostgreSQL) wakes
     its followers here through the database's notifications
-    (:mod:`~services.controller.store.changes`); as these are sometimes missed (seen in about
-    one test run in three, cause not found), the store is also read again every
-    :data:`STOP_CHECK_S` on a shared database."""
-    shared = store.database.dialect == "postgresql"
+    (:mod:`~services.controller.store.changes`; a listener that reconnects wakes them all).
+    The event is taken before the store is read, so a change committed meanwhile is not
+    missed. (They once seemed to be missed in one test run in three: that was another
+    controller claiming the search first and running it with a longer outage budget.)"""
     sent = 0
     last_doc = ""
     with notifier.following(search_id):  # a client that goes away stops following
@@ -165,5 +165,3 @@ async def search_events(
             while not await _set_within(changed, STOP_CHECK_S):
                 if STOPPING.is_set():
                     return  # the server is stopping: the client follows again elsewhere
-                if shared:
-                    break  # a notification may have been missed: read the store again

@@ -36,6 +36,7 @@ from services.controller.loop import SearchLoop
 from services.controller.outages import OutagePolicy, why_not_retryable
 from services.controller.stages import Stages
 from services.controller.store import (
+    FIRST_GENERATION,
     DatabaseUnavailable,
     Lease,
     LeaseLost,
@@ -142,11 +143,20 @@ class SearchRunner:
             if not worker.cancelled():
                 worker.result()  # a worker that failed: its error, not silence
 
-    def submit(self, search_id: str, *, recorded: tuple[Search, bytes] | None = None) -> None:
+    def submit(
+        self,
+        search_id: str,
+        *,
+        recorded: tuple[Search, bytes] | None = None,
+        leased: bool = False,
+    ) -> None:
         """Queue a search; a new one hands in its record and target image, already stored, so
-        that it starts without reading them back."""
+        that it starts without reading them back, and ``leased`` when this controller's
+        :attr:`leases` took its first lease as it was recorded (:meth:`Leases.hold`)."""
         if recorded is not None:
             self._submitted[search_id] = recorded
+        if leased and self.leases is not None:
+            self._held[search_id] = Lease(search_id, FIRST_GENERATION)
         self._queue.put_nowait(search_id)
 
     @property

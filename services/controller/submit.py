@@ -29,7 +29,7 @@ from services.controller.quotas import Quotas
 from services.controller.runner import NotRetryable, SearchRunner
 from services.controller.settings import ControllerSettings
 from services.controller.stages import StageError, Stages
-from services.controller.store import SearchStore, utcnow
+from services.controller.store import Lease, Leases, SearchStore, utcnow
 
 __all__ = ["INLINE_WRITE_BYTES", "RETRY_AFTER_S", "Admission", "create_search"]
 
@@ -58,7 +58,13 @@ def _large_writes(store: SearchStore) -> asyncio.Lock:
     return lock
 
 
-async def _store_large(store: SearchStore, record: Search, image: bytes, owner: str | None) -> None:
+async def _store_large(
+    store: SearchStore,
+    record: Search,
+    image: bytes,
+    owner: str | None,
+    leases: Leases | None,
+) -> Lease | None:
     """Record ``record`` with its large ``image`` on a thread, one such write at a time.
 
     A thread cannot be stopped: when the caller is cancelled meanwhile (its client went away,
@@ -68,9 +74,11 @@ async def _store_large(store: SearchStore, record: Search, image: bytes, owner: 
     its client never learnt the id of nor a share of the key's quotas.
     """
     async with _large_writes(store):
-        write = asyncio.ensure_future(asyncio.to_thread(store.create, record, image, owner=owner))
+        write = asyncio.ensure_future(
+            asyncio.to_thread(store.create, record, image, owner=owner, leases=leases)
+        )
         try:
-            await asyncio.shield(write)
+            return await asyncio.shield(write)
         except asyncio.CancelledError:
             undo = asyncio.create_task(_undo_write(store, write, record.id))
             _UNDOING.add(undo)  # the loop keeps only a weak reference to a task
@@ -78,7 +86,9 @@ async def _store_large(store: SearchStore, record: Search, image: bytes, owner: 
             raise
 
 
-async def _undo_write(store: SearchStore, write: asyncio.Future[None], search_id: str) -> None:
+async def _undo_write(
+    store: SearchStore, write: asyncio.Future[Lease | None], search_id: str
+) -> None:
     """Once ``write`` has ended, delete the search it recorded (nothing if it failed)."""
     try:
         await write
@@ -101,6 +111,7 @@ async def create_search(
     *,
     start_early: bool = False,
     owner: str | None = None,
+    leases: Leases | None = None,
 ) -> Search:
     """Validate a new search and record it as queued (the caller queues it); without
     ``max_iterations`` in ``options``, it takes the controller's default.
@@ -119,7 +130,9 @@ async def create_search(
     ``owner`` is the id of the API key that submits it. A large image is written to the store
     off the event loop (:data:`INLINE_WRITE_BYTES`), and the search deleted again if the caller
     is cancelled meanwhile (:func:`_store_large`): stored means answered and handed to the
-    runner. The search records the controller's current view settings
+    runner. With ``leases`` (PostgreSQL), their controller takes the search's lease as it
+    records it, so that no other controller claims it first. The search records the
+    controller's current view settings
     (:attr:`Stages.view_settings`): all its views are rendered with them.
     """
     max_image_pixels = settings.controller_max_image_pixels
@@ -207,9 +220,9 @@ async def create_search(
             intrinsics=intrinsics,
         )
         if len(image) <= INLINE_WRITE_BYTES:
-            store.create(record, image, owner=owner)
+            store.create(record, image, owner=owner, leases=leases)
         else:
-            await _store_large(store, record, image, owner)
+            await _store_large(store, record, image, owner, leases)
     except BaseException:
         stages.forget_early(search_id)
         raise
@@ -288,12 +301,13 @@ class Admission:
                 self.settings,
                 start_early=idle,
                 owner=None if key is None else key.id,
+                leases=self.runner.leases if idle else None,  # busy: whoever is free runs it
             )
         # The runner keeps the image of a search that starts now, or a small one; a large image
         # of a queued search is read back when it starts (50 maximal uploads queued would hold
         # 1 GB).
         keep = idle or len(image) <= INLINE_WRITE_BYTES
-        self.runner.submit(search.id, recorded=(search, image) if keep else None)
+        self.runner.submit(search.id, recorded=(search, image) if keep else None, leased=idle)
         return search
 
     def retry(self, search: Search, key: ApiKey | None) -> Search:

@@ -69,6 +69,19 @@ def test_one_lease_at_a_time_and_stale_writes_are_refused(url, opened):
     assert theirs.take("s") == Lease("s", 4)
 
 
+def test_a_search_recorded_with_its_lease_is_never_claimable(url, opened):
+    """The submitting controller takes the lease in the transaction that records the search:
+    another controller's claim, at any moment after the commit, finds nothing to take."""
+    one, other = opened(url), opened(url)
+    mine, theirs = Leases(one.database, "A", LEASE_S), Leases(other.database, "B", LEASE_S)
+    assert one.create(search("s"), b"x", leases=mine) == Lease("s", 1)
+    assert theirs.claim(10) == []
+    assert theirs.take("s") is None
+    assert mine.renew([Lease("s", 1)]) == [Lease("s", 1)]
+    assert other.create(search("t"), b"y") is None  # without leases: claimable at once
+    assert theirs.claim(10) == [Lease("t", 1)]
+
+
 def test_controllers_claiming_at_once_never_share_a_search(url, opened):
     stores = [opened(url) for _ in range(3)]
     for n in range(30):

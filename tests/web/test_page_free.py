@@ -9,6 +9,7 @@ import re
 
 import numpy as np
 import pytest
+from playwright.sync_api import expect
 
 from services.common.geometry.free_camera import FreeCamera
 from services.renderer.client import RendererClient
@@ -113,3 +114,8 @@ def test_an_ambiguous_free_answer_shows_its_alternatives(page, stack, tmp_path):
     # the answer and each alternative a frustum (each view rendered one of them)
     frusta = 1 + len(free["alternatives"])
     assert page.locator("#hemisphere").get_attribute("data-frusta") == str(frusta)
+
+    # the past searches name a free search's method, not a strategy it never used
+    page.goto(f"{stack.controller}/#/searches")
+    row = page.locator("#searches tbody tr", has_text=final["id"][:12])
+    expect(row.locator("td").nth(3)).to_have_text("free camera")

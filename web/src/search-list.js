@@ -29,7 +29,7 @@ export function showSearchList({ view, api }, page, per = PER_PAGE) {
         h("td", {}, h("a", { href: `#/searches/${s.id}` }, s.id.slice(0, 12))),
         h("td", {}, h("span", { class: `badge ${s.status}` }, s.status)),
         h("td", {}, s.scene),
-        h("td", {}, s.strategy),
+        h("td", {}, s.mode === "free" ? "free camera" : s.strategy),
         h("td", {}, s.result ? s.result.renders : "—"),
         h("td", {}, wall),
         h("td", {}, when(s.created_at)),
@@ -42,7 +42,7 @@ export function showSearchList({ view, api }, page, per = PER_PAGE) {
         ? h(
             "table",
             { id: "searches", class: "searches" },
-            h("thead", {}, h("tr", {}, ["search", "status", "scene", "strategy", "renders", "wall time", "created"].map((t) => h("th", {}, t)))),
+            h("thead", {}, h("tr", {}, ["search", "status", "scene", "method", "renders", "wall time", "created"].map((t) => h("th", {}, t)))),
             h("tbody", {}, rows),
           )
         : h("p", { class: "muted" }, "No search yet."),

@@ -10,7 +10,7 @@
 from __future__ import annotations
 
 from services.controller.store.database import Database, DatabaseUnavailable
-from services.controller.store.leases import Lease, LeaseLost, Leases
+from services.controller.store.leases import FIRST_GENERATION, Lease, LeaseLost, Leases
 from services.controller.store.postgres import PostgresDatabase, is_postgres_url
 from services.controller.store.searches import (
     SearchChanges,
@@ -22,6 +22,7 @@ from services.controller.store.searches import (
 from services.controller.store.sqlite import SqliteDatabase, database_path
 
 __all__ = [
+    "FIRST_GENERATION",
     "Database",
     "DatabaseUnavailable",
     "Lease",

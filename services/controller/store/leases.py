@@ -2,7 +2,9 @@
 a heartbeat, and fencing by the lease's generation.
 
 A controller runs a search only under a lease: a row ``(search, holder, generation,
-expires_at)``. It takes the lease of a search it was submitted (:meth:`Leases.take`), claims
+expires_at)``. It takes the lease of a search it was submitted as it records it, when it can
+start it at once (:meth:`Leases.hold`, in the recording's transaction, so that no other
+controller claims the new search first), or when a worker starts it (:meth:`Leases.take`), claims
 the unfinished searches whose lease ran out (:meth:`Leases.claim`, ``FOR UPDATE … SKIP LOCKED``,
 so that controllers claiming at once never wait for, nor take, the same search) and renews what
 it holds every third of the lease time (:meth:`Leases.renew`). Every claim adds one to the
@@ -32,7 +34,10 @@ from dataclasses import dataclass
 
 from services.controller.store.database import Database, Session
 
-__all__ = ["Lease", "LeaseLost", "Leases", "fence"]
+__all__ = ["FIRST_GENERATION", "Lease", "LeaseLost", "Leases", "fence"]
+
+FIRST_GENERATION = 1
+"""The generation of a search's first lease (:data:`_CLAIM` and :meth:`Leases.hold`)."""
 
 
 @dataclass(frozen=True)
@@ -91,6 +96,16 @@ class Leases:
         self.database = database
         self.holder = holder
         self.lease_s = lease_s
+
+    def hold(self, session: Session, search_id: str) -> Lease:
+        """Take the first lease of the search ``session`` records (it has no lease row yet), in
+        that transaction: the search is never unleased once committed."""
+        session.execute(
+            "INSERT INTO leases (search_id, holder, generation, expires_at) "
+            "VALUES (?, ?, ?, now() + make_interval(secs => ?))",
+            (search_id, self.holder, FIRST_GENERATION, self.lease_s),
+        )
+        return Lease(search_id, FIRST_GENERATION)
 
     def claim(self, limit: int) -> list[Lease]:
         """Take up to ``limit`` unfinished searches that no live lease holds, oldest first."""

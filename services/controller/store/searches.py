@@ -39,7 +39,7 @@ from services.common.contracts.search import (
 from services.common.errors import ProblemDetails
 from services.controller.store.changes import announce
 from services.controller.store.database import Database, Session
-from services.controller.store.leases import Lease, fence
+from services.controller.store.leases import Lease, Leases, fence
 
 __all__ = ["SearchChanges", "SearchStore", "StoreSize", "Usage", "utcnow"]
 
@@ -108,8 +108,17 @@ class SearchStore:
         if self.database.dialect == "postgresql":
             announce(session, search_id)
 
-    def create(self, search: Search, image: bytes, *, owner: str | None = None) -> None:
-        """Record a new search and its target image; ``owner`` is the submitting key's id."""
+    def create(
+        self,
+        search: Search,
+        image: bytes,
+        *,
+        owner: str | None = None,
+        leases: Leases | None = None,
+    ) -> Lease | None:
+        """Record a new search and its target image; ``owner`` is the submitting key's id. With
+        ``leases`` (PostgreSQL), their controller takes the search's lease in the same
+        transaction (:meth:`Leases.hold`), which is returned."""
         doc = search.model_copy(update={"iterations": ()}).model_dump_json()
         created = self.database.stamp(search.created_at)
         with self.database.write() as session:
@@ -122,6 +131,7 @@ class SearchStore:
                 "INSERT INTO images (search_id, image) VALUES (?, ?)", (search.id, image)
             )
             self._changed(session, search.id)
+            return None if leases is None else leases.hold(session, search.id)
 
     def discard(self, search_id: str) -> bool:
         """Delete a search with its image and iterations, as if never recorded (a submission
