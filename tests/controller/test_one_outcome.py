@@ -25,7 +25,7 @@ from tests.controller.test_retention import OUTAGE_ERROR
 from tests.controller.test_runner import PNG
 from tests.controller.test_store import START, iteration, search
 
-ROUNDS = 25
+ROUNDS = 20
 RESULT = SearchResult(
     pose=START, refined_pose=Pose(theta_deg=22.4, phi_deg=60.2), confidence=0.9, renders=2
 )
