@@ -151,8 +151,13 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
         return cluster.process(name).process.pid
 
     def holding(name: str) -> set[str]:
-        """The unfinished searches the controller on ``name`` holds, once it holds some."""
-        load.wait(lambda: ledger.held_by(pid(name)) - ended(), 60, f"{name} running searches")
+        """The unfinished searches the controller on ``name`` holds, once one of them has
+        recorded iterations."""
+        load.wait(
+            lambda: {s.id for s in load.running if s.iterations} & ledger.held_by(pid(name)),
+            60,
+            f"{name} running searches",
+        )
         return ledger.held_by(pid(name)) - ended()
 
     def taken_over(held: set[str], name: str, since: float) -> float:
@@ -194,14 +199,15 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
 
         # 2. latency and loss on the link of the detector controller-1 prefers now
         preferred = min(load.replicas("detector"), key=lambda r: r["expected_ms"].get("detect", 0))
-        name, served = preferred["name"], int(preferred["served"])
+        name = preferred["name"]
+        served = sum(int(load.replica(name, c)["served"]) for c in (0, 1))
         detector = cluster.host(name)
         detector.impair(delay_ms=DELAY_MS, loss=LOSS)
         impaired_at, recorded = time.monotonic(), load.recorded
         say(f"{name} ({detector.address}): +{DELAY_MS:g} ms each way, {LOSS:.0%} loss")
 
-        def detected_through_it() -> int:
-            return int(load.replica(name, 0)["served"]) - served
+        def detected_through_it() -> int:  # by either controller
+            return sum(int(load.replica(name, c)["served"]) for c in (0, 1)) - served
 
         load.wait(
             lambda: (
@@ -266,6 +272,7 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
     finally:
         load.close()
     assert stranded >= 1  # the cut struck renders in flight
+    assert through_impaired >= 1  # the impaired link carried detections
     assert counts.lost == 0, load.states()
     assert counts.answered == counts.submitted == len(load.truth)
     assert counts.recorded_twice == 0
@@ -273,6 +280,7 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
     assert by_each == [counts.submitted, counts.submitted]
     assert orphans  # the kill struck running searches
     assert cut_off  # so did the partition
+    assert counts.running_at_kill >= 1
     assert counts.resumed == counts.running_at_kill
     assert took_kill_s < TAKEOVER_S
     assert took_partition_s < TAKEOVER_S
