@@ -11,7 +11,8 @@ measures a search's floor in one process, :mod:`.settings_sweep` the render sett
 its figures); :mod:`.session` is what the command's modes share and :mod:`.command` runs them.
 :mod:`.faults` is the fault suite (``python -m benchmarks.faults``, ``tests/faults/``);
 :mod:`.free_targets` draws free-camera targets with the baseline and the box-only bound they are
-measured against (``python -m cosmos.bench.free_targets``; issue 23, item 5).
+measured against (``python -m cosmos.bench.free_targets``; issue 23, item 5); :mod:`.free_run`
+searches them through the stack (``cosmos bench --free``, figures in :mod:`.free_bench`).
 """
 
 from cosmos.bench.command import run

@@ -13,6 +13,10 @@ every report there:
 * ``--throughput``: ``--throughput-searches`` searches submitted at once to a stack with one
   renderer and detector, then to one with ``--renderers``/``--detectors`` replicas; searches
   per minute. Report: ``throughput.json``.
+* ``--free``: free-camera targets on the ``--scenes`` and ``--random-scenes N`` generated ones,
+  searched with ``mode=free`` beside a plain ``solvePnPRansac`` baseline and the box-only bound
+  (:mod:`cosmos.bench.free_run`), resumable in ``--chunk-minutes`` chunks. Report:
+  ``free.json``.
 * ``--random-scenes N``: N generated scenes, searched with the general detector, then again with
   each scene's own after onboarding it (:mod:`cosmos.bench.random_run`). Report:
   ``random.json``.
@@ -237,6 +241,10 @@ def run(config: BenchConfig) -> int:
         return 0
     if config.n < 1:
         raise ValueError("--n must be at least 1")
+    if config.free:
+        from cosmos.bench.free_run import run_free
+
+        return run_free(config)
     if config.random_scenes:
         from cosmos.bench.random_run import run_random
 

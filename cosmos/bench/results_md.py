@@ -12,6 +12,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from cosmos.bench.free_bench import report as free_report
+from cosmos.bench.free_bench.records import FreeRecord
 from cosmos.bench.random_report import (
     FAILURE_HEADER,
     GOALS,
@@ -28,6 +30,7 @@ from cosmos.bench.tables import SUMMARY_COLUMNS, markdown_tables, md_table, summ
 __all__ = [
     "section_of_bench",
     "section_of_broker_sim",
+    "section_of_free",
     "section_of_profile",
     "section_of_random",
     "section_of_sweep",
@@ -47,8 +50,8 @@ def _escape(text: str) -> str:
 
 
 def write_results_md(path: Path, out: Path) -> None:
-    """``docs/RESULTS.md`` from the JSON reports in ``out`` (bench, sweep, throughput, random,
-    broker_sim)."""
+    """``docs/RESULTS.md`` from the JSON reports in ``out`` (bench, free, sweep, throughput,
+    random, broker_sim)."""
     rel = Path(os.path.relpath(out, path.parent))
     text = io.StringIO()
     text.write(
@@ -63,6 +66,9 @@ def write_results_md(path: Path, out: Path) -> None:
     if bench.exists():
         data = json.loads(bench.read_text())
         text.write(section_of_bench(data, rel))
+    free = out / "free.json"
+    if free.exists():
+        text.write(section_of_free(json.loads(free.read_text())))
     sweep = out / "sweep.json"
     if sweep.exists():
         text.write(section_of_sweep(json.loads(sweep.read_text())))
@@ -108,6 +114,30 @@ def section_of_bench(data: Mapping[str, Any], plots: Path) -> str:
     profile = data.get("profile")
     if profile:
         text.write(section_of_profile(profile))
+    return text.getvalue()
+
+
+def section_of_free(data: Mapping[str, Any]) -> str:
+    """``cosmos bench --free``'s section: the worst outcome first, the tables, the goals."""
+    records = [FreeRecord.model_validate(r) for r in data.get("records", [])]
+    text = io.StringIO()
+    title = "Free cameras through the local stack (`--free`)"
+    text.write(_section_head(title, data, duration=True))
+    text.write(
+        f"**{_escape(free_report.wrong_line(records))}**\n\n"
+        "Shares within 2 %/1° · 5 %/2° · 10 %/5° (camera position error as a share of the "
+        "scene radius / rotation error): *answer* = the search's answer (ambiguous answers with "
+        "their pose, failed searches as misses); *boxes* = the pose it rendered first, its "
+        "estimate from the target's boxes alone; *baseline* = plain `cv2.solvePnPRansac` on the "
+        "detector's box centres (objects paired by unique label); *box-only bound* = the ideal "
+        "box-only fit (exact boxes plus the detector's edge noise, from the truth). Errors are "
+        "recomputed from the poses in `free.json`; definitions in `cosmos/bench/free_bench/`."
+        "\n\n"
+    )
+    text.write(free_report.free_tables(records, markdown=True) + "\n\n")
+    text.write(f"**Goals** ({free_report.GOALS}):\n\n")
+    text.write("".join(f"- {line}\n" for line in free_report.goal_checks(records)) + "\n")
+    text.write(_escape(free_report.time_line(records)) + ".\n\n")
     return text.getvalue()
 
 

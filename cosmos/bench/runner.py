@@ -53,9 +53,11 @@ from services.renderer.client import RendererClient
 __all__ = [
     "IterationRecord",
     "SearchRecord",
+    "SearchRefused",
     "BenchTarget",
     "local_stack",
     "make_targets",
+    "post_and_follow",
     "run_searches",
     "with_starts",
 ]
@@ -84,6 +86,10 @@ class BenchTarget(Target):
     @property
     def key(self) -> tuple[str, str, int]:
         return (self.scene, self.variant, self.number)
+
+
+class SearchRefused(Exception):
+    """The controller refused a submission (any answer but 202)."""
 
 
 class IterationRecord(FrozenModel):
@@ -354,6 +360,34 @@ def _search_query(
     return query
 
 
+async def post_and_follow(
+    http: aiohttp.ClientSession, base_url: str, image: bytes, query: Mapping[str, str]
+) -> tuple[dict[str, Any], float]:
+    """``POST /searches`` with ``image`` as the raw body and the options in the query (what a
+    program sends: no multipart), follow its events to ``end`` and fetch it: the search's JSON
+    and the wall time in ms from sending the ``POST`` to receiving ``end``. Raises
+    :class:`SearchRefused` for any answer but 202, aiohttp's errors or :class:`TimeoutError`
+    when the connection fails or a wait runs out."""
+    headers = {"Content-Type": media_type_of(image)}
+    started = time.perf_counter()
+    async with http.post(f"{base_url}/searches", data=image, params=query, headers=headers) as r:
+        body = await r.read()
+        if r.status != 202:
+            text = body[:300].decode(errors="replace")
+            raise SearchRefused(f"POST /searches answered {r.status}: {text}")
+    search_id = json.loads(body)["id"]
+    async with http.get(f"{base_url}/searches/{search_id}/events") as events:
+        events.raise_for_status()
+        async for line in events.content:
+            if line.rstrip(b"\r\n") == b"event: end":
+                break
+    wall_ms = (time.perf_counter() - started) * 1000
+    async with http.get(f"{base_url}/searches/{search_id}") as final:
+        final.raise_for_status()
+        raw: dict[str, Any] = json.loads(await final.read())
+    return raw, wall_ms
+
+
 async def _one_search(
     http: aiohttp.ClientSession,
     base_url: str,
@@ -362,37 +396,13 @@ async def _one_search(
     max_iterations: int,
     arm: str,
 ) -> SearchRecord:
-    # The image as the raw body, the options in the query: what a program sends (no multipart).
     query = _search_query(target, strategy, max_iterations)
-    headers = {"Content-Type": media_type_of(target.image)}
     started = time.perf_counter()
     try:
-        async with http.post(
-            f"{base_url}/searches", data=target.image, params=query, headers=headers
-        ) as response:
-            body = await response.read()
-            if response.status != 202:
-                text = body[:300].decode(errors="replace")
-                return _failed(
-                    target,
-                    strategy,
-                    f"POST /searches answered {response.status}: {text}",
-                    (time.perf_counter() - started) * 1000,
-                    arm,
-                )
-        search_id = json.loads(body)["id"]
-        async with http.get(f"{base_url}/searches/{search_id}/events") as events:
-            events.raise_for_status()
-            async for line in events.content:
-                if line.rstrip(b"\r\n") == b"event: end":
-                    break
-        wall_ms = (time.perf_counter() - started) * 1000
-        async with http.get(f"{base_url}/searches/{search_id}") as final:
-            final.raise_for_status()
-            raw = json.loads(await final.read())
+        raw, wall_ms = await post_and_follow(http, base_url, target.image, query)
         search = Search.model_validate(raw)
-    except (aiohttp.ClientError, TimeoutError) as exc:
-        detail = f"{type(exc).__name__}: {exc}"
+    except (SearchRefused, aiohttp.ClientError, TimeoutError) as exc:
+        detail = str(exc) if isinstance(exc, SearchRefused) else f"{type(exc).__name__}: {exc}"
         return _failed(target, strategy, detail, (time.perf_counter() - started) * 1000, arm)
     return record_of(target, strategy, search, wall_ms, raw, arm)
 

@@ -89,6 +89,10 @@ class BenchConfig:
     random_scenes: int = 0
     onboard: Literal["none", "tiny", "default"] = "default"
     scenes_out: Path | None = None
+    free: bool = False
+    """Free-camera targets (``cosmos bench --free``, :mod:`cosmos.bench.free_bench`)."""
+    chunk_minutes: float | None = None
+    """With ``free``: stop starting searches after this long; the same command resumes."""
     regenerate: bool = False
     verbose: bool = False
     notes: tuple[str, ...] = ()

@@ -16,6 +16,7 @@ def _csv(value: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from cosmos.bench import VARIANTS, BenchConfig, run
+    from cosmos.bench.free_bench.targets import FREE_BENCH_VARIANTS
     from cosmos.bench.session import START_MODES
 
     # Random scenes: the project's strategy on every variant; otherwise the paper's comparison.
@@ -23,11 +24,17 @@ def run(args: argparse.Namespace) -> int:
     strategies = _csv(
         args.strategies or ("reprojection" if random else "simple,paper,reprojection")
     )
-    variants = _csv(args.variants or (",".join(VARIANTS) if random else "clean,jpeg,noise,offgrid"))
+    default_variants = "clean,jpeg,noise,offgrid"
+    if args.free:
+        default_variants = ",".join(FREE_BENCH_VARIANTS)
+    elif random:
+        default_variants = ",".join(VARIANTS)
+    variants = _csv(args.variants or default_variants)
+    allowed_variants = FREE_BENCH_VARIANTS if args.free else VARIANTS
     starts = _csv(args.starts)
     for name, given, allowed in (
         ("strategy", strategies, ("simple", "paper", "reprojection")),
-        ("variant", variants, VARIANTS),
+        ("variant", variants, allowed_variants),
         ("start", starts, START_MODES),
     ):
         unknown = [v for v in given if v not in allowed]
@@ -62,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
         random_scenes=args.random_scenes,
         onboard=args.onboard,  # argparse checked the choice
         scenes_out=Path(args.scenes_out) if args.scenes_out else None,
+        free=args.free,
+        chunk_minutes=args.chunk_minutes,
         regenerate=args.regenerate,
         verbose=args.verbose,
         notes=tuple(args.note or ()),
@@ -79,7 +88,9 @@ def register(commands: Commands) -> None:
         "report, the plots and docs/RESULTS.md.",
     )
     bench.add_argument("--n", type=int, default=60, help="targets per scene and variant")
-    bench.add_argument("--scenes", default="demo,garden", help="comma-separated scene ids")
+    bench.add_argument(
+        "--scenes", "--scene", default="demo,garden", help="comma-separated scene ids"
+    )
     bench.add_argument(
         "--strategies", help="default simple,paper,reprojection (reprojection with --random-scenes)"
     )
@@ -140,6 +151,18 @@ def register(commands: Commands) -> None:
     )
     bench.add_argument(
         "--scenes-out", help="with --random-scenes: keep the scenes and models here (default: temp)"
+    )
+    bench.add_argument(
+        "--free",
+        action="store_true",
+        help="free-camera targets (any position, orientation, fov) searched with mode=free, "
+        "beside a plain solvePnPRansac baseline and the box-only bound; with --random-scenes N "
+        "also on N generated scenes",
+    )
+    bench.add_argument(
+        "--chunk-minutes",
+        type=float,
+        help="with --free: stop starting searches after this long (the same command resumes)",
     )
     bench.add_argument(
         "--regenerate",

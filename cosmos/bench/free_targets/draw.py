@@ -24,7 +24,7 @@ does not cut off: :func:`visible_shares`), is drawn again at that elevation and 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from typing import Final, Literal, get_args
 
@@ -260,9 +260,11 @@ def draw_targets(
     height: int | None = None,
     spp: int = 16,
     max_tries: int = MAX_TRIES,
+    only: Collection[int] | None = None,
 ) -> list[FreeTarget]:
     """``count`` free targets of ``scene`` (module docstring), rendered by ``renderer`` on a
-    ``width`` x ``height`` film (the scene camera's by default) at ``spp`` samples.
+    ``width`` x ``height`` film (the scene camera's by default) at ``spp`` samples; with
+    ``only``, just the targets of those indices (each is the same as in the whole draw).
 
     Raises
     ------
@@ -278,6 +280,8 @@ def draw_targets(
     not_given = _shares(count, NOT_GIVEN_SHARE, plan)
     targets = []
     for index in range(count):
+        if only is not None and index not in only:
+            continue
         rng = np.random.default_rng([seed, index])
         elevation, fov = draw_elevation_fov(scene, bool(nadir[index]), rng)
         for _ in range(max_tries):

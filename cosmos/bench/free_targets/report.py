@@ -38,6 +38,8 @@ __all__ = [
     "METHODS",
     "TargetResult",
     "dense_line",
+    "number_cell",
+    "percent_cell",
     "evaluate",
     "group_rows",
     "solver_table",
@@ -144,11 +146,13 @@ def group_rows(
     return rows
 
 
-def _pct(value: float) -> str:
+def percent_cell(value: float) -> str:
+    """A share as a table cell (— when there is none)."""
     return "—" if math.isnan(value) else f"{value:.0%}"
 
 
-def _num(value: float, digits: int) -> str:
+def number_cell(value: float, digits: int) -> str:
+    """A figure as a table cell (— when there is none, ∞ for a miss)."""
     if math.isnan(value):
         return "—"
     return "∞" if math.isinf(value) else f"{value:.{digits}f}"
@@ -192,12 +196,12 @@ def text_table(
                         method,
                         band,
                         str(s.count),
-                        *(_pct(w) for w in s.within),
-                        _num(100 * s.position_median, 1),
-                        _num(100 * s.position_p95, 1),
-                        _num(s.rotation_median_deg, 2),
-                        _num(s.rotation_p95_deg, 2),
-                        _num(s.fov_median_pct, 2),
+                        *(percent_cell(w) for w in s.within),
+                        number_cell(100 * s.position_median, 1),
+                        number_cell(100 * s.position_p95, 1),
+                        number_cell(s.rotation_median_deg, 2),
+                        number_cell(s.rotation_p95_deg, 2),
+                        number_cell(s.fov_median_pct, 2),
                         str(s.missed),
                     ]
                 )
@@ -244,7 +248,7 @@ def solver_table(results: Sequence[TargetResult]) -> str:
                     scene,
                     band,
                     str(len(group)),
-                    *(_pct(statuses.count(s) / len(group)) for s in STATUSES),
+                    *(percent_cell(statuses.count(s) / len(group)) for s in STATUSES),
                     str(confirmed_wrong(errors, statuses)),
                     str(
                         confirmed_wrong(
@@ -253,7 +257,7 @@ def solver_table(results: Sequence[TargetResult]) -> str:
                         )
                     ),
                     str(confirmed_wrong(errors, statuses, WRONG_LOOSE)),
-                    _num(float(np.median(unknown)) if unknown else math.nan, 1),
+                    number_cell(float(np.median(unknown)) if unknown else math.nan, 1),
                     str(len(unknown)),
                 ]
             )

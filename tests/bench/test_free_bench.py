@@ -1,0 +1,206 @@
+"""``cosmos bench --free``: free targets searched through the real stack (issue 23, item 5). A
+short run on the demo scene checks the report's structure and that its figures come from the
+answers; the checkpoint and the confirmed-wrong count are checked on their own."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cosmos.bench import free_run
+from cosmos.bench.free_bench import searching
+from cosmos.bench.free_bench.checkpoint import Checkpoint
+from cosmos.bench.free_bench.records import (
+    ANSWER,
+    BASELINE,
+    BOUND,
+    BOXES,
+    METHODS,
+    CameraRecord,
+    FreeRecord,
+)
+from cosmos.bench.free_bench.report import confirmed_wrong, goal_checks, within, wrong_line
+from cosmos.bench.free_targets.draw import BANDS
+from cosmos.bench.free_targets.metrics import THRESHOLDS
+from cosmos.cli import main
+from services.common.geometry.free_camera import FreeCamera
+
+DEMO_RADIUS = 8.0
+
+# -- records, the confirmed-wrong count and the checkpoint, without a stack ----------------
+
+
+def camera(position, yaw_deg=0.0, fov_deg=45.0) -> CameraRecord:
+    x, y, z, w = Rotation.from_euler("z", yaw_deg, degrees=True).as_quat()
+    return CameraRecord(position=position, quaternion_wxyz=(w, x, y, z), fov_deg=fov_deg)
+
+
+def record(index=0, outcome="found", answer=None, **fields) -> FreeRecord:
+    truth = camera((0.0, 0.0, 5.0))
+    values = {
+        "scene": "demo",
+        "random": False,
+        "variant": "clean",
+        "index": index,
+        "band": "nadir",
+        "elevation_deg": 90.0,
+        "intrinsics_given": True,
+        "objects": 4,
+        "radius": DEMO_RADIUS,
+        "truth": truth,
+        "status": "succeeded",
+        "outcome": outcome,
+        "renders": 1,
+        "wall_ms": 500.0,
+        "poses": {ANSWER: answer or truth, BOXES: truth, BASELINE: None, BOUND: truth},
+    }
+    return FreeRecord.model_validate(values | fields)
+
+
+def test_errors_come_from_the_poses():
+    moved = record(answer=camera((0.8, 0.0, 5.0), yaw_deg=3.0, fov_deg=45.9))
+    error = moved.error(ANSWER)
+    assert error.position == pytest.approx(0.8 / DEMO_RADIUS)
+    assert error.rotation_deg == pytest.approx(3.0)
+    assert error.fov_pct == pytest.approx(2.0)
+    assert moved.error(BOXES).position == 0.0
+    assert math.isinf(moved.error(BASELINE).position)  # no pose: a miss
+
+
+def test_a_found_answer_outside_five_percent_and_two_degrees_is_confirmed_wrong():
+    far = camera((0.5, 0.0, 5.0))  # 6.25 % of the radius
+    records = [
+        record(0),
+        record(1, answer=far),
+        record(2, outcome="ambiguous", answer=far),  # not vouched for: not confirmed wrong
+        record(3, answer=camera((0.0, 0.0, 5.0), yaw_deg=2.5)),
+    ]
+    assert [r.index for r in confirmed_wrong(records)] == [1, 3]
+    assert wrong_line(records).startswith("Confirmed wrong: 2 of 3 found answers")
+    assert within(records, ANSWER, THRESHOLDS[1]) == 0.25
+    assert any(
+        line.startswith("MISSED: fov given: answer 25% within 5 %/2°")
+        for line in goal_checks(records)
+    )
+
+
+def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
+    path = tmp_path / "free.checkpoint.jsonl"
+    first = Checkpoint(path, {"seed": 1})
+    first.add(record(0))
+    first.add(record(1))
+    with path.open("a") as file:
+        file.write('{"scene": "demo", "vari')  # a run killed mid-line
+    again = Checkpoint(path, {"seed": 1})
+    assert sorted(again.records) == [("demo", "clean", 0), ("demo", "clean", 1)]
+    assert not again.set_aside
+    other = Checkpoint(path, {"seed": 2})
+    assert other.set_aside
+    assert not other.records
+    assert (tmp_path / "free.checkpoint.jsonl.old").exists()
+    other.remove()
+    assert not path.exists()
+
+
+# -- through the real stack ------------------------------------------------------------------
+
+
+def angle_deg(a: CameraRecord, b: CameraRecord) -> float:
+    qa = Rotation.from_quat([*a.quaternion_wxyz[1:], a.quaternion_wxyz[0]])
+    qb = Rotation.from_quat([*b.quaternion_wxyz[1:], b.quaternion_wxyz[0]])
+    return float(np.degrees((qa.inv() * qb).magnitude()))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch):
+    # Spies that keep what the controller answered and which target each search was for.
+    answered, drawn = {}, {}
+    real_post, real_search = searching.post_and_follow, free_run.search_target
+
+    async def post_spy(http, base_url, image, query):
+        raw, wall_ms = await real_post(http, base_url, image, query)
+        answered[raw["id"]] = (raw, query)
+        return raw, wall_ms
+
+    async def search_spy(http, calls, target, image, **options):
+        record = await real_search(http, calls, target, image, **options)
+        drawn[record.search_id] = target
+        return record
+
+    monkeypatch.setattr(searching, "post_and_follow", post_spy)
+    monkeypatch.setattr(free_run, "search_target", search_spy)
+    out = tmp_path / "results"
+    results_md = tmp_path / "RESULTS.md"
+    status = main(
+        [
+            "bench", "--free",
+            "--scene", "demo",
+            "--n", "2",
+            "--variants", "clean",
+            "--seed", "1",
+            "--out", str(out),
+            "--results-md", str(results_md),
+        ]
+    )  # fmt: skip
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    report = json.loads((out / "free.json").read_text())
+    assert report["complete"]
+    assert report["planned"] == 2
+    assert not (out / "free.checkpoint.jsonl").exists()  # removed once complete
+    records = [FreeRecord.model_validate(r) for r in report["records"]]
+    assert sorted((r.scene, r.variant, r.index) for r in records) == [
+        ("demo", "clean", 0),
+        ("demo", "clean", 1),
+    ]
+    for r in records:
+        assert r.band in BANDS
+        assert set(r.poses) == set(METHODS)
+        assert r.search_id
+        assert r.outcome in ("found", "ambiguous")
+        assert r.renders >= 1
+        assert r.wall_ms > 0
+        assert r.floor_ms is not None
+        assert r.floor_ms > 0
+        assert r.detections >= 3
+        assert r.render_ms > 0  # the search's own render, from its iterations' timings
+        raw, query = answered[r.search_id]
+        target = drawn[r.search_id]
+        assert query["mode"] == "free"
+        if r.intrinsics_given:  # the fov went to the controller only when the target gives it
+            assert float(query["fov_deg"]) == pytest.approx(target.annotations.camera.fov_deg)
+        else:
+            assert "fov_deg" not in query
+        # the error the tables use is the controller's answer's distance to the drawn camera
+        pose = raw["result"]["free"]["pose"]
+        error = r.error(ANSWER)
+        assert error.position == pytest.approx(
+            math.dist(pose["position"], target.camera.position) / DEMO_RADIUS, abs=1e-3
+        )
+        found = FreeCamera(position=(0.0, 0.0, 1.0), quaternion_wxyz=pose["quaternion_wxyz"])
+        relative = Rotation.from_matrix(found.rotation().T @ target.camera.rotation())
+        assert error.rotation_deg == pytest.approx(relative.magnitude() * 180 / math.pi, abs=0.01)
+        answer = r.poses[ANSWER]
+        assert answer is not None
+        assert error.rotation_deg == pytest.approx(angle_deg(answer, r.truth), abs=1e-3)
+        # demo targets show ≥ 3 objects: the answer is near the truth, not an arbitrary pose
+        assert error.within(0.10, 5.0), (error, r.reason)
+        assert r.intrinsics_source == ("given" if r.intrinsics_given else "estimated")
+    loose = sum(r.error(ANSWER).within(*THRESHOLDS[1]) for r in records)
+    share = f"{loose / len(records):.0%}"
+    all_row = next(line for line in printed.splitlines() if line.startswith("all variants"))
+    assert f" · {share} · " in all_row
+    assert "Confirmed wrong: " in printed
+    assert "median renders per search" in printed
+    assert "× the floor" in printed
+    assert "time (medians, ms): wall " in printed
+    md = results_md.read_text()
+    assert "## Free cameras through the local stack (`--free`)" in md
+    assert f"```sh\n{report['command']}\n```" in md  # the command that prints it
+    assert "| variant | elevation | n |" in md
+    assert "**Confirmed wrong: " in md
