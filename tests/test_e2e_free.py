@@ -1,7 +1,8 @@
 """End to end, a free-camera search: the four real services as separate processes on loopback
 (real renderer, real ONNX detector, real HTTP), a target rendered at a camera off the
 hemisphere (lower than its radius, looking down past the centre, rolled), searched with
-``mode=free`` through the controller's public API."""
+``mode=free`` through the controller's public API: one render confirms the box pose and refines
+it densely (closer to the truth than the boxes put it)."""
 
 from __future__ import annotations
 
@@ -68,6 +69,17 @@ def test_a_free_camera_is_found_through_the_services(stack):
     assert result.renders == 1
     assert math.dist(free.pose.position, DRONE.position) < 0.05 * RADIUS
     assert rotation_error_deg(free.pose.quaternion_wxyz, DRONE) < 3.0
+    # the render that confirmed the box pose refined it densely: closer to the truth
+    assert free.dense is not None
+    assert free.dense.accepted, free.dense
+    assert free.box_pose is not None
+    refined = math.dist(free.pose.position, DRONE.position)
+    boxes = math.dist(free.box_pose.position, DRONE.position)
+    assert refined < boxes
+    assert refined < 0.01 * RADIUS
+    assert rotation_error_deg(free.pose.quaternion_wxyz, DRONE) < rotation_error_deg(
+        free.box_pose.quaternion_wxyz, DRONE
+    )
     assert free.pose.yaw_pitch_roll_deg[2] == pytest.approx(12.0, abs=3.0)
     assert free.pose.intrinsics.source == "given"
     assert free.pose.intrinsics.fov_deg == pytest.approx(truth.camera.fov_deg)
@@ -104,6 +116,16 @@ def test_without_intrinsics_the_focal_length_is_estimated_and_said_so(stack):
     assert free.pose.intrinsics.source == "estimated"
     assert free.pose.intrinsics.fov_deg == pytest.approx(truth.camera.fov_deg, rel=0.03)
     assert math.dist(free.pose.position, DRONE.position) < 0.05 * RADIUS
+    assert final.result.renders == 1
+    # the focal length fitted with the pose by the render's edges (measured: 45.07° for 45°)
+    assert free.dense is not None
+    assert free.dense.accepted, free.dense
+    assert free.dense.focal_fitted
+    assert free.box_pose is not None
+    assert free.pose.intrinsics.fov_deg == pytest.approx(truth.camera.fov_deg, rel=0.005)
+    assert math.dist(free.pose.position, DRONE.position) < math.dist(
+        free.box_pose.position, DRONE.position
+    )
 
 
 def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, capsys):

@@ -7,8 +7,9 @@
 3. render the scene at the pose (a free camera with the intrinsics used, through the broker),
    on the target's shape at most the search's view width wide, and detect its objects;
 4. compare them with the target's box by box (:mod:`~services.controller.free_match`): if they
-   agree the search ends; if not, the next alternative is rendered, while renders remain
-   (``max_iterations``).
+   agree, the same render (it came with its depth) refines the pose densely against the target
+   image (:mod:`~services.controller.free_refine`) and the search ends; if not, the next
+   alternative is rendered, while renders remain (``max_iterations``).
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`) is ``found`` and
 ``confirmed`` only when the optimizer found a unique pose and its render agreed. An ambiguous
@@ -41,12 +42,14 @@ from services.common.contracts.free import (
 from services.common.contracts.optimize import ImageDetections
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
+from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import FreeCamera, direction_pose
 from services.common.geometry.grid import HemisphereGrid
-from services.common.images import media_type_of
+from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
 from services.controller.free_match import FreeMatch, compare_view, view_film
+from services.controller.free_refine import refine_by_render, refined_result
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -139,10 +142,11 @@ class _Step:
 
 @dataclass(frozen=True)
 class _Seen:
-    """A candidate's render: the camera rendered, its detections, how they compare with the
-    target's, render and detect milliseconds."""
+    """A candidate's render: the camera rendered, its archive (colours, depth, object ids),
+    its detections, how they compare with the target's, render and detect milliseconds."""
 
     camera: FreeCamera
+    archive: bytes
     found: DetectResponse
     check: FreeMatch
     render_ms: float
@@ -266,7 +270,10 @@ class FreeSearchLoop:
         candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
         history = list(search.iterations)
         if history and history[-1].done:  # finished by an older run, no result recorded
-            return await writes.succeed(_result(answer, history, grid))
+            unrefined = "no dense refinement (resumed after its render)"
+            return await writes.succeed(
+                refined_result(_result(answer, history, grid), unrefined, grid)
+            )
         budget = min(len(candidates), search.max_iterations)
         for k in range(len(history), budget):
             await writes.flush()
@@ -277,9 +284,14 @@ class FreeSearchLoop:
             optimize_ms = 0.0
             history.append(iteration)
             if iteration.done:
-                # The dense edge refinement (issue 23: services/optimizer/free/dense.py) plugs
-                # in here: the pose refined against the target image from this render.
-                return await writes.succeed(_result(answer, history, grid), iteration, seen)
+                writes.hold(iteration, seen)
+                await writes.flush()  # recorded while the render's edges are fitted
+                outcome = await refine_by_render(
+                    self.stages, self.outages, search, image, candidates[k], seen_view.archive
+                )
+                return await writes.succeed(
+                    refined_result(_result(answer, history, grid), outcome, grid)
+                )
             writes.hold(iteration, seen)
             seen = None
         return await writes.succeed(_result(answer, history, grid))
@@ -299,15 +311,23 @@ class FreeSearchLoop:
         film, scale = view_film(size, settings.width or scene.spec.camera.width)
         camera = scaled_camera(pose, scale)
         started = time.perf_counter()
-        view = await self.outages.call(
+        archive = await self.outages.call(
             sid,
-            lambda: self.stages.render_camera(search.scene, camera, film, sid, settings),
+            lambda: self.stages.render_camera(
+                search.scene, camera, film, sid, settings, with_depth=True
+            ),
         )
+        try:
+            colours = DepthImage.from_npz(archive).rgb
+        except ValueError as exc:
+            raise failure("bad-render", "Bad render", f"the renderer's archive: {exc}") from exc
+        if colours is None:
+            raise failure("bad-render", "Bad render", "the renderer's archive has no colours")
         rendered = time.perf_counter()
-        found = await self._detect(search, view)
+        found = await self._detect(search, encode_ppm(colours))
         detected = time.perf_counter()
         paired = [c.detection for c in pose.correspondences]
         check = compare_view(detections, size, paired, found.detections, found.image_size)
         return _Seen(
-            camera, found, check, (rendered - started) * 1000, (detected - rendered) * 1000
+            camera, archive, found, check, (rendered - started) * 1000, (detected - rendered) * 1000
         )

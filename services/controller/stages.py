@@ -1,6 +1,7 @@
 """The stage calls a search makes, each through the broker: render (a grid pose, or a free
-camera), detect, optimize (the next pose, the free pose from the target's boxes, or a
-hemisphere search's predicted start pose).
+camera, with its depth when asked), detect, optimize (the next pose, the free pose from the
+target's boxes and its dense refinement by a render, or a hemisphere search's predicted start
+pose).
 
 Every call forwards the search's request id (``X-Request-ID``). A 4xx answer from a stage is a
 :class:`StageError` carrying that stage's problem details (the search fails with it); transport
@@ -22,13 +23,15 @@ from urllib.parse import urlencode
 from services.common.contracts.detect import DetectResponse
 from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
+from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import ViewSettings
 from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
+from services.common.depth_archive import DEPTH_MEDIA_TYPE
 from services.common.errors import ProblemDetails
 from services.common.geometry.free_camera import FreeCamera
 from services.common.geometry.pose import GridIndex
-from services.common.images import PPM_MEDIA_TYPE
+from services.common.images import PPM_MEDIA_TYPE, media_type_of
 from services.controller.broker import Broker
 from services.controller.transport import StageAnswer, StageRequest
 
@@ -148,10 +151,14 @@ class Stages:
         size: tuple[int, int],
         request_id: str = "",
         view_settings: ViewSettings | None = None,
+        *,
+        with_depth: bool = False,
     ) -> bytes:
         """The scene seen from the free ``camera`` on a film of ``size`` (width, height; the
         camera's pixel intrinsics are in its pixels), sampled as ``view_settings`` say (their
-        width is the caller's to apply): binary PPM bytes, or PNG, as :meth:`render`."""
+        width is the caller's to apply): binary PPM bytes, or PNG, as :meth:`render`; with
+        ``with_depth``, the renderer's archive of its colours, depth and object ids
+        (:class:`~services.common.depth_archive.DepthImage`), from the same one call."""
         settings = self.settings_for(view_settings)
         body: dict[str, Any] = {
             "scene": scene_id,
@@ -161,9 +168,18 @@ class Stages:
         }
         if settings.spp is not None:
             body["spp"] = settings.spp
-        headers = {"X-Request-ID": request_id, "Accept": f"{PPM_MEDIA_TYPE}, image/png;q=0.5"}
+        accept = DEPTH_MEDIA_TYPE if with_depth else f"{PPM_MEDIA_TYPE}, image/png;q=0.5"
+        headers = {"X-Request-ID": request_id, "Accept": accept}
         request = StageRequest.json("/render", json.dumps(body), headers)
-        return (await self._call("renderer", "render", request)).content
+        answer = await self._call("renderer", "render", request)
+        if with_depth and answer.headers.get("content-type") != DEPTH_MEDIA_TYPE:
+            raise StageError(
+                "renderer",
+                ProblemDetails(
+                    title="No depth", status=502, detail="the renderer gave no depth archive"
+                ),
+            )
+        return answer.content
 
     async def detect(
         self, image: bytes, media_type: str, request_id: str = "", *, scene: str | None = None
@@ -200,6 +216,21 @@ class Stages:
         call = StageRequest.json("/free-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "solve", call)
         return FreePoseResponse.model_validate_json(response.content)
+
+    async def refine_pose(
+        self, request: RefinePoseRequest, target: bytes, render: bytes, request_id: str = ""
+    ) -> RefinePoseResponse:
+        """The optimizer's answer to ``POST /refine-pose``: ``request`` with the ``target``
+        image and the ``render`` archive at its pose, one form (a ValidationError if the answer
+        is malformed)."""
+        parts = [
+            ("request", "text/plain", request.model_dump_json(exclude_none=True).encode()),
+            ("target", media_type_of(target), target),
+            ("render", DEPTH_MEDIA_TYPE, render),
+        ]
+        call = StageRequest.form("/refine-pose", parts, {"X-Request-ID": request_id})
+        response = await self._call("optimizer", "refine", call)
+        return RefinePoseResponse.model_validate_json(response.content)
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         """Wait until a replica of ``stage`` answers again (see

@@ -8,6 +8,9 @@ from dataclasses import dataclass, field
 from typing import Annotated, get_args
 
 from fastapi import APIRouter, Depends, Request, Response
+from pydantic import ValidationError
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
 
 from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import (
@@ -19,11 +22,14 @@ from services.common.contracts.optimize import (
     StrategyInfo,
     StrategyName,
 )
+from services.common.contracts.refine import REFINE_PARTS, RefinePoseRequest, RefinePoseResponse
 from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
+from services.common.errors import BadRequestError, UnprocessableError, UnsupportedMediaTypeError
 from services.common.http import app_state, problem_responses
 from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.optimizer.json_body import json_request_body, read_json
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
+from services.optimizer.refine_pose import ImageLimits, refine_pose
 from services.optimizer.start_planning import start_pose
 from services.optimizer.strategies import STRATEGIES
 
@@ -38,6 +44,7 @@ class OptimizerState:
 
     context: OptimizerContext
     free_objects: SceneObjectCache = field(default_factory=SceneObjectCache)
+    image_limits: ImageLimits = field(default_factory=lambda: ImageLimits(4096 * 4096, 16_384))
 
 
 State = Annotated[OptimizerState, Depends(app_state("optimizer"))]
@@ -124,3 +131,91 @@ def solve_free(body: FreePoseRequest, state: State) -> FreePoseResponse:
     ``found``, ``ambiguous`` with the alternatives, or ``failed`` with why. Run on a worker
     thread: a solve is tens of milliseconds of numpy and scipy."""
     return free_pose(body, state.context.catalog, state.free_objects)
+
+
+_BINARY = {"type": "string", "format": "binary"}
+
+
+async def _refine_parts(request: Request) -> tuple[RefinePoseRequest, bytes, bytes]:
+    """The ``/refine-pose`` form's parts (:mod:`services.common.contracts.refine`), each refused
+    with a problem naming it: not a form (415), a malformed form (400), a part missing or not
+    valid (422)."""
+    media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if media_type != "multipart/form-data":
+        raise UnsupportedMediaTypeError(
+            "POST /refine-pose takes multipart/form-data with the parts "
+            f"{', '.join(REFINE_PARTS)}; not {media_type or 'a body without a content type'}",
+            field="content-type",
+        )
+    try:
+        async with request.form(max_files=2, max_fields=1) as form:
+            text = form.get("request")
+            if isinstance(text, UploadFile):
+                text = (await text.read()).decode("utf-8", errors="replace")
+            files: dict[str, bytes] = {}
+            for name in REFINE_PARTS[1:]:
+                part = form.get(name)
+                if not isinstance(part, UploadFile):
+                    raise UnprocessableError(f"the form has no file '{name}'", field=name)
+                files[name] = await part.read()
+    except HTTPException as exc:  # how Starlette reports a malformed form inside an app
+        raise BadRequestError(
+            f"the multipart body is malformed: {exc.detail}", field="body"
+        ) from exc
+    if text is None:
+        raise UnprocessableError("the form has no part 'request'", field="request")
+    try:
+        body = RefinePoseRequest.model_validate_json(text)
+    except ValidationError as exc:
+        error = exc.errors(include_url=False)[0]
+        where = ".".join(str(part) for part in ("request", *error["loc"]))
+        raise UnprocessableError(f"{where}: {error['msg']}", field=where) from exc
+    return body, files["target"], files["render"]
+
+
+@router.post(
+    "/refine-pose",
+    response_model=RefinePoseResponse,
+    responses=problem_responses(400, 404, 413, 415, 422),
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "multipart/form-data": {
+                    "schema": {
+                        "type": "object",
+                        "required": list(REFINE_PARTS),
+                        "properties": {
+                            "request": {
+                                **RefinePoseRequest.model_json_schema(),
+                                "description": "A RefinePoseRequest as JSON text.",
+                            },
+                            "target": {**_BINARY, "description": "The target: PNG, JPEG, PPM."},
+                            "render": {
+                                **_BINARY,
+                                "description": "The render at the pose: the renderer's .npz "
+                                "(rgb, depth, objects).",
+                            },
+                        },
+                    }
+                }
+            },
+        }
+    },
+)
+async def refine(request: Request, state: State) -> Response:
+    """A free pose refined densely against the target image by one render at it: the render's
+    edges, back-projected through its depth, fitted onto the target's (and the focal length,
+    when asked). Answers the refined pose and how the fit went (``fit.accepted``: use it). Run on
+    a worker thread: a fit is a few hundred milliseconds of OpenCV and scipy."""
+    body, target, render = await _refine_parts(request)
+    answer = await asyncio.to_thread(
+        refine_pose,
+        body,
+        target,
+        render,
+        state.context.catalog,
+        state.free_objects,
+        state.image_limits,
+    )
+    return Response(answer.model_dump_json(), media_type="application/json")

@@ -14,6 +14,7 @@ from fastapi import FastAPI
 from services.common.http import service_app
 from services.common.settings import from_environment
 from services.optimizer.api import OptimizerState, router
+from services.optimizer.refine_pose import ImageLimits
 from services.optimizer.settings import OptimizerSettings
 from services.optimizer.wiring import build_optimizer
 
@@ -28,7 +29,10 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.optimizer = OptimizerState(
-            context=await asyncio.to_thread(build_optimizer, settings)
+            context=await asyncio.to_thread(build_optimizer, settings),
+            image_limits=ImageLimits(
+                settings.optimizer_max_image_pixels, settings.optimizer_max_image_side
+            ),
         )
         yield
 
@@ -37,7 +41,7 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
         "Maps detections to the ground and proposes the next camera pose of a search.",
         lifespan,
         router,
-        settings.optimizer_max_body_bytes,
+        settings.body_limits(),
         settings=settings,
         guarded=True,
         # Ready once started: the calibrations and the catalog, all it needs, are loaded by

@@ -55,7 +55,7 @@ from services.optimizer.free.solve import NOISE_FLOOR_PX
 from services.optimizer.geometry import FloatArray
 from services.optimizer.planning import check_box
 
-__all__ = ["EDGE_SAMPLES", "SceneObjectCache", "free_pose"]
+__all__ = ["EDGE_SAMPLES", "SceneObjectCache", "free_pose", "predicted_boxes"]
 
 EDGE_SAMPLES: Final = 16
 """Points per box side undistorted (or distorted) to map a box through the lens."""
@@ -169,29 +169,41 @@ def _undistorted(
     )
 
 
-def _predicted(
-    objects: SceneObjects, pose: PoseCandidate, lens: LensDistortion | None
+def predicted_boxes(
+    objects: SceneObjects,
+    names: list[str],
+    camera_to_world: FloatArray,
+    position: tuple[float, float, float],
+    intrinsics: tuple[float, float, float, float],
+    lens: LensDistortion | None,
 ) -> dict[str, tuple[float, float, float, float] | None]:
-    """Each paired object's box projected at ``pose`` (through the lens), by object name."""
-    names = [c.object for c in pose.correspondences]
+    """The boxes of the objects ``names`` projected by the camera at ``position`` turned by
+    ``camera_to_world``, of pixel ``intrinsics`` ``(fx, fy, cx, cy)`` (through the ``lens``),
+    by object name; None for one that does not project (behind the camera)."""
+    fx, fy, cx, cy = intrinsics
     subset = objects.subset([objects.names.index(n) for n in names])
-    k = pose.intrinsics
-    rotation = pose.rotation().T
-    translation = -rotation @ np.asarray(pose.position)
-    boxes = project_boxes(subset, rotation, translation, (k.fx_px, k.fy_px), (k.cx_px, k.cy_px))
+    rotation = np.asarray(camera_to_world, dtype=np.float64).T
+    translation = -rotation @ np.asarray(position)
+    boxes = project_boxes(subset, rotation, translation, (fx, fy), (cx, cy))
     if lens is not None and np.isfinite(boxes).all():
         points = _edge_points(boxes)
-        xy = np.stack(
-            [(points[..., 0] - k.cx_px) / k.fx_px, (points[..., 1] - k.cy_px) / k.fy_px], -1
-        )
+        xy = np.stack([(points[..., 0] - cx) / fx, (points[..., 1] - cy) / fy], -1)
         d = distort(xy, lens)
-        boxes = _bounds(
-            np.stack([k.fx_px * d[..., 0] + k.cx_px, k.fy_px * d[..., 1] + k.cy_px], -1)
-        )
+        boxes = _bounds(np.stack([fx * d[..., 0] + cx, fy * d[..., 1] + cy], -1))
     return {
         name: (tuple(float(v) for v in box) if np.isfinite(box).all() else None)  # type: ignore[misc]
         for name, box in zip(names, boxes, strict=True)
     }
+
+
+def _predicted(
+    objects: SceneObjects, pose: PoseCandidate, lens: LensDistortion | None
+) -> dict[str, tuple[float, float, float, float] | None]:
+    """Each paired object's box projected at ``pose`` (through the lens), by object name."""
+    k = pose.intrinsics
+    names = [c.object for c in pose.correspondences]
+    focal = (k.fx_px, k.fy_px, k.cx_px, k.cy_px)
+    return predicted_boxes(objects, names, pose.rotation(), pose.position, focal, lens)
 
 
 def _sigma(value: float) -> float | None:

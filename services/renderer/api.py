@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Header
@@ -110,9 +110,11 @@ async def get_scene(scene_id: str, state: State) -> SceneDetail:
     response_class=Response,
     responses={
         200: {
-            "content": {"image/png": {}, PPM_MEDIA_TYPE: {}},
+            "content": {"image/png": {}, PPM_MEDIA_TYPE: {}, DEPTH_MEDIA_TYPE: {}},
             "description": "The rendered view: PNG, or binary PPM when the request's Accept "
-            f"header names {PPM_MEDIA_TYPE}.",
+            f"header names {PPM_MEDIA_TYPE}; with {DEPTH_MEDIA_TYPE} there, a NumPy .npz "
+            "archive of its colours (rgb) with its depth and object ids, as /render/depth "
+            "answers them.",
         },
         **problem_responses(400, 404, 413, 422, 503),
     },
@@ -122,11 +124,18 @@ async def render(
 ) -> Response:
     """Render a view of a scene from a hemisphere pose (angles or grid indices) or a free camera:
     PNG by default, binary PPM (uncompressed, for the detector next door) on
-    ``Accept: image/x-portable-pixmap``."""
+    ``Accept: image/x-portable-pixmap``, and on ``Accept: application/x-npz`` the colours with the
+    view's depth and object ids in one archive (one call serves a free search's confirmation
+    and its dense refinement)."""
     view = await _resolve(state, body)
     image = await state.engine.render_async(
         view.scene, view.pose, view.width, view.height, view.spp, view.seed
     )
+    if DEPTH_MEDIA_TYPE in accept:
+        geometry = await state.engine.depth_async(view.scene, view.pose, view.width, view.height)
+        archive = replace(geometry, rgb=image.rgb).npz()
+        headers = {"X-Render-Ms": f"{image.render_ms:.1f}"}
+        return Response(archive, media_type=DEPTH_MEDIA_TYPE, headers=headers)
     headers = {"X-Render-Ms": f"{image.render_ms:.1f}", "X-Mitsuba-Variant": state.engine.variant}
     if isinstance(view.pose, Pose):
         headers["X-Pose-Theta-Deg"] = repr(view.pose.theta_deg)

@@ -16,51 +16,18 @@ pose), so the image's depth is the rendered one resampled by the view's warp, ne
 
 from __future__ import annotations
 
-import io
-import zipfile
-from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.depth_archive import DEPTH_MEDIA_TYPE, DepthImage
 from services.renderer.free_view import FreeView
 
 __all__ = ["DEPTH_MEDIA_TYPE", "GEOMETRY_AOVS", "DepthImage", "depth_image"]
 
 GEOMETRY_AOVS: Final = "dd.y:depth,p:position,si:shape_index"
 """The aov integrator's channels: ray distance (0 on a miss), world position, shape key."""
-DEPTH_MEDIA_TYPE: Final = "application/x-npz"
-"""What ``POST /render/depth`` answers: a NumPy ``.npz`` archive (:meth:`DepthImage.npz`)."""
-
-
-@dataclass(frozen=True)
-class DepthImage:
-    """A view's ``depth`` ``(H, W)`` float32 (``Z_c`` in scene units, 0 where no surface) and
-    ``objects`` ``(H, W)`` int16 (the scene object's index, -1 for the ground or nothing)."""
-
-    depth: NDArray[np.float32]
-    objects: NDArray[np.int16]
-
-    def npz(self) -> bytes:
-        """The arrays as an uncompressed ``.npz`` (``depth``, ``objects``): ~6 bytes a pixel,
-        read back with ``numpy.load(..., allow_pickle=False)``."""
-        buffer = io.BytesIO()
-        np.savez(buffer, depth=self.depth, objects=self.objects)
-        return buffer.getvalue()
-
-    @classmethod
-    def from_npz(cls, data: bytes) -> DepthImage:
-        """The arrays of :meth:`npz` bytes (raises ``ValueError`` on anything else)."""
-        try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as archive:
-                depth = np.asarray(archive["depth"], dtype=np.float32)
-                objects = np.asarray(archive["objects"], dtype=np.int16)
-        except (OSError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-            raise ValueError(f"not a depth archive: {exc}") from exc
-        if depth.ndim != 2 or depth.shape != objects.shape:
-            raise ValueError("a depth archive holds two (H, W) arrays of one shape")
-        return cls(depth=depth, objects=objects)
 
 
 def depth_image(

@@ -15,6 +15,7 @@ import pytest
 
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.contracts.free import (
+    DenseReport,
     FreeCorrespondence,
     FreePose,
     FreePoseRequest,
@@ -23,14 +24,17 @@ from services.common.contracts.free import (
     PhotoIntrinsics,
     nearest_grid_pose,
 )
+from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Search, SearchOptions, ViewSettings
-from services.common.errors import UnprocessableError
+from services.common.depth_archive import DepthImage
+from services.common.errors import ProblemDetails, UnprocessableError
 from services.common.geometry.free_camera import FreeCamera
 from services.controller.events import Notifier
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
 from services.controller.runner import SearchRunner
+from services.controller.stages import StageError
 from services.controller.store import SearchStore, open_store, utcnow
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"target"
@@ -75,6 +79,7 @@ class FakeStages:
         target_size: tuple[int, int] = (320, 240),
         boxes: tuple[tuple[float, float, float, float], ...] = BOXES,
         faults: dict[str, tuple[int, BaseException]] | None = None,
+        refine: str | BaseException = "accepted",
     ):
         self.detail = scene
         self.status = status
@@ -86,6 +91,8 @@ class FakeStages:
         self.calls: Counter[str] = Counter()
         self.rendered: list[tuple[FreeCamera, tuple[int, int]]] = []
         self.requests: list[FreePoseRequest] = []
+        self.refine = refine
+        self.refinements: list[RefinePoseRequest] = []
 
     def _call(self, name: str) -> None:
         self.calls[name] += 1
@@ -107,10 +114,48 @@ class FakeStages:
     def settings_for(self, view_settings: ViewSettings | None) -> ViewSettings:
         return view_settings or ViewSettings()
 
-    async def render_camera(self, scene_id, camera, size, request_id="", view_settings=None):
+    async def render_camera(
+        self, scene_id, camera, size, request_id="", view_settings=None, *, with_depth=False
+    ):
+        """The renderer's archive: its first pixel's red says which candidate was rendered."""
         self._call("render")
+        assert with_depth
         self.rendered.append((camera, size))
-        return f"P6 {camera.position[0]:g} {size[0]} {size[1]}".encode()
+        rgb = np.zeros((size[1], size[0], 3), np.uint8)
+        rgb[0, 0, 0] = round(camera.position[0])
+        depth = np.full(rgb.shape[:2], 5.0, np.float32)
+        return DepthImage(depth=depth, objects=np.full(depth.shape, -1, np.int16), rgb=rgb).npz()
+
+    async def refine_pose(self, request, target, render, request_id="") -> RefinePoseResponse:
+        """Moves the pose 0.1 along y (and fits the focal when asked); answers as ``refine``
+        says: ``accepted``, ``rejected`` (converged, moved too far) or a refusal."""
+        self._call("refine")
+        self.refinements.append(request)
+        assert target == PNG
+        assert DepthImage.from_npz(render).rgb is not None
+        if isinstance(self.refine, BaseException):
+            raise self.refine
+        pose = request.pose
+        k = pose.intrinsics
+        if request.fit_focal:
+            k = k.model_copy(update={"fx_px": 390.0, "fy_px": 390.0, "source": "estimated"})
+        x, y, z = pose.position
+        refined = pose.model_copy(update={"position": (x, y + 0.1, z), "intrinsics": k})
+        fit = DenseReport(
+            converged=True,
+            accepted=self.refine == "accepted",
+            reason="refined by the render's edges"
+            if self.refine == "accepted"
+            else "the dense fit moved the pose implausibly far",
+            edge_points=900,
+            inliers=800,
+            start_inliers=600,
+            residual_px=0.4,
+            focal_fitted=request.fit_focal,
+            moved=0.1,
+            moved_rotation_deg=0.0,
+        )
+        return RefinePoseResponse(pose=refined, fit=fit)
 
     async def detect(self, image, media_type, request_id="", scene=None) -> DetectResponse:
         if image == PNG:
@@ -119,9 +164,10 @@ class FakeStages:
             boxes = self.boxes
         else:
             self._call("detect view")
-            _, x, w, h = image.decode().split()
-            size, scale = (int(w), int(h)), int(w) / self.target_size[0]
-            shift = 0.0 if round(float(x)) == self.right else 30.0
+            rgb = cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_COLOR)
+            x = int(rgb[0, 0, 2])  # the first pixel's red (OpenCV decodes to BGR)
+            size, scale = (rgb.shape[1], rgb.shape[0]), rgb.shape[1] / self.target_size[0]
+            shift = 0.0 if x == self.right else 30.0
             boxes = BOXES
         detections = tuple(
             Detection(
@@ -199,11 +245,19 @@ def test_a_found_pose_whose_render_agrees_is_confirmed_after_one_render(tmp_path
     free = result.free
     assert free is not None
     assert free.status == "found"
-    assert free.pose.position == (0.0, -4.0, 5.0)
+    # the answer is the box pose refined by the same render, the box pose beside it
+    assert free.pose.position == (0.0, -3.9, 5.0)
+    assert free.box_pose is not None
+    assert free.box_pose.position == (0.0, -4.0, 5.0)
+    assert free.dense is not None
+    assert free.dense.accepted
+    assert "refined by the render's edges" in result.reason
     assert free.pose.intrinsics.source == "given"
+    assert not stages.refinements[0].fit_focal
+    assert stages.refinements[0].pose == free.box_pose
     assert free.match_rms_px == pytest.approx(0.0)
     assert free.nearest_grid == result.pose
-    assert result.pose == nearest_grid_pose((0.0, -4.0, 5.0), detail.spec.search.grid())
+    assert result.pose == nearest_grid_pose((0.0, -3.9, 5.0), detail.spec.search.grid())
     assert result.confidence == pytest.approx(0.9)
     # the optimizer was asked with the photo's intrinsics; the render is the pose's camera
     assert stages.requests[0].intrinsics == intrinsics
@@ -213,13 +267,14 @@ def test_a_found_pose_whose_render_agrees_is_confirmed_after_one_render(tmp_path
     assert iteration.camera is not None
     assert iteration.camera.position == (0.0, -4.0, 5.0)
     assert stages.calls == {"scene": 1, "detect target": 1, "free-pose": 1, "render": 1,
-                            "detect view": 1}  # fmt: skip
+                            "detect view": 1, "refine": 1}  # fmt: skip
     assert final.target_detections is not None
     assert final.target_model == MODEL
 
 
 def test_a_found_pose_whose_render_disagrees_is_not_confirmed(tmp_path, detail):
-    final = run(tmp_path, FakeStages(detail, right=5))
+    stages = FakeStages(detail, right=5)
+    final = run(tmp_path, stages)
     result = final.result
     assert result is not None
     assert not result.confirmed
@@ -228,6 +283,44 @@ def test_a_found_pose_whose_render_disagrees_is_not_confirmed(tmp_path, detail):
     assert result.free.status == "ambiguous"
     assert result.renders == 1
     assert result.reason.startswith("not confirmed: no render of the 1 pose(s) tried agreed")
+    assert result.free.dense is None  # a render that disagrees refines nothing
+    assert "refine" not in stages.calls
+
+
+def test_without_intrinsics_the_refined_focal_length_is_the_estimate(tmp_path, detail):
+    stages = FakeStages(detail)
+    final = run(tmp_path, stages)
+    assert final.result is not None
+    free = final.result.free
+    assert free is not None
+    assert stages.refinements[0].fit_focal
+    assert free.pose.intrinsics.source == "estimated"
+    assert free.pose.intrinsics.fx_px == 390.0
+
+
+@pytest.mark.parametrize(
+    ("refine", "said"),
+    [
+        ("rejected", "the box pose is kept: the dense fit moved the pose implausibly far"),
+        (
+            StageError("optimizer", ProblemDetails(title="No", status=422, detail="bad render")),
+            "no dense refinement (the optimizer refused a task: bad render): the box pose",
+        ),
+    ],
+    ids=["rejected", "refused"],
+)
+def test_a_refinement_not_accepted_keeps_the_box_pose_and_says_so(tmp_path, detail, refine, said):
+    stages = FakeStages(detail, refine=refine)
+    final = run(tmp_path, stages, intrinsics=PhotoIntrinsics(fov_deg=45.0))
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    assert result.confirmed
+    assert result.renders == 1
+    assert result.free is not None
+    assert result.free.pose.position == (0.0, -4.0, 5.0)
+    assert result.free.box_pose is None
+    assert said in result.reason
 
 
 def test_an_ambiguous_answer_renders_the_next_alternative_and_is_never_confirmed(tmp_path, detail):
@@ -301,6 +394,10 @@ def test_an_interrupted_free_search_resumes_with_the_next_alternative(tmp_path, 
     assert final.result.renders == 3
     assert final.result.free is not None
     assert final.result.free.pose.position[0] == 2.0
+    assert final.result.free.status == "ambiguous"  # refined, and still ambiguous
+    assert final.result.free.dense is not None
+    assert final.result.free.dense.accepted
+    assert not final.result.confirmed
 
 
 def test_a_large_photo_is_rendered_at_the_view_width_with_its_intrinsics_scaled(tmp_path, detail):
@@ -407,5 +504,10 @@ def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, de
     again = FakeStages(detail)
     final = run_stored(store, again)
     assert final.status == "succeeded", final.error
-    assert final.result == done.result
     assert again.calls == {"scene": 1, "free-pose": 1}  # answered from its iterations
+    # no render to refine by: the box pose, saying so
+    assert final.result is not None
+    assert final.result.free is not None
+    assert done.result.free is not None
+    assert final.result.free.pose == done.result.free.box_pose
+    assert "no dense refinement (resumed after its render)" in final.result.reason

@@ -279,6 +279,23 @@ async def test_depth_is_the_distance_along_the_optical_axis_with_the_objects_mas
             assert [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1] == obj["box"]
 
 
+async def test_one_render_call_gives_the_colours_with_the_depth(client):
+    """``Accept: application/x-npz`` on /render: the very pixels /render gives, and the depth
+    and object ids /render/depth gives, in one archive."""
+    camera = {"position": [-3.5, 3.0, 4.5], "look_at": [0.3, -0.4, 0.0], "roll_deg": 12.0}
+    body = {"scene": "demo", "camera": camera, "width": 160, "height": 120, "spp": 2}
+    response = await client.post("/render", json=body, headers={"Accept": "application/x-npz"})
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/x-npz"
+    both = DepthImage.from_npz(response.content)
+    png = (await client.post("/render", json=body)).content
+    depth = DepthImage.from_npz((await client.post("/render/depth", json=body)).content)
+    assert both.rgb is not None
+    assert np.array_equal(both.rgb, decode(png)[..., ::-1])  # decode gives BGR
+    assert np.array_equal(both.depth, depth.depth)
+    assert np.array_equal(both.objects, depth.objects)
+
+
 def free(**camera):
     return {"scene": "demo", "camera": {**NADIR, **camera}, "width": 96, "spp": 1}
 

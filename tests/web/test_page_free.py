@@ -79,10 +79,12 @@ def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, s
     detected = len(final["target_detections"])
     assert target_view.locator(".box:not(.predicted)").count() == detected
 
-    # the 3D view: the answer's frustum (its one view rendered the answer's camera)
+    # the 3D view: the view rendered (at the box pose) and the answer's frustum (that pose
+    # refined densely by the same render)
     hemisphere = page.locator("#hemisphere")
-    assert hemisphere.get_attribute("data-frusta") == "1"
-    assert final["iterations"][0]["camera"]["position"] == pose["position"]
+    assert free["box_pose"] is not None
+    assert hemisphere.get_attribute("data-frusta") == "2"
+    assert final["iterations"][0]["camera"]["position"] == free["box_pose"]["position"]
     page.wait_for_timeout(500)  # the worker's frame
     shot = page.locator("#hemisphere canvas").screenshot()
     assert colours(shot) > 50

@@ -27,6 +27,7 @@ from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import SCENE_ID_PATTERN
 
 __all__ = [
+    "DenseReport",
     "FreeAnswer",
     "FreeCorrespondence",
     "FreePose",
@@ -160,6 +161,29 @@ class FreePoseResponse(FrozenModel):
     usable_detections: Annotated[Integer, Field(ge=0)] = 0
 
 
+class DenseReport(FrozenModel):
+    """How the dense edge refinement of a pose by its render went (``POST /refine-pose``):
+    ``converged`` when the render's edges, moved with the pose, fell on the target's edges
+    (enough model edge points, at least as many explained as at the start); ``accepted`` when
+    the refined pose is also within a plausible move of the start (else the start's is kept);
+    ``reason`` says which. ``edge_points`` model edge points were fitted, ``inliers`` of them
+    end within 2 px of a target edge (``start_inliers`` at the start), their RMS distance
+    ``residual_px`` (target pixels; null when none); ``focal_fitted`` when the focal length was
+    fitted too; ``moved`` and ``moved_rotation_deg`` how far the pose moved (scene units,
+    degrees)."""
+
+    converged: bool
+    accepted: bool
+    reason: str
+    edge_points: Annotated[Integer, Field(ge=0)]
+    inliers: Annotated[Integer, Field(ge=0)]
+    start_inliers: Annotated[Integer, Field(ge=0)]
+    residual_px: NonNeg | None
+    focal_fitted: bool
+    moved: NonNeg
+    moved_rotation_deg: NonNeg
+
+
 class FreeAnswer(FrozenModel):
     """What a free search found (``SearchResult.free``): the pose from the target's boxes
     confirmed (or not) by rendering it. ``status`` is ``found`` only when the pose was unique
@@ -175,6 +199,16 @@ class FreeAnswer(FrozenModel):
         default=None,
         description="Box-edge RMS between the target's detections and those of the render at "
         "the pose (target pixels); null when no pair was found.",
+    )
+    box_pose: FreePose | None = Field(
+        default=None,
+        description="The pose from the target's boxes, when ``pose`` is that pose refined "
+        "densely against the target image by its render.",
+    )
+    dense: DenseReport | None = Field(
+        default=None,
+        description="How the dense refinement by the confirming render went; null when none "
+        "was made (no render agreed with the target).",
     )
 
 

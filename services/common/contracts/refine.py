@@ -1,0 +1,48 @@
+"""Messages of the optimizer's ``POST /refine-pose``: a free pose refined densely against the
+target image by one render at it (issue 23, "confirmation and dense refinement by one render").
+
+The body is ``multipart/form-data`` of three parts:
+
+* ``request``: a :class:`RefinePoseRequest` as JSON text;
+* ``target``: the target image (PNG, JPEG or binary PPM), at its own size;
+* ``render``: the render at the request's pose as the renderer answers ``POST /render`` on
+  ``Accept: application/x-npz`` (:mod:`services.common.depth_archive`: colours, depth, object
+  ids), on the target's shape scaled by ``s`` (its film at most the target's size): the render's
+  camera is the pose's with its pixel intrinsics scaled by ``s = render width / target width``.
+
+The answer is a :class:`RefinePoseResponse`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Final
+
+from pydantic import Field
+
+from services.common.base import FrozenModel
+from services.common.contracts.free import DenseReport, FreePose
+from services.common.geometry.scene import SCENE_ID_PATTERN
+
+__all__ = ["REFINE_PARTS", "RefinePoseRequest", "RefinePoseResponse"]
+
+REFINE_PARTS: Final = ("request", "target", "render")
+"""The form's parts: the JSON request, the target image, the render's archive."""
+
+
+class RefinePoseRequest(FrozenModel):
+    """The ``request`` part: the ``scene``, the ``pose`` the render was made at (as ``POST
+    /free-pose`` answered it, target pixels) and whether to fit the focal length too
+    (``fit_focal``: the photo's intrinsics were not given)."""
+
+    scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)]
+    pose: FreePose
+    fit_focal: bool = False
+
+
+class RefinePoseResponse(FrozenModel):
+    """The refined ``pose`` (its intrinsics ``estimated`` when the focal length was fitted, its
+    ``residual_px`` the dense fit's edge RMS, its pairs' predicted boxes at the refined pose)
+    and how the fit went (``fit``): use it only when ``fit.accepted``."""
+
+    pose: FreePose
+    fit: DenseReport

@@ -1,0 +1,256 @@
+"""``POST /refine-pose`` as a plain function: a free pose refined densely against the target
+image by the render at it (:func:`~services.optimizer.free.refine_dense`), answered in the
+contract's terms (:mod:`services.common.contracts.refine`).
+
+Resolution
+    The render is made on the target's shape scaled by ``s ≤ 1`` (a search renders at most its
+    view width). The target is brought to the render's film (``cv2.INTER_AREA``) and the fit
+    runs there, on the render's camera: the pose's pixel intrinsics times ``s``; the fitted
+    intrinsics are scaled back by ``1 / s`` (the principal point stays the pose's).
+
+Converged
+    The fit had at least :data:`~services.optimizer.free.dense.MIN_POINTS` model edge points,
+    ends with about as many within 2 px of a target edge as the start had (:data:`KEEP_INLIERS`:
+not fewer than noise explains), and with at least
+    :data:`MIN_INLIER_SHARE` of them there: a pose that explains the image leaves most of its
+    edges on the target's, a fit lost in clutter does not.
+
+Accepted
+    Converged, and moved plausibly. A near move (:data:`MAX_MOVE` of the
+    points' median depth ``z̃``, plus ``|k - 1| z̃`` when the focal length changed by ``k``: a
+    dolly zoom trades the two; :data:`MAX_TURN_DEG`) is what the box fit errs by on most
+    targets (issue 23's box-only simulation: 97 % within 10 % and 5°). Through the real
+    detector the box pose is sometimes further off (measured on the built-in and generated
+    scenes: up to 0.4 r and 14°), and the fit brought 4 of 6 such poses to within 0.01 r and
+    0.3° and the other 2 closer, each explaining 1.3-3.3 times the start's edge points; a
+    move beyond the near bounds is accepted only when the image vouches for it, the fit explaining
+    at least :data:`FAR_GAIN` times the start's edge points, and up to :data:`FAR` times the
+    near bounds. Anything further is a slip of the fit into another basin (a repeated texture),
+    and the box pose is kept.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Final
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import ValidationError
+
+from services.common.catalog import SceneCatalog
+from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed
+from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
+from services.common.depth_archive import DepthImage
+from services.common.errors import ServiceError, UnprocessableError
+from services.common.geometry.free_camera import (
+    free_pinhole_camera,
+    quaternion_of_rotation,
+    yaw_pitch_roll_of_rotation,
+)
+from services.common.images import decode_image
+from services.optimizer.free import DenseFit, refine_dense
+from services.optimizer.free.dense import MIN_POINTS
+from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
+
+__all__ = [
+    "FAR",
+    "FAR_GAIN",
+    "MAX_MOVE",
+    "MAX_TURN_DEG",
+    "MIN_INLIER_SHARE",
+    "ImageLimits",
+    "dense_report",
+    "refine_pose",
+]
+
+MIN_INLIER_SHARE: Final = 0.5
+"""The share of the model edge points a converged fit leaves within 2 px of a target edge."""
+KEEP_INLIERS: Final = 0.98
+"""A converged fit keeps at least this share of the start's explained points: a start already
+on the target moves by noise, and its count by a few points either way."""
+MAX_MOVE: Final = 0.1
+"""A near move of the camera, as a share of the points' median depth."""
+MAX_TURN_DEG: Final = 5.0
+"""A near turn of the camera, in degrees."""
+FAR: Final = 4.0
+"""A move up to this many times the near bounds is plausible when the image vouches for it."""
+FAR_GAIN: Final = 1.2
+"""…that is, when the fit explains this many times the start's edge points."""
+_SIDE_SLACK_PX: Final = 1.0
+
+
+@dataclass(frozen=True)
+class ImageLimits:
+    """The largest target image decoded: pixels and side."""
+
+    max_pixels: int
+    max_side: int
+
+
+def _invalid(detail: str, field: str) -> UnprocessableError:
+    return UnprocessableError(detail, field=field, slug="invalid-request")
+
+
+def _target_gray(data: bytes, limits: ImageLimits) -> NDArray[np.uint8]:
+    try:
+        rgb = decode_image(data, max_pixels=limits.max_pixels, max_side=limits.max_side)
+    except ServiceError as exc:
+        exc.field = "target"
+        raise
+    return np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+
+
+def _render(data: bytes, target: tuple[int, int]) -> tuple[DepthImage, NDArray[np.uint8], float]:
+    """The render's archive, its colours and its scale ``s`` from the target (checked)."""
+    try:
+        render = DepthImage.from_npz(data)
+    except ValueError as exc:
+        raise _invalid(str(exc), "render") from exc
+    if render.rgb is None:
+        raise _invalid("the render's archive has no rgb (ask the renderer for it)", "render")
+    width, height = target
+    h, w = render.depth.shape
+    scale = w / width
+    if not (8 <= w <= width and abs(h - height * scale) <= _SIDE_SLACK_PX):
+        raise _invalid(
+            f"the render is {w}x{h}: not the target's {width}x{height} shape at most its size",
+            "render",
+        )
+    return render, render.rgb, scale
+
+
+def _turn_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
+    cosine = (float(np.trace(a.T @ b)) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
+
+
+def dense_report(fit: DenseFit, start: FreePose, depth: float, scale: float) -> DenseReport:
+    """How the ``fit`` from ``start`` (rendered at ``scale`` times the target's film, its
+    points at median depth ``depth``) went: converged, accepted and why (module docstring)."""
+    moved = float(np.linalg.norm(fit.position - np.asarray(start.position)))
+    turned = _turn_deg(fit.rotation.T, start.camera().rotation())
+    zoom = fit.intrinsics.fx / (start.intrinsics.fx_px * scale)
+    converged = (
+        fit.points >= MIN_POINTS
+        and fit.inliers >= KEEP_INLIERS * fit.start_inliers
+        and fit.inliers >= MIN_INLIER_SHARE * fit.points
+    )
+    allowed = (MAX_MOVE + abs(zoom - 1.0)) * depth
+    near = moved <= allowed and turned <= MAX_TURN_DEG
+    vouched = fit.inliers >= FAR_GAIN * fit.start_inliers
+    plausible = near or (vouched and moved <= FAR * allowed and turned <= FAR * MAX_TURN_DEG)
+    if not converged:
+        reason = (
+            f"the dense fit did not converge: {fit.inliers} of {fit.points} edge points end on "
+            f"the target's edges ({fit.start_inliers} at the start)"
+        )
+    elif not plausible:
+        reason = (
+            f"the dense fit moved the pose implausibly far ({moved:.3g} units, {turned:.2g}°, "
+            f"explaining {fit.inliers} edge points where the start explained "
+            f"{fit.start_inliers}; at most {allowed:.3g} units and {MAX_TURN_DEG:g}°, or "
+            f"{FAR:g} times that with {FAR_GAIN:g} times the edge points)"
+        )
+    else:
+        reason = (
+            f"refined by the render's edges: {fit.inliers} of {fit.points} edge points on the "
+            f"target's ({fit.start_inliers} before)"
+        )
+    residual = fit.residual_px / scale if math.isfinite(fit.residual_px) else None
+    return DenseReport(
+        converged=converged,
+        accepted=converged and plausible,
+        reason=reason,
+        edge_points=fit.points,
+        inliers=fit.inliers,
+        start_inliers=fit.start_inliers,
+        residual_px=residual,
+        focal_fitted=fit.focal_fitted,
+        moved=moved,
+        moved_rotation_deg=turned,
+    )
+
+
+def _refined(
+    fit: DenseFit, start: FreePose, report: DenseReport, scale: float, width: int
+) -> FreePose:
+    """``start`` moved to the fit (intrinsics in target pixels, module docstring)."""
+    k = start.intrinsics
+    fx, fy = fit.intrinsics.fx / scale, fit.intrinsics.fy / scale
+    camera_to_world = fit.rotation.T
+    return start.model_copy(
+        update={
+            "position": tuple(float(v) for v in fit.position),
+            "quaternion_wxyz": quaternion_of_rotation(camera_to_world),
+            "yaw_pitch_roll_deg": yaw_pitch_roll_of_rotation(camera_to_world),
+            "intrinsics": IntrinsicsUsed(
+                fx_px=fx,
+                fy_px=fy,
+                cx_px=k.cx_px,
+                cy_px=k.cy_px,
+                fov_deg=math.degrees(2.0 * math.atan(width / (2.0 * fx))),
+                source="estimated" if fit.focal_fitted else k.source,
+                distortion=k.distortion,
+            ),
+            "residual_px": report.residual_px if report.residual_px is not None else 0.0,
+        }
+    )
+
+
+def refine_pose(
+    request: RefinePoseRequest,
+    target: bytes,
+    render: bytes,
+    catalog: SceneCatalog | None,
+    cache: SceneObjectCache,
+    limits: ImageLimits,
+) -> RefinePoseResponse:
+    """The request's pose refined against ``target`` (the image's bytes) by ``render`` (the
+    archive of the render at the pose) (module docstring)."""
+    if catalog is None:
+        raise _invalid("this optimizer has no scene catalog", "request.scene")
+    scene = catalog.get(request.scene)  # NotFoundError (404) names the field
+    gray = _target_gray(target, limits)
+    height, width = gray.shape
+    view, rgb, scale = _render(render, (width, height))
+    h, w = view.depth.shape
+    if (w, h) != (width, height):
+        gray = np.asarray(cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    start = request.pose
+    k = start.intrinsics
+    try:
+        at = start.camera()
+    except ValidationError as exc:
+        raise _invalid(
+            f"the pose is not a camera: {exc.errors()[0]['msg']}", "request.pose"
+        ) from exc
+    camera = at.model_copy(
+        update={
+            "fx_px": k.fx_px * scale,
+            "fy_px": k.fy_px * scale,
+            "cx_px": k.cx_px * scale,
+            "cy_px": k.cy_px * scale,
+            "distortion": None,
+        }
+    )
+    pinhole = free_pinhole_camera(camera, w, h, k.fov_deg)
+    fit = refine_dense(
+        gray, rgb, view.depth, pinhole, fit_focal=request.fit_focal, distortion=k.distortion
+    )
+    hits = view.depth[view.depth > 0.0]
+    depth = float(np.median(hits)) if hits.size else math.inf
+    report = dense_report(fit, start, depth, scale)
+    pose = _refined(fit, start, report, scale, width)
+    names = [c.object for c in start.correspondences]
+    objects = cache.get(scene)
+    if any(n not in objects.names for n in names):
+        raise _invalid("the pose pairs an object the scene does not have", "request.pose")
+    focal = (pose.intrinsics.fx_px, pose.intrinsics.fy_px, k.cx_px, k.cy_px)
+    boxes = predicted_boxes(objects, names, fit.rotation.T, pose.position, focal, k.distortion)
+    pairs = tuple(
+        c.model_copy(update={"predicted_box": boxes[c.object]}) for c in start.correspondences
+    )
+    return RefinePoseResponse(pose=pose.model_copy(update={"correspondences": pairs}), fit=report)

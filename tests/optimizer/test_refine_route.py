@@ -1,0 +1,179 @@
+"""``POST /refine-pose`` in process (ASGI transport, lifespan run): the box pose of a target
+rendered by the real renderer engine, refined by one real render (colours and depth) at it, as a
+free search sends them; and problem+json naming the part for bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import AsyncIterator
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from services.common.contracts.free import FreePose
+from services.common.depth_archive import DepthImage
+from services.common.geometry.free_camera import FreeCamera
+from services.controller.free_loop import scaled_camera
+from services.optimizer.app import create_app
+from services.optimizer.free import scene_objects
+from services.optimizer.settings import OptimizerSettings
+from services.renderer.view import resolve_free_camera
+from tests.support import in_process
+
+pytestmark = pytest.mark.anyio
+
+W, H = 320, 240
+RADIUS = 8.0
+TRUTH = FreeCamera(position=(5.0, -4.0, 5.0), look_at=(0.3, 0.2, 0.0), roll_deg=-8.0, fov_deg=45.0)
+
+
+@pytest.fixture(scope="module")
+async def client() -> AsyncIterator[httpx.AsyncClient]:
+    settings = OptimizerSettings()
+    async with in_process(create_app(settings), "http://optimizer", settings.token()) as running:
+        yield running
+
+
+def render(engine, scene, camera: FreeCamera, width: int, height: int) -> DepthImage:
+    """The real engine's view of ``camera``: its colours with its depth, as the renderer's
+    ``POST /render`` answers ``Accept: application/x-npz``."""
+    view = resolve_free_camera(scene, camera, width, height)
+    rgb = engine.render(scene, view, width, height, 8, 0).rgb
+    geometry = engine.depth(scene, view, width, height)
+    return DepthImage(depth=geometry.depth, objects=geometry.objects, rgb=rgb)
+
+
+def png(rgb: np.ndarray) -> bytes:
+    ok, data = cv2.imencode(".png", rgb[..., ::-1])
+    assert ok
+    return data.tobytes()
+
+
+def error(pose: FreePose) -> tuple[float, float]:
+    moved = math.dist(pose.position, TRUTH.position)
+    relative = pose.camera().rotation().T @ TRUTH.rotation()
+    turned = math.degrees(math.acos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)))
+    return moved, turned
+
+
+@pytest.fixture(scope="module")
+async def case(client, engine, catalog) -> tuple[bytes, FreePose, DepthImage]:
+    """The target's PNG, its box pose (from boxes with the detector's edge noise tripled, so a
+    little off) and the render at that pose."""
+    scene = catalog.get("demo")
+    view = resolve_free_camera(scene, TRUTH, W, H)
+    image = engine.render(scene, view, W, H, 16, 1).rgb
+    annotations = engine.annotate(scene, view, W, H, None)
+    labels = scene_objects(scene.spec, scene.assets).labels
+    noise = np.random.default_rng(5).normal(0.0, 2.0, (len(annotations.objects), 4))
+    detections = [
+        {"label": labels[i], "class_id": i, "confidence": 0.9, "box": list(obj.box + noise[i])}
+        for i, obj in enumerate(annotations.objects)
+        if obj.box is not None and obj.visible_fraction >= 0.6
+    ]
+    body = {
+        "scene": "demo",
+        "target": {"image_size": [W, H], "detections": detections},
+        "intrinsics": {"fov_deg": 45.0},
+    }
+    answer = (await client.post("/free-pose", json=body)).json()
+    pose = FreePose.model_validate(answer["pose"])
+    return png(image), pose, render(engine, scene, pose.camera(), W, H)
+
+
+def form(pose: FreePose, target: bytes, archive: bytes, *, fit_focal: bool = False) -> dict:
+    request = json.dumps(
+        {"scene": "demo", "pose": pose.model_dump(mode="json"), "fit_focal": fit_focal}
+    )
+    return {
+        "data": {"request": request},
+        "files": {"target": ("target.png", target), "render": ("render.npz", archive)},
+    }
+
+
+async def test_the_box_pose_is_refined_closer_to_the_truth(client, case):
+    target, pose, archive = case
+    response = await client.post("/refine-pose", **form(pose, target, archive.npz()))
+    assert response.status_code == 200, response.text
+    body = response.json()
+    fit = body["fit"]
+    assert fit["converged"], fit
+    assert fit["accepted"], fit
+    assert fit["inliers"] > fit["start_inliers"]
+    refined = FreePose.model_validate(body["pose"])
+    box_moved, box_turned = error(pose)
+    moved, turned = error(refined)
+    assert moved < 0.005 * RADIUS
+    assert turned < 0.3
+    assert moved < box_moved
+    assert refined.intrinsics.source == "given"
+    assert fit["moved"] == pytest.approx(math.dist(refined.position, pose.position))
+    assert [c.object for c in refined.correspondences] == [c.object for c in pose.correspondences]
+    assert all(c.predicted_box is not None for c in refined.correspondences)
+
+
+async def test_a_render_at_half_the_target_size_refines_it_too(client, engine, catalog, case):
+    """A search renders at most its view width: the fit runs on the render's film and answers
+    in the target's pixels."""
+    target, pose, _ = case
+    small = render(engine, catalog.get("demo"), scaled_camera(pose, 0.5), W // 2, H // 2)
+    body = (await client.post("/refine-pose", **form(pose, target, small.npz()))).json()
+    assert body["fit"]["accepted"], body["fit"]
+    refined = FreePose.model_validate(body["pose"])
+    assert error(refined)[0] < error(pose)[0]
+    assert refined.intrinsics.fx_px == pytest.approx(pose.intrinsics.fx_px)
+
+
+async def test_without_intrinsics_the_focal_length_is_fitted_and_said_so(client, case):
+    target, pose, archive = case
+    response = await client.post(
+        "/refine-pose", **form(pose, target, archive.npz(), fit_focal=True)
+    )
+    body = response.json()
+    assert body["fit"]["accepted"], body["fit"]
+    assert body["fit"]["focal_fitted"]
+    assert body["pose"]["intrinsics"]["source"] == "estimated"
+    assert body["pose"]["intrinsics"]["fov_deg"] == pytest.approx(45.0, rel=0.01)
+
+
+async def test_bad_parts_are_refused_naming_them(client, case):
+    target, pose, archive = case
+    good = form(pose, target, archive.npz())
+    no_colours = DepthImage(depth=archive.depth, objects=archive.objects).npz()
+    wrong_shape = DepthImage(
+        depth=archive.depth[:, :100], objects=archive.objects[:, :100], rgb=archive.rgb[:, :100]
+    ).npz()
+    bad_pose = json.loads(good["data"]["request"])
+    bad_pose["pose"]["quaternion_wxyz"] = "north"
+    cases = [
+        ({"data": good["data"], "files": {"target": good["files"]["target"]}}, 422, "render"),
+        (
+            {"data": good["data"], "files": {**good["files"], "render": ("r", b"garbage")}},
+            422,
+            "render",
+        ),
+        (form(pose, target, no_colours), 422, "render"),
+        (form(pose, target, wrong_shape), 422, "render"),
+        (form(pose, b"not an image", archive.npz()), 415, "target"),
+        (
+            {"data": {"request": json.dumps(bad_pose)}, "files": good["files"]},
+            422,
+            "request.pose.quaternion_wxyz",
+        ),
+        ({"files": good["files"]}, 422, "request"),
+        ({"json": {"scene": "demo"}}, 415, "content-type"),
+    ]
+    for kwargs, status, field in cases:
+        response = await client.post("/refine-pose", **kwargs)
+        assert response.status_code == status, (field, response.text)
+        assert response.headers["content-type"] == "application/problem+json"
+        assert response.json()["field"] == field
+    request = json.loads(good["data"]["request"])
+    request["scene"] = "nowhere"
+    missing = await client.post(
+        "/refine-pose", data={"request": json.dumps(request)}, files=good["files"]
+    )
+    assert missing.status_code == 404
