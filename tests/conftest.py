@@ -3,7 +3,6 @@ engine, the built-in catalog. A service's own fixtures live in its folder's conf
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -14,7 +13,8 @@ from services.common.auth import TOKEN_VARIABLE, new_token
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.controller.store import SearchStore, open_store
 from services.renderer.engine import RenderEngine
-from tests.postgres_server import PostgresServer, find_binaries, install_postgres
+from tests.postgres_server import PostgresServer, postgres_problem
+from tests.support import skip_unless_on_ci
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -49,13 +49,9 @@ def catalog() -> SceneCatalog:
 def postgres() -> Iterator[PostgresServer]:
     """A real PostgreSQL server for the session (:mod:`tests.postgres_server`); skipped only
     where it cannot be had (not root and not installed), and on CI (``CI`` set) failed then."""
-    why = install_postgres()
-    binaries = find_binaries()
-    if why is not None or binaries is None:
-        reason = why or "no PostgreSQL binaries under /usr/lib/postgresql"
-        if os.environ.get("CI"):
-            pytest.fail(f"the PostgreSQL tests must run on CI: {reason}")
-        pytest.skip(reason)
+    binaries, why = postgres_problem()
+    skip_unless_on_ci(why, "the PostgreSQL tests")
+    assert binaries is not None
     server = PostgresServer(binaries)
     try:
         yield server

@@ -1,7 +1,9 @@
 """A real PostgreSQL server for the tests: Debian's ``postgresql`` package (installed when
 missing and this user is root, as ``scripts/bootstrap.sh`` does for CI), a cluster made by
 ``initdb`` in a temporary folder, started by ``pg_ctl`` on a free loopback port, one per test
-session, with one fresh schema per test.
+session, with one fresh schema per test. The hosts tests start one on a host of their own
+(``address``, ``inside``: the command that runs a program on that host, ``clients``: the
+network allowed to connect).
 
 The cluster runs without fsync (a test's data need not survive a crash of the machine) and
 wants a password over TCP (scram-sha-256), so that wrong credentials are refused as they are in
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import psycopg
 
-__all__ = ["PostgresServer", "find_binaries", "install_postgres"]
+__all__ = ["PostgresServer", "find_binaries", "install_postgres", "postgres_problem"]
 
 PORTS = range(18600, 18700)
 USER = "cosmos"
@@ -53,6 +55,15 @@ def install_postgres() -> str | None:
     return "apt-get install postgresql failed (see scripts/bootstrap.sh)"
 
 
+def postgres_problem() -> tuple[Path | None, str | None]:
+    """The binaries (installed when missing), or None and why they cannot be had."""
+    why = install_postgres()
+    binaries = find_binaries()
+    if binaries is None:
+        return None, why or "no PostgreSQL binaries under /usr/lib/postgresql"
+    return binaries, None
+
+
 def _free_port() -> int:
     for port in PORTS:
         with socket.socket() as probe:
@@ -65,13 +76,25 @@ def _free_port() -> int:
 
 
 class PostgresServer:
-    """A cluster of its own, started on construction; :meth:`stop` removes it."""
+    """A cluster of its own, started on construction; :meth:`stop` removes it.
 
-    def __init__(self, binaries: Path) -> None:
+    It listens on ``address`` (loopback: a free port of :data:`PORTS`, else 5432), started
+    through ``inside`` (e.g. ``ip netns exec NAME``), and takes password logins over TCP from
+    ``clients`` (a CIDR) besides loopback."""
+
+    def __init__(
+        self,
+        binaries: Path,
+        *,
+        address: str = "127.0.0.1",
+        inside: tuple[str, ...] = (),
+        clients: str | None = None,
+    ) -> None:
         self.binaries = binaries
+        self.address = address
         self.folder = Path(tempfile.mkdtemp(prefix="cosmos-pg-"))
         self.data = self.folder / "data"
-        self.port = _free_port()
+        self.port = _free_port() if address == "127.0.0.1" else 5432
         self._names = itertools.count()
         as_root = os.geteuid() == 0
         # initdb and postgres refuse to run as root: the cluster belongs to the postgres user
@@ -96,23 +119,26 @@ class PostgresServer:
             "UTF8",
             "--locale=C",
         )
+        if clients is not None:
+            with (self.data / "pg_hba.conf").open("a") as hba:
+                hba.write(f"host all all {clients} scram-sha-256\n")
         options = (
-            f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.folder} -c fsync=off "
+            f"-c listen_addresses={address} -p {self.port} -k {self.folder} -c fsync=off "
             "-c synchronous_commit=off -c full_page_writes=off -c max_connections=300"
         )
         self._run(
             "pg_ctl", "-D", str(self.data), "-l", str(self.folder / "log"), "-o", options, "-w",
-            "start",
+            "start", inside=inside,
         )  # fmt: skip
 
-    def _run(self, program: str, *args: str) -> None:
-        command = [*self._prefix, str(self.binaries / program), *args]
+    def _run(self, program: str, *args: str, inside: tuple[str, ...] = ()) -> None:
+        command = [*inside, *self._prefix, str(self.binaries / program), *args]
         done = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
         if done.returncode != 0:
             raise RuntimeError(f"{program} failed: {done.stderr or done.stdout}")
 
     def url(self, database: str = "postgres", *, password: str = PASSWORD) -> str:
-        return f"postgresql://{USER}:{password}@127.0.0.1:{self.port}/{database}"
+        return f"postgresql://{USER}:{password}@{self.address}:{self.port}/{database}"
 
     def new_schema(self) -> str:
         """The URL of a fresh, empty schema of the ``postgres`` database (its tables go there:

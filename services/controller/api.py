@@ -75,19 +75,21 @@ def _unknown_search(search_id: str) -> NotFoundError:
     )
 
 
-def _search_or_404(state: Controller, key: ApiKey | None, search_id: str) -> Search:
-    search = state.store.get(search_id, visible_to=_visible_to(key))
+async def _search_or_404(state: Controller, key: ApiKey | None, search_id: str) -> Search:
+    # The store is read on threads here: a database that hangs holds this request only, never
+    # the event loop (and with it every request and search of the controller).
+    search = await asyncio.to_thread(state.store.get, search_id, visible_to=_visible_to(key))
     if search is None:
         raise _unknown_search(search_id)
     return search
 
 
-def _sees_store(state: Controller, request: Request) -> bool:
+async def _sees_store(state: Controller, request: Request) -> bool:
     """Whether ``request`` may see the store's figures (every tenant's): with an admin key, or
     when keys are off."""
     if not state.settings.controller_auth:
         return True
-    return is_admin(state.keys, request.headers.get("authorization"))
+    return await asyncio.to_thread(is_admin, state.keys, request.headers.get("authorization"))
 
 
 @router.get("/health", response_model=ControllerHealth)
@@ -98,7 +100,7 @@ async def health(request: Request, state: State) -> ControllerHealth:
     internal address is shown. The store's size (``store_searches``, ``store_image_bytes``,
     ``store_bytes``: every tenant's) only with an admin key (``Authorization: Bearer <key>``);
     null for any other key or none."""
-    return _health_of(state, with_store=_sees_store(state, request))
+    return await _health_of(state, with_store=await _sees_store(state, request))
 
 
 @router.get(
@@ -112,14 +114,16 @@ async def health_events(request: Request, state: State) -> EventSourceResponse:
     a comment every 15 s keeps proxies from closing the stream. The web page's broker panel
     follows it. Open to anyone, as ``/health`` is, and with the store's figures for an admin
     key only, as there."""
-    with_store = _sees_store(state, request)
-    return event_stream(
-        events.health_events(lambda: _health_of(state, with_store=with_store).model_dump_json())
-    )
+    with_store = await _sees_store(state, request)
+
+    async def health() -> str:
+        return (await _health_of(state, with_store=with_store)).model_dump_json()
+
+    return event_stream(events.health_events(health))
 
 
-def _health_of(state: Controller, *, with_store: bool) -> ControllerHealth:
-    size = state.store.size() if with_store else None
+async def _health_of(state: Controller, *, with_store: bool) -> ControllerHealth:
+    size = await asyncio.to_thread(state.store.size) if with_store else None
     unavailable = tuple(state.broker.unavailable())
     return ControllerHealth(
         status="degraded" if unavailable else "ok",
@@ -201,14 +205,16 @@ async def list_searches(
     offset: Annotated[int, Query(ge=0, le=MAX_SAFE_INTEGER)] = 0,
 ) -> SearchPage:
     """The key's searches (an admin key's: everyone's), newest first, without iterations."""
-    items, total = state.store.page(limit, offset, visible_to=_visible_to(key))
+    items, total = await asyncio.to_thread(
+        state.store.page, limit, offset, visible_to=_visible_to(key)
+    )
     return SearchPage(items=tuple(items), total=total, limit=limit, offset=offset)
 
 
 @router.get("/searches/{search_id}", response_model=Search, responses=problem_responses(401, 404))
 async def get_search(search_id: str, state: State, key: Caller) -> Search:
     """A search: status, iterations so far, result or error."""
-    return _search_or_404(state, key, search_id)
+    return await _search_or_404(state, key, search_id)
 
 
 @router.delete(
@@ -227,7 +233,7 @@ async def cancel_search(search_id: str, state: State, key: Caller) -> Response:
     bytes no longer count. So a first DELETE cancels a running search and a second one deletes
     it; a DELETE that arrives just after the search ended deletes it. 409 with ``Retry-After``
     while a search cancelled a moment ago is still stopping."""
-    search = _search_or_404(state, key, search_id)
+    search = await _search_or_404(state, key, search_id)
     try:
         cancelled = state.admission.dismiss(search)
     except StillStopping:
@@ -256,7 +262,7 @@ async def retry_search(search_id: str, state: State, key: Caller) -> JSONRespons
     queued again. 409 for any other search; 503 with ``Retry-After`` while a stage is still
     unavailable; 429 for a key at its quota of searches queued or running."""
     try:
-        search = state.admission.retry(_search_or_404(state, key, search_id), key)
+        search = state.admission.retry(await _search_or_404(state, key, search_id), key)
     except NotRetryable as exc:
         raise ConflictError(str(exc), slug="not-retryable", title="Not retryable") from exc
     return JSONResponse(
@@ -277,7 +283,8 @@ async def search_events(search_id: str, state: State, key: Caller) -> EventSourc
     changed (its status, its target's detections); ``iteration`` for each recorded iteration;
     then one ``end`` with the search without its iterations. The stored JSON documents are sent
     as they are. A server that stops ends the stream (the client follows again, elsewhere)."""
-    if state.store.status_doc(search_id, visible_to=_visible_to(key)) is None:
+    found = await asyncio.to_thread(state.store.status_doc, search_id, visible_to=_visible_to(key))
+    if found is None:
         raise _unknown_search(search_id)
     return event_stream(events.search_events(state.store, state.notifier, search_id))
 
@@ -305,7 +312,7 @@ async def _grid_of(state: Controller, search: Search) -> GridSpec:
 )
 async def trajectory(search_id: str, state: State, key: Caller) -> Response:
     """The camera's path on the hemisphere (like the paper's Fig. 6)."""
-    search = _search_or_404(state, key, search_id)
+    search = await _search_or_404(state, key, search_id)
 
     async def draw() -> bytes:
         grid = (await _grid_of(state, search)).grid()
@@ -321,7 +328,7 @@ async def trajectory(search_id: str, state: State, key: Caller) -> Response:
 )
 async def distance(search_id: str, state: State, key: Caller) -> Response:
     """Angle to the estimate per iteration (like the paper's Fig. 8)."""
-    search = _search_or_404(state, key, search_id)
+    search = await _search_or_404(state, key, search_id)
 
     async def draw() -> bytes:
         return await asyncio.to_thread(distance_png, search)
@@ -392,9 +399,9 @@ async def scene_view(
 async def search_target(search_id: str, state: State, key: Caller) -> Response:
     """The search's target image as uploaded (a PPM as PNG); 404 once it is no longer held
     (a failed search's is deleted when it fails)."""
-    _search_or_404(state, key, search_id)
+    await _search_or_404(state, key, search_id)
     try:
-        image = state.store.image(search_id)
+        image = await asyncio.to_thread(state.store.image, search_id)
     except KeyError:
         raise NotFoundError(
             f"search {search_id} no longer holds its target image (a failed search's is deleted)",
@@ -422,7 +429,7 @@ async def iteration_view(
     when it was submitted, whatever the controller's settings now; and the renderer's fixed
     seed; a free search's camera on the film it was rendered on). 404 for an iteration not
     recorded (yet)."""
-    search = _search_or_404(state, key, search_id)
+    search = await _search_or_404(state, key, search_id)
     try:
         pose = iteration_pose(search, index)
         settings = state.stages.settings_for(search.view_settings)

@@ -16,6 +16,7 @@ answers the same.
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable, Sequence
 from typing import Annotated, Final
 
@@ -107,9 +108,9 @@ class ApiKeyMiddleware:
             await self.app(scope, receive, send)
             return
         given = next((v for k, v in scope["headers"] if k == b"authorization"), None)
-        try:
-            key = authenticate(
-                self._keys(scope), None if given is None else given.decode("latin-1")
+        try:  # on a thread: a database that hangs holds this request, not the event loop
+            key = await asyncio.to_thread(
+                authenticate, self._keys(scope), None if given is None else given.decode("latin-1")
             )
         except (UnauthorizedError, ServiceUnavailableError) as exc:  # no key, or no database
             # The body is never read: the server closes the connection after the answer.
@@ -139,8 +140,8 @@ async def caller(
     :func:`authenticate`'s, done already for a request with a body."""
     if not state.settings.controller_auth:
         return None
-    return checked_key(request.scope) or authenticate(
-        state.keys, request.headers.get("authorization")
+    return checked_key(request.scope) or await asyncio.to_thread(
+        authenticate, state.keys, request.headers.get("authorization")
     )
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import asyncio
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from contextlib import contextmanager
 from typing import Final
 
@@ -114,12 +114,14 @@ async def _set_within(event: asyncio.Event, timeout_s: float) -> bool:
     return True
 
 
-async def health_events(health: Callable[[], str]) -> AsyncIterator[ServerSentEvent]:
+async def health_events(
+    health: Callable[[], Awaitable[str]],
+) -> AsyncIterator[ServerSentEvent]:
     """``health``, the health document ``health()`` gives, at once and then whenever it changed
     (looked at every :data:`HEALTH_EVENTS_EVERY_S`), until the server stops."""
     last = ""
     while not STOPPING.is_set():
-        doc = health()
+        doc = await health()
         if doc != last:
             last = doc
             yield _event("health", doc)
@@ -145,12 +147,13 @@ async def search_events(
         while True:
             changed = notifier.current(search_id)
             # The status before the iterations: a search ends after its last one.
-            status_doc = store.status_doc(search_id)
+            # On threads: a database that hangs holds this stream, not the event loop.
+            status_doc = await asyncio.to_thread(store.status_doc, search_id)
             if status_doc is not None and status_doc[0] not in TERMINAL_STATUSES:
                 if status_doc[1] != last_doc:
                     last_doc = status_doc[1]
                     yield _event("search", last_doc)
-            docs = store.iteration_docs(search_id, start=sent)
+            docs = await asyncio.to_thread(store.iteration_docs, search_id, start=sent)
             for doc in docs:
                 yield _event("iteration", doc)
             sent += len(docs)

@@ -210,7 +210,7 @@ class FreeSearchLoop:
         try:
             return await self._solve(search, image, writes)
         finally:
-            writes.flush()
+            await writes.flush()
 
     async def _detect(self, search: Search, image: bytes) -> DetectResponse:
         sid = search.id
@@ -246,13 +246,11 @@ class FreeSearchLoop:
             raise unreadable_answer(exc) from exc
         return answer, (time.perf_counter() - t0) * 1000
 
-    def _fail_without_pose(
-        self, writes: Writes, search: Search, seen: DetectResponse | None, detail: str, slug: str
+    async def _fail_without_pose(
+        self, writes: Writes, seen: DetectResponse | None, detail: str, slug: str
     ) -> NoReturn:
         if seen is not None:
-            self.store.update(
-                search.id, writes.lease, target_detections=seen.detections, target_model=seen.model
-            )
+            await writes.update(target_detections=seen.detections, target_model=seen.model)
         title = "Nothing to search for" if slug == "no-target-objects" else "No camera pose"
         raise failure(slug, title, detail, status=422)
 
@@ -266,18 +264,20 @@ class FreeSearchLoop:
                 "the detector found no objects in the target image: a photo showing some of "
                 "the scene's objects (at least 3 for a pose, 4 without intrinsics)"
             )
-            self._fail_without_pose(writes, search, seen, detail, "no-target-objects")
+            await self._fail_without_pose(writes, seen, detail, "no-target-objects")
         answer, optimize_ms = await self._ask(search, target, size)
         if answer.pose is None:
-            self._fail_without_pose(writes, search, seen, answer.reason, "no-free-pose")
+            await self._fail_without_pose(writes, seen, answer.reason, "no-free-pose")
         candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
         history = list(search.iterations)
         if history and history[-1].done:  # finished by an older run, no result recorded
             unrefined = "no dense refinement (resumed after its render)"
-            return writes.succeed(refined_result(_result(answer, history, grid), unrefined, grid))
+            return await writes.succeed(
+                refined_result(_result(answer, history, grid), unrefined, grid)
+            )
         budget = min(len(candidates), search.max_iterations)
         for k in range(len(history), budget):
-            writes.flush()
+            await writes.flush()
             seen_view = await self._render_and_compare(search, scene, (target, size), candidates[k])
             step = _Step(k, len(candidates), answer.status != "found", optimize_ms)
             following = candidates[k + 1] if k + 1 < budget else None
@@ -286,7 +286,7 @@ class FreeSearchLoop:
             history.append(iteration)
             if iteration.done:
                 writes.hold(iteration, seen)
-                writes.flush()  # recorded while the render's edges are fitted
+                await writes.flush()  # recorded while the render's edges are fitted
                 outcome = await refine_by_render(
                     self.stages, self.outages, search, image, candidates[k], seen_view.archive
                 )
@@ -294,10 +294,10 @@ class FreeSearchLoop:
                     search, scene, (target, size), image, outcome, len(history)
                 )
                 result = refined_result(_result(answer, history, grid), outcome, grid)
-                return writes.succeed(with_refit_renders(result, extra))
+                return await writes.succeed(with_refit_renders(result, extra))
             writes.hold(iteration, seen)
             seen = None
-        return writes.succeed(_result(answer, history, grid))
+        return await writes.succeed(_result(answer, history, grid))
 
     async def _refit(
         self,

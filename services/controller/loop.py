@@ -184,7 +184,7 @@ class SearchLoop:
             # step, then (before Python 3.12) aiohttp writes the body from a task of its own.
             for _ in range(3):
                 await asyncio.sleep(0)
-            writes.flush()
+            await writes.flush()
             return await observing
         finally:
             if not observing.done():
@@ -200,7 +200,7 @@ class SearchLoop:
         try:
             return await self._iterate(search, image, writes)
         finally:
-            writes.flush()  # what is done is recorded before a failure or a cancellation
+            await writes.flush()  # what is done is recorded before a failure or a cancellation
 
     async def _iterate(self, search: Search, image: bytes, writes: Writes) -> SearchResult:
         """The search loop. From the start pose (or where a resumed search stopped):
@@ -217,33 +217,34 @@ class SearchLoop:
         """
         progress = await self._begin(search, image)
         if progress.finished:  # by an older controller, which recorded no result
-            return writes.succeed(_result_of(progress.history[-1], progress.renders))
+            return await writes.succeed(_result_of(progress.history[-1], progress.renders))
         pose = progress.pose
         if predicts_start(progress):  # no start given: the target says where to look first
             pose = await self.start.first_pose(progress, image)
-            self._target(progress, writes)  # nothing detected in the target fails before any render
+            # nothing detected in the target fails before any render
+            await self._target(progress, writes)
         while pose is not None and len(progress.history) < search.max_iterations:
             started = time.perf_counter()
             view, render_ms, detect_ms = await self._look(progress, pose, image, writes)
-            target = self._target(progress, writes)
+            target = await self._target(progress, writes)
             answer, optimize_ms = await self._ask_optimizer(progress, target, pose, view)
             timings = _timings(render_ms, detect_ms, optimize_ms, started)
             iteration = progress.add(pose, view, answer, timings)
             new_target = progress.take_unrecorded_target()
             if answer.done:
                 result = _result_of(iteration, progress.renders)
-                return writes.succeed(result, iteration, new_target)
+                return await writes.succeed(result, iteration, new_target)
             if answer.stuck:
                 why = (
                     f"the {search.strategy} strategy kept coming back to the same poses "
                     f"after {len(progress.history)} views"
                 )
                 result = _best_visited(progress.history, progress.renders, why)
-                return writes.succeed(result, iteration, new_target)
+                return await writes.succeed(result, iteration, new_target)
             writes.hold(iteration, new_target)
             pose = answer.next
         why = f"no view matched the target within {search.max_iterations} views"
-        return writes.succeed(_best_visited(progress.history, progress.renders, why))
+        return await writes.succeed(_best_visited(progress.history, progress.renders, why))
 
     async def _begin(self, search: Search, image: bytes) -> Progress:
         """The search's scene and grid, and what it recorded before (nothing when new). A search
@@ -275,7 +276,7 @@ class SearchLoop:
         meanwhile. Returns the view, render and detect milliseconds (0 for a view seen before)."""
         seen_before = progress.views.get(at(pose))
         if seen_before is not None:
-            writes.flush()
+            await writes.flush()
             return seen_before, 0.0, 0.0
         target_image = image if progress.target is None else None
         view, seen, render_ms, detect_ms = await self._observe_while(
@@ -285,11 +286,11 @@ class SearchLoop:
             progress.saw_target(seen)
         return view, render_ms, detect_ms
 
-    def _target(self, progress: Progress, writes: Writes) -> TargetImage:
+    async def _target(self, progress: Progress, writes: Writes) -> TargetImage:
         """What the optimizer looks for; fails the search (recording the empty detections) when
         the detector found nothing in the target image."""
         if not progress.target:
-            self.store.update(progress.search.id, writes.lease, target_detections=progress.target)
+            await writes.update(target_detections=progress.target)
             raise failure(
                 "no-target-objects",
                 "Nothing to search for",

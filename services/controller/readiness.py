@@ -43,10 +43,14 @@ class ControllerReadiness:
         return [reason for reason in (database, *stages) if reason]
 
     async def _database(self) -> str:
+        """A database that does not answer within :data:`PROBE_TIMEOUT_S` (a partition: the
+        ping's thread waits for it longer) is not ready, as one that refuses is."""
         try:
-            await asyncio.to_thread(self.store.database.ping)
-        except DatabaseUnavailable as exc:
-            _log.warning("readiness: the database does not answer (%s)", exc)
+            await asyncio.wait_for(
+                asyncio.to_thread(self.store.database.ping), timeout=PROBE_TIMEOUT_S
+            )
+        except (DatabaseUnavailable, TimeoutError) as exc:
+            _log.warning("readiness: the database does not answer (%s)", exc or "timed out")
             return "the search database does not answer"
         return ""
 

@@ -227,6 +227,8 @@ class SearchRunner:
         if why is not None:
             raise NotRetryable(why)
         search = self.store.reopen(search_id)
+        if search is None:  # retried through another controller since it was read
+            raise NotRetryable(f"search {search_id} is no longer failed; it was retried already")
         _log.info("retrying search %s", search_id)
         self.submit(search_id)
         self.notifier.publish(search_id)
@@ -257,19 +259,21 @@ class SearchRunner:
             finally:
                 self._running.pop(search_id, None)
 
-    def _lease(self, search_id: str) -> Lease | None:
+    async def _lease(self, search_id: str) -> Lease | None:
         """The lease to run ``search_id`` under (taken now for a search submitted here), or
         None when another controller holds it; always None on SQLite."""
         if self.leases is None:
             return None
-        lease = self._held.get(search_id) or self.leases.take(search_id)
+        # The database is called on threads: one that hangs holds this search only, never the
+        # event loop (and with it the probes and every other search).
+        lease = self._held.get(search_id) or await asyncio.to_thread(self.leases.take, search_id)
         if lease is not None:
             self._held[search_id] = lease
         return lease
 
     async def _run(self, search_id: str) -> None:
         try:
-            lease = self._lease(search_id)
+            lease = await self._lease(search_id)
         except DatabaseUnavailable as exc:
             _log.warning("search %s not started: %s", search_id, exc)
             return
@@ -283,7 +287,7 @@ class SearchRunner:
             if lease is not None:
                 self._held.pop(search_id, None)
                 self._lost.discard(search_id)
-                self._release(lease)
+                await asyncio.to_thread(self._release, lease)
 
     def _release(self, lease: Lease) -> None:
         if self.leases is None:
@@ -294,14 +298,22 @@ class SearchRunner:
             _log.warning("lease of search %s not released: %s", lease.search_id, exc)
 
     async def _run_held(self, search_id: str, lease: Lease | None) -> None:
-        search, image = self._submitted.pop(search_id, None) or (self.store.get(search_id), None)
+        submitted = self._submitted.pop(search_id, None)
+        search: Search | None
+        image: bytes | None
+        if submitted is None:
+            search, image = await asyncio.to_thread(self.store.get, search_id), None
+        else:
+            search, image = submitted
         if search is None or search.status in TERMINAL_STATUSES or search_id in self._cancelled:
             self.stages.forget_early(search_id)
             self._cancelled.discard(search_id)  # its run, the only one to come, is over
             return
         try:
             loop = self.free_loop if search.mode == "free" else self.loop
-            await loop.run(search, image or self.store.image(search_id), lease)
+            if image is None:
+                image = await asyncio.to_thread(self.store.image, search_id)
+            await loop.run(search, image, lease)
         except asyncio.CancelledError:
             if search_id in self._cancelled or search_id in self._lost:
                 return

@@ -45,7 +45,8 @@ class ControllerSettings(ServiceTokenSettings):
     controller_lease_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
     """PostgreSQL only: seconds a controller's lease on a search it runs lasts without a
     heartbeat (renewed every third of it); a controller that dies or is cut off from the
-    database loses its searches to another after this long."""
+    database loses its searches to another after this long. A connection to the database that
+    gets no answer is given up after half of it."""
     controller_broker_heuristic: Heuristic = Heuristic.SHORTEST_EXPECTED
     """How the broker picks a stage's replica for a task."""
     controller_discover_replicas: bool = False

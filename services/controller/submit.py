@@ -39,7 +39,9 @@ than a thread's round trip); a larger one on a thread, one at a time. Under 50 m
 at once, the inserts of their 20 MB images on the loop took 4.4 s of its time (sampled; the
 uploads run in docs/HISTORY.md) and stalled it for seconds: the broker's calls timed out meanwhile.
 One at a time, because the store has one lock: with several inserts queued on it, the loop's
-next store call waited behind all of them (1.6 s, sampled)."""
+next store call waited behind all of them (1.6 s, sampled). On PostgreSQL every image is stored
+on a thread: a write there crosses the network, and a database that hangs must not hold the
+loop."""
 
 RETRY_AFTER_S = 5
 """``Retry-After`` of a 503 while a stage is unavailable (the broker probes it more often)."""
@@ -219,7 +221,7 @@ async def create_search(
             mode=options.mode,
             intrinsics=intrinsics,
         )
-        if len(image) <= INLINE_WRITE_BYTES:
+        if len(image) <= INLINE_WRITE_BYTES and store.database.dialect == "sqlite":
             store.create(record, image, owner=owner, leases=leases)
         else:
             await _store_large(store, record, image, owner, leases)

@@ -142,7 +142,12 @@ async def build_controller(
     hand requests to in-process apps), each with the service token; ``stages_class`` makes the
     stage calls (a benchmark records them with a subclass).
     """
-    database = await asyncio.to_thread(open_database, settings.controller_database_url)
+    database = await asyncio.to_thread(
+        open_database,
+        settings.controller_database_url,
+        # a cut-off controller's connections, and their locks, go before its leases run out
+        dead_after_s=settings.controller_lease_s / 2,
+    )
     store = SearchStore(database)
     keys = KeyStore(database)
     leases = (

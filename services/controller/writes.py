@@ -1,8 +1,13 @@
 """A search's store writes, batched so that they cost the search no time: the running status and
-each iteration are written while the next view renders, and the success once the search ends."""
+each iteration are written while the next view renders, and the success once the search ends.
+
+They run on a worker thread: a database that hangs (a partition, until the connection is given
+up) then holds this search only, never the controller's event loop, its probes and its other
+searches."""
 
 from __future__ import annotations
 
+import asyncio
 from typing import Unpack
 
 from services.common.contracts.detect import DetectResponse
@@ -44,20 +49,27 @@ class Writes:
         flush."""
         self._iteration = (iteration, target)
 
-    def flush(self) -> None:
+    async def flush(self) -> None:
         """Write what waits, and wake the search's followers."""
         if self._running and self._iteration is None:
             return
         if not self._running:
-            self.store.update(self.sid, self.lease, status="running")
+            await asyncio.to_thread(self.store.update, self.sid, self.lease, status="running")
             self._running = True
         if self._iteration is not None:
             iteration, target = self._iteration
-            self.store.add_iteration(self.sid, iteration, self.lease, **_target_changes(target))
+            changes = _target_changes(target)
+            await asyncio.to_thread(
+                self.store.add_iteration, self.sid, iteration, self.lease, **changes
+            )
             self._iteration = None
         self.notifier.publish(self.sid)
 
-    def succeed(
+    async def update(self, **changes: Unpack[SearchChanges]) -> None:
+        """Change the search now (under the lease), on a worker thread."""
+        await asyncio.to_thread(self.store.update, self.sid, self.lease, **changes)
+
+    async def succeed(
         self,
         result: SearchResult,
         final: Iteration | None = None,
@@ -66,10 +78,12 @@ class Writes:
         """Write what waits, then the search's success with ``result``: with its ``final``
         iteration (and the target's detections, when new) if that is not recorded yet. The
         search's followers are woken when its run ends."""
-        self.flush()
+        await self.flush()
         if final is None:
-            self.store.update(self.sid, self.lease, status="succeeded", result=result)
+            await self.update(status="succeeded", result=result)
         else:
             changes = _target_changes(target, status="succeeded", result=result)
-            self.store.add_iteration(self.sid, final, self.lease, **changes)
+            await asyncio.to_thread(
+                self.store.add_iteration, self.sid, final, self.lease, **changes
+            )
         return result

@@ -525,6 +525,8 @@ def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, de
     assert done is not None
     assert done.result is not None
     # as if the run had stopped after recording its last iteration, before its result
+    with store.database.write() as session:
+        session.execute("UPDATE searches SET status = 'failed' WHERE id = ?", ("s1",))
     store.reopen("s1")
     again = FakeStages(detail)
     final = run_stored(store, again)

@@ -23,6 +23,7 @@ from services.controller.store import (
     utcnow,
 )
 from tests.controller.test_database_faults import allow_connections
+from tests.controller.test_retention import OUTAGE_ERROR
 from tests.controller.test_runner import PNG, FakeStages
 from tests.controller.test_store import iteration, search
 
@@ -60,7 +61,7 @@ def test_one_lease_at_a_time_and_stale_writes_are_refused(url, opened):
 
     theirs.release(second)  # its run ended unfinished: claimable at once, never generation 2
     assert mine.claim(10) == [Lease("s", 3)]
-    other.update("s", status="cancelled")  # through any controller: the holder hears of it
+    other.update("s", status="failed", error=OUTAGE_ERROR)  # through any: the holder hears
     assert mine.renew([Lease("s", 3)]) == []
     assert mine.claim(10) == []  # finished searches are not claimed
     mine.release(Lease("s", 3))  # its run stopped

@@ -24,7 +24,7 @@ def hold(app, monkeypatch) -> None:
     monkeypatch.setattr(
         state.runner,
         "submit",
-        lambda search_id, recorded=None: state.stages.forget_early(search_id),
+        lambda search_id, recorded=None, leased=False: state.stages.forget_early(search_id),
     )
 
 

@@ -35,7 +35,7 @@ def held(controller, monkeypatch):
     monkeypatch.setattr(
         state.runner,
         "submit",
-        lambda search_id, recorded=None: state.stages.forget_early(search_id),
+        lambda search_id, recorded=None, leased=False: state.stages.forget_early(search_id),
     )
     return controller
 

@@ -15,8 +15,8 @@ A cluster is its hosts, one :class:`HostSpec` line each; adding a host is adding
 
 Roles start tier by tier (stages, then controllers), each tier once the one before is healthy,
 so a second controller is ``HostSpec("controller-2", CONTROLLER)``. A database of its own (the
-PostgreSQL store) is a :class:`Role` of tier 0 whose :meth:`Role.spawn` starts its server on the
-host's address, plus ``database_url=`` naming that address; every controller gets the same.
+PostgreSQL store, :mod:`tests.hosts.database`) runs on a host added to the network before the
+cluster starts, and ``database_url=`` names its address; every controller gets the same.
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ from pathlib import Path
 
 from cosmos.launch import ServiceProcess, spawn_service, stop_service, wait_healthy
 from services.common.auth import TOKEN_VARIABLE, new_token
-from services.controller.keys import local_key
+from services.controller.keys import KeyStore, local_key
+from services.controller.store import is_postgres_url
 from tests.hosts.network import Host, Network
 
 __all__ = [
@@ -176,6 +177,12 @@ class Cluster:
     @property
     def api_key(self) -> str:
         """The database's local admin key (made on first use)."""
+        if self._api_key is None and is_postgres_url(self.database_url):
+            keys = KeyStore(self.database_url)  # a shared database has no local key file
+            try:
+                self._api_key = keys.create("hosts test", admin=True)[1]
+            finally:
+                keys.close()
         if self._api_key is None:
             self._api_key = local_key(self.database_url)
         return self._api_key

@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from tests.hosts.network import Network, namespace_problem
+from tests.hosts.network import Addressing, Network, namespace_problem
 from tests.support import skip_unless_on_ci
 
 
@@ -24,7 +24,7 @@ def namespaces() -> None:
 def network(namespaces: None) -> Iterator[Network]:
     """A fresh bridge; every host, service and relay on it is gone after the test (and a
     network a killed run left behind is removed when the next one opens)."""
-    net = Network()
+    net = Network(Addressing.from_env())
     try:
         net.open()
         yield net

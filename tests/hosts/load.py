@@ -74,22 +74,47 @@ class Searches:
                 continue
         return self._controllers[-1].request(method, path, **request)
 
-    def submit(self, image: bytes, truth: GridIndex, params: Mapping[str, Any]) -> str:
-        answer = self._ask(
-            "POST",
-            "/searches",
-            content=image,
-            headers={"Content-Type": "image/png"},
-            params={key: str(value) for key, value in params.items()},
-        )
+    def submit(
+        self,
+        image: bytes,
+        truth: GridIndex,
+        params: Mapping[str, Any],
+        controller: int | None = None,
+    ) -> str:
+        """Submit a search to the first controller that answers, or to the ``controller``-th."""
+        request: dict[str, Any] = {
+            "content": image,
+            "headers": {"Content-Type": "image/png"},
+            "params": {key: str(value) for key, value in params.items()},
+        }
+        if controller is None:
+            answer = self._ask("POST", "/searches", **request)
+        else:
+            answer = self._controllers[controller].post("/searches", **request)
         assert answer.status_code == 202, answer.text
         search_id: str = answer.json()["id"]
         self.truth[search_id] = truth
         return search_id
 
-    def health(self) -> dict[str, Any]:
-        """The controller's ``/health`` (its replicas by name, with their loads and counts)."""
-        answer = self._ask("GET", "/health")
+    def answered_by_each(self) -> list[int]:
+        """How many searches each controller answers as last seen (any answers any)."""
+        counts = []
+        for client in self._controllers:
+            same = 0
+            for search_id, seen in self.seen.items():
+                answer = client.get(f"/searches/{search_id}")
+                if answer.status_code == 200:
+                    same += Search.model_validate_json(answer.content) == seen
+            counts.append(same)
+        return counts
+
+    def health(self, controller: int | None = None) -> dict[str, Any]:
+        """The ``/health`` of the first controller that answers, or of the ``controller``-th
+        (its replicas by name, with their loads and counts)."""
+        if controller is None:
+            answer = self._ask("GET", "/health")
+        else:
+            answer = self._controllers[controller].get("/health")
         answer.raise_for_status()
         found: dict[str, Any] = answer.json()
         return found
@@ -98,8 +123,8 @@ class Searches:
         """What the controller knows of each replica of ``stage``."""
         return [r for r in self.health()["replicas"] if r["stage"] == stage]
 
-    def replica(self, name: str) -> dict[str, Any]:
-        (found,) = [r for r in self.health()["replicas"] if r["name"] == name]
+    def replica(self, name: str, controller: int | None = None) -> dict[str, Any]:
+        (found,) = [r for r in self.health(controller)["replicas"] if r["name"] == name]
         return found
 
     def refresh(self) -> dict[str, Search]:

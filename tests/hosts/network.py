@@ -1,12 +1,18 @@
 """Hosts of their own on one machine: Linux network namespaces on a bridge, each with its own
 address, whose links can be cut, healed and impaired (latency, loss).
 
-Every name starts with ``cz`` and every address is in 10.251.0.0/24:
+By default (:data:`DEFAULT`; ``COSMOS_TEST_HOSTS_NETWORK=prefix,bridge,subnet`` chooses others,
+e.g. ``cz2,czbr1,10.252.0`` for a second copy of the tree on the same machine) every name starts
+with ``cz`` and every address is in 10.251.0.0/24:
 
 * the bridge ``czbr0``, with 10.251.0.1/24 in this (the root) namespace, so the test reaches
   every host directly;
 * host ``i`` (0, 1, ...) is the namespace ``cz-<name>`` with its loopback up and a veth pair:
   ``czb<i>`` on the bridge, ``czh<i>`` inside the host with 10.251.0.(10 + i)/24.
+
+Two hosts are partitioned from each other, and nobody else (:meth:`Host.partition`), by a
+blackhole route to the other's address in each: new connections between them fail, and what
+their open connections send is dropped, so a call in flight hangs as over a dead path.
 
 A link is cut as a cable is pulled at the switch (``ip link set czb<i> down``): the host keeps
 its address and its sockets, what was in flight is lost, TCP retransmits, and connections
@@ -24,8 +30,9 @@ direction (a round trip gains twice the delay), with ``tc netem`` where the kern
   placed with ``impairable``: it owns the host's service address and delays every chunk it
   forwards (only that service's traffic, not the host's probes to others).
 
-Only one network exists at a time on a machine (a lock file); whatever ``cz*`` it finds when it
-takes the lock was left by a run that died, and is deleted first, its processes killed.
+Only one network exists at a time on a machine (a lock file, whatever the names); whatever
+``cz*`` of its prefix it finds when it takes the lock was left by a run that died, and is
+deleted first, its processes killed.
 """
 
 from __future__ import annotations
@@ -44,25 +51,52 @@ from typing import IO
 from cosmos.launch import ROOT
 
 __all__ = [
-    "BRIDGE",
-    "PREFIX",
-    "SUBNET",
+    "DEFAULT",
+    "Addressing",
     "Host",
     "Network",
     "NetworkError",
     "namespace_problem",
 ]
 
-PREFIX = "cz"
-BRIDGE = "czbr0"
-SUBNET = "10.251.0"
-GATEWAY = f"{SUBNET}.1"
 FIRST_HOST = 10
+ADDRESSING_VARIABLE = "COSMOS_TEST_HOSTS_NETWORK"
 LOCK = Path("/run/lock/cz-hosts.lock")
 # Classic BPF (tc's "bytecode"): A = a random 32-bit number (SKF_AD_OFF + SKF_AD_RANDOM); if
 # A > keep the packet goes to class 1:2 (the pfifo of no room), else to the default class 1:1.
 _RANDOM = 0xFFFFF000 + 56
 _DROP_CLASS = 0x10002
+
+
+@dataclass(frozen=True)
+class Addressing:
+    """The names and addresses of a network: namespaces ``<prefix>-<host>``, veths
+    ``<prefix>b<i>`` and ``<prefix>h<i>``, the bridge, and the /24 ``<subnet>.0``."""
+
+    prefix: str = "cz"
+    bridge: str = "czbr0"
+    subnet: str = "10.251.0"
+
+    @property
+    def gateway(self) -> str:
+        return f"{self.subnet}.1"
+
+    @property
+    def cidr(self) -> str:
+        return f"{self.subnet}.0/24"
+
+    @classmethod
+    def from_env(cls) -> Addressing:
+        """:data:`DEFAULT`, or what ``COSMOS_TEST_HOSTS_NETWORK`` (``prefix,bridge,subnet``)
+        says."""
+        given = os.environ.get(ADDRESSING_VARIABLE, "").strip()
+        if not given:
+            return DEFAULT
+        prefix, bridge, subnet = (part.strip() for part in given.split(","))
+        return cls(prefix, bridge, subnet)
+
+
+DEFAULT = Addressing()
 
 
 class NetworkError(RuntimeError):
@@ -86,7 +120,7 @@ def namespace_problem() -> str | None:
         _run("ip", "-V")
     except (FileNotFoundError, NetworkError) as exc:
         return f"no usable `ip` command (Debian's iproute2): {exc}"
-    probe = f"{PREFIX}-probe-{os.getpid()}"
+    probe = f"{Addressing.from_env().prefix}-probe-{os.getpid()}"
     try:
         _run("ip", "netns", "add", probe)
     except NetworkError as exc:
@@ -151,21 +185,21 @@ class Host:
 
     @property
     def namespace(self) -> str:
-        return f"{PREFIX}-{self.name}"
+        return f"{self.network.addressing.prefix}-{self.name}"
 
     @property
     def address(self) -> str:
-        return f"{SUBNET}.{FIRST_HOST + self.index}"
+        return f"{self.network.addressing.subnet}.{FIRST_HOST + self.index}"
 
     @property
     def bridge_end(self) -> str:
         """The veth on the bridge (the switch's port)."""
-        return f"{PREFIX}b{self.index}"
+        return f"{self.network.addressing.prefix}b{self.index}"
 
     @property
     def host_end(self) -> str:
         """The veth inside the host."""
-        return f"{PREFIX}h{self.index}"
+        return f"{self.network.addressing.prefix}h{self.index}"
 
     def command(self, *argv: str) -> list[str]:
         """``argv`` run inside this host."""
@@ -182,6 +216,16 @@ class Host:
 
     def heal(self) -> None:
         _run("ip", "link", "set", self.bridge_end, "up")
+
+    def partition(self, other: Host) -> None:
+        """Cut this host off from ``other`` alone, both ways, until :meth:`rejoin`."""
+        for one, two in ((self, other), (other, self)):
+            _run(*one.prefix, "ip", "route", "add", "blackhole", f"{two.address}/32")
+
+    def rejoin(self, other: Host) -> None:
+        """Undo :meth:`partition`."""
+        for one, two in ((self, other), (other, self)):
+            _run(*one.prefix, "ip", "route", "del", "blackhole", f"{two.address}/32", check=False)
 
     def impair(self, *, delay_ms: float = 0.0, loss: float = 0.0) -> None:
         """Add ``delay_ms`` one way and lose a fraction ``loss`` of packets in each direction of
@@ -246,7 +290,8 @@ class Network:
 
     ``netem`` says whether this kernel has ``tc netem`` (probed on the bridge when opened)."""
 
-    def __init__(self) -> None:
+    def __init__(self, addressing: Addressing = DEFAULT) -> None:
+        self.addressing = addressing
         self.hosts: dict[str, Host] = {}
         self.netem = False
         self._lock: IO[bytes] | None = None
@@ -257,11 +302,12 @@ class Network:
         self._lock = LOCK.open("ab")
         fcntl.flock(self._lock, fcntl.LOCK_EX)  # another run waits until this one is gone
         try:
-            remove_stale()
-            _run("ip", "link", "add", BRIDGE, "type", "bridge")
-            _run("ip", "addr", "add", f"{GATEWAY}/24", "dev", BRIDGE)
-            _run("ip", "link", "set", BRIDGE, "up")
-            self.netem = _has_netem()
+            remove_stale(self.addressing)
+            bridge = self.addressing.bridge
+            _run("ip", "link", "add", bridge, "type", "bridge")
+            _run("ip", "addr", "add", f"{self.addressing.gateway}/24", "dev", bridge)
+            _run("ip", "link", "set", bridge, "up")
+            self.netem = _has_netem(bridge)
         except BaseException:
             self.close()
             raise
@@ -276,7 +322,7 @@ class Network:
         _run("ip", "netns", "add", host.namespace)
         _run("ip", "link", "add", host.bridge_end, "type", "veth", "peer", "name", host.host_end)
         _run("ip", "link", "set", host.host_end, "netns", host.namespace)
-        _run("ip", "link", "set", host.bridge_end, "master", BRIDGE)
+        _run("ip", "link", "set", host.bridge_end, "master", self.addressing.bridge)
         _run("ip", "link", "set", host.bridge_end, "up")
         inside = host.prefix
         _run(*inside, "ip", "addr", "add", f"{host.address}/24", "dev", host.host_end)
@@ -302,7 +348,7 @@ class Network:
             for host in self.hosts.values():
                 for relay in host.relays:
                     relay.stop()
-            remove_stale()
+            remove_stale(self.addressing)
             self.hosts.clear()
         finally:
             self._lock.close()  # releases the flock
@@ -315,10 +361,10 @@ class Network:
         self.close()
 
 
-def _has_netem() -> bool:
-    tried = _run("tc", "qdisc", "add", "dev", BRIDGE, "root", "netem", "delay", "1ms", check=False)
+def _has_netem(bridge: str) -> bool:
+    tried = _run("tc", "qdisc", "add", "dev", bridge, "root", "netem", "delay", "1ms", check=False)
     if tried.returncode == 0:
-        _run("tc", "qdisc", "del", "dev", BRIDGE, "root", check=False)
+        _run("tc", "qdisc", "del", "dev", bridge, "root", check=False)
     return tried.returncode == 0
 
 
@@ -326,10 +372,12 @@ def _names(lines: Sequence[str]) -> list[str]:
     return [line.split()[0].split("@")[0].rstrip(":") for line in lines if line.strip()]
 
 
-def remove_stale() -> None:
-    """Delete every ``cz*`` namespace (its processes killed first) and ``cz*`` link."""
+def remove_stale(addressing: Addressing = DEFAULT) -> None:
+    """Delete every namespace of ``addressing`` (its processes killed first), its veths and its
+    bridge."""
+    prefix = addressing.prefix
     spaces = _names(_run("ip", "netns", "list", check=False).stdout.splitlines())
-    for space in [s for s in spaces if s.startswith(PREFIX)]:
+    for space in [s for s in spaces if s.startswith(f"{prefix}-")]:
         pids = _run("ip", "netns", "pids", space, check=False).stdout.split()
         for pid in pids:
             try:
@@ -339,8 +387,9 @@ def remove_stale() -> None:
         _wait_gone([int(p) for p in pids if p.isdigit()])
         _run("ip", "netns", "del", space, check=False)
     links = _run("ip", "-o", "link", "show", check=False).stdout.splitlines()
+    ours = (f"{prefix}b", f"{prefix}h", addressing.bridge)
     for link in [line.split(":")[1].strip().split("@")[0] for line in links if ":" in line]:
-        if link.startswith(PREFIX):
+        if link.startswith(ours):
             _run("ip", "link", "del", link, check=False)
 
 

@@ -14,8 +14,8 @@ stages' addresses. Under a bounded load of searches:
 It prints its counts (:mod:`tests.hosts.load`) and asserts them: no search lost, none with an
 iteration recorded twice, every search answered, every search running at the kill resumed.
 
-Two controllers sharing PostgreSQL are two more lines of ``TOPOLOGY`` (a PostgreSQL role and
-``controller-2``: :mod:`tests.hosts.cluster`) and the database's URL.
+Two controllers sharing PostgreSQL on a host of its own, with the same stages, are
+:mod:`tests.hosts.test_shared_hosts`.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from cosmos.launch import ROOT
-from tests.hosts.network import PREFIX, Host, Network
+from tests.hosts.network import Addressing, Host, Network
 
 pytestmark = pytest.mark.hosts
 
@@ -76,7 +76,7 @@ def test_a_host_answers_on_its_address_and_a_cut_link_carries_nothing_until_heal
     network, tmp_path
 ):
     host = network.add_host("web")
-    assert host.address.startswith("10.251.0.")
+    assert host.address.startswith(f"{network.addressing.subnet}.")
     with http_server(host, tmp_path) as url:
         fetch_s(url)
         host.cut()
@@ -132,14 +132,36 @@ def test_loss_drops_about_the_fraction_asked_for(network, say):
     assert 0.6 * sent < received < 0.8 * sent
 
 
+def _reaches(source: Host, url: str) -> bool:
+    """Whether a GET of ``url`` from inside ``source`` answers within a second."""
+    probe = f"import urllib.request; urllib.request.urlopen({url!r}, timeout=1.0)"
+    done = subprocess.run(source.command(sys.executable, "-c", probe), capture_output=True)
+    return done.returncode == 0
+
+
+def test_a_partition_cuts_two_hosts_from_each_other_alone(network, tmp_path):
+    client, server, other = (network.add_host(name) for name in ("client", "db", "other"))
+    with http_server(server, tmp_path) as url:
+        page = f"{url}/demo.yaml"
+        assert _reaches(client, page)
+        client.partition(server)
+        assert not _reaches(client, page)
+        assert _reaches(other, page)
+        client.rejoin(server)
+        assert _reaches(client, page)
+
+
 def test_closing_the_network_leaves_nothing_behind(namespaces):
-    with Network() as net:
+    addressing = Addressing.from_env()
+    prefix = addressing.prefix
+    with Network(addressing) as net:
         net.add_host("a")
         net.add_host("b")
-        assert sum(1 for n in _namespaces() if n.startswith(PREFIX)) == 2
-    assert not [n for n in _namespaces() if n.startswith(PREFIX)]
+        assert sum(1 for n in _namespaces() if n.startswith(f"{prefix}-")) == 2
+    assert not [n for n in _namespaces() if n.startswith(f"{prefix}-")]
     links = subprocess.run(["ip", "-o", "link"], capture_output=True, text=True).stdout
-    assert f": {PREFIX}" not in links
+    assert f": {prefix}b" not in links
+    assert f": {addressing.bridge}" not in links
 
 
 def _namespaces() -> list[str]:

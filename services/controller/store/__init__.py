@@ -43,12 +43,17 @@ __all__ = [
 
 
 def open_database(
-    url: str, *, checkpoint_every_s: float = 1.0, connect_timeout_s: float = 5.0
+    url: str,
+    *,
+    checkpoint_every_s: float = 1.0,
+    connect_timeout_s: float = 5.0,
+    dead_after_s: float = 5.0,
 ) -> Database:
-    """The database of ``url``, migrated: PostgreSQL for ``postgresql://``, else SQLite
-    (``sqlite:///path``; anything else is refused, naming the setting)."""
+    """The database of ``url``, migrated: PostgreSQL for ``postgresql://`` (a connection left
+    without an answer for ``dead_after_s`` is given up), else SQLite (``sqlite:///path``;
+    anything else is refused, naming the setting)."""
     if is_postgres_url(url):
-        return PostgresDatabase(url, connect_timeout_s=connect_timeout_s)
+        return PostgresDatabase(url, connect_timeout_s=connect_timeout_s, dead_after_s=dead_after_s)
     return SqliteDatabase(url, checkpoint_every_s=checkpoint_every_s)
 
 

@@ -254,7 +254,9 @@ class SearchStore:
         search's (:class:`~.leases.LeaseLost`).
 
         A cancelled search stays cancelled: its status, result and error are not changed again
-        (a run winding down after the cancel writes what it did, never over the cancel)."""
+        (a run winding down after the cancel writes what it did, never over the cancel). A
+        cancel of a finished search changes nothing (one that arrives through another
+        controller as the search succeeds leaves the success whole)."""
         with self.database.write() as session:
             return self._update(session, search_id, changes, lease)
 
@@ -275,7 +277,8 @@ class SearchStore:
         if lease is not None:
             fence(session, lease)
         given = {key: value for key, value in changes.items() if value is not None}
-        if row[1] == "cancelled":
+        late_cancel = row[1] in TERMINAL_STATUSES and given.get("status") == "cancelled"
+        if row[1] == "cancelled" or late_cancel:
             given = {k: v for k, v in given.items() if k not in {"status", "result", "error"}}
         search = Search.model_validate_json(row[0]).model_copy(
             update={**given, "updated_at": utcnow()}
@@ -298,13 +301,19 @@ class SearchStore:
         self._changed(session, search_id)
         return search
 
-    def reopen(self, search_id: str) -> Search:
-        """Queue a finished search again: status ``queued``, its error and finish time dropped
-        (it resumes from its recorded iterations); stamps ``updated_at``."""
+    def reopen(self, search_id: str) -> Search | None:
+        """Queue a failed search again: status ``queued``, its error and finish time dropped
+        (it resumes from its recorded iterations); stamps ``updated_at``. None, and nothing
+        changed, when it is no longer failed (another controller retried or deleted it since
+        it was read: a search is reopened once, so it is run once)."""
         with self.database.write() as session:
-            row = session.execute("SELECT doc FROM searches WHERE id = ?", (search_id,)).fetchone()
+            row = session.execute(
+                "SELECT doc FROM searches WHERE id = ? AND status = 'failed'"
+                + (" FOR UPDATE" if self.database.dialect == "postgresql" else ""),
+                (search_id,),
+            ).fetchone()
             if row is None:
-                raise KeyError(search_id)
+                return None
             search = Search.model_validate_json(row[0]).model_copy(
                 update={"status": "queued", "error": None, "updated_at": utcnow()}
             )
