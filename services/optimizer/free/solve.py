@@ -68,7 +68,7 @@ from services.optimizer.free.answer import (
     IntrinsicsUsed,
     PoseCandidate,
 )
-from services.optimizer.free.hypotheses import compatibility, distinct, hypotheses
+from services.optimizer.free.hypotheses import distinct, hypotheses, label_costs
 from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import (
     Intrinsics,
@@ -337,7 +337,8 @@ def solve_free_pose(
     seed : for the sampled minimal sets when there are too many to solve them all.
     """
     labels_all = tuple(d.label for d in detections)
-    compatible_all = compatibility(objects, labels_all)
+    costs_all = label_costs(objects, labels_all)
+    compatible_all = np.isfinite(costs_all)
     boxes_all = np.array([d.box for d in detections], dtype=np.float64).reshape(-1, 4)
     finite = np.all(np.isfinite(boxes_all), axis=1)
     sized = (boxes_all[:, 2] > boxes_all[:, 0]) & (boxes_all[:, 3] > boxes_all[:, 1])
@@ -351,7 +352,10 @@ def solve_free_pose(
     masks = clipped_sides(boxes, width, height)
     given = intrinsics is not None
     k0 = intrinsics if intrinsics is not None else Intrinsics.of_fov(objects.fov_deg, width, height)
-    hyps = hypotheses(objects, boxes, compatible, k0, width, height, seed=seed)
+    scores = np.array([detections[int(i)].confidence for i in index])
+    hyps = hypotheses(
+        objects, boxes, costs_all[index], k0, width, height, confidence=scores, seed=seed
+    )
     fits = []
     for h in hyps[:REFINED_HYPOTHESES]:
         fit = _refined(
@@ -367,7 +371,6 @@ def solve_free_pose(
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else _Fit(fit.fit, fit.detections, fit.objects, "given"))
     if not fits:
-        scores = np.array([detections[int(i)].confidence for i in index])
         few = _few_detections(compatible, np.argsort(-scores, kind="stable"))
         fits = _few(objects, boxes, masks, compatible, few, k0)
         fits = [f if not given else _Fit(f.fit, f.detections, f.objects, "given") for f in fits]
