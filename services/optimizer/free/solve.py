@@ -271,7 +271,8 @@ def _candidate(
         boxes[fit.detections],
         masks[fit.detections],
         fit.fit,
-        NOISE_FLOOR_PX,
+        # the boxes' own scatter when it exceeds the floor (a detector's poor box)
+        max(NOISE_FLOOR_PX, fit.fit.rms_px),
         with_focal=fit.source == "estimated",
     )
     rotation_cw = fit.fit.rotation().T
