@@ -11,17 +11,23 @@ A minimal set is three detections and an assignment of distinct compatible objec
 OpenCV's AP3P (``cv2.solveP3P``, Ke & Roumeliotis 2017) gives up to four poses from the box
 centres against the objects' centroids. Every pose is scored against all detections at once: the
 objects' centroids are projected, each detection may pair with a compatible object whose
-projected centroid lies within its gate (:func:`centre_gate`), and the one-to-one pairing is the
-gated Hungarian assignment of :func:`~services.optimizer.matching.assign`. Poses are ranked by
-their inliers, then by their summed gated cost, and the best distinct ones (more than
-:data:`DISTINCT_POSITION` of the scene radius or :data:`DISTINCT_ROTATION_DEG` apart) are kept.
+projected centroid lies within its gate (:func:`centre_gate`) and whose projected box's diagonal
+is within a factor :data:`SIZE_RATIO` of the detection's (a minimal set of wrong objects puts
+them at wrong depths), and the one-to-one pairing is the gated Hungarian assignment of
+:func:`~services.optimizer.matching.assign`. A second box on a more confident detection's object
+(the general model's two shapes for one object, IoU ≥ ``DUPLICATE_IOU``) is left out of the
+score: one-to-one, it would reward a wrong pose that puts a neighbour under it. Poses are ranked
+by their inliers, then by their summed gated cost; the :data:`REFITTED` best are refitted on
+their pairs' centres (iterative PnP) and scored again; the best distinct ones (more than
+:data:`DISTINCT_POSITION` of the scene radius or :data:`DISTINCT_ROTATION_DEG` apart) with at
+least three pairs are kept.
 
 With at most :data:`MAX_MINIMAL_SOLVES` minimal sets in all, every one is solved (deterministic).
 Beyond it (the general model: every object fits every detection, ``C(D,3)·M(M-1)(M-2)`` sets)
 the detection triples are taken in order of confidence, the most confident triples first
 (ordered by their least confident member, then by the sum of ranks, so that one bad box spoils
-few of them), from the detections that are not a second box on a more confident one's object
-(IoU ≥ :data:`~services.optimizer.observations.DUPLICATE_IOU`), and every assignment of each
+few of them), from the detections that are not a second box on a more confident one's object,
+and every assignment of each
 triple is solved, matching shapes first, until :data:`MAX_MINIMAL_SOLVES` sets; one correct
 triple with its every assignment holds the true pose. The poses are ranked first by a cheap
 vectorised score (each detection's best gated partner, not one-to-one, which never pairs fewer
