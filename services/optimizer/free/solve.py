@@ -272,8 +272,7 @@ def _candidate(
         boxes[fit.detections],
         masks[fit.detections],
         fit.fit,
-        # the boxes' own scatter when it exceeds the floor (a detector's poor box)
-        max(NOISE_FLOOR_PX, fit.fit.rms_px),
+        NOISE_FLOOR_PX,
         with_focal=fit.source == "estimated",
     )
     rotation_cw = fit.fit.rotation().T
