@@ -33,8 +33,7 @@ Status
     * without given intrinsics and too few pairs to fit the focal, the scene camera's field of
       view is assumed, and distance trades against focal length along the view axis;
     * its own uncertainty reaches a wrong answer: ``FIRM_SIGMAS · σ_position > WRONG_POSITION ·
-      r`` or ``FIRM_SIGMAS · σ_rotation > WRONG_ROTATION_DEG`` (``r`` the scene radius; σ with
-      the edge noise at ``max(NOISE_FLOOR_PX, edge RMS)``: a poor box widens it).
+      r`` or ``FIRM_SIGMAS · σ_rotation > WRONG_ROTATION_DEG`` (``r`` the scene radius).
       Measured on free targets of generated scenes (``python -m cosmos.bench.free_targets
       --random-scenes 4``), the error over σ reached about 2 in one answer in ten, and a third of
       ``found`` answers off by more than 10 % / 5° had no given intrinsics.
