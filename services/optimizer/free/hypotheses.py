@@ -64,12 +64,15 @@ __all__ = [
     "centre_gate",
     "compatibility",
     "distinct",
+    "general_labels",
     "hypotheses",
     "label_costs",
     "pose_distance",
 ]
 
-MAX_MINIMAL_SOLVES: Final = 6000
+MAX_MINIMAL_SOLVES: Final = 1500
+MAX_GENERAL_SOLVES: Final = 6000
+"""The cap with the general model's labels (every object fits every detection)."""
 EXACT_SCORES: Final = 400
 """Poses scored exactly (gated Hungarian), the best by the cheap score."""
 SHAPE_CLASSES: Final = frozenset({"sphere", "cube", "cylinder", "cone", "mesh"})
@@ -123,6 +126,8 @@ class _Evidence:
     costs: FloatArray
     intrinsics: Intrinsics
     size: tuple[int, int]
+    general: bool
+    """Whether labels are the general model's (the box sizes are then checked)."""
 
 
 def compatibility(objects: SceneObjects, labels: tuple[str, ...]) -> NDArray[np.bool_]:
@@ -140,11 +145,16 @@ def label_costs(objects: SceneObjects, labels: tuple[str, ...]) -> FloatArray:
     :func:`compatibility` holds; :data:`SHAPE_MISMATCH_COST` where the label is a general-model
     shape class naming no object's identity class or name (module docstring); inf otherwise."""
     out = np.where(compatibility(objects, labels), 0.0, np.inf)
-    own = set(objects.labels) | set(objects.names)
-    for i, label in enumerate(labels):
-        if label in SHAPE_CLASSES and label not in own:
-            out[i, np.isinf(out[i])] = SHAPE_MISMATCH_COST
+    general = general_labels(objects, labels)
+    out[general] = np.where(np.isinf(out[general]), SHAPE_MISMATCH_COST, out[general])
     return out
+
+
+def general_labels(objects: SceneObjects, labels: tuple[str, ...]) -> NDArray[np.bool_]:
+    """(D,) whether each label is the general model's: a shape class that names no object's
+    identity class or name."""
+    own = set(objects.labels) | set(objects.names)
+    return np.array([x in SHAPE_CLASSES and x not in own for x in labels], dtype=np.bool_)
 
 
 def centre_gate(boxes: ArrayLike, width: int, height: int) -> FloatArray:
@@ -195,7 +205,11 @@ def _seeds(boxes: FloatArray, order: NDArray[np.intp], usable: list[int]) -> lis
 
 
 def _minimal_sets(
-    costs: FloatArray, boxes: FloatArray, order: NDArray[np.intp], rng: np.random.Generator
+    costs: FloatArray,
+    boxes: FloatArray,
+    order: NDArray[np.intp],
+    rng: np.random.Generator,
+    general: bool,
 ) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
     """(detections, objects) triples: all of them up to :data:`MAX_MINIMAL_SOLVES`, else every
     assignment of the most confident detection triples, up to that many (module docstring)."""
@@ -204,27 +218,36 @@ def _minimal_sets(
     candidates = [np.flatnonzero(row) for row in compatible]
     triples = list(itertools.combinations(usable, 3))
     counts = [math.prod(len(candidates[i]) for i in t) for t in triples]
-    if sum(counts) <= MAX_MINIMAL_SOLVES:
+    cap = MAX_GENERAL_SOLVES if general else MAX_MINIMAL_SOLVES
+    if sum(counts) <= cap:
         return [
             (tuple(t), objs)
             for t in triples
             for objs in itertools.product(*(candidates[i].tolist() for i in t))
             if len(set(objs)) == 3
         ]
+    if not general:
+        sampled: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
+        for _ in range(MAX_MINIMAL_SOLVES):
+            t = triples[int(rng.integers(len(triples)))]
+            picked = tuple(int(rng.choice(candidates[i])) for i in t)
+            if len(set(picked)) == 3:
+                sampled.append((t, picked))
+        return sampled
     seeds = _seeds(boxes, order, usable)
     ranked = sorted(itertools.combinations(range(len(seeds)), 3), key=lambda t: (t[2], sum(t)))
     sets: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
     for ranks in ranked:
-        t = tuple(seeds[r] for r in ranks)
+        dets = tuple(seeds[r] for r in ranks)
         objs = np.array(
-            [a for a in itertools.product(*(candidates[i] for i in t)) if len(set(a)) == 3],
+            [a for a in itertools.product(*(candidates[i] for i in dets)) if len(set(a)) == 3],
             dtype=np.intp,
         ).reshape(-1, 3)
         objs = objs[rng.permutation(len(objs))]
-        price = costs[t[0], objs[:, 0]] + costs[t[1], objs[:, 1]] + costs[t[2], objs[:, 2]]
-        objs = objs[np.argsort(price, kind="stable")][: MAX_MINIMAL_SOLVES - len(sets)]
-        sets += [(t, (int(a), int(b), int(c))) for a, b, c in objs]
-        if len(sets) >= MAX_MINIMAL_SOLVES:
+        price = sum(costs[d, objs[:, n]] for n, d in enumerate(dets))
+        objs = objs[np.argsort(price, kind="stable")][: cap - len(sets)]
+        sets += [(dets, (int(a), int(b), int(c))) for a, b, c in objs]
+        if len(sets) >= cap:
             break
     return sets
 
@@ -315,7 +338,8 @@ def _score(
     """The pose's gated Hungarian pairs (module docstring), box sizes checked (:func:`_sized`)."""
     rotation = np.asarray(cv2.Rodrigues(rvec)[0], dtype=np.float64)
     cost = _centre_costs(objects, evidence, (rotation[np.newaxis], tvec[np.newaxis]))[0]
-    cost[~_sized(objects, evidence, rotation, tvec)] = np.inf
+    if evidence.general:
+        cost[~_sized(objects, evidence, rotation, tvec)] = np.inf
     pairs = assign(cost, _UNPAIRED)
     unpaired = len(evidence.centres) - len(pairs)
     return Hypothesis(
@@ -336,6 +360,7 @@ def hypotheses(
     height: int,
     *,
     confidence: ArrayLike | None = None,
+    general: bool = False,
     keep: int = 8,
     seed: int = 0,
 ) -> list[Hypothesis]:
@@ -343,7 +368,10 @@ def hypotheses(
     best first; empty when fewer than three detections have a compatible object.
 
     ``costs`` is :func:`label_costs` (or :func:`compatibility`'s booleans: no cost where
-    true), ``confidence`` the detections' (it orders the triples when they are sampled)."""
+    true), ``confidence`` the detections' (it orders the triples when they are sampled);
+    ``general`` when labels are the general model's (:func:`general_labels`): only then are the
+    triples ordered, duplicates left out, poses ranked cheaply first, sizes checked and the
+    best refitted (with a scene's own detector every pose is scored exactly, as before)."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     c = np.asarray(costs)
     label_cost = np.where(c, 0.0, np.inf) if c.dtype == np.bool_ else c.astype(np.float64)
@@ -353,7 +381,7 @@ def hypotheses(
     score = np.ones(len(b)) if confidence is None else np.asarray(confidence, dtype=np.float64)
     order = np.argsort(-score, kind="stable")
     rvecs, tvecs = [], []
-    for dets, objs in _minimal_sets(label_cost, b, order, np.random.default_rng(seed)):
+    for dets, objs in _minimal_sets(label_cost, b, order, np.random.default_rng(seed), general):
         count, rs, ts = cv2.solveP3P(
             objects.centroids[list(objs)],
             centres[list(dets)],
@@ -372,22 +400,31 @@ def hypotheses(
         -np.einsum("nji,nj->ni", rotations, t_all)[:, 2] > 0.0
     )
     r_all, t_all, rotations = r_all[above], t_all[above], rotations[above]
+    evidence = _Evidence(b, centres, gates, label_cost, intrinsics, (width, height), general)
+    if not general:
+        scored = [_score(objects, evidence, r, t) for r, t in zip(r_all, t_all, strict=True)]
+        return _best(scored, objects.radius, keep, 0)
     # Second boxes on one object (the general model's two shapes) take no part in the score:
     # one-to-one, they would pair with two neighbouring objects at a wrong pose.
     seeds = _seeds(b, order, list(range(len(b))))
     label_cost[np.setdiff1d(np.arange(len(b)), seeds)] = np.inf
-    evidence = _Evidence(b, centres, gates, label_cost, intrinsics, (width, height))
     pairs, total = _cheap(objects, evidence, (rotations, t_all))
     best_first = np.lexsort((total, -pairs))[:EXACT_SCORES]
     scored = [_score(objects, evidence, r_all[i], t_all[i]) for i in best_first]
     scored.sort(key=lambda h: (-h.inliers, h.cost))
     scored = [_refit(objects, evidence, h) for h in scored[:REFITTED]] + scored[REFITTED:]
+    # fewer than three pairs: the gates or the sizes undid its own minimal set
+    return _best(scored, objects.radius, keep, 3)
+
+
+def _best(scored: list[Hypothesis], radius: float, keep: int, least: int) -> list[Hypothesis]:
+    """The best ``keep`` distinct hypotheses with at least ``least`` pairs, best first."""
     scored.sort(key=lambda h: (-h.inliers, h.cost))
     best: list[Hypothesis] = []
     for h in scored:
-        if h.inliers < 3:  # the gates or the sizes undid its own minimal set
+        if h.inliers < least:
             break
-        if all(distinct((h.rvec, h.tvec), (o.rvec, o.tvec), objects.radius) for o in best):
+        if all(distinct((h.rvec, h.tvec), (o.rvec, o.tvec), radius) for o in best):
             best.append(h)
             if len(best) == keep:
                 break
