@@ -342,12 +342,27 @@ def test_the_edge_jacobian_is_the_finite_difference_one(scenes, fit_focal):
     assert np.allclose(analytic, numeric, atol=1e-5 * np.abs(numeric).max())
 
 
-def test_more_boxes_than_objects_of_their_label_stay_ambiguous(scenes):
-    """Every box labelled ``mesh`` in a scene of two meshes: two distinct objects at most, so
-    an ambiguous answer, not a failure and never a found pose."""
+def test_a_general_model_label_is_evidence_not_proof(scenes):
+    """Every box labelled ``mesh`` in a scene of two meshes, as the general model labels shapes
+    it never saw: the label does not forbid the other objects, so the exact boxes still give
+    the exact pose, each box paired with its own object."""
     objects = scenes["garden"]
     pinhole = free_pinhole_camera(CAMERAS["hemisphere"], W, H, objects.fov_deg)
-    dets = [d.model_copy(update={"label": "mesh"}) for d in exact_detections(objects, pinhole)]
+    exact = exact_detections(objects, pinhole)
+    dets = [d.model_copy(update={"label": "mesh"}) for d in exact]
     answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
-    assert answer.status == "ambiguous", answer.reason
-    assert answer.pose.inliers <= 2
+    assert_exact(answer, pinhole, objects.radius, "found")
+    for pair in answer.pose.correspondences:
+        assert pair.object == objects.names[exact[pair.detection].class_id]
+
+
+def test_an_identity_label_still_forbids_other_objects(scenes):
+    """A scene's own detector's label is the object: boxes labelled with one identity class
+    pair only with that class's objects (one here), so the answer cannot be found."""
+    objects = scenes["garden"]
+    pinhole = free_pinhole_camera(CAMERAS["hemisphere"], W, H, objects.fov_deg)
+    label = objects.labels[0]
+    dets = [d.model_copy(update={"label": label}) for d in exact_detections(objects, pinhole)]
+    answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
+    assert answer.status != "found", answer.reason
+    assert answer.pose is None or answer.pose.inliers <= objects.labels.count(label)

@@ -1,20 +1,37 @@
 """Pose hypotheses from the target's boxes alone: RANSAC over minimal sets and their assignments.
 
-Which object a detection is comes from its label: a scene's own detector names the object's
-identity class (look-alikes share one), the general model names its shape. So each detection
-``i`` has a set of compatible objects ``J_i``, a single one when its label is unique.
+Which object a detection is comes from its label (:func:`label_costs`): a scene's own detector
+names the object's identity class (look-alikes share one), so each detection ``i`` has a set of
+compatible objects ``J_i``, a single one when its label is unique. The general model names a
+shape class, which it gets wrong on shapes it never saw (a generated scene's meshes come out as
+cubes, cylinders or spheres, a sphere as a cone): its label is evidence, not proof, so such a
+detection may be any object, one of another shape costing :data:`SHAPE_MISMATCH_COST` more.
 
 A minimal set is three detections and an assignment of distinct compatible objects to them;
 OpenCV's AP3P (``cv2.solveP3P``, Ke & Roumeliotis 2017) gives up to four poses from the box
 centres against the objects' centroids. Every pose is scored against all detections at once: the
 objects' centroids are projected, each detection may pair with a compatible object whose
-projected centroid lies within its gate (:func:`centre_gate`), and the one-to-one pairing is the
-gated Hungarian assignment of :func:`~services.optimizer.matching.assign`. Poses are ranked by
-their inliers, then by their summed gated cost, and the best distinct ones (more than
-:data:`DISTINCT_POSITION` of the scene radius or :data:`DISTINCT_ROTATION_DEG` apart) are kept.
+projected centroid lies within its gate (:func:`centre_gate`) and whose projected box's diagonal
+is within a factor :data:`SIZE_RATIO` of the detection's (a minimal set of wrong objects puts
+them at wrong depths), and the one-to-one pairing is the gated Hungarian assignment of
+:func:`~services.optimizer.matching.assign`. A second box on a more confident detection's object
+(the general model's two shapes for one object, IoU ≥ ``DUPLICATE_IOU``) is left out of the
+score: one-to-one, it would reward a wrong pose that puts a neighbour under it. Poses are ranked
+by their inliers, then by their summed gated cost; the :data:`REFITTED` best are refitted on
+their pairs' centres (iterative PnP) and scored again; the best distinct ones (more than
+:data:`DISTINCT_POSITION` of the scene radius or :data:`DISTINCT_ROTATION_DEG` apart) with at
+least three pairs are kept.
 
-With at most :data:`MAX_MINIMAL_SOLVES` minimal sets in all, every one is solved (deterministic);
-beyond it a seeded random sample of that many is.
+With at most :data:`MAX_MINIMAL_SOLVES` minimal sets in all, every one is solved (deterministic).
+Beyond it (the general model: every object fits every detection, ``C(D,3)·M(M-1)(M-2)`` sets)
+the detection triples are taken in order of confidence, the most confident triples first
+(ordered by their least confident member, then by the sum of ranks, so that one bad box spoils
+few of them), from the detections that are not a second box on a more confident one's object,
+and every assignment of each
+triple is solved, matching shapes first, until :data:`MAX_MINIMAL_SOLVES` sets; one correct
+triple with its every assignment holds the true pose. The poses are ranked first by a cheap
+vectorised score (each detection's best gated partner, not one-to-one, which never pairs fewer
+than the exact score), and the :data:`EXACT_SCORES` best get the exact gated Hungarian score.
 
 A pose whose camera is below the ground (``z ≤ 0``) is dropped: the ground is opaque and the
 renderer refuses such cameras. This removes the mirror twin that coplanar centroids (every
@@ -31,11 +48,13 @@ from typing import Final
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
-from services.optimizer.free.objects import SceneObjects
+from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import assign
+from services.optimizer.observations import DUPLICATE_IOU
 
 __all__ = [
     "DISTINCT_POSITION",
@@ -45,17 +64,36 @@ __all__ = [
     "centre_gate",
     "compatibility",
     "distinct",
+    "general_labels",
     "hypotheses",
+    "label_costs",
     "pose_distance",
 ]
 
 MAX_MINIMAL_SOLVES: Final = 1500
+MAX_GENERAL_SOLVES: Final = 6000
+"""The cap with the general model's labels (every object fits every detection)."""
+EXACT_SCORES: Final = 400
+"""Poses scored exactly (gated Hungarian), the best by the cheap score."""
+SHAPE_CLASSES: Final = frozenset({"sphere", "cube", "cylinder", "cone", "mesh"})
+"""The general model's labels."""
+SHAPE_MISMATCH_COST: Final = 0.25
+"""Pairing cost, in gate units, of a general-model detection with an object of another shape:
+a quarter of the gate, so that where two objects fit, the one of the named shape wins."""
 DISTINCT_POSITION: Final = 0.05
 """Two poses are distinct when their camera centres are this share of the scene radius apart…"""
 DISTINCT_ROTATION_DEG: Final = 5.0
 """…or their orientations this many degrees apart."""
 GATE_BOX_FRACTION: Final = 0.5
 GATE_IMAGE_FRACTION: Final = 0.03
+SIZE_RATIO: Final = 1.6
+"""A detection pairs only with an object whose projected box's diagonal is within this factor
+of its own (a minimal set of wrong objects puts them at wrong depths)."""
+REFITTED: Final = 48
+"""The best hypotheses refitted on their pairs before the distinct ones are picked."""
+REFITS: Final = 2
+_UNPAIRED: Final = 1.0 + SHAPE_MISMATCH_COST
+"""An unpaired detection's cost: no pair costs more."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +116,20 @@ class Hypothesis:
         return c
 
 
+@dataclass(frozen=True)
+class _Evidence:
+    """The target's boxes, their centres and gates, the label costs, the camera and film."""
+
+    boxes: FloatArray
+    centres: FloatArray
+    gates: FloatArray
+    costs: FloatArray
+    intrinsics: Intrinsics
+    size: tuple[int, int]
+    general: bool
+    """Whether labels are the general model's (the box sizes are then checked)."""
+
+
 def compatibility(objects: SceneObjects, labels: tuple[str, ...]) -> NDArray[np.bool_]:
     """(D, M): may detection ``i`` be object ``j``? Its label is the object's identity class,
     its shape (the general model) or its name."""
@@ -86,6 +138,23 @@ def compatibility(objects: SceneObjects, labels: tuple[str, ...]) -> NDArray[np.
         for j in range(len(objects)):
             out[i, j] = label in (objects.labels[j], objects.shapes[j], objects.names[j])
     return out
+
+
+def label_costs(objects: SceneObjects, labels: tuple[str, ...]) -> FloatArray:
+    """(D, M) extra cost (gate units) of pairing detection ``i`` with object ``j``: 0 where
+    :func:`compatibility` holds; :data:`SHAPE_MISMATCH_COST` where the label is a general-model
+    shape class naming no object's identity class or name (module docstring); inf otherwise."""
+    out = np.where(compatibility(objects, labels), 0.0, np.inf)
+    general = general_labels(objects, labels)
+    out[general] = np.where(np.isinf(out[general]), SHAPE_MISMATCH_COST, out[general])
+    return out
+
+
+def general_labels(objects: SceneObjects, labels: tuple[str, ...]) -> NDArray[np.bool_]:
+    """(D,) whether each label is the general model's: a shape class that names no object's
+    identity class or name."""
+    own = set(objects.labels) | set(objects.names)
+    return np.array([x in SHAPE_CLASSES and x not in own for x in labels], dtype=np.bool_)
 
 
 def centre_gate(boxes: ArrayLike, width: int, height: int) -> FloatArray:
@@ -120,79 +189,200 @@ def distinct(
     return moved > DISTINCT_POSITION * radius or turned > DISTINCT_ROTATION_DEG
 
 
+def _seeds(boxes: FloatArray, order: NDArray[np.intp], usable: list[int]) -> list[int]:
+    """The usable detections in ``order`` (most confident first), less the second boxes on a
+    kept one's object (IoU ≥ ``DUPLICATE_IOU``)."""
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    kept: list[int] = []
+    for i in (int(i) for i in order if int(i) in usable):
+        lo = np.maximum(boxes[kept, :2], boxes[i, :2])
+        hi = np.minimum(boxes[kept, 2:], boxes[i, 2:])
+        inter = np.prod(np.clip(hi - lo, 0.0, None), axis=1)
+        iou = inter / np.maximum(area[kept] + area[i] - inter, 1e-12)
+        if not np.any(iou >= DUPLICATE_IOU):
+            kept.append(i)
+    return kept
+
+
 def _minimal_sets(
-    compatible: NDArray[np.bool_], rng: np.random.Generator
+    costs: FloatArray,
+    boxes: FloatArray,
+    order: NDArray[np.intp],
+    rng: np.random.Generator,
+    general: bool,
 ) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
-    """(detections, objects) triples: all of them up to :data:`MAX_MINIMAL_SOLVES`, else a
-    seeded sample of that many."""
+    """(detections, objects) triples: all of them up to :data:`MAX_MINIMAL_SOLVES`, else every
+    assignment of the most confident detection triples, up to that many (module docstring)."""
+    compatible = np.isfinite(costs)
     usable = [i for i in range(len(compatible)) if compatible[i].any()]
     candidates = [np.flatnonzero(row) for row in compatible]
     triples = list(itertools.combinations(usable, 3))
     counts = [math.prod(len(candidates[i]) for i in t) for t in triples]
-    if sum(counts) <= MAX_MINIMAL_SOLVES:
+    cap = MAX_GENERAL_SOLVES if general else MAX_MINIMAL_SOLVES
+    if sum(counts) <= cap:
         return [
             (tuple(t), objs)
             for t in triples
             for objs in itertools.product(*(candidates[i].tolist() for i in t))
             if len(set(objs)) == 3
         ]
+    if not general:
+        sampled: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
+        for _ in range(MAX_MINIMAL_SOLVES):
+            t = triples[int(rng.integers(len(triples)))]
+            picked = tuple(int(rng.choice(candidates[i])) for i in t)
+            if len(set(picked)) == 3:
+                sampled.append((t, picked))
+        return sampled
+    seeds = _seeds(boxes, order, usable)
+    ranked = sorted(itertools.combinations(range(len(seeds)), 3), key=lambda t: (t[2], sum(t)))
     sets: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
-    for _ in range(MAX_MINIMAL_SOLVES):
-        t = triples[int(rng.integers(len(triples)))]
-        objs = tuple(int(rng.choice(candidates[i])) for i in t)
-        if len(set(objs)) == 3:
-            sets.append((t, objs))
+    for ranks in ranked:
+        dets = tuple(seeds[r] for r in ranks)
+        objs = np.array(
+            [a for a in itertools.product(*(candidates[i] for i in dets)) if len(set(a)) == 3],
+            dtype=np.intp,
+        ).reshape(-1, 3)
+        objs = objs[rng.permutation(len(objs))]
+        price = sum(costs[d, objs[:, n]] for n, d in enumerate(dets))
+        objs = objs[np.argsort(price, kind="stable")][: cap - len(sets)]
+        sets += [(dets, (int(a), int(b), int(c))) for a, b, c in objs]
+        if len(sets) >= cap:
+            break
     return sets
 
 
-def _score(
-    objects: SceneObjects,
-    centres: FloatArray,
-    gates: FloatArray,
-    compatible: NDArray[np.bool_],
-    rvec: FloatArray,
-    tvec: FloatArray,
-    intrinsics: Intrinsics,
-) -> Hypothesis:
-    rotation, _ = cv2.Rodrigues(rvec)
-    cam = objects.centroids @ rotation.T + tvec
+def _gated(dist: FloatArray, costs: FloatArray) -> FloatArray:
+    """Pair costs: the centre distance in gate units plus the label's cost, inf past the gate."""
+    out: FloatArray = np.where(dist < 1.0, dist + costs, np.inf)
+    return out
+
+
+def _centre_costs(
+    objects: SceneObjects, evidence: _Evidence, poses: tuple[FloatArray, FloatArray]
+) -> FloatArray:
+    """(N, D, M) :func:`_gated` cost of every detection and object at every pose (``R``
+    (N, 3, 3), ``t`` (N, 3)); inf for an object behind the camera."""
+    centres, gates, intrinsics = evidence.centres, evidence.gates, evidence.intrinsics
+    rotations, tvecs = poses
+    cam = np.einsum("nij,mj->nmi", rotations, objects.centroids) + tvecs[:, np.newaxis, :]
+    with np.errstate(all="ignore"):  # a centroid in the camera's plane: inf, out of the gate
+        pix = cam[..., :2] / cam[..., 2:3] * (intrinsics.fx, intrinsics.fy)
+        pix += (intrinsics.cx, intrinsics.cy)
+        dist = np.linalg.norm(centres[np.newaxis, :, np.newaxis, :] - pix[:, np.newaxis], axis=-1)
+    cost = _gated(dist / gates[:, np.newaxis], evidence.costs[np.newaxis])
+    cost[np.broadcast_to((cam[..., 2] <= 0.0)[:, np.newaxis, :], cost.shape)] = np.inf
+    return cost
+
+
+def _cheap(
+    objects: SceneObjects, evidence: _Evidence, poses: tuple[FloatArray, FloatArray]
+) -> tuple[NDArray[np.intp], FloatArray]:
+    """(N,) pairs and cost of every pose (``R`` (N, 3, 3), ``t`` (N, 3)) when each detection
+    takes its best gated partner (not one-to-one: never fewer pairs than :func:`_score`)."""
+    cost = _centre_costs(objects, evidence, poses)
+    best = np.nan_to_num(cost.min(axis=2), nan=np.inf, posinf=np.inf)
+    paired = np.isfinite(best)
+    total: FloatArray = np.where(paired, best, _UNPAIRED).sum(axis=1)
+    return paired.sum(axis=1), total
+
+
+def _sized(
+    objects: SceneObjects, evidence: _Evidence, rotation: FloatArray, tvec: FloatArray
+) -> NDArray[np.bool_]:
+    """(D, M) whether detection ``i``'s box and object ``j``'s projected box (clipped to the
+    image) differ in diagonal by at most a factor :data:`SIZE_RATIO`."""
+    k = evidence.intrinsics
+    projected = project_boxes(objects, rotation, tvec, (k.fx, k.fy), (k.cx, k.cy))
+    projected = np.clip(projected, 0.0, [*evidence.size, *evidence.size])
     with np.errstate(divide="ignore", invalid="ignore"):
-        pix = cam[:, :2] / cam[:, 2:3] * (intrinsics.fx, intrinsics.fy)
-    pix += (intrinsics.cx, intrinsics.cy)
-    dist = np.linalg.norm(centres[:, np.newaxis, :] - pix[np.newaxis, :, :], axis=-1)
-    cost = dist / gates[:, np.newaxis]
-    cost[~compatible | (cam[:, 2] <= 0.0)[np.newaxis, :]] = np.inf
-    pairs = assign(cost, 1.0)
-    unpaired = len(centres) - len(pairs)
+        ratio = _diagonal(evidence.boxes)[:, np.newaxis] / _diagonal(projected)[np.newaxis, :]
+        ok: NDArray[np.bool_] = np.abs(np.log(ratio)) <= math.log(SIZE_RATIO)
+    return ok
+
+
+def _diagonal(boxes: FloatArray) -> FloatArray:
+    d: FloatArray = np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    return d
+
+
+def _refit(objects: SceneObjects, evidence: _Evidence, h: Hypothesis) -> Hypothesis:
+    """``h`` refitted on its pairs' centres (iterative PnP from ``h``, four pairs or more) and
+    scored again, :data:`REFITS` times; the better of ``h`` and the refit."""
+    best = h
+    for _ in range(REFITS):
+        if best.inliers < 4:
+            break
+        _, rvec, tvec = cv2.solvePnP(
+            objects.centroids[best.objects],
+            evidence.centres[best.detections],
+            evidence.intrinsics.matrix(),
+            None,
+            best.rvec.copy(),
+            best.tvec.copy(),
+            useExtrinsicGuess=True,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        r = np.asarray(rvec, dtype=np.float64).reshape(3)
+        t = np.asarray(tvec, dtype=np.float64).reshape(3)
+        again = _score(objects, evidence, r, t)
+        if (-again.inliers, again.cost) >= (-best.inliers, best.cost):
+            break
+        best = again
+    return best
+
+
+def _score(
+    objects: SceneObjects, evidence: _Evidence, rvec: FloatArray, tvec: FloatArray
+) -> Hypothesis:
+    """The pose's gated Hungarian pairs (module docstring), box sizes checked (:func:`_sized`)."""
+    rotation = np.asarray(cv2.Rodrigues(rvec)[0], dtype=np.float64)
+    cost = _centre_costs(objects, evidence, (rotation[np.newaxis], tvec[np.newaxis]))[0]
+    if evidence.general:
+        cost[~_sized(objects, evidence, rotation, tvec)] = np.inf
+    pairs = assign(cost, _UNPAIRED)
+    unpaired = len(evidence.centres) - len(pairs)
     return Hypothesis(
         rvec=rvec,
         tvec=tvec,
         detections=pairs.rows,
         objects=pairs.cols,
-        cost=float(pairs.costs.sum()) + unpaired,
+        cost=float(pairs.costs.sum()) + _UNPAIRED * unpaired,
     )
 
 
 def hypotheses(
     objects: SceneObjects,
     boxes: ArrayLike,
-    compatible: NDArray[np.bool_],
+    costs: ArrayLike,
     intrinsics: Intrinsics,
     width: int,
     height: int,
     *,
+    confidence: ArrayLike | None = None,
+    general: bool = False,
     keep: int = 8,
     seed: int = 0,
 ) -> list[Hypothesis]:
     """The best ``keep`` distinct pose hypotheses from the boxes' centres (module docstring),
-    best first; empty when fewer than three detections have a compatible object."""
+    best first; empty when fewer than three detections have a compatible object.
+
+    ``costs`` is :func:`label_costs` (or :func:`compatibility`'s booleans: no cost where
+    true), ``confidence`` the detections' (it orders the triples when they are sampled);
+    ``general`` when labels are the general model's (:func:`general_labels`): only then are the
+    triples ordered, duplicates left out, poses ranked cheaply first, sizes checked and the
+    best refitted (with a scene's own detector every pose is scored exactly, as before)."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    c = np.asarray(costs)
+    label_cost = np.where(c, 0.0, np.inf) if c.dtype == np.bool_ else c.astype(np.float64)
     centres = (b[:, :2] + b[:, 2:]) / 2.0
     gates = centre_gate(b, width, height)
     k = intrinsics.matrix()
-    scored: list[Hypothesis] = []
-    for dets, objs in _minimal_sets(compatible, np.random.default_rng(seed)):
-        count, rvecs, tvecs = cv2.solveP3P(
+    score = np.ones(len(b)) if confidence is None else np.asarray(confidence, dtype=np.float64)
+    order = np.argsort(-score, kind="stable")
+    rvecs, tvecs = [], []
+    for dets, objs in _minimal_sets(label_cost, b, order, np.random.default_rng(seed), general):
+        count, rs, ts = cv2.solveP3P(
             objects.centroids[list(objs)],
             centres[list(dets)],
             k,
@@ -200,16 +390,41 @@ def hypotheses(
             flags=cv2.SOLVEPNP_AP3P,
         )
         for s in range(int(count)):
-            r = np.asarray(rvecs[s], dtype=np.float64).reshape(3)
-            t = np.asarray(tvecs[s], dtype=np.float64).reshape(3)
-            rot, _ = cv2.Rodrigues(r)
-            if not np.all(np.isfinite(t)) or (-rot.T @ t)[2] <= 0.0:
-                continue
-            scored.append(_score(objects, centres, gates, compatible, r, t, intrinsics))
+            rvecs.append(np.asarray(rs[s], dtype=np.float64).reshape(3))
+            tvecs.append(np.asarray(ts[s], dtype=np.float64).reshape(3))
+    if not rvecs:
+        return []
+    r_all, t_all = np.array(rvecs), np.array(tvecs)
+    rotations = Rotation.from_rotvec(r_all).as_matrix()
+    above = np.all(np.isfinite(t_all), axis=1) & (
+        -np.einsum("nji,nj->ni", rotations, t_all)[:, 2] > 0.0
+    )
+    r_all, t_all, rotations = r_all[above], t_all[above], rotations[above]
+    evidence = _Evidence(b, centres, gates, label_cost, intrinsics, (width, height), general)
+    if not general:
+        scored = [_score(objects, evidence, r, t) for r, t in zip(r_all, t_all, strict=True)]
+        return _best(scored, objects.radius, keep, 0)
+    # Second boxes on one object (the general model's two shapes) take no part in the score:
+    # one-to-one, they would pair with two neighbouring objects at a wrong pose.
+    seeds = _seeds(b, order, list(range(len(b))))
+    label_cost[np.setdiff1d(np.arange(len(b)), seeds)] = np.inf
+    pairs, total = _cheap(objects, evidence, (rotations, t_all))
+    best_first = np.lexsort((total, -pairs))[:EXACT_SCORES]
+    scored = [_score(objects, evidence, r_all[i], t_all[i]) for i in best_first]
+    scored.sort(key=lambda h: (-h.inliers, h.cost))
+    scored = [_refit(objects, evidence, h) for h in scored[:REFITTED]] + scored[REFITTED:]
+    # fewer than three pairs: the gates or the sizes undid its own minimal set
+    return _best(scored, objects.radius, keep, 3)
+
+
+def _best(scored: list[Hypothesis], radius: float, keep: int, least: int) -> list[Hypothesis]:
+    """The best ``keep`` distinct hypotheses with at least ``least`` pairs, best first."""
     scored.sort(key=lambda h: (-h.inliers, h.cost))
     best: list[Hypothesis] = []
     for h in scored:
-        if all(distinct((h.rvec, h.tvec), (o.rvec, o.tvec), objects.radius) for o in best):
+        if h.inliers < least:
+            break
+        if all(distinct((h.rvec, h.tvec), (o.rvec, o.tvec), radius) for o in best):
             best.append(h)
             if len(best) == keep:
                 break
