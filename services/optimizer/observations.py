@@ -87,6 +87,7 @@ __all__ = [
     "FORBIDDEN",
     "Observation",
     "appearance_cost",
+    "box_overlaps",
     "box_sizes",
     "chromaticity",
     "edge_sigma",
@@ -308,7 +309,7 @@ def edge_sigma(boxes: ArrayLike, pixel_px: float = 1.0) -> FloatArray:
     return sigma
 
 
-def _overlaps(boxes: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+def box_overlaps(boxes: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """``(n, n)`` IoU, intersection over the smaller box's area, and smaller over larger area."""
     lo = np.maximum(boxes[:, np.newaxis, :2], boxes[np.newaxis, :, :2])
     hi = np.minimum(boxes[:, np.newaxis, 2:], boxes[np.newaxis, :, 2:])
@@ -333,7 +334,7 @@ def merge_duplicates(observation: Observation) -> tuple[Observation, tuple[str, 
     n = len(observation)
     if n < 2:
         return observation, ()
-    iou, inside, ratio = _overlaps(observation.boxes)
+    iou, inside, ratio = box_overlaps(observation.boxes)
     same_object = (iou >= DUPLICATE_IOU) | (
         (inside >= DUPLICATE_INSIDE) & (ratio >= DUPLICATE_AREA_RATIO)
     )

@@ -48,6 +48,7 @@ from services.common.errors import ServiceError, UnprocessableError
 from services.common.geometry.free_camera import (
     free_pinhole_camera,
     quaternion_of_rotation,
+    rotation_angle_deg,
     yaw_pitch_roll_of_rotation,
 )
 from services.common.images import decode_image
@@ -122,11 +123,6 @@ def _render(data: bytes, target: tuple[int, int]) -> tuple[DepthImage, NDArray[n
     return render, render.rgb, scale
 
 
-def _turn_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
-    cosine = (float(np.trace(a.T @ b)) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
-
-
 def dense_report(
     fit: DenseFit, start: FreePose, depth: float, scale: float, *, render_again: bool = False
 ) -> DenseReport:
@@ -135,7 +131,7 @@ def dense_report(
     ``render_again`` (:func:`~services.optimizer.free.dense.worth_another_render`) is kept
     for an accepted fit only."""
     moved = float(np.linalg.norm(fit.position - np.asarray(start.position)))
-    turned = _turn_deg(fit.rotation.T, start.camera().rotation())
+    turned = rotation_angle_deg(fit.rotation.T, start.camera().rotation())
     zoom = fit.intrinsics.fx / (start.intrinsics.fx_px * scale)
     converged = (
         fit.points >= MIN_POINTS
@@ -226,6 +222,10 @@ def refine_pose(
         gray = np.asarray(cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA), dtype=np.uint8)
     start = request.pose
     k = start.intrinsics
+    names = [c.object for c in start.correspondences]
+    objects = cache.get(scene)
+    if any(n not in objects.names for n in names):  # before the fit: a bad request costs none
+        raise _invalid("the pose pairs an object the scene does not have", "request.pose")
     try:
         at = start.camera()
     except ValidationError as exc:
@@ -250,10 +250,6 @@ def refine_pose(
     again = worth_another_render(fit, pinhole)
     report = dense_report(fit, start, depth, scale, render_again=again)
     pose = _refined(fit, start, report, scale, width)
-    names = [c.object for c in start.correspondences]
-    objects = cache.get(scene)
-    if any(n not in objects.names for n in names):
-        raise _invalid("the pose pairs an object the scene does not have", "request.pose")
     focal = (pose.intrinsics.fx_px, pose.intrinsics.fy_px, k.cx_px, k.cy_px)
     boxes = predicted_boxes(objects, names, fit.rotation.T, pose.position, focal, k.distortion)
     pairs = tuple(

@@ -50,6 +50,7 @@ from services.common.geometry.camera import PinholeCamera, focal_length_px
 from services.common.geometry.pose import Pose
 
 __all__ = [
+    "rotation_angle_deg",
     "FreeCamera",
     "LensDistortion",
     "direction_pose",
@@ -225,6 +226,13 @@ def rotation_of_quaternion(q: ArrayLike) -> FloatArray:
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
         ]
     )
+
+
+def rotation_angle_deg(a: ArrayLike, b: ArrayLike) -> float:
+    """The angle (degrees) of the rotation between rotation matrices ``a`` and ``b``:
+    ``θ = acos((tr(AᵀB) − 1) / 2)``, clipped against rounding."""
+    cosine = (float(np.trace(np.asarray(a, dtype=np.float64).T @ np.asarray(b))) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
 
 
 def quaternion_of_rotation(rotation: ArrayLike) -> tuple[float, float, float, float]:

@@ -50,11 +50,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from services.common.geometry.free_camera import rotation_angle_deg
 from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import assign
-from services.optimizer.observations import DUPLICATE_IOU
+from services.optimizer.observations import DUPLICATE_IOU, box_overlaps
 
 __all__ = [
     "DISTINCT_POSITION",
@@ -177,8 +178,7 @@ def pose_distance(
     ra, _ = cv2.Rodrigues(a[0])
     rb, _ = cv2.Rodrigues(b[0])
     ca, cb = -ra.T @ a[1], -rb.T @ b[1]
-    cos = (np.trace(ra @ rb.T) - 1.0) / 2.0
-    return float(np.linalg.norm(ca - cb)), math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+    return float(np.linalg.norm(ca - cb)), rotation_angle_deg(ra, rb)
 
 
 def distinct(
@@ -192,14 +192,10 @@ def distinct(
 def _seeds(boxes: FloatArray, order: NDArray[np.intp], usable: list[int]) -> list[int]:
     """The usable detections in ``order`` (most confident first), less the second boxes on a
     kept one's object (IoU ≥ ``DUPLICATE_IOU``)."""
-    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    iou = box_overlaps(boxes)[0]
     kept: list[int] = []
     for i in (int(i) for i in order if int(i) in usable):
-        lo = np.maximum(boxes[kept, :2], boxes[i, :2])
-        hi = np.minimum(boxes[kept, 2:], boxes[i, 2:])
-        inter = np.prod(np.clip(hi - lo, 0.0, None), axis=1)
-        iou = inter / np.maximum(area[kept] + area[i] - inter, 1e-12)
-        if not np.any(iou >= DUPLICATE_IOU):
+        if not np.any(iou[i, kept] >= DUPLICATE_IOU):
             kept.append(i)
     return kept
 
