@@ -227,8 +227,8 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
 
         # 4. SIGKILL controller-1 while it runs searches; controller-2 takes them over
         submit(3, (0,))
-        load.snapshot()
-        orphans = holding("controller-1")
+        orphans = holding("controller-1")  # waits for one with recorded iterations
+        load.snapshot()  # after that wait, so the kill finds it running with them
         cluster.kill("controller-1")
         killed_at = time.monotonic()
         say(f"controller-1 killed holding {len(orphans)} unfinished searches")
