@@ -6,15 +6,21 @@
    search with the optimizer's reason;
 3. render the scene at the pose (a free camera with the intrinsics used, through the broker),
    on the target's shape at most the search's view width wide, and detect its objects;
-4. compare them with the target's box by box (:mod:`~services.controller.free_match`): if they
-   agree, the same render (it came with its depth) refines the pose densely against the target
-   image (:mod:`~services.controller.free_refine`) and the search ends; if not, the next
-   alternative is rendered, while renders remain (``max_iterations``).
+4. compare them with the target's box by box (:mod:`~services.controller.free_match`), and
+   refine the pose densely against the target image by the same render (it came with its
+   depth; :mod:`~services.controller.free_refine`). The render agrees when its boxes do and
+   its edges do not contradict them (``edges_contradict``: a moved object can let a wrong
+   pose pair every box), or when its edges agree (``edges_agree``: the fit was accepted and
+   leaves most of the render's edges on the target's): a detector that names the render's
+   objects unlike the target's (the general model on a scene it was not trained on) then
+   still confirms a pose the image vouches for. If the render agrees, the search ends; if
+   not, the next alternative is rendered, while renders remain (``max_iterations``).
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`) is ``found`` and
 ``confirmed`` only when the optimizer found a unique pose and its render agreed. An ambiguous
 pose whose render agrees is answered ``ambiguous`` with its alternatives, never confirmed; when
-no render agrees, the rendered pose whose render matched best is answered, ``ambiguous`` and
+no render agrees, the rendered pose that best explains the target (the most edges on the
+target's after an accepted fit, then the box match) is answered, ``ambiguous`` and
 unconfirmed, saying so.
 
 Every render is an iteration (its ``camera`` the free camera rendered, its ``pose`` the grid
@@ -50,7 +56,13 @@ from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
 from services.controller.free_match import FreeMatch, compare_view, view_film
-from services.controller.free_refine import refine_by_render, refined_result, with_refit_renders
+from services.controller.free_refine import (
+    edges_agree,
+    edges_contradict,
+    refine_by_render,
+    refined_result,
+    with_refit_renders,
+)
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -73,45 +85,80 @@ def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
     )
 
 
-def _agreement(check: FreeMatch) -> str:
+def _agreement(check: FreeMatch, edges: RefinePoseResponse | str | None) -> str:
     m = check.match
+    if check.agree and edges_contradict(edges):
+        assert isinstance(edges, RefinePoseResponse)
+        fit = edges.fit
+        return (
+            f"its render's boxes agree with the target's (RMS {m.rms_px or 0.0:.2f} px), but "
+            f"its edges do not: {fit.inliers} of {fit.edge_points} on the target's after the "
+            "dense fit"
+        )
     if check.agree:
         return f"its render agrees with the target box by box (RMS {m.rms_px or 0.0:.2f} px)"
-    return (
-        f"its render disagrees with the target: {len(check.missing)} paired object(s) not seen "
-        f"where the target shows them ({m.pairs} seen again)"
+    boxes = (
+        f"{len(check.missing)} paired object(s) not seen where the target shows them "
+        f"({m.pairs} seen again)"
     )
+    if edges_agree(edges):
+        assert isinstance(edges, RefinePoseResponse)
+        fit = edges.fit
+        return (
+            f"its render's boxes disagree with the target's ({boxes}), but its edges agree: "
+            f"{fit.inliers} of {fit.edge_points} on the target's after the dense fit"
+        )
+    said = f"its render disagrees with the target: {boxes}"
+    if isinstance(edges, RefinePoseResponse):
+        fit = edges.fit
+        return f"{said}; {fit.inliers} of {fit.edge_points} edges on the target's ({fit.reason})"
+    return said
+
+
+def _explains(iteration: Iteration, edges: RefinePoseResponse | str | None) -> tuple[float, ...]:
+    """How well a rendered candidate explains the target: the share of its render's edges on
+    the target's after an accepted dense fit (0 without one), then its box match score."""
+    share = 0.0
+    if isinstance(edges, RefinePoseResponse) and edges.fit.accepted:
+        share = edges.fit.inliers / max(edges.fit.edge_points, 1)
+    return (share, iteration.match.score if iteration.match else 0.0, -iteration.index)
 
 
 def _result(
-    answer: FreePoseResponse, history: list[Iteration], grid: HemisphereGrid
-) -> SearchResult:
-    """The search's answer from its rendered candidates (module docstring)."""
+    answer: FreePoseResponse,
+    history: list[Iteration],
+    grid: HemisphereGrid,
+    edges: dict[int, RefinePoseResponse | str],
+    *,
+    by_edges: bool = False,
+) -> tuple[SearchResult, int]:
+    """The search's answer from its rendered candidates (module docstring), and which one it
+    chose; ``edges`` holds the dense fits of the candidates rendered in this run, ``by_edges``
+    says that the last one agreed by its edges only."""
     candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
     agreed = bool(history) and history[-1].done
     chosen = (
-        history[-1]
-        if agreed
-        else max(history, key=lambda it: (it.match.score if it.match else 0.0, -it.index))
+        history[-1] if agreed else max(history, key=lambda it: _explains(it, edges.get(it.index)))
     )
     pose = candidates[chosen.index]
     score = chosen.match.score if chosen.match is not None else 0.0
     found = agreed and answer.status == "found"
+    how = "by its edges (its boxes disagree)" if by_edges else "box by box"
     if found:
-        reason = f"{answer.reason}; the render at the pose agrees with the target box by box"
+        reason = f"{answer.reason}; the render at the pose agrees with the target {how}"
     elif agreed:
         reason = (
-            f"{answer.reason}; the render at pose {chosen.index + 1} agrees with the target, "
-            "but the alternatives explain its boxes too: not confirmed"
+            f"{answer.reason}; the render at pose {chosen.index + 1} agrees with the target "
+            f"{how}, but the alternatives explain its boxes too: not confirmed"
         )
     else:
         reason = (
             f"not confirmed: no render of the {len(history)} pose(s) tried agreed with the "
-            f"target box by box; the best was pose {chosen.index + 1} (match score "
-            f"{score:.2f}); {answer.reason}"
+            f"target, box by box or by its edges; the best was pose {chosen.index + 1} (match "
+            f"score {score:.2f}); {answer.reason}"
         )
     nearest = nearest_grid_pose(pose.position, grid)
-    return SearchResult(
+    result = SearchResult(
         pose=nearest,
         refined_pose=direction_pose(pose.position),
         confidence=pose.confidence * score,
@@ -128,6 +175,7 @@ def _result(
             match_rms_px=chosen.match.rms_px if chosen.match is not None else None,
         ),
     )
+    return result, chosen.index
 
 
 @dataclass(frozen=True)
@@ -155,14 +203,21 @@ class _Seen:
 
 
 def _iteration(
-    step: _Step, pose: FreePose, following: FreePose | None, seen: _Seen, grid: HemisphereGrid
+    step: _Step,
+    pose: FreePose,
+    following: FreePose | None,
+    seen: _Seen,
+    grid: HemisphereGrid,
+    edges: RefinePoseResponse | str | None,
 ) -> Iteration:
-    """The iteration that rendered ``pose``, going on to ``following`` if it disagreed."""
+    """The iteration that rendered ``pose`` (its dense fit ``edges``), going on to
+    ``following`` if its render disagreed."""
     nearest = nearest_grid_pose(pose.position, grid)
     check = seen.check
+    agreed = (check.agree and not edges_contradict(edges)) or edges_agree(edges)
     next_pose = (
         nearest_grid_pose(following.position, grid)
-        if following is not None and not check.agree
+        if following is not None and not agreed
         else None
     )
     return Iteration(
@@ -181,8 +236,8 @@ def _iteration(
         confidence=pose.confidence * check.match.score,
         ambiguous=step.ambiguous,
         next_pose=next_pose,
-        done=check.agree,
-        reason=f"pose {step.index + 1} of {step.count}: {_agreement(check)}",
+        done=agreed,
+        reason=f"pose {step.index + 1} of {step.count}: {_agreement(check, edges)}",
         match=check.match,
         detector_sha256=seen.found.model.sha256,
         camera=seen.camera,
@@ -272,32 +327,38 @@ class FreeSearchLoop:
         history = list(search.iterations)
         if history and history[-1].done:  # finished by an older run, no result recorded
             unrefined = "no dense refinement (resumed after its render)"
-            return await writes.succeed(
-                refined_result(_result(answer, history, grid), unrefined, grid)
-            )
+            result, _ = _result(answer, history, grid, {})
+            return await writes.succeed(refined_result(result, unrefined, grid))
         budget = min(len(candidates), search.max_iterations)
+        edges: dict[int, RefinePoseResponse | str] = {}
         for k in range(len(history), budget):
             await writes.flush()
             seen_view = await self._render_and_compare(search, scene, (target, size), candidates[k])
+            outcome = await refine_by_render(
+                self.stages, self.outages, search, image, candidates[k], seen_view.archive
+            )
+            edges[k] = outcome
             step = _Step(k, len(candidates), answer.status != "found", optimize_ms)
             following = candidates[k + 1] if k + 1 < budget else None
-            iteration = _iteration(step, candidates[k], following, seen_view, grid)
+            iteration = _iteration(step, candidates[k], following, seen_view, grid, outcome)
             optimize_ms = 0.0
             history.append(iteration)
+            writes.hold(iteration, seen)
+            seen = None
             if iteration.done:
-                writes.hold(iteration, seen)
-                await writes.flush()  # recorded while the render's edges are fitted
-                outcome = await refine_by_render(
-                    self.stages, self.outages, search, image, candidates[k], seen_view.archive
-                )
+                await writes.flush()
                 outcome, extra = await self._refit(
                     search, scene, (target, size), image, outcome, len(history)
                 )
-                result = refined_result(_result(answer, history, grid), outcome, grid)
-                return await writes.succeed(with_refit_renders(result, extra))
-            writes.hold(iteration, seen)
-            seen = None
-        return await writes.succeed(_result(answer, history, grid))
+                by_edges = not seen_view.check.agree
+                result, _ = _result(answer, history, grid, edges, by_edges=by_edges)
+                return await writes.succeed(
+                    with_refit_renders(refined_result(result, outcome, grid), extra)
+                )
+        result, chosen = _result(answer, history, grid, edges)
+        if chosen in edges:
+            result = refined_result(result, edges[chosen], grid)
+        return await writes.succeed(result)
 
     async def _refit(
         self,

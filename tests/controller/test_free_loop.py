@@ -66,8 +66,10 @@ def candidate(x: float, source: str = "given") -> FreePose:
 class FakeStages:
     """The target shows :data:`BOXES`; the optimizer answers ``status`` with the candidates at
     x = 0, 1, 2, ... (the first is the pose, the rest alternatives); a render at candidate
-    ``right`` shows the target's boxes, any other shows them 30 px to the right. ``faults``
-    as in test_runner: a call answers ``n`` times, then raises."""
+    ``right`` shows the target's boxes, any other shows them 30 px to the right; the dense fit
+    from the render at a candidate in ``edges`` (default: ``right`` only) leaves most of its
+    edges on the target's, from any other it does not converge. ``faults`` as in test_runner:
+    a call answers ``n`` times, then raises."""
 
     def __init__(
         self,
@@ -81,6 +83,8 @@ class FakeStages:
         faults: dict[str, tuple[int, BaseException]] | None = None,
         refine: str | BaseException = "accepted",
         refits: int = 0,
+        edges: tuple[int, ...] | None = None,
+        inliers: int = 800,
     ):
         self.detail = scene
         self.status = status
@@ -95,6 +99,8 @@ class FakeStages:
         self.refine = refine
         self.refits = refits  # how many first fits ask for a render at the refined pose
         self.refinements: list[RefinePoseRequest] = []
+        self.edges = (right,) if edges is None else edges
+        self.inliers = inliers  # of 900 edge points, when a fit explains the target
 
     def _call(self, name: str) -> None:
         self.calls[name] += 1
@@ -143,14 +149,18 @@ class FakeStages:
             k = k.model_copy(update={"fx_px": 390.0, "fy_px": 390.0, "source": "estimated"})
         x, y, z = pose.position
         refined = pose.model_copy(update={"position": (x, y + 0.1, z), "intrinsics": k})
+        explained = round(x) in self.edges
+        accepted = explained and self.refine == "accepted"
         fit = DenseReport(
-            converged=True,
-            accepted=self.refine == "accepted",
+            converged=explained,
+            accepted=accepted,
             reason="refined by the render's edges"
-            if self.refine == "accepted"
-            else "the dense fit moved the pose implausibly far",
+            if accepted
+            else "the dense fit moved the pose implausibly far"
+            if explained
+            else "the dense fit did not converge",
             edge_points=900,
-            inliers=800,
+            inliers=self.inliers if explained else 300,
             start_inliers=600,
             residual_px=0.4,
             focal_fitted=request.fit_focal,
@@ -310,8 +320,67 @@ def test_a_found_pose_whose_render_disagrees_is_not_confirmed(tmp_path, detail):
     assert result.free.status == "ambiguous"
     assert result.renders == 1
     assert result.reason.startswith("not confirmed: no render of the 1 pose(s) tried agreed")
-    assert result.free.dense is None  # a render that disagrees refines nothing
-    assert "refine" not in stages.calls
+    assert stages.calls["refine"] == 1  # its edges were fitted too, and disagreed
+    assert result.free.dense is not None
+    assert not result.free.dense.accepted
+    assert result.free.pose.position == (0.0, -4.0, 5.0)  # the box pose is kept
+    assert "300 of 900 edges on the target's" in final.iterations[0].reason
+
+
+def test_a_render_whose_edges_agree_confirms_the_pose_though_its_boxes_disagree(tmp_path, detail):
+    """The detector names the render's objects unlike the target's (say, the general model):
+    the dense fit's edges still vouch for the pose, and it is refined by them."""
+    stages = FakeStages(detail, right=5, edges=(0,))
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert result.confirmed
+    assert result.renders == 1
+    assert result.free is not None
+    assert result.free.status == "found"
+    assert result.free.pose.position == (0.0, -3.9, 5.0)
+    assert "agrees with the target by its edges (its boxes disagree)" in result.reason
+    (iteration,) = final.iterations
+    assert iteration.done
+    assert "but its edges agree: 800 of 900" in iteration.reason
+
+
+def test_a_render_whose_boxes_agree_but_whose_edges_do_not_goes_on_to_the_next_pose(
+    tmp_path, detail
+):
+    """A moved object can let a wrong pose pair every box: the dense fit from its render that
+    leaves few edges on the target's overrules the boxes, and the next alternative is tried."""
+    stages = FakeStages(detail, status="ambiguous", count=3, right=0, edges=(1,))
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert result.renders == 2
+    assert not result.confirmed
+    first, second = final.iterations
+    assert not first.done
+    assert "but its edges do not: 300 of 900" in first.reason
+    assert second.done
+    assert result.free is not None
+    assert result.free.pose.position == (1.0, -3.9, 5.0)
+    assert "agrees with the target by its edges (its boxes disagree)" in result.reason
+
+
+def test_with_no_render_agreeing_the_pose_the_image_explains_best_is_answered(tmp_path, detail):
+    """No render's boxes agree, and no fit leaves most of its render's edges on the target's:
+    the candidate whose accepted fit explains the most edges answers, refined, ambiguous."""
+    stages = FakeStages(detail, status="ambiguous", count=3, right=9, edges=(1,), inliers=600)
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert result.renders == 3
+    assert not result.confirmed
+    assert result.free is not None
+    assert result.free.status == "ambiguous"
+    assert result.free.pose.position == (1.0, -3.9, 5.0)
+    assert result.free.box_pose is not None
+    assert result.free.box_pose.position == (1.0, -4.0, 5.0)
+    assert "the best was pose 2" in result.reason
+    assert [it.done for it in final.iterations] == [False, False, False]
 
 
 def test_without_intrinsics_the_refined_focal_length_is_the_estimate(tmp_path, detail):

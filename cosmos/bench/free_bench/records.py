@@ -99,6 +99,8 @@ class FreeRecord(FrozenModel):
     """The search's status (``error`` when the bench could not run it)."""
     outcome: Outcome
     reason: str = ""
+    steps: tuple[str, ...] = ()
+    """Each render's reason, as its iteration says it (how its boxes and edges agreed)."""
     intrinsics_source: str | None = None
     """``given``, ``estimated`` or ``scene``: the intrinsics the answer was computed with."""
     detections: int = 0

@@ -207,6 +207,7 @@ async def search_target(
         status=str(raw.get("status")),
         outcome=_outcome(raw),
         reason=str(result.get("reason") or error.get("detail") or ""),
+        steps=tuple(str(it.get("reason") or "") for it in raw.get("iterations") or ()),
         intrinsics_source=source,
         detections=len(detections),
         renders=int(result.get("renders", len(raw.get("iterations") or ()))),
