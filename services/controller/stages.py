@@ -20,6 +20,8 @@ from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlencode
 
+from pydantic import BaseModel
+
 from services.common.contracts.detect import DetectResponse
 from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
@@ -35,7 +37,13 @@ from services.common.images import PPM_MEDIA_TYPE, media_type_of
 from services.controller.broker import Broker
 from services.controller.transport import StageAnswer, StageRequest
 
-__all__ = ["StageError", "Stages"]
+__all__ = ["StageError", "Stages", "request_json"]
+
+
+def request_json(request: BaseModel) -> str:
+    """A stage request's JSON body, every field written: a nullable field without a default
+    (an alternative pose's ``position_sigma``, say) left out would be refused as missing."""
+    return request.model_dump_json()
 
 
 class StageError(RuntimeError):
@@ -196,7 +204,7 @@ class Stages:
 
     async def optimize(self, request: NextPoseRequest, request_id: str = "") -> NextPoseResponse:
         """The optimizer's answer to ``POST /next-pose`` (a ValidationError if it is malformed)."""
-        body = request.model_dump_json(exclude_none=True)
+        body = request_json(request)
         call = StageRequest.json("/next-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "optimize", call)
         return NextPoseResponse.model_validate_json(response.content)
@@ -205,14 +213,14 @@ class Stages:
         self, request: StartPoseRequest, request_id: str = ""
     ) -> StartPoseResponse:
         """The optimizer's answer to ``POST /start-pose`` (a ValidationError if malformed)."""
-        body = request.model_dump_json(exclude_none=True)
+        body = request_json(request)
         call = StageRequest.json("/start-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "start-pose", call)
         return StartPoseResponse.model_validate_json(response.content)
 
     async def free_pose(self, request: FreePoseRequest, request_id: str = "") -> FreePoseResponse:
         """The optimizer's answer to ``POST /free-pose`` (a ValidationError if it is malformed)."""
-        body = request.model_dump_json(exclude_none=True)
+        body = request_json(request)
         call = StageRequest.json("/free-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "solve", call)
         return FreePoseResponse.model_validate_json(response.content)
@@ -224,7 +232,7 @@ class Stages:
         image and the ``render`` archive at its pose, one form (a ValidationError if the answer
         is malformed)."""
         parts = [
-            ("request", "text/plain", request.model_dump_json(exclude_none=True).encode()),
+            ("request", "text/plain", request_json(request).encode()),
             ("target", media_type_of(target), target),
             ("render", DEPTH_MEDIA_TYPE, render),
         ]

@@ -16,13 +16,15 @@ from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from services.common.auth import token_from_environment
+from services.common.contracts.free import FreePose, IntrinsicsUsed
+from services.common.contracts.refine import RefinePoseRequest
 from services.common.contracts.search import Search, SearchOptions, ViewSettings
 from services.common.errors import UnprocessableError
 from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
 from services.controller.broker import Broker
 from services.controller.settings import ControllerSettings
-from services.controller.stages import Stages
+from services.controller.stages import Stages, request_json
 from services.controller.store import SearchStore, open_store
 from services.controller.submit import create_search
 from services.controller.transport import StageAnswer, StageRequest, WithServiceToken
@@ -269,3 +271,23 @@ async def test_a_broken_image_drops_its_early_render_and_records_nothing(apps):
     finally:
         store.close()
         await stages.broker.close()
+
+
+def test_a_refinement_of_an_alternative_pose_is_sent_whole():
+    """An alternative from /free-pose has no σ (null): the body keeps the field, so the
+    optimizer reads back the very request (it was refused as missing once)."""
+    pose = FreePose(
+        position=(1.0, -4.0, 5.0),
+        quaternion_wxyz=(1.0, 0.0, 0.0, 0.0),
+        yaw_pitch_roll_deg=(0.0, 90.0, 0.0),
+        intrinsics=IntrinsicsUsed(
+            fx_px=386.0, fy_px=386.0, cx_px=160.0, cy_px=120.0, fov_deg=45.0, source="given"
+        ),
+        correspondences=(),
+        residual_px=0.5,
+        confidence=0.9,
+        position_sigma=None,
+        rotation_sigma_deg=None,
+    )
+    request = RefinePoseRequest(scene="demo", pose=pose, fit_focal=True)
+    assert RefinePoseRequest.model_validate_json(request_json(request)) == request
