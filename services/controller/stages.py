@@ -41,9 +41,11 @@ __all__ = ["StageError", "Stages", "request_json"]
 
 
 def request_json(request: BaseModel) -> str:
-    """A stage request's JSON body, every field written: a nullable field without a default
-    (an alternative pose's ``position_sigma``, say) left out would be refused as missing."""
-    return request.model_dump_json()
+    """A stage request's JSON body. Optional fields left unset are left out (the optimizer
+    refuses an explicit null where its schema says "never null"); a nullable field without a
+    default (an alternative pose's ``position_sigma``, say) is written, even when null, as
+    left out it would be refused as missing."""
+    return request.model_dump_json(exclude_unset=True, exclude_defaults=False)
 
 
 class StageError(RuntimeError):
