@@ -20,8 +20,6 @@ from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlencode
 
-from pydantic import BaseModel
-
 from services.common.contracts.detect import DetectResponse
 from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
@@ -40,12 +38,12 @@ from services.controller.transport import StageAnswer, StageRequest
 __all__ = ["StageError", "Stages", "request_json"]
 
 
-def request_json(request: BaseModel) -> str:
-    """A stage request's JSON body. Optional fields left unset are left out (the optimizer
-    refuses an explicit null where its schema says "never null"); a nullable field without a
-    default (an alternative pose's ``position_sigma``, say) is written, even when null, as
-    left out it would be refused as missing."""
-    return request.model_dump_json(exclude_unset=True, exclude_defaults=False)
+def request_json(request: RefinePoseRequest) -> str:
+    """A ``/refine-pose`` request's JSON: the fields the code set, a null among them. Its pose
+    may be an alternative, whose σ is a required null: ``exclude_none`` (what the other stage
+    calls send, as the optimizer refuses a null where its schema says "never null") left it
+    out, and the optimizer refused the request as missing it."""
+    return request.model_dump_json(exclude_unset=True)
 
 
 class StageError(RuntimeError):
@@ -206,7 +204,7 @@ class Stages:
 
     async def optimize(self, request: NextPoseRequest, request_id: str = "") -> NextPoseResponse:
         """The optimizer's answer to ``POST /next-pose`` (a ValidationError if it is malformed)."""
-        body = request_json(request)
+        body = request.model_dump_json(exclude_none=True)
         call = StageRequest.json("/next-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "optimize", call)
         return NextPoseResponse.model_validate_json(response.content)
@@ -215,14 +213,14 @@ class Stages:
         self, request: StartPoseRequest, request_id: str = ""
     ) -> StartPoseResponse:
         """The optimizer's answer to ``POST /start-pose`` (a ValidationError if malformed)."""
-        body = request_json(request)
+        body = request.model_dump_json(exclude_none=True)
         call = StageRequest.json("/start-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "start-pose", call)
         return StartPoseResponse.model_validate_json(response.content)
 
     async def free_pose(self, request: FreePoseRequest, request_id: str = "") -> FreePoseResponse:
         """The optimizer's answer to ``POST /free-pose`` (a ValidationError if it is malformed)."""
-        body = request_json(request)
+        body = request.model_dump_json(exclude_none=True)
         call = StageRequest.json("/free-pose", body, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "solve", call)
         return FreePoseResponse.model_validate_json(response.content)

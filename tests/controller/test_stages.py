@@ -16,7 +16,6 @@ from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from services.common.auth import token_from_environment
-from services.common.contracts.free import FreePose, IntrinsicsUsed
 from services.common.contracts.refine import RefinePoseRequest
 from services.common.contracts.search import Search, SearchOptions, ViewSettings
 from services.common.errors import UnprocessableError
@@ -31,6 +30,7 @@ from services.controller.transport import StageAnswer, StageRequest, WithService
 from services.detector.app import create_app as create_detector
 from services.detector.settings import DetectorSettings
 from services.renderer.app import create_app as create_renderer
+from tests.controller.test_free_loop import candidate
 from tests.scene_model_support import BALLS, add_scene, onboard
 
 pytestmark = pytest.mark.anyio
@@ -276,18 +276,6 @@ async def test_a_broken_image_drops_its_early_render_and_records_nothing(apps):
 def test_a_refinement_of_an_alternative_pose_is_sent_whole():
     """An alternative from /free-pose has no σ (null): the body keeps the field, so the
     optimizer reads back the very request (it was refused as missing once)."""
-    pose = FreePose(
-        position=(1.0, -4.0, 5.0),
-        quaternion_wxyz=(1.0, 0.0, 0.0, 0.0),
-        yaw_pitch_roll_deg=(0.0, 90.0, 0.0),
-        intrinsics=IntrinsicsUsed(
-            fx_px=386.0, fy_px=386.0, cx_px=160.0, cy_px=120.0, fov_deg=45.0, source="given"
-        ),
-        correspondences=(),
-        residual_px=0.5,
-        confidence=0.9,
-        position_sigma=None,
-        rotation_sigma_deg=None,
-    )
+    pose = candidate(1.0).model_copy(update={"position_sigma": None, "rotation_sigma_deg": None})
     request = RefinePoseRequest(scene="demo", pose=pose, fit_focal=True)
     assert RefinePoseRequest.model_validate_json(request_json(request)) == request
