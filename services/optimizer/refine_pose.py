@@ -27,11 +27,23 @@ Accepted
     at least :data:`FAR_GAIN` times the start's edge points, and up to :data:`FAR` times the
     near bounds. Anything further is a slip of the fit into another basin (a repeated texture),
     and the box pose is kept.
+
+    The fit must also keep to the boxes it started from, unless the image vouches for leaving
+    them: when it moves the paired objects' predicted box edges by more than the box fit can
+    err (RMS shift over ``max(BOX_SLACK_PX, BOX_SLACK_RATIO · r)``, ``r`` the start's box-edge
+    RMS), it is accepted only when it leaves at least :data:`FAR_SHARE` of its edge points on
+    the target's (the share at which a render agrees by its edges). Measured through the real
+    stack (``cosmos bench --free --scene demo --random-scenes 2 --n 8 --seed 5``): fits that
+    moved the boxes 2-6 px and left 0.52-0.72 of their edges were all wrong, two of them
+    confirmed (a moved light let shadow edges pull a right box pose 10-18 % / 6-9° away);
+    right fits that moved the boxes that far (2-25 px: the general model's boxes were wrong)
+    left 0.80-0.97.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Final
 
@@ -59,6 +71,7 @@ from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 __all__ = [
     "FAR",
     "FAR_GAIN",
+    "FAR_SHARE",
     "MAX_MOVE",
     "MAX_TURN_DEG",
     "MIN_INLIER_SHARE",
@@ -80,6 +93,13 @@ FAR: Final = 4.0
 """A move up to this many times the near bounds is plausible when the image vouches for it."""
 FAR_GAIN: Final = 1.2
 """…that is, when the fit explains this many times the start's edge points."""
+BOX_SLACK_PX: Final = 2.0
+"""Box-edge shift (target pixels) any fit may make: about three times the detector's
+measured box-edge error."""
+BOX_SLACK_RATIO: Final = 3.0
+"""…or this many times the start's own box-edge RMS, when its boxes fitted worse."""
+FAR_SHARE: Final = 0.8
+"""The share of its edge points on the target's that a fit leaving the boxes needs."""
 _SIDE_SLACK_PX: Final = 1.0
 
 
@@ -123,13 +143,33 @@ def _render(data: bytes, target: tuple[int, int]) -> tuple[DepthImage, NDArray[n
     return render, render.rgb, scale
 
 
+def box_shift_px(
+    start: FreePose, boxes: Mapping[str, tuple[float, float, float, float] | None]
+) -> float:
+    """The RMS shift (target pixels) of the paired objects' predicted box edges from the start
+    pose's to ``boxes`` (by object name); 0 when none projects at both."""
+    shifts = [
+        np.subtract(box, c.predicted_box)
+        for c in start.correspondences
+        if c.predicted_box is not None and (box := boxes.get(c.object)) is not None
+    ]
+    return float(np.sqrt(np.mean(np.square(shifts)))) if shifts else 0.0
+
+
 def dense_report(
-    fit: DenseFit, start: FreePose, depth: float, scale: float, *, render_again: bool = False
+    fit: DenseFit,
+    start: FreePose,
+    depth: float,
+    scale: float,
+    *,
+    box_shift: float = 0.0,
+    render_again: bool = False,
 ) -> DenseReport:
     """How the ``fit`` from ``start`` (rendered at ``scale`` times the target's film, its
     points at median depth ``depth``) went: converged, accepted and why (module docstring);
-    ``render_again`` (:func:`~services.optimizer.free.dense.worth_another_render`) is kept
-    for an accepted fit only."""
+    ``box_shift`` is :func:`box_shift_px` at the fit; ``render_again``
+    (:func:`~services.optimizer.free.dense.worth_another_render`) is kept for an accepted fit
+    only."""
     moved = float(np.linalg.norm(fit.position - np.asarray(start.position)))
     turned = rotation_angle_deg(fit.rotation.T, start.camera().rotation())
     zoom = fit.intrinsics.fx / (start.intrinsics.fx_px * scale)
@@ -142,6 +182,8 @@ def dense_report(
     near = moved <= allowed and turned <= MAX_TURN_DEG
     vouched = fit.inliers >= FAR_GAIN * fit.start_inliers
     plausible = near or (vouched and moved <= FAR * allowed and turned <= FAR * MAX_TURN_DEG)
+    slack = max(BOX_SLACK_PX, BOX_SLACK_RATIO * start.residual_px)
+    kept_boxes = box_shift <= slack or fit.inliers >= FAR_SHARE * fit.points
     if not converged:
         reason = (
             f"the dense fit did not converge: {fit.inliers} of {fit.points} edge points end on "
@@ -154,15 +196,21 @@ def dense_report(
             f"{fit.start_inliers}; at most {allowed:.3g} units and {MAX_TURN_DEG:g}°, or "
             f"{FAR:g} times that with {FAR_GAIN:g} times the edge points)"
         )
+    elif not kept_boxes:
+        reason = (
+            f"the dense fit moved the boxes {box_shift:.3g} px from the box pose's (at most "
+            f"{slack:.3g} px) with only {fit.inliers} of {fit.points} edge points on the "
+            f"target's (at least {FAR_SHARE:.0%} would vouch for it)"
+        )
     else:
         reason = (
             f"refined by the render's edges: {fit.inliers} of {fit.points} edge points on the "
-            f"target's ({fit.start_inliers} before)"
+            f"target's ({fit.start_inliers} before; boxes moved {box_shift:.2g} px)"
         )
     residual = fit.residual_px / scale if math.isfinite(fit.residual_px) else None
     return DenseReport(
         converged=converged,
-        accepted=converged and plausible,
+        accepted=converged and plausible and kept_boxes,
         reason=reason,
         edge_points=fit.points,
         inliers=fit.inliers,
@@ -171,7 +219,8 @@ def dense_report(
         focal_fitted=fit.focal_fitted,
         moved=moved,
         moved_rotation_deg=turned,
-        render_again=render_again and converged and plausible,
+        render_again=render_again and converged and plausible and kept_boxes,
+        box_shift_px=box_shift,
     )
 
 
@@ -248,10 +297,12 @@ def refine_pose(
     hits = view.depth[view.depth > 0.0]
     depth = float(np.median(hits)) if hits.size else math.inf
     again = worth_another_render(fit, pinhole)
-    report = dense_report(fit, start, depth, scale, render_again=again)
+    focal = (fit.intrinsics.fx / scale, fit.intrinsics.fy / scale, k.cx_px, k.cy_px)
+    position = (float(fit.position[0]), float(fit.position[1]), float(fit.position[2]))
+    boxes = predicted_boxes(objects, names, fit.rotation.T, position, focal, k.distortion)
+    shift = box_shift_px(start, boxes)
+    report = dense_report(fit, start, depth, scale, box_shift=shift, render_again=again)
     pose = _refined(fit, start, report, scale, width)
-    focal = (pose.intrinsics.fx_px, pose.intrinsics.fy_px, k.cx_px, k.cy_px)
-    boxes = predicted_boxes(objects, names, fit.rotation.T, pose.position, focal, k.distortion)
     pairs = tuple(
         c.model_copy(update={"predicted_box": boxes[c.object]}) for c in start.correspondences
     )

@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from services.common.contracts.free import FreePose, IntrinsicsUsed
+from services.common.contracts.free import FreeCorrespondence, FreePose, IntrinsicsUsed
 from services.common.geometry.free_camera import FreeCamera, quaternion_of_rotation
 from services.optimizer.free import DenseFit, Intrinsics
-from services.optimizer.refine_pose import dense_report
+from services.optimizer.refine_pose import box_shift_px, dense_report
 
 START = FreeCamera(position=(0.0, -10.0, 5.0), look_at=(0.0, 0.0, 0.0))
 DEPTH = 10.0  # the points' median depth: near bounds 1 unit and 5°
@@ -75,3 +75,40 @@ def test_a_fit_is_taken_when_it_converged_and_moved_plausibly(
     assert said in report.reason
     assert report.moved == pytest.approx(shift)
     assert report.moved_rotation_deg == pytest.approx(turn)
+
+
+@pytest.mark.parametrize(
+    ("box_shift", "inliers", "accepted"),
+    [
+        (1.5, 650, True),  # within the boxes' own error (2 px here: 3 x 0.5 px is less)
+        (4.0, 650, False),  # leaves the boxes, the image only half behind it
+        (4.0, 850, True),  # leaves the boxes, and the image vouches for it
+        (25.0, 810, True),  # the boxes were wrong (the general model's), the image is sure
+    ],
+)
+def test_a_fit_that_leaves_the_boxes_needs_the_images_firm_support(box_shift, inliers, accepted):
+    report = dense_report(
+        fit(0.5, 2.0, inliers, 600), start_pose(), DEPTH, 1.0, box_shift=box_shift
+    )
+    assert report.accepted is accepted, report.reason
+    assert report.box_shift_px == box_shift
+    if not accepted:
+        assert "moved the boxes" in report.reason
+        assert not report.render_again
+
+
+def test_the_box_shift_is_the_rms_move_of_the_paired_boxes_edges():
+    pairs = (
+        FreeCorrespondence(
+            detection=0, object="a", label="a", residual_px=0.5, predicted_box=(0, 0, 10, 10)
+        ),
+        FreeCorrespondence(
+            detection=1, object="b", label="b", residual_px=0.5, predicted_box=(5, 5, 9, 9)
+        ),
+        FreeCorrespondence(detection=2, object="c", label="c", residual_px=0.5, predicted_box=None),
+    )
+    start = start_pose().model_copy(update={"correspondences": pairs})
+    moved = {"a": (3.0, 0.0, 13.0, 10.0), "b": (5.0, 5.0, 9.0, 9.0), "c": (1.0, 1.0, 2.0, 2.0)}
+    # a's edges move 3, 0, 3, 0; b's not at all; c has no start box: sqrt(18 / 8)
+    assert box_shift_px(start, moved) == pytest.approx(1.5)
+    assert box_shift_px(start, {"a": None, "b": None}) == 0.0

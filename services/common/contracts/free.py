@@ -185,6 +185,12 @@ class DenseReport(FrozenModel):
     moved: NonNeg
     moved_rotation_deg: NonNeg
     render_again: bool = False
+    box_shift_px: NonNeg = Field(
+        default=0.0,
+        description="RMS shift of the paired objects' predicted box edges from the start "
+        "pose's to the fit's (target pixels): a fit that leaves the boxes needs the image's "
+        "firm support to be accepted.",
+    )
 
 
 class FreeAnswer(FrozenModel):
