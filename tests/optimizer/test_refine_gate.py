@@ -82,8 +82,9 @@ def test_a_fit_is_taken_when_it_converged_and_moved_plausibly(
     [
         (1.5, 650, True),  # within the boxes' own error (2 px here: 3 x 0.5 px is less)
         (4.0, 650, False),  # leaves the boxes, the image only half behind it
+        (4.0, 720, False),
         (4.0, 850, True),  # leaves the boxes, and the image vouches for it
-        (25.0, 810, True),  # the boxes were wrong (the general model's), the image is sure
+        (25.0, 790, True),  # the boxes were wrong (the general model's), the image is sure
     ],
 )
 def test_a_fit_that_leaves_the_boxes_needs_the_images_firm_support(box_shift, inliers, accepted):
