@@ -17,7 +17,8 @@ them at wrong depths), and the one-to-one pairing is the gated Hungarian assignm
 :func:`~services.optimizer.matching.assign`. A second box on a more confident detection's object
 (the general model's two shapes for one object, IoU ≥ ``DUPLICATE_IOU``) is left out of the
 score: one-to-one, it would reward a wrong pose that puts a neighbour under it. Poses are ranked
-by their inliers, then by their summed gated cost; the :data:`REFITTED` best are refitted on
+by their summed gated cost over all detections (an unpaired one costs more than any pair:
+MSAC's truncated cost), then by their inliers; the :data:`REFITTED` best are refitted on
 their pairs' centres (iterative PnP) and scored again; the best distinct ones (more than
 :data:`DISTINCT_POSITION` of the scene radius or :data:`DISTINCT_ROTATION_DEG` apart) with at
 least three pairs are kept.
@@ -407,19 +408,26 @@ def hypotheses(
     pairs, total = _cheap(objects, evidence, (rotations, t_all))
     best_first = np.lexsort((total, -pairs))[:EXACT_SCORES]
     scored = [_score(objects, evidence, r_all[i], t_all[i]) for i in best_first]
-    scored.sort(key=lambda h: (-h.inliers, h.cost))
+    scored.sort(key=_rank)
     scored = [_refit(objects, evidence, h) for h in scored[:REFITTED]] + scored[REFITTED:]
     # fewer than three pairs: the gates or the sizes undid its own minimal set
     return _best(scored, objects.radius, keep, 3)
 
 
+def _rank(h: Hypothesis) -> tuple[float, int]:
+    """Best first: the least summed cost over all detections (an unpaired one costs more than
+    any pair), then the most pairs. Pairs first let a wrong pose that pairs every box loosely
+    crowd out the right one that leaves a moved object's box out (the ``changed`` variant)."""
+    return h.cost, -h.inliers
+
+
 def _best(scored: list[Hypothesis], radius: float, keep: int, least: int) -> list[Hypothesis]:
     """The best ``keep`` distinct hypotheses with at least ``least`` pairs, best first."""
-    scored.sort(key=lambda h: (-h.inliers, h.cost))
+    scored.sort(key=_rank)
     best: list[Hypothesis] = []
     for h in scored:
         if h.inliers < least:
-            break
+            continue
         if all(distinct((h.rvec, h.tvec), (o.rvec, o.tvec), radius) for o in best):
             best.append(h)
             if len(best) == keep:

@@ -6,7 +6,8 @@ The steps (each in its module):
    (:mod:`.hypotheses`);
 2. for each distinct hypothesis: PnP on the paired centres corrected for the box-centre bias,
    then least squares on the box edges (:mod:`.refine`); the pairs are then re-drawn at the
-   refined pose with a box-edge gate (:func:`inlier_gate`) and the edges refitted on them;
+   refined pose with a box-edge gate (:func:`inlier_gate`) and the edges refitted on them; the
+   fits are ranked by :func:`truncated_cost` over all detections, not by pairs first;
 3. without given intrinsics and with at least :data:`MIN_FOCAL_PAIRS` pairs, the focal length
    joins the edge fit of every hypothesis, started from a few zooms of the scene camera's
    (:data:`FOCAL_STARTS`); with fewer pairs the scene camera's field of view is used and the
@@ -21,9 +22,9 @@ the distinct fits as alternatives, never ``found``.
 Status
 ------
 ``found``
-    The best pose pairs at least four detections, or three when it is clearly unique: no
-    distinct pose (:func:`~.hypotheses.distinct`) pairs as many detections with an edge RMS
-    within :data:`UNIQUE_RATIO_3` (three pairs) or :data:`AMBIGUITY_RATIO` (four or more) times
+    The best pose (least :func:`truncated_cost`) pairs at least four detections, or three
+    when it is clearly unique: no distinct pose (:func:`~.hypotheses.distinct`) pairs as many
+    detections with an edge RMS within :data:`UNIQUE_RATIO_3` (three pairs) or :data:`AMBIGUITY_RATIO` (four or more) times
     ``max(best RMS, NOISE_FLOOR_PX)``.
 ``ambiguous``
     Fewer than three pairs, or such a distinct pose exists (a symmetric layout, look-alikes
@@ -33,10 +34,12 @@ Status
     * without given intrinsics and too few pairs to fit the focal, the scene camera's field of
       view is assumed, and distance trades against focal length along the view axis;
     * its own uncertainty reaches a wrong answer: ``FIRM_SIGMAS · σ_position > WRONG_POSITION ·
-      r`` or ``FIRM_SIGMAS · σ_rotation > WRONG_ROTATION_DEG`` (``r`` the scene radius). With
-      the general model's labels σ takes the edge noise at ``max(NOISE_FLOOR_PX, edge RMS)``:
-      its boxes on shapes it never saw are off by more than the floor (one 9 px off pulled a
-      six-pair fit 16 % / 12° away at 4.1 px RMS, which the floor called found).
+      r`` or ``FIRM_SIGMAS · σ_rotation > WRONG_ROTATION_DEG`` (``r`` the scene radius). σ takes
+      the edge noise at ``max(NOISE_FLOOR_PX, edge RMS)``: boxes that fit worse than the
+      detector's noise are off by more than it (the general model's on shapes it never saw: one
+      9 px off pulled a six-pair fit 16 % / 12° away at 4.1 px RMS, which the floor called
+      found; an object moved since the scene was modelled: a nadir view of five equal balls
+      fitted a pose 20 % / 11° off at 1.0 px, found at the floor).
       Measured on free targets of generated scenes (``python -m cosmos.bench.free_targets
       --random-scenes 4``), the error over σ reached about 2 in one answer in ten, and a third of
       ``found`` answers off by more than 10 % / 5° had no given intrinsics.
@@ -93,6 +96,7 @@ __all__ = [
     "AMBIGUITY_RATIO",
     "NOISE_FLOOR_PX",
     "inlier_gate",
+    "truncated_cost",
     "solve_free_pose",
 ]
 
@@ -274,13 +278,12 @@ def _candidate(
     width: int,
 ) -> PoseCandidate:
     boxes, masks, labels, index = evidence
-    general = general_labels(objects, tuple(labels[d] for d in fit.detections)).any()
     sigmas = pose_uncertainty(
         objects.subset(fit.objects),
         boxes[fit.detections],
         masks[fit.detections],
         fit.fit,
-        max(NOISE_FLOOR_PX, fit.fit.rms_px) if general else NOISE_FLOOR_PX,
+        max(NOISE_FLOOR_PX, fit.fit.rms_px),
         with_focal=fit.source == "estimated",
     )
     rotation_cw = fit.fit.rotation().T
@@ -314,9 +317,21 @@ def _candidate(
     )
 
 
-def _distinct_best(fits: list[_Fit], radius: float) -> list[_Fit]:
-    """The fits, best first (most pairs, then least RMS), one of each distinct pose."""
-    ranked = sorted(fits, key=lambda f: (-len(f.detections), f.fit.rms_px))
+def truncated_cost(fit: _Fit, gates: FloatArray) -> float:
+    """A fit's robust cost over all ``D`` usable detections (MSAC's truncated quadratic):
+    ``Σ_paired min(r_i / g_i, 1)² + (D - pairs)``, ``r_i`` a pair's box-edge RMS and ``g_i``
+    its detection's :func:`inlier_gate`; an unpaired detection costs as much as the worst
+    pair. Ranking by pairs first let a wrong pose that pairs every box loosely beat the right
+    one that leaves a moved object's box out: on a changed scene it was called found 20-125°
+    away (``tests/optimizer/test_free_changed.py``)."""
+    ratio = np.minimum(fit.fit.pair_rms_px / gates[fit.detections], 1.0)
+    return float(np.sum(ratio**2)) + (len(gates) - len(fit.detections))
+
+
+def _distinct_best(fits: list[_Fit], radius: float, gates: FloatArray) -> list[_Fit]:
+    """The fits, best first (least :func:`truncated_cost`, then most pairs), one of each
+    distinct pose."""
+    ranked = sorted(fits, key=lambda f: (truncated_cost(f, gates), -len(f.detections)))
     kept: list[_Fit] = []
     for f in ranked:
         if all(distinct(f.key, k.key, radius) for k in kept):
@@ -392,7 +407,7 @@ def solve_free_pose(
         few = _few_detections(compatible, np.argsort(-scores, kind="stable"))
         fits = _few(objects, boxes, masks, compatible, few, k0)
         fits = [f if not given else _Fit(f.fit, f.detections, f.objects, "given") for f in fits]
-    ranked = _distinct_best(fits, objects.radius)
+    ranked = _distinct_best(fits, objects.radius, inlier_gate(boxes))
     if not ranked:
         return FreePoseAnswer(
             "failed",

@@ -1,0 +1,55 @@
+"""A scene that changed since it was modelled (one object moved, the ``changed`` variant):
+the pose is the one the unmoved objects agree on, not one that pairs every box loosely, and a
+wrong pose is never called found."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
+from services.optimizer.free import SceneObjects, scene_objects, solve_free_pose
+from tests.optimizer.test_free_pose import H, W, errors, exact_detections, intrinsics_of
+
+VIEWS = [
+    FreeCamera(position=(5.0, -4.0, 5.0), look_at=(0.0, 0.0, 0.0)),
+    FreeCamera(position=(-6.0, 2.0, 4.0), look_at=(0.5, 0.0, 0.0), roll_deg=20.0),
+    FreeCamera(position=(0.3, 0.2, 9.0), yaw_deg=30.0, pitch_deg=90.0),
+    FreeCamera(position=(2.0, 7.0, 3.5), look_at=(-0.5, 0.5, 0.0), roll_deg=-10.0),
+]
+
+
+def moved_one(objects: SceneObjects, index: int, shift: np.ndarray) -> SceneObjects:
+    """``objects`` with object ``index`` moved by ``shift``."""
+    points = objects.points.copy()
+    points[objects.owners() == index] += shift
+    centroids = objects.centroids.copy()
+    centroids[index] += shift
+    return dataclasses.replace(objects, points=points, centroids=centroids)
+
+
+def test_a_moved_object_does_not_pull_the_pose_away(catalog):
+    """Every object of demo and garden moved in turn (up to 2 units) under four views: 44
+    targets. Ranked by pairs first, 4 answers were wrong and 3 of them found (20-125° off)."""
+    wrong, found_wrong, targets = [], [], 0
+    for sid in ("demo", "garden"):
+        objects = scene_objects(catalog.get(sid).spec, catalog.get(sid).assets)
+        for view, camera in enumerate(VIEWS):
+            pinhole = free_pinhole_camera(camera, W, H, objects.fov_deg)
+            rng = np.random.default_rng(view)
+            for index in range(len(objects)):
+                changed = moved_one(objects, index, np.r_[rng.uniform(-2.0, 2.0, 2), 0.0])
+                detections = exact_detections(changed, pinhole, 0.5, rng)
+                if len(detections) < 5:
+                    continue
+                targets += 1
+                answer = solve_free_pose(objects, detections, W, H, intrinsics_of(pinhole))
+                moved, turned = errors(answer.pose, pinhole)
+                if moved > 0.05 * objects.radius or turned > 2.0:
+                    wrong.append((sid, view, index))
+                    if answer.status == "found":
+                        found_wrong.append((sid, view, index, answer.reason))
+    assert targets >= 40
+    assert found_wrong == []
+    assert len(wrong) <= 2, wrong  # the nadir view of demo's five equal balls stays ambiguous
