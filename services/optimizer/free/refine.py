@@ -44,6 +44,10 @@ MAX_EVALUATIONS: Final = 60
 """Residual evaluations per fit (besides the Jacobian's). Measured on rendered targets with the
 focal length free: the fit has settled (same pose and fov to 1e-6) by 60, while the default
 (100 per parameter) spent ten times as long creeping along the flat distance-focal valley."""
+FOCAL_BOUNDS: Final = (0.5, 2.0)
+"""With the focal length free, it stays within these factors of the start's: the distance-focal
+valley runs on towards the orthographic limit, and unbounded, a general-model fit on wrong pairs
+ran off to a camera 2400 scene units away at a 0.1° field of view (seed 5 of the free bench)."""
 _FAR_PX: Final = 1e4
 """Residual that stands for an object behind the camera: large, finite, so the solver backs off."""
 
@@ -184,7 +188,7 @@ def refine_edges(
     masks : (n, 4) sides to ignore (clipped by the image border).
     rvec, tvec : the start, world-to-camera.
     intrinsics : the camera's; with ``fit_focal`` its focal lengths are scaled by a fitted
-        common factor (aspect ratio and principal point kept).
+        common factor within :data:`FOCAL_BOUNDS` (aspect ratio and principal point kept).
     """
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     m = np.asarray(masks, dtype=np.bool_).reshape(-1, 4)
@@ -200,10 +204,14 @@ def refine_edges(
     def jacobian(p: FloatArray) -> FloatArray:
         return _edge_jacobian(objects, m, *unpack(p), fit_focal)
 
+    bounds = (np.full(start.size, -np.inf), np.full(start.size, np.inf))
+    if fit_focal:
+        bounds[0][6], bounds[1][6] = (math.log(b) for b in FOCAL_BOUNDS)
     fit = least_squares(
         residuals,
         start,
         jac=jacobian,
+        bounds=bounds,
         loss="soft_l1",
         f_scale=EDGE_SCALE_PX,
         x_scale="jac",

@@ -24,8 +24,8 @@ Status
 ``found``
     The best pose (least :func:`truncated_cost`) pairs at least four detections, or three
     when it is clearly unique: no distinct pose (:func:`~.hypotheses.distinct`) pairs as many
-    detections with an edge RMS within :data:`UNIQUE_RATIO_3` (three pairs) or :data:`AMBIGUITY_RATIO` (four or more) times
-    ``max(best RMS, NOISE_FLOOR_PX)``.
+    detections with an edge RMS within :data:`UNIQUE_RATIO_3` (three pairs) or
+    :data:`AMBIGUITY_RATIO` (four or more) times ``max(best RMS, NOISE_FLOOR_PX)``.
 ``ambiguous``
     Fewer than three pairs, or such a distinct pose exists (a symmetric layout, look-alikes
     that can swap): the best pose and the alternatives, with their residuals. Also a pose the
