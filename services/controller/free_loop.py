@@ -6,15 +6,16 @@
    search with the optimizer's reason;
 3. render the scene at the pose (a free camera with the intrinsics used, through the broker),
    on the target's shape at most the search's view width wide, and detect its objects;
-4. compare them with the target's box by box (:mod:`~services.controller.free_match`), and
-   refine the pose densely against the target image by the same render (it came with its
-   depth; :mod:`~services.controller.free_refine`). The render agrees when its boxes do and
-   its edges do not contradict them (``edges_contradict``: a moved object can let a wrong
-   pose pair every box), or when its edges agree (``edges_agree``: the fit was accepted and
-   leaves most of the render's edges on the target's): a detector that names the render's
-   objects unlike the target's (the general model on a scene it was not trained on) then
-   still confirms a pose the image vouches for. If the render agrees, the search ends; if
-   not, the next alternative is rendered, while renders remain (``max_iterations``).
+4. compare them with the target's box by box (:mod:`~services.controller.free_match`) and,
+   while the detector works, refine the pose densely against the target image by the same
+   render (it came with its depth; :mod:`~services.controller.free_refine`). The render
+   agrees when its boxes do and its edges do not contradict them (``edges_contradict``: a
+   moved object can let a wrong pose pair every box), or when its edges agree
+   (``edges_agree``: the fit was accepted and leaves most of the render's edges on the
+   target's): a detector that names the render's objects unlike the target's (the general
+   model on a scene it was not trained on) then still confirms a pose the image vouches for.
+   If the render agrees, the search ends; if not, the next alternative is rendered, while
+   renders remain (``max_iterations``).
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`) is ``found`` and
 ``confirmed`` only when the optimizer found a unique pose and its render agreed. An ambiguous
@@ -31,10 +32,13 @@ with the candidate after its last recorded iteration.
 
 from __future__ import annotations
 
+import asyncio
 import time
 from dataclasses import dataclass
 from typing import NoReturn
 
+import numpy as np
+from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from services.common.contracts.detect import Detection, DetectResponse
@@ -333,9 +337,8 @@ class FreeSearchLoop:
         edges: dict[int, RefinePoseResponse | str] = {}
         for k in range(len(history), budget):
             await writes.flush()
-            seen_view = await self._render_and_compare(search, scene, (target, size), candidates[k])
-            outcome = await refine_by_render(
-                self.stages, self.outages, search, image, candidates[k], seen_view.archive
+            seen_view, outcome = await self._render_and_check(
+                search, scene, (target, size), image, candidates[k]
             )
             edges[k] = outcome
             step = _Step(k, len(candidates), answer.status != "found", optimize_ms)
@@ -376,25 +379,40 @@ class FreeSearchLoop:
             return outcome, 0
         if rendered >= search.max_iterations:
             return outcome, 0
-        seen = await self._render_and_compare(search, scene, target, outcome.pose)
-        again = await refine_by_render(
-            self.stages, self.outages, search, image, outcome.pose, seen.archive
-        )
+        _, again = await self._render_and_check(search, scene, target, image, outcome.pose)
         if isinstance(again, str) or not again.fit.accepted:
             return outcome, 1
         return again, 1
 
-    async def _render_and_compare(
+    async def _render_and_check(
         self,
         search: Search,
         scene: SceneDetail,
         target: tuple[tuple[Detection, ...], tuple[int, int]],
+        image: bytes,
         pose: FreePose,
-    ) -> _Seen:
-        """``pose`` rendered, detected and compared with the ``target`` (its detections and
-        size)."""
+    ) -> tuple[_Seen, RefinePoseResponse | str]:
+        """``pose`` rendered, then at once detected and compared with the ``target`` (its
+        detections and size) and refined densely against its ``image`` by that render (neither
+        needs the other: the refinement takes the render's own depth, not its detections)."""
+        camera, archive, colours, render_ms = await self._render(search, scene, target[1], pose)
+        refined = asyncio.create_task(
+            refine_by_render(self.stages, self.outages, search, image, pose, archive)
+        )
+        try:
+            found, check, detect_ms = await self._compare(search, target, pose, colours)
+        except BaseException:
+            refined.cancel()  # the search fails (or is cancelled) as it would have without it
+            raise
+        outcome = await refined
+        return _Seen(camera, archive, found, check, render_ms, detect_ms), outcome
+
+    async def _render(
+        self, search: Search, scene: SceneDetail, size: tuple[int, int], pose: FreePose
+    ) -> tuple[FreeCamera, bytes, NDArray[np.uint8], float]:
+        """``pose`` rendered on the target's shape (``size``) at most the view width wide, with
+        its depth: the camera rendered, the archive, its colours and the milliseconds."""
         sid = search.id
-        detections, size = target
         settings = self.stages.settings_for(search.view_settings)
         film, scale = view_film(size, settings.width or scene.spec.camera.width)
         camera = scaled_camera(pose, scale)
@@ -411,11 +429,21 @@ class FreeSearchLoop:
             raise failure("bad-render", "Bad render", f"the renderer's archive: {exc}") from exc
         if colours is None:
             raise failure("bad-render", "Bad render", "the renderer's archive has no colours")
-        rendered = time.perf_counter()
+        return camera, archive, colours, (time.perf_counter() - started) * 1000
+
+    async def _compare(
+        self,
+        search: Search,
+        target: tuple[tuple[Detection, ...], tuple[int, int]],
+        pose: FreePose,
+        colours: NDArray[np.uint8],
+    ) -> tuple[DetectResponse, FreeMatch, float]:
+        """The render's ``colours`` detected and compared box by box with the ``target``'s
+        detections of ``pose``'s pairs; the milliseconds the detection took."""
+        detections, size = target
+        started = time.perf_counter()
         found = await self._detect(search, encode_ppm(colours))
-        detected = time.perf_counter()
+        detect_ms = (time.perf_counter() - started) * 1000
         paired = [c.detection for c in pose.correspondences]
         check = compare_view(detections, size, paired, found.detections, found.image_size)
-        return _Seen(
-            camera, archive, found, check, (rendered - started) * 1000, (detected - rendered) * 1000
-        )
+        return found, check, detect_ms

@@ -607,3 +607,49 @@ def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, de
     assert done.result.free is not None
     assert final.result.free.pose == done.result.free.box_pose
     assert "no dense refinement (resumed after its render)" in final.result.reason
+
+
+class Overlapping(FakeStages):
+    """Says when the view's detection (50 ms) and the dense fit (``fit_s``) start and end."""
+
+    def __init__(self, *args, fit_s: float = 0.01, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.fit_s = fit_s
+        self.order: list[str] = []
+
+    async def detect(self, image, media_type, request_id="", scene=None) -> DetectResponse:
+        if image != PNG:
+            self.order.append("detect starts")
+            await asyncio.sleep(0.05)
+            self.order.append("detect ends")
+        return await super().detect(image, media_type, request_id, scene)
+
+    async def refine_pose(self, request, target, render, request_id="") -> RefinePoseResponse:
+        self.order.append("fit starts")
+        await asyncio.sleep(self.fit_s)
+        self.order.append("fit ends")
+        return await super().refine_pose(request, target, render, request_id)
+
+
+def test_the_render_is_detected_and_refined_at_once(tmp_path, detail):
+    stages = Overlapping(detail)
+    final = run(tmp_path, stages)
+    assert final.status == "succeeded", final.error
+    assert final.result is not None
+    assert final.result.confirmed
+    assert stages.order == ["detect starts", "fit starts", "fit ends", "detect ends"]
+
+
+def test_a_view_the_detector_refuses_fails_the_search_and_stops_its_fit(tmp_path, detail):
+    problem = ProblemDetails(
+        type="urn:cosmos:problem:bad-request", title="Bad request", status=422, detail="too big"
+    )
+    stages = Overlapping(
+        detail, fit_s=1.0, faults={"detect view": (0, StageError("detector", problem))}
+    )
+    final = run(tmp_path, stages)
+    assert final.status == "failed"
+    assert final.error is not None
+    assert "too big" in (final.error.detail or "")
+    assert final.iterations == ()
+    assert stages.order == ["detect starts", "fit starts", "detect ends"]  # the fit cancelled
