@@ -44,8 +44,10 @@ Fit
     distortion the projection and its Jacobian are numpy's (``cv2.projectPoints`` always
     computes its 15-column Jacobian, ~17 times the projection alone, also for the residual
     evaluations that need none), and the Jacobian reuses the residuals' projection at the same
-    pose. Together: 2.4 times faster with the focal fitted, 1.6 times with the intrinsics given
-    (:data:`LEVEL_POINTS`).
+    pose. Together, per call on the free bench (:data:`LEVEL_POINTS`, seed 1, one run after
+    the other): 493 → 198 ms median (p95 696 → 331) with the focal fitted, 108 → 64 ms (p95
+    187 → 96) with the intrinsics given; ``xtol`` is most of it, the first level's subsample
+    a few percent.
 
     ``least_squares`` solves its trust-region steps by LSMR: its default (an SVD of the
     Jacobian each step) took ~35 ms instead of ~1 ms per step on this 2-core machine under load,
@@ -115,22 +117,23 @@ INLIER_PX: Final = 2.0
 """A model point within this many full-resolution pixels of a target edge is explained."""
 MAX_EVALUATIONS: Final = 40
 """Residual evaluations per level."""
-X_TOLERANCE: Final = 1e-5
+X_TOLERANCE: Final = 1e-6
 """``least_squares``' ``xtol``: a step below this share of the pose (well under 0.01 px on the
 film) ends a level. At the default 1e-8, 157 of 180 fits on the pairs of
 ``benchmarks/dense_refine.py`` (focal fitted) ended by it after 29 evaluations (median), about
 half of them rejected steps shrinking the trust region far below a pixel (measured with
-:data:`LEVEL_POINTS`)."""
-LEVEL_POINTS: Final[tuple[int | None, ...]] = (500, 1000, None)
-"""Model edge points fitted at each level of :data:`LEVELS` (evenly spaced; None: all): a
-coarse level's pixels are 2-4 times larger, and fewer points pin its pose as well. With
-:data:`X_TOLERANCE`, measured by ``python -m cosmos.bench.free_targets --scene demo
---random-scenes 3 --n 12 --seed 1`` against all points and ``xtol`` 1e-8 in the same conditions:
-per call 131 → 80 ms (median) with the intrinsics given, 655 → 270 ms with the focal fitted,
-no share within 2 %/1°, 5 %/2° or 10 %/5° lower (the fov-free ones 0-17 points higher).
-Carrying only the best 2 zoom starts into the full-resolution level was measured too (313 ms,
-one fov-free target more than 10 %/5° off) and left out: the zoom is told apart at full
-resolution only."""
+:data:`LEVEL_POINTS`). 1e-5 was faster still but left ``tests/optimizer/test_dense.py``'s
+garden-steep fov 1.7 % off (< 1 % at 1e-6)."""
+LEVEL_POINTS: Final[tuple[int | None, ...]] = (1000, None, None)
+"""Model edge points fitted at each level of :data:`LEVELS` (evenly spaced; None: all): the
+first level's pixels are 4 times larger, and fewer points pin its pose as well. Measured with
+:data:`X_TOLERANCE` by ``python -m cosmos.bench.free_targets --scene demo --random-scenes 3
+--n 12 --seed S`` (S = 1, 3) against the former all points and ``xtol`` 1e-8: no share within
+2 %/1°, 5 %/2° or 10 %/5° lower, with the intrinsics given (identical) or not (of 48 fits
+each, 28/46/48 → 31/48/48 and 18/34/43 → 19/34/43). (500, 1000, None) was no faster but lost
+2 fov-free fits of seed 3 at 10 %/5°; carrying only the best 2 zoom starts into the last
+level saved a third more but lost one at seed 1 (the zoom is told apart at full resolution
+only)."""
 FOCAL_RANGE: Final = (0.5, 2.0)
 """The focal length's scale stays within these bounds of the start's."""
 ZOOM_STARTS: Final = tuple(1.08**i for i in range(-2, 3))
