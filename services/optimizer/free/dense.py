@@ -45,9 +45,8 @@ Fit
     computes its 15-column Jacobian, ~17 times the projection alone, also for the residual
     evaluations that need none), and the Jacobian reuses the residuals' projection at the same
     pose. Together, per call on the free bench (:data:`LEVEL_POINTS`, seed 1, one run after
-    the other): 493 → 198 ms median (p95 696 → 331) with the focal fitted, 108 → 64 ms (p95
-    187 → 96) with the intrinsics given; ``xtol`` is most of it, the first level's subsample
-    a few percent.
+    the other): 559 → 245 ms median (p95 784 → 387) with the focal fitted, 113 → 70 ms (p95
+    186 → 100) with the intrinsics given.
 
     ``least_squares`` solves its trust-region steps by LSMR: its default (an SVD of the
     Jacobian each step) took ~35 ms instead of ~1 ms per step on this 2-core machine under load,
