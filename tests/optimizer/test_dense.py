@@ -217,3 +217,49 @@ def test_an_unknown_fov_is_found_from_the_box_solvers_answer(engine, catalog, sc
     assert fov < box_fov
     assert distance < 0.02 * radius
     assert angle < 1.0
+
+
+def _synthetic_problem(fit_focal: bool, distortion=None, limit=None):
+    """A pyramid level of a random edge image and random points in front of the camera."""
+    from services.optimizer.free import dense
+
+    rng = np.random.default_rng(3)
+    image = (rng.random((H, W)) > 0.97).astype(np.uint8) * 255
+    level = dense._level(cv2.GaussianBlur(image, (0, 0), 2.0), 1, 1.0, 5.0)
+    world = rng.normal(size=(400, 3)) + [0.0, 0.0, 8.0]
+    points = dense.EdgePoints(world=world, bins=rng.integers(0, 8, 400))
+    k = Intrinsics(300.0, 300.0, W / 2, H / 2)
+    return dense._Problem(points, level, k, distortion, fit_focal, limit)
+
+
+@pytest.mark.parametrize("fit_focal", [False, True])
+def test_the_pinhole_jacobian_is_opencvs(fit_focal):
+    problem = _synthetic_problem(fit_focal)
+    x = np.array([0.1, -0.2, 0.05, 0.3, -0.1, 0.5, 1.1][: 7 if fit_focal else 6])
+    problem._project(x)
+    ours = problem._pinhole_columns(x)
+    fx, fy = problem._focal(x)
+    matrix = np.array([[fx, 0.0, W / 2], [0.0, fy, H / 2], [0.0, 0.0, 1.0]])
+    uv, jacobian = cv2.projectPoints(problem.world, x[:3], x[3:6], matrix, np.zeros(4))
+    np.testing.assert_allclose(problem._uv, uv.reshape(-1, 2), atol=1e-9)
+    np.testing.assert_allclose(ours, problem._opencv_columns(jacobian, fx, fy, x), atol=1e-9)
+
+
+def test_the_jacobian_reuses_the_residuals_projection(monkeypatch):
+    from services.optimizer.free import dense
+
+    problem = _synthetic_problem(fit_focal=True)
+    x = np.array([0.1, -0.2, 0.05, 0.3, -0.1, 0.5, 1.1])
+    problem.residuals(x)
+    calls = []
+    rodrigues = dense.cv2.Rodrigues
+    monkeypatch.setattr(dense.cv2, "Rodrigues", lambda v: calls.append(1) or rodrigues(v))
+    problem.jacobian(x.copy())  # the same pose: only the rotation's derivative is asked for
+    assert len(calls) == 1
+    problem.residuals(x + 1e-3)
+    assert len(calls) == 2
+
+
+def test_a_level_fits_at_most_its_share_of_the_points():
+    assert len(_synthetic_problem(False, limit=100).world) == 100
+    assert len(_synthetic_problem(False, limit=None).world) == 400

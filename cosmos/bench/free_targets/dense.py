@@ -50,11 +50,13 @@ def dense_method(variant: FreeVariant) -> str:
 @dataclass(frozen=True)
 class DenseRun:
     """The dense estimates per method name (:func:`dense_method`), the renders one search spends
-    (on the clean variant), and the refinements' wall time (all variants, no render) in ms."""
+    (on the clean variant), and the refinements' wall time (all variants, no render) in ms, in
+    all and per call of :func:`refine_dense`."""
 
     estimates: dict[str, Estimate | None]
     renders: int
     refine_ms: float
+    call_ms: tuple[float, ...] = ()
 
 
 def _decode_gray(data: bytes) -> NDArray[np.uint8]:
@@ -133,7 +135,7 @@ def run_dense(
         answer.pose.intrinsics.fov_deg,
     )
     first = _render(renderer, target, answer.pose.free_camera(), spp)
-    spent, elapsed = int(first is not None), 0.0
+    spent, calls = int(first is not None), []
     for variant in FREE_VARIANTS:
         rendered, estimate, budget, step = first, fallback, renders, 0
         while rendered is not None and step < budget:
@@ -142,7 +144,7 @@ def run_dense(
             fit = refine_dense(
                 images[variant], rgb, depth, pinhole, fit_focal=not target.intrinsics_given
             )
-            elapsed += (time.perf_counter() - started) * 1000.0
+            calls.append((time.perf_counter() - started) * 1000.0)
             estimate = _estimate(fit, width)
             step += 1
             if step == budget == renders and worth_another_render(fit, pinhole):
@@ -151,4 +153,4 @@ def run_dense(
                 rendered = _render(renderer, target, _free_camera(fit.camera(pinhole)), spp)
                 spent += int(rendered is not None and variant == FREE_VARIANTS[0])
         estimates[dense_method(variant)] = estimate
-    return DenseRun(estimates, spent, elapsed)
+    return DenseRun(estimates, spent, sum(calls), tuple(calls))

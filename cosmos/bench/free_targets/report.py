@@ -67,6 +67,8 @@ class TargetResult:
     """Renders the dense stage spent (0 when it did not run or the renderer refused the pose)."""
     dense_ms: float = 0.0
     """The dense refinements' wall time over all image variants, renders left out."""
+    dense_call_ms: tuple[float, ...] = ()
+    """Each dense refinement's wall time (ms)."""
 
     @property
     def given(self) -> str:
@@ -99,6 +101,7 @@ def evaluate(
             "box-only bound": box_only_bound(target, shapes, rng),
         }
         status, spent, dense_ms = None, 0, 0.0
+        call_ms: tuple[float, ...] = ()
         if objects is not None:
             answer = solve_target(target, objects, np.random.default_rng([seed, target.index, 2]))
             estimates[SOLVER] = answer_estimate(answer)
@@ -106,7 +109,7 @@ def evaluate(
             if renderer is not None:
                 dense = run_dense(target, answer, renderer, seed, spp=spp, renders=renders)
                 estimates.update(dense.estimates)
-                spent, dense_ms = dense.renders, dense.refine_ms
+                spent, dense_ms, call_ms = dense.renders, dense.refine_ms, dense.call_ms
         results.append(
             TargetResult(
                 scene=target.scene,
@@ -118,6 +121,7 @@ def evaluate(
                 status=status,
                 renders=spent,
                 dense_ms=dense_ms,
+                dense_call_ms=call_ms,
             )
         )
     return results
@@ -265,8 +269,9 @@ def solver_table(results: Sequence[TargetResult]) -> str:
 
 
 def dense_line(results: Sequence[TargetResult]) -> str:
-    """The dense stage's cost: renders per search (median, max) and refinement time per target
-    and image variant (median, ms)."""
+    """The dense stage's cost: renders per search (median, max), refinement time per target
+    and image variant (median, ms), and per call of the refinement with the intrinsics given
+    and estimated (median and p95, ms)."""
     ran = [r for r in results if r.dense_ms > 0.0]
     if not ran:
         return "dense: no target refined"
@@ -276,4 +281,9 @@ def dense_line(results: Sequence[TargetResult]) -> str:
         f"dense: renders per search median {np.median(renders):g}, max {max(renders)}; "
         f"refinement median {np.median(per_variant):.0f} ms (p95 "
         f"{np.percentile(per_variant, 95):.0f} ms) per target and image variant"
+    ) + "".join(
+        f"; per call, {key}: median {np.median(calls):.0f} ms, p95 "
+        f"{np.percentile(calls, 95):.0f} ms ({len(calls)} calls)"
+        for key in ("K given", "K estimated")
+        if (calls := [ms for r in ran if r.given == key for ms in r.dense_call_ms])
     )
