@@ -221,13 +221,13 @@ def test_an_unknown_fov_is_found_from_the_box_solvers_answer(engine, catalog, sc
 
 def _synthetic_problem(fit_focal: bool, distortion=None, limit=None):
     """A pyramid level of a random edge image and random points in front of the camera."""
-    from services.optimizer.free import dense
+    from services.optimizer.free import dense, edges
 
     rng = np.random.default_rng(3)
     image = (rng.random((H, W)) > 0.97).astype(np.uint8) * 255
-    level = dense._level(cv2.GaussianBlur(image, (0, 0), 2.0), 1, 1.0, 5.0)
+    level = edges.target_level(cv2.GaussianBlur(image, (0, 0), 2.0), 1, 1.0, 5.0)
     world = rng.normal(size=(400, 3)) + [0.0, 0.0, 8.0]
-    points = dense.EdgePoints(world=world, bins=rng.integers(0, 8, 400))
+    points = edges.EdgePoints(world=world, bins=rng.integers(0, 8, 400))
     k = Intrinsics(300.0, 300.0, W / 2, H / 2)
     return dense._Problem(points, level, k, distortion, fit_focal, limit)
 

@@ -6,13 +6,14 @@ is then fitted so that those points project onto the target image's edges, as mo
 tracking does (RAPiD, ViSP's moving edges), here with a chamfer cost over many edge pixels.
 
 Model points
-    Canny edges of the render (:func:`image_edges`: the objects' silhouettes, creases, shadow
-    and texture edges; the same detector as on the target, so both are located alike). Each edge
-    pixel (u, v) (centre ``(j + ½, i + ½)``) goes back through the depth ``Z`` to the camera
-    point ``X_c = Z (x, y, 1)`` with ``(x, y)`` its undistorted normalised coordinates, and to
-    the world ``X = R₀ᵀ (X_c - t₀)``. ``Z`` is the smallest depth in the pixel's 3x3
-    neighbourhood: an edge at a silhouette belongs to the nearer, occluding surface. Each point
-    keeps its edge orientation ``θ`` (the render's gradient direction, modulo π).
+    Canny edges of the render (:func:`~.edges.image_edges`: the objects' silhouettes, creases,
+    shadow and texture edges; the same detector as on the target, so both are located alike).
+    Each edge pixel (u, v) (centre ``(j + ½, i + ½)``) goes back through the depth ``Z`` to
+    the camera point ``X_c = Z (x, y, 1)`` with ``(x, y)`` its undistorted normalised
+    coordinates, and to the world ``X = R₀ᵀ (X_c - t₀)``. ``Z`` is the smallest depth in the
+    pixel's 3x3 neighbourhood: an edge at a silhouette belongs to the nearer, occluding
+    surface. Each point keeps its edge orientation ``θ`` (the render's gradient direction,
+    modulo π) (:func:`~.edges.edge_points`).
 
 Target
     Canny edges of the target image at its own resolution, split into :data:`ORIENTATION_BINS`
@@ -82,6 +83,17 @@ from scipy.optimize import least_squares
 
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.free_camera import LensDistortion
+from services.optimizer.free.edges import (
+    ORIENTATION_BINS,
+    EdgePoints,
+    Level,
+    bilinear,
+    bilinear_corners,
+    edge_points,
+    gray,
+    lens_coefficients,
+    target_level,
+)
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.geometry import FloatArray
 
@@ -93,23 +105,12 @@ __all__ = [
     "DenseFit",
     "EdgePoints",
     "edge_points",
-    "image_edges",
     "refine_dense",
     "worth_another_render",
 ]
 
-ORIENTATION_BINS: Final = 8
-"""Edge orientations are told apart in bins of 180° / 8 = 22.5° (a bin and its neighbours
-match: ±34° at most)."""
-BLUR_SIGMA_PX: Final = 1.5
-"""Gaussian blur before the gradients: JPEG blocks and sensor noise stay under the thresholds."""
-CANNY_PX: Final = (30.0, 80.0)
-"""Canny's hysteresis thresholds on the 3x3 Sobel gradient magnitude (a step of h grey levels
-gives about 4h): edges of steps above ~12 levels, seeded by steps above ~5."""
 LEVELS: Final = ((4, 2.0, 8.0), (2, 1.5, 6.0), (1, 1.0, 5.0))
 """(downsampling factor, soft-L1 scale σ, truncation τ), both in pixels of the level."""
-MAX_POINTS: Final = 2000
-"""Model edge points kept (evenly spaced along the edge pixels' raster order)."""
 MIN_POINTS: Final = 30
 """Fewer model edge points than this do not pin six parameters: the start pose is returned."""
 INLIER_PX: Final = 2.0
@@ -150,15 +151,6 @@ REFIT_ZOOM: Final = 0.03
 """A fit whose focal length moved more than this share from the render's, or whose camera
 moved more than this share of the points' depth, is worth one more render
 (:func:`worth_another_render`)."""
-
-
-@dataclass(frozen=True)
-class EdgePoints:
-    """Model edge points: ``world`` ``(N, 3)`` in scene units and their image-edge orientation
-    bins ``bins`` ``(N,)`` (:data:`ORIENTATION_BINS`)."""
-
-    world: FloatArray
-    bins: NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -205,122 +197,6 @@ class DenseFit:
         )
 
 
-def image_edges(gray: NDArray[np.uint8]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
-    """Canny edges of an 8-bit grey image (after a :data:`BLUR_SIGMA_PX` blur) and each pixel's
-    gradient-orientation bin (``⌊(atan2(g_y, g_x) mod π) / (π / B)⌋``, B =
-    :data:`ORIENTATION_BINS`)."""
-    blurred = cv2.GaussianBlur(gray, (0, 0), BLUR_SIGMA_PX)
-    gx = cv2.Sobel(blurred, cv2.CV_16S, 1, 0, ksize=3)
-    gy = cv2.Sobel(blurred, cv2.CV_16S, 0, 1, ksize=3)
-    edges = cv2.Canny(gx, gy, CANNY_PX[0], CANNY_PX[1], L2gradient=True) > 0
-    angle = np.mod(np.arctan2(gy.astype(np.float32), gx.astype(np.float32)), np.pi)
-    bins = np.minimum((angle / (np.pi / ORIENTATION_BINS)).astype(np.intp), ORIENTATION_BINS - 1)
-    return edges, bins
-
-
-def _gray(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
-    if image.ndim == 2:
-        return image
-    return np.asarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
-
-
-def _matrix(k: Intrinsics, scale: float = 1.0) -> FloatArray:
-    return np.array(
-        [[k.fx / scale, 0.0, k.cx / scale], [0.0, k.fy / scale, k.cy / scale], [0.0, 0.0, 1.0]]
-    )
-
-
-def _coefficients(distortion: LensDistortion | None) -> FloatArray:
-    return np.zeros(4) if distortion is None else distortion.coefficients()
-
-
-def edge_points(
-    render_rgb: NDArray[np.uint8],
-    render_depth: NDArray[np.float32],
-    camera: PinholeCamera,
-    distortion: LensDistortion | None = None,
-) -> EdgePoints:
-    """The render's edge pixels back-projected through its depth to world points (module
-    docstring), at most :data:`MAX_POINTS`."""
-    edges, bins = image_edges(_gray(render_rgb))
-    depth = np.where(render_depth > 0.0, render_depth, np.inf).astype(np.float32)
-    nearest = cv2.erode(depth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    rows, cols = np.nonzero(edges & np.isfinite(nearest))
-    if rows.size > MAX_POINTS:
-        keep = np.linspace(0, rows.size - 1, MAX_POINTS).round().astype(np.intp)
-        rows, cols = rows[keep], cols[keep]
-    pixels = np.stack([cols + 0.5, rows + 0.5], axis=1).astype(np.float64)
-    k = Intrinsics(camera.fx, camera.fy, camera.cx, camera.cy)
-    normalised = cv2.undistortPoints(
-        pixels.reshape(-1, 1, 2), _matrix(k), _coefficients(distortion)
-    ).reshape(-1, 2)
-    z = nearest[rows, cols].astype(np.float64)[:, None]
-    in_camera = np.hstack([normalised * z, z])
-    rotation = np.asarray(camera.rotation, dtype=np.float64)
-    world = (in_camera - np.asarray(camera.translation)) @ rotation
-    return EdgePoints(world=world, bins=bins[rows, cols])
-
-
-@dataclass(frozen=True)
-class _Level:
-    """One pyramid level of the target: truncated oriented distance maps and their gradients,
-    ``(B, h, w)`` each, in pixels of the level."""
-
-    scale: int
-    sigma: float
-    cap: float
-    distance: NDArray[np.float32]
-    grad_x: NDArray[np.float32]
-    grad_y: NDArray[np.float32]
-
-
-def _level(gray: NDArray[np.uint8], scale: int, sigma: float, cap: float) -> _Level:
-    height, width = gray.shape
-    size = (max(width // scale, 8), max(height // scale, 8))
-    small = gray
-    if scale > 1:
-        small = np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
-    edges, bins = image_edges(small)
-    distance = np.empty((ORIENTATION_BINS, *small.shape), dtype=np.float32)
-    for b in range(ORIENTATION_BINS):
-        near = (bins == b) | (bins == (b + 1) % ORIENTATION_BINS)
-        near |= bins == (b - 1) % ORIENTATION_BINS
-        free = np.where(edges & near, 0, 255).astype(np.uint8)
-        distance[b] = np.minimum(
-            cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), cap
-        )
-    grad_y, grad_x = np.gradient(distance, axis=(1, 2))
-    return _Level(scale, sigma, cap, distance, grad_x.astype(np.float32), grad_y.astype(np.float32))
-
-
-def _corners(
-    level: _Level, bins: NDArray[np.intp], uv: FloatArray
-) -> tuple[tuple[NDArray[np.intp], ...], tuple[FloatArray, ...], NDArray[np.bool_]]:
-    """The flat indices and bilinear weights of the four grid neighbours of the continuous pixel
-    positions ``uv`` (corner origin) of the level, and which lie on the film."""
-    _, height, width = level.distance.shape
-    col, row = uv[:, 0] - 0.5, uv[:, 1] - 0.5
-    inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
-    col = np.clip(np.where(inside, col, 0.0), 0.0, width - 1.001)
-    row = np.clip(np.where(inside, row, 0.0), 0.0, height - 1.001)
-    c0, r0 = col.astype(np.intp), row.astype(np.intp)
-    fc, fr = col - c0, row - r0
-    first = (bins * height + r0) * width + c0  # flat index of the top-left neighbour
-    corners = (first, first + 1, first + width, first + width + 1)
-    weights = ((1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr)
-    return corners, weights, inside
-
-
-def _bilinear(
-    grid: NDArray[np.float32],
-    corners: tuple[NDArray[np.intp], ...],
-    weights: tuple[FloatArray, ...],
-) -> FloatArray:
-    flat = grid.reshape(-1)
-    value: FloatArray = sum(w * flat[i] for w, i in zip(weights, corners, strict=True))  # type: ignore[assignment]
-    return value
-
-
 class _Problem:
     """The chamfer residuals and their Jacobian at one level (module docstring), on ``points``
     (or the evenly spaced ``limit`` of them).
@@ -335,7 +211,7 @@ class _Problem:
     def __init__(
         self,
         points: EdgePoints,
-        level: _Level,
+        level: Level,
         intrinsics: Intrinsics,
         distortion: LensDistortion | None,
         fit_focal: bool,
@@ -346,7 +222,7 @@ class _Problem:
             keep = np.linspace(0, len(world) - 1, limit).round().astype(np.intp)
             world, bins = world[keep], bins[keep]
         self.world, self.bins, self.level, self.k = world, bins, level, intrinsics
-        self.coefficients = _coefficients(distortion)
+        self.coefficients = lens_coefficients(distortion)
         self.pinhole = not np.any(self.coefficients)
         self.fit_focal = fit_focal
         self._at: FloatArray | None = None
@@ -420,8 +296,8 @@ class _Problem:
 
     def residuals(self, x: FloatArray) -> FloatArray:
         uv, ahead = self._project(x)
-        corners, weights, inside = _corners(self.level, self.bins, uv)
-        d = np.where(inside, _bilinear(self.level.distance, corners, weights), self.level.cap)
+        corners, weights, inside = bilinear_corners(self.level, self.bins, uv)
+        d = np.where(inside, bilinear(self.level.distance, corners, weights), self.level.cap)
         result: FloatArray = np.where(ahead, d, self.level.cap)
         return result
 
@@ -429,10 +305,10 @@ class _Problem:
         uv, ahead = self._project(x)
         if self._columns is None:
             self._columns = self._pinhole_columns(x)
-        corners, weights, inside = _corners(self.level, self.bins, uv)
+        corners, weights, inside = bilinear_corners(self.level, self.bins, uv)
         keep = inside & ahead
-        gx = np.where(keep, _bilinear(self.level.grad_x, corners, weights), 0.0)
-        gy = np.where(keep, _bilinear(self.level.grad_y, corners, weights), 0.0)
+        gx = np.where(keep, bilinear(self.level.grad_x, corners, weights), 0.0)
+        gy = np.where(keep, bilinear(self.level.grad_y, corners, weights), 0.0)
         result: FloatArray = gx[:, None] * self._columns[:, 0] + gy[:, None] * self._columns[:, 1]
         return result
 
@@ -476,7 +352,7 @@ def _cost(distances: FloatArray, sigma: float) -> float:
 
 def _align(
     points: EdgePoints,
-    levels: list[_Level],
+    levels: list[Level],
     k: Intrinsics,
     distortion: LensDistortion | None,
     x: FloatArray,
@@ -538,7 +414,7 @@ def refine_dense(
     and ``render_depth`` ``(H, W)`` (``Z_c``, 0 where no surface) the render at ``camera``;
     ``fit_focal`` fits the focal length too (the target did not give its intrinsics).
     """
-    target = _gray(np.asarray(target_gray, dtype=np.uint8))
+    target = gray(np.asarray(target_gray, dtype=np.uint8))
     shape = (camera.height, camera.width)
     if target.shape != shape or render_rgb.shape[:2] != shape or render_depth.shape != shape:
         raise ValueError(f"the target, render and depth must all be the camera's film {shape}")
@@ -546,9 +422,10 @@ def refine_dense(
     rvec0, _ = cv2.Rodrigues(np.asarray(camera.rotation, dtype=np.float64))
     x0 = np.concatenate([rvec0.ravel(), np.asarray(camera.translation, dtype=np.float64), [1.0]])
     points = edge_points(render_rgb, render_depth, camera, distortion)
-    fine = _level(target, *LEVELS[-1])
+    fine = target_level(target, *LEVELS[-1])
     levels = [
-        fine if scale == 1 else _level(target, scale, sigma, cap) for scale, sigma, cap in LEVELS
+        fine if scale == 1 else target_level(target, scale, sigma, cap)
+        for scale, sigma, cap in LEVELS
     ]
     pose_only = _Problem(points, fine, k, distortion, fit_focal=False)
     start = pose_only.residuals(x0[:6])

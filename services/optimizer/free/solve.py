@@ -18,7 +18,7 @@ The steps (each in its module):
 4. the answer's status (:class:`FreePoseAnswer`).
 
 With fewer than three usable detections no minimal set exists: the edges are fitted from a ring
-of start views around the scene (:data:`FEW_STARTS_DEG`), and the answer is ``ambiguous`` with
+of start views around the scene (:data:`~.few.FEW_STARTS_DEG`), and the answer is ``ambiguous`` with
 the distinct fits as alternatives, never ``found``.
 
 Status
@@ -52,21 +52,16 @@ Status
 
 from __future__ import annotations
 
-import itertools
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Final
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from services.common.contracts.detect import Detection
 from services.common.geometry.free_camera import (
-    look_at_angles,
     quaternion_of_rotation,
-    rotation_of_yaw_pitch_roll,
     yaw_pitch_roll_of_rotation,
 )
 from services.optimizer.free.answer import (
@@ -76,6 +71,7 @@ from services.optimizer.free.answer import (
     IntrinsicsUsed,
     PoseCandidate,
 )
+from services.optimizer.free.few import few_detections, few_fits
 from services.optimizer.free.hypotheses import (
     distinct,
     general_labels,
@@ -130,9 +126,6 @@ INLIER_MIN_PX: Final = 3.0
 INLIER_BOX_FRACTION: Final = 0.15
 REFINED_HYPOTHESES: Final = 6
 MAX_ALTERNATIVES: Final = 4
-FEW_STARTS_DEG: Final = tuple((theta, phi) for theta in (30.0, 60.0) for phi in range(0, 360, 90))
-"""(θ, φ) of the start views at the scene radius when fewer than three detections are usable."""
-MAX_FEW_ASSIGNMENTS: Final = 4
 
 
 @dataclass(frozen=True)
@@ -252,59 +245,6 @@ def _refined(
     return _Fit(
         fit=fit, detections=dets, objects=objs, source="estimated" if estimated else "scene"
     )
-
-
-def _start_view(
-    theta_deg: float, phi_deg: float, radius: float, target: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """World-to-camera ``(rvec, tvec)`` of a camera at (θ, φ) on the sphere of ``radius`` about
-    ``target``, looking at it."""
-    theta, phi = math.radians(theta_deg), math.radians(phi_deg)
-    centre = target + radius * np.array(
-        [math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)]
-    )
-    yaw, pitch = look_at_angles(centre, target)
-    rotation = rotation_of_yaw_pitch_roll(yaw, pitch, 0.0).T
-    rvec, _ = cv2.Rodrigues(rotation)
-    return np.asarray(rvec, dtype=np.float64).reshape(3), -rotation @ centre
-
-
-def _few(
-    objects: SceneObjects,
-    boxes: FloatArray,
-    masks: NDArray[np.bool_],
-    compatible: NDArray[np.bool_],
-    usable: NDArray[np.intp],
-    intrinsics: Intrinsics,
-) -> list[_Fit]:
-    """Edge fits of one or two detections from the start views, over their assignments."""
-    candidates = [np.flatnonzero(compatible[i]).tolist() for i in usable]
-    assignments = [a for a in itertools.product(*candidates) if len(set(a)) == len(a)]
-    fits = []
-    for objs in assignments[:MAX_FEW_ASSIGNMENTS]:
-        paired = objects.subset(objs)
-        target = paired.centroids.mean(axis=0)
-        for theta, phi in FEW_STARTS_DEG:
-            rvec, tvec = _start_view(theta, phi, objects.radius, target)
-            fit = refine_edges(paired, boxes[usable], masks[usable], rvec, tvec, intrinsics)
-            if fit.position()[2] > 0.0:
-                fits.append(_Fit(fit, usable, np.asarray(objs, dtype=np.intp), "scene"))
-    return fits
-
-
-def _few_detections(compatible: NDArray[np.bool_], order: NDArray[np.intp]) -> NDArray[np.intp]:
-    """Up to two detections, most confident first, that distinct objects can be: with no pose
-    hypothesis, more would only repeat objects (six boxes labelled ``mesh`` in a scene of two
-    meshes)."""
-    kept: list[int] = []
-    for i in order.tolist():
-        trial = [*kept, i]
-        rows = [np.flatnonzero(compatible[j]).tolist() for j in trial]
-        if any(len(set(a)) == len(a) for a in itertools.product(*rows)):
-            kept = trial
-        if len(kept) == 2:
-            break
-    return np.asarray(kept, dtype=np.intp)
 
 
 def _candidate(
@@ -436,9 +376,12 @@ def solve_free_pose(
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else _Fit(fit.fit, fit.detections, fit.objects, "given"))
     if not fits:
-        few = _few_detections(compatible, np.argsort(-scores, kind="stable"))
-        fits = _few(objects, boxes, masks, compatible, few, k0)
-        fits = [f if not given else _Fit(f.fit, f.detections, f.objects, "given") for f in fits]
+        few = few_detections(compatible, np.argsort(-scores, kind="stable"))
+        source: IntrinsicsSource = "given" if given else "scene"
+        fits = [
+            _Fit(f, d, o, source)
+            for f, d, o in few_fits(objects, boxes, masks, compatible, few, k0)
+        ]
     ranked = _distinct_best(fits, objects.radius, inlier_gate(boxes))
     if not ranked:
         return FreePoseAnswer(

@@ -1,0 +1,183 @@
+"""Oriented edges for the dense refinement (:mod:`.dense`): the render's edge pixels
+back-projected through its depth to world points, and the target's pyramid of truncated oriented
+distance maps, sampled bilinearly.
+
+Both images go through the same detector (:func:`image_edges`: Canny after a blur, each edge
+pixel with its gradient-orientation bin), so a model edge and the target edge it should meet are
+located alike. A level's map ``D_b`` is, for orientation bin ``b``, the exact Euclidean distance
+(``cv2.distanceTransform``) to the nearest target edge in bin ``b`` or a neighbour, truncated
+at ``τ`` (oriented chamfer matching: clutter running across an edge does not pull it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.free_camera import LensDistortion
+from services.optimizer.free.refine import Intrinsics
+from services.optimizer.geometry import FloatArray
+
+__all__ = [
+    "BLUR_SIGMA_PX",
+    "CANNY_PX",
+    "MAX_POINTS",
+    "ORIENTATION_BINS",
+    "EdgePoints",
+    "Level",
+    "bilinear",
+    "camera_matrix",
+    "bilinear_corners",
+    "edge_points",
+    "gray",
+    "image_edges",
+    "lens_coefficients",
+    "target_level",
+]
+
+ORIENTATION_BINS: Final = 8
+"""Edge orientations are told apart in bins of 180° / 8 = 22.5° (a bin and its neighbours
+match: ±34° at most)."""
+BLUR_SIGMA_PX: Final = 1.5
+"""Gaussian blur before the gradients: JPEG blocks and sensor noise stay under the thresholds."""
+CANNY_PX: Final = (30.0, 80.0)
+"""Canny's hysteresis thresholds on the 3x3 Sobel gradient magnitude (a step of h grey levels
+gives about 4h): edges of steps above ~12 levels, seeded by steps above ~5."""
+MAX_POINTS: Final = 2000
+"""Model edge points kept (evenly spaced along the edge pixels' raster order)."""
+
+
+@dataclass(frozen=True)
+class EdgePoints:
+    """Model edge points: ``world`` ``(N, 3)`` in scene units and their image-edge orientation
+    bins ``bins`` ``(N,)`` (:data:`ORIENTATION_BINS`)."""
+
+    world: FloatArray
+    bins: NDArray[np.intp]
+
+
+def image_edges(gray: NDArray[np.uint8]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
+    """Canny edges of an 8-bit grey image (after a :data:`BLUR_SIGMA_PX` blur) and each pixel's
+    gradient-orientation bin (``⌊(atan2(g_y, g_x) mod π) / (π / B)⌋``, B =
+    :data:`ORIENTATION_BINS`)."""
+    blurred = cv2.GaussianBlur(gray, (0, 0), BLUR_SIGMA_PX)
+    gx = cv2.Sobel(blurred, cv2.CV_16S, 1, 0, ksize=3)
+    gy = cv2.Sobel(blurred, cv2.CV_16S, 0, 1, ksize=3)
+    edges = cv2.Canny(gx, gy, CANNY_PX[0], CANNY_PX[1], L2gradient=True) > 0
+    angle = np.mod(np.arctan2(gy.astype(np.float32), gx.astype(np.float32)), np.pi)
+    bins = np.minimum((angle / (np.pi / ORIENTATION_BINS)).astype(np.intp), ORIENTATION_BINS - 1)
+    return edges, bins
+
+
+def gray(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """``image`` as 8-bit grey (RGB converted; grey as it is)."""
+    if image.ndim == 2:
+        return image
+    return np.asarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+
+
+def camera_matrix(k: Intrinsics, scale: float = 1.0) -> FloatArray:
+    """The 3x3 camera matrix of ``k`` on a film downsampled ``scale`` times."""
+    return np.array(
+        [[k.fx / scale, 0.0, k.cx / scale], [0.0, k.fy / scale, k.cy / scale], [0.0, 0.0, 1.0]]
+    )
+
+
+def lens_coefficients(distortion: LensDistortion | None) -> FloatArray:
+    """OpenCV's ``(k1, k2, p1, p2)`` of the lens (zeros without one)."""
+    return np.zeros(4) if distortion is None else distortion.coefficients()
+
+
+def edge_points(
+    render_rgb: NDArray[np.uint8],
+    render_depth: NDArray[np.float32],
+    camera: PinholeCamera,
+    distortion: LensDistortion | None = None,
+) -> EdgePoints:
+    """The render's edge pixels back-projected through its depth to world points (module
+    docstring), at most :data:`MAX_POINTS`."""
+    edges, bins = image_edges(gray(render_rgb))
+    depth = np.where(render_depth > 0.0, render_depth, np.inf).astype(np.float32)
+    nearest = cv2.erode(depth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    rows, cols = np.nonzero(edges & np.isfinite(nearest))
+    if rows.size > MAX_POINTS:
+        keep = np.linspace(0, rows.size - 1, MAX_POINTS).round().astype(np.intp)
+        rows, cols = rows[keep], cols[keep]
+    pixels = np.stack([cols + 0.5, rows + 0.5], axis=1).astype(np.float64)
+    k = Intrinsics(camera.fx, camera.fy, camera.cx, camera.cy)
+    normalised = cv2.undistortPoints(
+        pixels.reshape(-1, 1, 2), camera_matrix(k), lens_coefficients(distortion)
+    ).reshape(-1, 2)
+    z = nearest[rows, cols].astype(np.float64)[:, None]
+    in_camera = np.hstack([normalised * z, z])
+    rotation = np.asarray(camera.rotation, dtype=np.float64)
+    world = (in_camera - np.asarray(camera.translation)) @ rotation
+    return EdgePoints(world=world, bins=bins[rows, cols])
+
+
+@dataclass(frozen=True)
+class Level:
+    """One pyramid level of the target: truncated oriented distance maps and their gradients,
+    ``(B, h, w)`` each, in pixels of the level."""
+
+    scale: int
+    sigma: float
+    cap: float
+    distance: NDArray[np.float32]
+    grad_x: NDArray[np.float32]
+    grad_y: NDArray[np.float32]
+
+
+def target_level(gray: NDArray[np.uint8], scale: int, sigma: float, cap: float) -> Level:
+    """The target ``gray`` downsampled ``scale`` times: its truncated oriented distance maps
+    (truncation ``cap``) and their gradients, with the level's soft-L1 scale ``sigma``."""
+    height, width = gray.shape
+    size = (max(width // scale, 8), max(height // scale, 8))
+    small = gray
+    if scale > 1:
+        small = np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    edges, bins = image_edges(small)
+    distance = np.empty((ORIENTATION_BINS, *small.shape), dtype=np.float32)
+    for b in range(ORIENTATION_BINS):
+        near = (bins == b) | (bins == (b + 1) % ORIENTATION_BINS)
+        near |= bins == (b - 1) % ORIENTATION_BINS
+        free = np.where(edges & near, 0, 255).astype(np.uint8)
+        distance[b] = np.minimum(
+            cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), cap
+        )
+    grad_y, grad_x = np.gradient(distance, axis=(1, 2))
+    return Level(scale, sigma, cap, distance, grad_x.astype(np.float32), grad_y.astype(np.float32))
+
+
+def bilinear_corners(
+    level: Level, bins: NDArray[np.intp], uv: FloatArray
+) -> tuple[tuple[NDArray[np.intp], ...], tuple[FloatArray, ...], NDArray[np.bool_]]:
+    """The flat indices and bilinear weights of the four grid neighbours of the continuous pixel
+    positions ``uv`` (corner origin) of the level, and which lie on the film."""
+    _, height, width = level.distance.shape
+    col, row = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
+    col = np.clip(np.where(inside, col, 0.0), 0.0, width - 1.001)
+    row = np.clip(np.where(inside, row, 0.0), 0.0, height - 1.001)
+    c0, r0 = col.astype(np.intp), row.astype(np.intp)
+    fc, fr = col - c0, row - r0
+    first = (bins * height + r0) * width + c0  # flat index of the top-left neighbour
+    corners = (first, first + 1, first + width, first + width + 1)
+    weights = ((1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr)
+    return corners, weights, inside
+
+
+def bilinear(
+    grid: NDArray[np.float32],
+    corners: tuple[NDArray[np.intp], ...],
+    weights: tuple[FloatArray, ...],
+) -> FloatArray:
+    """``grid`` (flattened) at the :func:`bilinear_corners`' positions, bilinearly."""
+    flat = grid.reshape(-1)
+    value: FloatArray = sum(w * flat[i] for w, i in zip(weights, corners, strict=True))  # type: ignore[assignment]
+    return value
