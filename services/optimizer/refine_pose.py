@@ -183,6 +183,7 @@ def dense_report(
     plausible = near or (vouched and moved <= FAR * allowed and turned <= FAR * MAX_TURN_DEG)
     slack = max(BOX_SLACK_PX, BOX_SLACK_RATIO * start.residual_px)
     kept_boxes = box_shift <= slack or fit.inliers >= FAR_SHARE * fit.points
+    accepted = converged and plausible and kept_boxes
     if not converged:
         reason = (
             f"the dense fit did not converge: {fit.inliers} of {fit.points} edge points end on "
@@ -209,7 +210,7 @@ def dense_report(
     residual = fit.residual_px / scale if math.isfinite(fit.residual_px) else None
     return DenseReport(
         converged=converged,
-        accepted=converged and plausible and kept_boxes,
+        accepted=accepted,
         reason=reason,
         edge_points=fit.points,
         inliers=fit.inliers,
@@ -218,7 +219,7 @@ def dense_report(
         focal_fitted=fit.focal_fitted,
         moved=moved,
         moved_rotation_deg=turned,
-        render_again=render_again and converged and plausible and kept_boxes,
+        render_again=render_again and accepted,
         box_shift_px=box_shift,
     )
 

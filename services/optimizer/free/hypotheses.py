@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from services.common.geometry.free_camera import rotation_angle_deg
-from services.optimizer.free.objects import NEAR_DEPTH, SceneObjects
+from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import assign
@@ -301,19 +301,7 @@ def _sized(
     limits = np.array([*evidence.size, *evidence.size], dtype=np.float64)
     for at in range(0, len(rotations), _SIZED_CHUNK):
         rs, ts = rotations[at : at + _SIZED_CHUNK], tvecs[at : at + _SIZED_CHUNK]
-        cam = objects.points @ rs.transpose(0, 2, 1) + ts[:, np.newaxis, :]
-        depth = cam[..., 2]
-        behind = np.logical_or.reduceat(depth <= NEAR_DEPTH, objects.starts, axis=1)
-        uv = cam[..., :2] / np.maximum(depth, NEAR_DEPTH)[..., np.newaxis]
-        uv = uv * (k.fx, k.fy) + (k.cx, k.cy)
-        boxes = np.concatenate(
-            [
-                np.minimum.reduceat(uv, objects.starts, axis=1),
-                np.maximum.reduceat(uv, objects.starts, axis=1),
-            ],
-            axis=2,
-        )
-        boxes[behind] = np.nan
+        boxes = project_boxes(objects, rs, ts, (k.fx, k.fy), (k.cx, k.cy))
         diagonals[at : at + _SIZED_CHUNK] = _diagonal(np.clip(boxes, 0.0, limits))
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = _diagonal(evidence.boxes)[np.newaxis, :, np.newaxis] / diagonals[:, np.newaxis]

@@ -232,22 +232,29 @@ def project_boxes(
     focal_px: ArrayLike,
     principal_px: ArrayLike,
 ) -> FloatArray:
-    """Unclipped image boxes ``(M, 4)`` ``[x1, y1, x2, y2]`` (pixels) of every object.
+    """Unclipped image boxes ``(M, 4)`` ``[x1, y1, x2, y2]`` (pixels) of every object; for a
+    stack of poses (``R`` ``(N, 3, 3)``, ``t`` ``(N, 3)``) ``(N, M, 4)``.
 
     With world-to-camera ``R``, ``t``: ``X_c = R X + t``, ``u = f_x X_c/Z_c + c_x``,
     ``v = f_y Y_c/Z_c + c_y``, and the box is the min and max of ``(u, v)`` over each object's
     points (``np.minimum.reduceat``: one pass over all points). NaN for an object with a point
     at depth ≤ 1e-6 (behind or in the camera's plane: its box is unbounded).
     """
+    r = np.asarray(rotation, dtype=np.float64)
+    t = np.asarray(translation, dtype=np.float64)
     if len(objects) == 0:
-        return np.zeros((0, 4))
-    cam = objects.points @ np.asarray(rotation, dtype=np.float64).T + np.asarray(translation)
-    depth = cam[:, 2]
-    behind = np.logical_or.reduceat(depth <= NEAR_DEPTH, objects.starts)
-    uv = cam[:, :2] / np.maximum(depth, NEAR_DEPTH)[:, np.newaxis]
+        return np.zeros((*r.shape[:-2], 0, 4))
+    cam = objects.points @ np.swapaxes(r, -1, -2) + t[..., np.newaxis, :]
+    depth = cam[..., 2]
+    behind = np.logical_or.reduceat(depth <= NEAR_DEPTH, objects.starts, axis=-1)
+    uv = cam[..., :2] / np.maximum(depth, NEAR_DEPTH)[..., np.newaxis]
     uv = uv * np.asarray(focal_px, dtype=np.float64) + np.asarray(principal_px)
     boxes = np.concatenate(
-        [np.minimum.reduceat(uv, objects.starts), np.maximum.reduceat(uv, objects.starts)], axis=1
+        [
+            np.minimum.reduceat(uv, objects.starts, axis=-2),
+            np.maximum.reduceat(uv, objects.starts, axis=-2),
+        ],
+        axis=-1,
     )
     boxes[behind] = np.nan
     return boxes

@@ -207,7 +207,7 @@ def _focal_fits(
     gates = inlier_gate(boxes)
     order = sorted(
         range(len(fits)),
-        key=lambda i: (_truncated(fits[i][0], starts[i][2], gates), -len(starts[i][2])),
+        key=lambda i: (truncated_cost(fits[i][0], starts[i][2], gates), -len(starts[i][2])),
     )
     for i in [i for i in order if fits[i][1]][:FOCAL_WIDENED]:
         rvec, tvec, dets, objs = starts[i]
@@ -293,17 +293,13 @@ def _candidate(
     )
 
 
-def truncated_cost(fit: _Fit, gates: FloatArray) -> float:
-    """A fit's robust cost over all ``D`` usable detections (MSAC's truncated quadratic):
-    ``Σ_paired min(r_i / g_i, 1)² + (D - pairs)``, ``r_i`` a pair's box-edge RMS and ``g_i``
-    its detection's :func:`inlier_gate`; an unpaired detection costs as much as the worst
-    pair. Ranking by pairs first let a wrong pose that pairs every box loosely beat the right
-    one that leaves a moved object's box out: on a changed scene it was called found 20-125°
-    away (``tests/optimizer/test_free_changed.py``)."""
-    return _truncated(fit.fit, fit.detections, gates)
-
-
-def _truncated(fit: PoseFit, detections: NDArray[np.intp], gates: FloatArray) -> float:
+def truncated_cost(fit: PoseFit, detections: NDArray[np.intp], gates: FloatArray) -> float:
+    """A ``fit``'s robust cost over all ``D`` usable detections (MSAC's truncated quadratic):
+    ``Σ_paired min(r_i / g_i, 1)² + (D - pairs)``, ``r_i`` the box-edge RMS of its pair on
+    ``detections[i]`` and ``g_i`` that detection's :func:`inlier_gate`; an unpaired detection
+    costs as much as the worst pair. Ranking by pairs first let a wrong pose that pairs every
+    box loosely beat the right one that leaves a moved object's box out: on a changed scene it
+    was called found 20-125° away (``tests/optimizer/test_free_changed.py``)."""
     ratio = np.minimum(fit.pair_rms_px / gates[detections], 1.0)
     return float(np.sum(ratio**2)) + (len(gates) - len(detections))
 
@@ -311,7 +307,9 @@ def _truncated(fit: PoseFit, detections: NDArray[np.intp], gates: FloatArray) ->
 def _distinct_best(fits: list[_Fit], radius: float, gates: FloatArray) -> list[_Fit]:
     """The fits, best first (least :func:`truncated_cost`, then most pairs), one of each
     distinct pose."""
-    ranked = sorted(fits, key=lambda f: (truncated_cost(f, gates), -len(f.detections)))
+    ranked = sorted(
+        fits, key=lambda f: (truncated_cost(f.fit, f.detections, gates), -len(f.detections))
+    )
     kept: list[_Fit] = []
     for f in ranked:
         if all(distinct(f.key, k.key, radius) for k in kept):
