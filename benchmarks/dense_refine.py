@@ -40,6 +40,7 @@ from services.common.catalog import SceneCatalog
 from services.common.geometry.camera import PinholeCamera
 from services.optimizer.free import dense as dense_module
 from services.optimizer.free import scene_objects
+from services.optimizer.free.edges import outline
 from services.renderer.settings import RendererSettings
 
 REFERENCE: Final[dict[str, Any]] = {"LEVEL_POINTS": (None, None, None), "X_TOLERANCE": 1e-8}
@@ -80,7 +81,9 @@ def _capture(folder: Path, n: int) -> None:
                     rendered = _render(renderer, target, answer.pose.free_camera(), 16)
                     if rendered is None:
                         continue
-                    rgb, depth, pinhole = rendered
+                    rgb, geometry, pinhole = rendered
+                    if geometry.shading is None:
+                        raise RuntimeError("the renderer's geometry has no outline shading")
                     gray = np.asarray(
                         cv2.imdecode(np.frombuffer(target.png, np.uint8), cv2.IMREAD_GRAYSCALE)
                     )
@@ -89,7 +92,9 @@ def _capture(folder: Path, n: int) -> None:
                         folder / f"{scene_id}-{target.index:02d}.npz",
                         target=gray,
                         rgb=rgb,
-                        depth=depth,
+                        depth=geometry.depth,
+                        objects=geometry.objects,
+                        shading=geometry.shading,
                         camera=json.dumps(pinhole.model_dump(mode="json")),
                         truth=json.dumps(truth.model_dump(mode="json")),
                         radius=scene.spec.camera.radius,
@@ -102,6 +107,11 @@ def _load(path: Path) -> dict[str, Any]:
             "target": data["target"],
             "rgb": data["rgb"],
             "depth": data["depth"],
+            "near": (
+                outline(data["depth"], data["objects"], data["shading"])
+                if "shading" in data.files
+                else None
+            ),
             "camera": PinholeCamera.model_validate(json.loads(str(data["camera"]))),
             "truth": PinholeCamera.model_validate(json.loads(str(data["truth"]))),
             "radius": float(data["radius"]),
@@ -112,7 +122,12 @@ def _run(pair: dict[str, Any], fit_focal: bool) -> tuple[float, float, float]:
     """One refinement: ms, position error (radii), rotation error (°)."""
     started = time.perf_counter()
     fit = dense_module.refine_dense(
-        pair["target"], pair["rgb"], pair["depth"], pair["camera"], fit_focal=fit_focal
+        pair["target"],
+        pair["rgb"],
+        pair["depth"],
+        pair["camera"],
+        fit_focal=fit_focal,
+        near=pair["near"],
     )
     ms = (time.perf_counter() - started) * 1000.0
     truth: PinholeCamera = pair["truth"]

@@ -65,6 +65,7 @@ from services.common.geometry.free_camera import (
 from services.common.images import decode_image
 from services.optimizer.free import DenseFit, refine_dense
 from services.optimizer.free.dense import MIN_POINTS, worth_another_render
+from services.optimizer.free.edges import outline
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 
 __all__ = [
@@ -292,7 +293,13 @@ def refine_pose(
     )
     pinhole = free_pinhole_camera(camera, w, h, k.fov_deg)
     fit = refine_dense(
-        gray, rgb, view.depth, pinhole, fit_focal=request.fit_focal, distortion=k.distortion
+        gray,
+        rgb,
+        view.depth,
+        pinhole,
+        fit_focal=request.fit_focal,
+        distortion=k.distortion,
+        near=None if view.shading is None else outline(view.depth, view.objects, view.shading),
     )
     hits = view.depth[view.depth > 0.0]
     depth = float(np.median(hits)) if hits.size else math.inf

@@ -171,8 +171,9 @@ async def render_annotations(body: RenderRequest, state: State) -> RenderAnnotat
         200: {
             "content": {DEPTH_MEDIA_TYPE: {}},
             "description": "The view's per-pixel depth along the optical axis (float32, scene "
-            "units, 0 where no surface) and object index (int16, -1 for the ground or nothing) "
-            "as a NumPy .npz archive with arrays depth and objects.",
+            "units, 0 where no surface), object index (int16, -1 for the ground or nothing) and "
+            "outline shading (uint8: the albedo lit from the camera, no shadows) as a NumPy .npz "
+            "archive with arrays depth, objects and shading.",
         },
         **problem_responses(400, 404, 413, 422, 503),
     },

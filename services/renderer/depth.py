@@ -12,6 +12,16 @@ so a pixel (u, v) (centre at ``(j + ½, i + ½)``) goes back to the camera point
 ``Z_c`` does not change between the rendered pinhole and the image of a distorted camera (same
 pose), so the image's depth is the rendered one resampled by the view's warp, nearest pixel.
 0 where the ray hits nothing.
+
+The same rays give the view's **outline shading** ``S``: the surface's albedo lit by a light at
+the camera, with no shadows,
+
+    S = ρ̄ · |n · d|,        d = (c - p) / ‖c - p‖
+
+(``ρ̄`` the albedo's mean over RGB, ``n`` the shading normal, ``c`` the camera centre), sRGB
+encoded to 8 bits. Its edges are the ones any light shows: silhouettes, creases (``n`` jumps)
+and texture (``ρ̄`` jumps), and none of the scene light's cast shadows or terminators, which move
+with the light; a photo's light is never the model's.
 """
 
 from __future__ import annotations
@@ -24,17 +34,40 @@ from numpy.typing import NDArray
 from services.common.depth_archive import DEPTH_MEDIA_TYPE, DepthImage
 from services.renderer.free_view import FreeView
 
-__all__ = ["DEPTH_MEDIA_TYPE", "GEOMETRY_AOVS", "DepthImage", "depth_image"]
+__all__ = ["DEPTH_MEDIA_TYPE", "GEOMETRY_AOVS", "DepthImage", "depth_image", "outline_shading"]
 
-GEOMETRY_AOVS: Final = "dd.y:depth,p:position,si:shape_index"
-"""The aov integrator's channels: ray distance (0 on a miss), world position, shape key."""
+GEOMETRY_AOVS: Final = "dd.y:depth,p:position,si:shape_index,a:albedo,n:sh_normal"
+"""The aov integrator's channels: ray distance (0 on a miss), world position, shape key,
+albedo (RGB), shading normal (world)."""
+
+
+def _srgb(linear: NDArray[np.float64]) -> NDArray[np.uint8]:
+    """Linear values in [0, 1] as 8-bit sRGB (IEC 61966-2-1)."""
+    x = np.clip(linear, 0.0, 1.0)
+    encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    return np.rint(encoded * 255.0).astype(np.uint8)
+
+
+def outline_shading(
+    channels: NDArray[np.float32], centre: NDArray[np.float64]
+) -> NDArray[np.uint8]:
+    """The outline shading ``S`` (module docstring) of a :data:`GEOMETRY_AOVS` render ``(h, w,
+    11)`` seen from the camera centre ``centre``; 0 where the ray hits nothing."""
+    hit = channels[..., 0] > 0.0
+    position = channels[..., 1:4].astype(np.float64)
+    albedo = channels[..., 5:8].astype(np.float64).mean(axis=-1)
+    normal = channels[..., 8:11].astype(np.float64)
+    towards = centre - position
+    towards /= np.maximum(np.linalg.norm(towards, axis=-1, keepdims=True), 1e-12)
+    facing = np.abs(np.sum(normal * towards, axis=-1))
+    return _srgb(np.where(hit, albedo * facing, 0.0))
 
 
 def depth_image(
     channels: NDArray[np.float32], shape_to_object: NDArray[np.int64], view: FreeView
 ) -> DepthImage:
-    """The view's :class:`DepthImage` from the ``(h, w, 5)`` :data:`GEOMETRY_AOVS` render of its
-    rendered pinhole (module docstring)."""
+    """The view's :class:`DepthImage` (with its outline shading) from the ``(h, w, 11)``
+    :data:`GEOMETRY_AOVS` render of its rendered pinhole (module docstring)."""
     rendered = view.rendered
     hit = channels[..., 0] > 0.0
     rotation = np.asarray(rendered.rotation, dtype=np.float64)
@@ -43,7 +76,10 @@ def depth_image(
     keys = np.rint(channels[..., 4]).astype(np.int64)
     known = hit & (keys >= 0) & (keys < len(shape_to_object))
     objects = np.where(known, shape_to_object[np.where(known, keys, 0)], -1).astype(np.float32)
+    centre = -rotation.T @ np.asarray(rendered.translation, dtype=np.float64)
+    shading = outline_shading(channels, centre).astype(np.float32)
     return DepthImage(
         depth=view.warp(depth, nearest=True),
         objects=np.rint(view.warp(objects, nearest=True)).astype(np.int16),
+        shading=np.rint(view.warp(shading)).astype(np.uint8),
     )

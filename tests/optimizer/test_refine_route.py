@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import AsyncIterator
+from dataclasses import replace
 
 import cv2
 import httpx
@@ -43,7 +44,7 @@ def render(engine, scene, camera: FreeCamera, width: int, height: int) -> DepthI
     view = resolve_free_camera(scene, camera, width, height)
     rgb = engine.render(scene, view, width, height, 8, 0).rgb
     geometry = engine.depth(scene, view, width, height)
-    return DepthImage(depth=geometry.depth, objects=geometry.objects, rgb=rgb)
+    return replace(geometry, rgb=rgb)
 
 
 def png(rgb: np.ndarray) -> bytes:

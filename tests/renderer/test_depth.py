@@ -31,3 +31,15 @@ def test_arrays_of_two_shapes_are_refused():
     ).npz()
     with pytest.raises(ValueError, match="one shape"):
         DepthImage.from_npz(mismatched)
+
+
+def test_the_outline_shading_reads_back_and_a_misshapen_one_is_refused():
+    depth, objects = np.ones((4, 6), np.float32), np.zeros((4, 6), np.int16)
+    shading = np.arange(24, dtype=np.uint8).reshape(4, 6)
+    again = DepthImage.from_npz(DepthImage(depth, objects, shading=shading).npz())
+    assert again.shading is not None
+    assert np.array_equal(again.shading, shading)
+    assert DepthImage.from_npz(DepthImage(depth, objects).npz()).shading is None
+    wrong = DepthImage(depth, objects, shading=np.zeros((4, 5), np.uint8)).npz()
+    with pytest.raises(ValueError, match="shading"):
+        DepthImage.from_npz(wrong)

@@ -26,6 +26,7 @@ from cosmos.bench.free_targets.draw import FREE_VARIANTS, FreeTarget, FreeVarian
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.rendering import Renderer
 from services.common.contracts.render import RenderRequest
+from services.common.depth_archive import DepthImage
 from services.common.errors import UnprocessableError
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.free_camera import (
@@ -35,6 +36,7 @@ from services.common.geometry.free_camera import (
 )
 from services.optimizer.free import FreePoseAnswer
 from services.optimizer.free.dense import DenseFit, refine_dense, worth_another_render
+from services.optimizer.free.edges import outline
 from services.renderer.client import RendererError
 
 __all__ = ["DENSE", "DenseRun", "dense_method", "run_dense"]
@@ -78,10 +80,18 @@ def _free_camera(camera: PinholeCamera) -> FreeCamera:
     )
 
 
+def _near(geometry: DepthImage) -> NDArray[np.bool_] | None:
+    """The pixels near the render's outline, as the optimizer's ``/refine-pose`` takes them."""
+    if geometry.shading is None:
+        return None
+    return outline(geometry.depth, geometry.objects, geometry.shading)
+
+
 def _render(
     renderer: Renderer, target: FreeTarget, camera: FreeCamera, spp: int
-) -> tuple[NDArray[np.uint8], NDArray[np.float32], PinholeCamera] | None:
-    """The render and depth at ``camera`` on the target's film; None when refused (422)."""
+) -> tuple[NDArray[np.uint8], DepthImage, PinholeCamera] | None:
+    """The render and its geometry (depth, outline shading) at ``camera`` on the target's film;
+    None when refused (422)."""
     film = target.annotations.camera
     request = RenderRequest(
         scene=target.scene,
@@ -102,7 +112,7 @@ def _render(
     if bgr is None:
         raise ValueError("the renderer's PNG does not decode")
     pinhole = free_pinhole_camera(camera, film.width, film.height, film.fov_deg)
-    return np.asarray(bgr[..., ::-1], dtype=np.uint8), depth.depth, pinhole
+    return np.asarray(bgr[..., ::-1], dtype=np.uint8), depth, pinhole
 
 
 def _estimate(fit: DenseFit, width: int) -> Estimate:
@@ -139,10 +149,15 @@ def run_dense(
     for variant in FREE_VARIANTS:
         rendered, estimate, budget, step = first, fallback, renders, 0
         while rendered is not None and step < budget:
-            rgb, depth, pinhole = rendered
+            rgb, geometry, pinhole = rendered
             started = time.perf_counter()
             fit = refine_dense(
-                images[variant], rgb, depth, pinhole, fit_focal=not target.intrinsics_given
+                images[variant],
+                rgb,
+                geometry.depth,
+                pinhole,
+                fit_focal=not target.intrinsics_given,
+                near=_near(geometry),
             )
             calls.append((time.perf_counter() - started) * 1000.0)
             estimate = _estimate(fit, width)

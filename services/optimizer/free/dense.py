@@ -406,22 +406,26 @@ def refine_dense(
     *,
     fit_focal: bool,
     distortion: LensDistortion | None = None,
+    near: NDArray[np.bool_] | None = None,
 ) -> DenseFit:
     """Refine ``camera`` (the estimate the render was made at, on the target's film) so that the
     render's edges fall on the target's (module docstring).
 
     ``target_gray`` is the target ``(H, W)`` 8-bit grey (or RGB), ``render_rgb`` ``(H, W, 3)``
     and ``render_depth`` ``(H, W)`` (``Z_c``, 0 where no surface) the render at ``camera``;
-    ``fit_focal`` fits the focal length too (the target did not give its intrinsics).
+    ``fit_focal`` fits the focal length too (the target did not give its intrinsics);
+    ``near`` ``(H, W)``, the pixels near the render's outline (:func:`~.edges.outline`), keeps
+    only the edges no light moves.
     """
     target = gray(np.asarray(target_gray, dtype=np.uint8))
     shape = (camera.height, camera.width)
-    if target.shape != shape or render_rgb.shape[:2] != shape or render_depth.shape != shape:
+    shapes = (render_rgb.shape[:2], render_depth.shape, shape if near is None else near.shape)
+    if target.shape != shape or any(s != shape for s in shapes):
         raise ValueError(f"the target, render and depth must all be the camera's film {shape}")
     k = Intrinsics(camera.fx, camera.fy, camera.cx, camera.cy)
     rvec0, _ = cv2.Rodrigues(np.asarray(camera.rotation, dtype=np.float64))
     x0 = np.concatenate([rvec0.ravel(), np.asarray(camera.translation, dtype=np.float64), [1.0]])
-    points = edge_points(render_rgb, render_depth, camera, distortion)
+    points = edge_points(render_rgb, render_depth, camera, distortion, near)
     fine = target_level(target, *LEVELS[-1])
     levels = [
         fine if scale == 1 else target_level(target, scale, sigma, cap)
