@@ -61,7 +61,8 @@ def object_annotations(
     projected: NDArray[np.float64],
 ) -> tuple[ObjectAnnotation, ...]:
     """Each object's annotation from its visible silhouette (in the whole scene), its full one
-    (alone, unoccluded), its bounding-box centroid and that centroid's projection."""
+    (alone, unoccluded), its bounding-box centroid and that centroid's projection (NaN, behind
+    the camera: none)."""
     annotations = []
     for index, obj in enumerate(objects):
         whole = int(full.pixels[index])
@@ -77,7 +78,11 @@ def object_annotations(
                 full_box=full.box(index),
                 full_pixels=whole,
                 visible_fraction=seen / whole if whole else 0.0,
-                projected_center=(float(projected[index, 0]), float(projected[index, 1])),
+                projected_center=(
+                    (float(projected[index, 0]), float(projected[index, 1]))
+                    if np.all(np.isfinite(projected[index]))
+                    else None
+                ),
             )
         )
     return tuple(annotations)

@@ -273,3 +273,16 @@ def test_frozen_free_camera_renders_are_the_traced_renders(engine, traced_engine
         frozen = engine.render(scene, view, W, H, 2, seed=4)
         again = traced_engine.render(scene, view, W, H, 2, seed=4)
         assert np.array_equal(frozen.rgb, again.rgb), view
+
+
+def test_objects_behind_a_free_camera_have_no_projected_centre(engine, catalog):
+    """A camera at the scene's edge looking out: every object is at its back; their annotations
+    say so (no box, no projected centre) instead of failing on a NaN projection."""
+    camera = FreeCamera(position=(4.0, 0.0, 1.5), look_at=(9.0, 0.0, 0.0), fov_deg=50.0)
+    ann = annotate(engine, catalog, camera)
+    behind = ann.camera.rotation[2]
+    for obj in ann.objects:
+        depth = float(np.dot(behind, obj.centroid) + ann.camera.translation[2])
+        assert depth < 0.0
+        assert obj.projected_center is None
+        assert obj.box is None

@@ -84,9 +84,10 @@ class ObjectAnnotation(FrozenModel):
         description="Pixels the object would cover inside the image with nothing in front of it."
     )
     visible_fraction: Annotated[Number, Field(ge=0.0, le=1.0)]
-    projected_center: tuple[Number, Number] = Field(
+    projected_center: tuple[Number, Number] | None = Field(
         description="Projection of ``centroid`` in pixels, through the distortion when there is "
-        "one (may lie outside the image)."
+        "one (may lie outside the image); null when the centroid is behind the camera (a free "
+        "camera can have objects at its back)."
     )
 
 
