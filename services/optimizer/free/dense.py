@@ -6,8 +6,10 @@ is then fitted so that those points project onto the target image's edges, as mo
 tracking does (RAPiD, ViSP's moving edges), here with a chamfer cost over many edge pixels.
 
 Model points
-    Canny edges of the render (:func:`~.edges.image_edges`: the objects' silhouettes, creases,
-    shadow and texture edges; the same detector as on the target, so both are located alike).
+    Canny edges of the render (:func:`~.edges.image_edges`: the same detector as on the target,
+    so both are located alike), with the render's outline (:func:`~.edges.outline`) only those
+    near it: silhouettes, occlusions, creases and texture, not the shadows and terminators of
+    the scene file's light, which a photo's light puts elsewhere.
     Each edge pixel (u, v) (centre ``(j + ½, i + ½)``) goes back through the depth ``Z`` to
     the camera point ``X_c = Z (x, y, 1)`` with ``(x, y)`` its undistorted normalised
     coordinates, and to the world ``X = R₀ᵀ (X_c - t₀)``. ``Z`` is the smallest depth in the
