@@ -4,10 +4,17 @@ silhouettes, occlusions and texture are kept."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from services.common.geometry.camera import PinholeCamera
-from services.optimizer.free.edges import OUTLINE_PX, edge_points, outline
+from services.optimizer.free.edges import (
+    OUTLINE_PX,
+    edge_points,
+    exact_distance,
+    outline,
+    target_level,
+)
 
 W, H = 120, 80
 SHADOW_COL, OUTLINE_COL, TEXTURE_COL = 40, 80, 100
@@ -82,3 +89,25 @@ def test_a_depth_step_is_an_outline_and_a_slope_is_not():
     near = outline(depth, objects, shading)
     assert near[:, OUTLINE_COL].all()
     assert not near[:, : OUTLINE_COL - OUTLINE_PX - 1].any()
+
+
+def test_distances_off_by_their_last_bit_are_made_exact():
+    """OpenCV's threads leave the last float32 bit of an exact distance varying between calls;
+    the target's maps take the float32 nearest √(dx² + dy²) instead, so a fit repeats."""
+    squared = np.arange(0, 400, dtype=np.float64)  # every d² = dx² + dy² up to 20 px
+    exact = np.sqrt(squared).astype(np.float32)
+    for direction in (np.inf, -np.inf):
+        jittered = np.nextafter(exact, np.float32(direction))
+        assert not np.array_equal(jittered, exact)
+        assert np.array_equal(exact_distance(jittered), exact)
+
+
+def test_target_levels_hold_exact_distances():
+    image = np.full((H, W), 90, np.uint8)
+    cv2.circle(image, (40, 40), 22, 200, -1)
+    cv2.rectangle(image, (70, 15), (105, 60), 30, -1)
+    level = target_level(image, 1, 1.0, 5.0)
+    below = level.distance < 5.0
+    squared = level.distance[below].astype(np.float64) ** 2
+    assert below.sum() > W * H  # edges in several orientation bins
+    assert np.array_equal(level.distance[below], np.sqrt(np.rint(squared)).astype(np.float32))

@@ -23,7 +23,7 @@ from typing import Final
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.free_camera import LensDistortion
@@ -44,6 +44,7 @@ __all__ = [
     "camera_matrix",
     "bilinear_corners",
     "edge_points",
+    "exact_distance",
     "gray",
     "image_edges",
     "lens_coefficients",
@@ -157,6 +158,15 @@ def outline(
     return np.asarray(cv2.dilate(edge.astype(np.uint8), np.ones((size, size), np.uint8)) > 0)
 
 
+def exact_distance(distance: ArrayLike) -> NDArray[np.float32]:
+    """``cv2.distanceTransform``'s exact Euclidean distances made the same on every call: they
+    are distances between pixel centres, ``d² = dx² + dy²`` an integer, but OpenCV's threads
+    leave their last float32 bit varying (52 of 180 repeated calls differed), and with it which
+    local minimum a fit ends in. ``√rint(d²)`` restores the exact value."""
+    squared = np.square(np.asarray(distance, dtype=np.float64))
+    return np.asarray(np.sqrt(np.rint(squared)), dtype=np.float32)
+
+
 @dataclass(frozen=True)
 class Level:
     """One pyramid level of the target: truncated oriented distance maps and their gradients,
@@ -185,7 +195,7 @@ def target_level(gray: NDArray[np.uint8], scale: int, sigma: float, cap: float) 
         near |= bins == (b - 1) % ORIENTATION_BINS
         free = np.where(edges & near, 0, 255).astype(np.uint8)
         distance[b] = np.minimum(
-            cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), cap
+            exact_distance(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)), cap
         )
     grad_y, grad_x = np.gradient(distance, axis=(1, 2))
     return Level(scale, sigma, cap, distance, grad_x.astype(np.float32), grad_y.astype(np.float32))
