@@ -41,11 +41,11 @@ GEOMETRY_AOVS: Final = "dd.y:depth,p:position,si:shape_index,a:albedo,n:sh_norma
 albedo (RGB), shading normal (world)."""
 
 
-def _srgb(linear: NDArray[np.float64]) -> NDArray[np.uint8]:
+def _srgb(linear: NDArray[np.float32]) -> NDArray[np.uint8]:
     """Linear values in [0, 1] as 8-bit sRGB (IEC 61966-2-1)."""
     x = np.clip(linear, 0.0, 1.0)
     encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-    return np.rint(encoded * 255.0).astype(np.uint8)
+    return np.asarray(np.rint(encoded * 255.0), dtype=np.uint8)
 
 
 def outline_shading(
@@ -54,13 +54,12 @@ def outline_shading(
     """The outline shading ``S`` (module docstring) of a :data:`GEOMETRY_AOVS` render ``(h, w,
     11)`` seen from the camera centre ``centre``; 0 where the ray hits nothing."""
     hit = channels[..., 0] > 0.0
-    position = channels[..., 1:4].astype(np.float64)
-    albedo = channels[..., 5:8].astype(np.float64).mean(axis=-1)
-    normal = channels[..., 8:11].astype(np.float64)
-    towards = centre - position
-    towards /= np.maximum(np.linalg.norm(towards, axis=-1, keepdims=True), 1e-12)
-    facing = np.abs(np.sum(normal * towards, axis=-1))
-    return _srgb(np.where(hit, albedo * facing, 0.0))
+    towards = np.asarray(centre, dtype=np.float32) - channels[..., 1:4]
+    length = np.sqrt(np.einsum("ijk,ijk->ij", towards, towards))
+    facing = np.abs(np.einsum("ijk,ijk->ij", channels[..., 8:11], towards))
+    albedo = channels[..., 5:8].mean(axis=-1)
+    lit = albedo * facing / np.maximum(length, np.float32(1e-12))
+    return _srgb(np.where(hit, lit, np.float32(0.0)))
 
 
 def depth_image(
