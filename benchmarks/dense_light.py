@@ -11,10 +11,11 @@ camera would; :mod:`cosmos.bench.free_bench.targets`). They are drawn and render
 this process), one ``.npz`` each in ``--cases``, so an interrupted capture resumes.
 
 Each case is refined twice with :func:`~services.optimizer.free.dense.refine_dense`: on all the
-render's edges, and on those near its outline (:func:`~services.optimizer.free.edges.outline`,
-what ``/refine-pose`` does). It prints, per image variant and elevation band, the shares within
-5 % of the radius and 2° and within 2 % and 1°, and how many cases the outline put inside
-5 %/2° that all edges left out, and the reverse.
+render's edges, and on those near its outline (:func:`~services.optimizer.free.edges.outline`),
+the others joining a last fit when the target shows them (what ``/refine-pose`` does). It
+prints, per image variant and elevation band, the shares within 5 % of the radius and 2° and
+within 2 % and 1°, and how many cases the outline put inside 5 %/2° that all edges left out,
+and the reverse.
 """
 
 from __future__ import annotations
