@@ -170,10 +170,13 @@ class Searches:
             assert time.monotonic() < deadline, f"timed out waiting for {what}: {self.states()}"
             time.sleep(poll_s)
 
-    def snapshot(self) -> None:
-        """What each search has recorded now: taken just before the controller is killed."""
-        self.refresh()
+    def snapshot(self) -> int:
+        """What each running search had recorded at the last refresh, kept as the searches
+        running at the kill; how many. Taken from the refresh a wait ended on, not a new one:
+        a one-render search can end in the time another refresh takes, and the kill would
+        then find none running."""
         self.at_kill = {s.id: s for s in self.running if s.iterations}
+        return len(self.at_kill)
 
     def states(self) -> dict[str, tuple[str, int]]:
         return {i: (s.status, len(s.iterations)) for i, s in self.seen.items()}

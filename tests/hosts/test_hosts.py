@@ -162,8 +162,7 @@ def test_searches_survive_a_cut_renderer_a_slow_lossy_detector_and_a_killed_cont
 
         # 4. SIGKILL the controller while searches run; start it again on its host
         submit_wave()
-        load.wait(lambda: any(s.iterations for s in load.running), 60, "a running search")
-        load.snapshot()
+        load.wait(load.snapshot, 60, "a running search")  # the kill follows that refresh
         cluster.kill("controller-1")
         say(f"controller-1 killed with {len(load.at_kill)} searches running")
         cluster.restart("controller-1")
