@@ -50,6 +50,9 @@ CONTROLLER_ENV = {
     # views at half the demo's film: a quarter of the render time, detection as good
     # (docs/RESULTS.md: recall 0.988 at 160x120 and at 320x240, 8 spp)
     "COSMOS_CONTROLLER_VIEW_WIDTH": "160",
+    # 64 samples a pixel: a render takes long enough (~0.1 s) to be seen in flight and struck
+    # by the cut; at 8 a renderer was idle at almost every look (CI waited 60 s for one)
+    "COSMOS_CONTROLLER_VIEW_SPP": "64",
 }
 # The paper's step-by-step strategy from near the zenith: searches of 17-26 iterations, long
 # enough for the faults to strike mid-search (the default strategy takes two).
@@ -105,6 +108,7 @@ def test_searches_survive_a_cut_renderer_a_slow_lossy_detector_and_a_killed_cont
             lambda: load.recorded >= 2 and load.replica("renderer-1")["in_flight"] > 0,
             60,
             "a render in flight on renderer-1",
+            poll_s=0.1,
         )
         renderer.cut()
         cut_at, recorded = time.monotonic(), load.recorded

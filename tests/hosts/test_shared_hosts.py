@@ -33,6 +33,7 @@ from tests.hosts.cluster import CONTROLLER, Cluster, HostSpec
 from tests.hosts.database import Ledger, start_postgres
 from tests.hosts.load import Searches
 from tests.hosts.network import Host, Network
+from tests.hosts.test_hosts import CONTROLLER_ENV as ONE_CONTROLLER_ENV
 from tests.hosts.test_hosts import SEARCH, TARGETS, render_targets
 from tests.hosts.test_hosts import TOPOLOGY as ONE_CONTROLLER
 from tests.support import skip_unless_on_ci
@@ -54,6 +55,7 @@ CONTROLLER_ENV = {
     "COSMOS_CONTROLLER_MAX_CONCURRENT_SEARCHES": "10",
     "COSMOS_CONTROLLER_QUOTA_ACTIVE_SEARCHES": "20",
     "COSMOS_CONTROLLER_VIEW_WIDTH": "160",
+    "COSMOS_CONTROLLER_VIEW_SPP": ONE_CONTROLLER_ENV["COSMOS_CONTROLLER_VIEW_SPP"],
 }
 DELAY_MS, LOSS = 50.0, 0.05
 PROGRESS = 4  # iterations recorded under a fault before the next step
@@ -182,7 +184,12 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
         def in_flight() -> int:
             return max(int(load.replica("renderer-1", c)["in_flight"]) for c in (0, 1))
 
-        load.wait(lambda: load.recorded >= 2 and in_flight() > 0, 60, "a render on renderer-1")
+        load.wait(
+            lambda: load.recorded >= 2 and in_flight() > 0,
+            60,
+            "a render on renderer-1",
+            poll_s=0.1,
+        )
         renderer.cut()
         cut_at, recorded, stranded = time.monotonic(), load.recorded, 0
         say(f"renderer-1 ({renderer.address}) cut with a render in flight")
@@ -197,7 +204,9 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
 
         load.wait(carried_on, 90, "progress with renderer-1 cut")
 
-        # 2. latency and loss on the link of the detector controller-1 prefers now
+        # 2. latency and loss on the link of the detector controller-1 prefers now, with new
+        # searches to carry detections over it (the first ones may have ended)
+        submit(2, (0, 1))
         preferred = min(load.replicas("detector"), key=lambda r: r["expected_ms"].get("detect", 0))
         name = preferred["name"]
         served = sum(int(load.replica(name, c)["served"]) for c in (0, 1))
