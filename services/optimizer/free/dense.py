@@ -94,6 +94,7 @@ from services.optimizer.free.edges import (
     EdgePoints,
     Level,
     edge_points,
+    edge_points_by_outline,
     gray,
     target_level,
 )
@@ -343,7 +344,11 @@ def refine_dense(
     k = Intrinsics(camera.fx, camera.fy, camera.cx, camera.cy)
     rvec0, _ = cv2.Rodrigues(np.asarray(camera.rotation, dtype=np.float64))
     x0 = np.concatenate([rvec0.ravel(), np.asarray(camera.translation, dtype=np.float64), [1.0]])
-    points = edge_points(render_rgb, render_depth, camera, distortion, near)
+    lit: EdgePoints | None = None  # the edges off the outline, for the last fit
+    if near is None:
+        points = edge_points(render_rgb, render_depth, camera, distortion)
+    else:
+        points, lit = edge_points_by_outline(render_rgb, render_depth, camera, distortion, near)
     fine = target_level(target, *LEVELS[-1])
     levels = [
         fine if scale == 1 else target_level(target, scale, sigma, cap)
@@ -361,8 +366,7 @@ def refine_dense(
             focal_fitted = focal_sigma <= ZOOM_SIGMA
         if not focal_fitted:
             x = np.append(_align(points, levels, k, distortion, x0[:6]), 1.0)
-        if near is not None:
-            lit = edge_points(render_rgb, render_depth, camera, distortion, ~near)
+        if lit is not None:
             x = _with_the_light(x, points, lit, fine, k, distortion, focal_fitted)
     final = (
         pose_only.residuals(x[:6])

@@ -44,6 +44,7 @@ __all__ = [
     "camera_matrix",
     "bilinear_corners",
     "edge_points",
+    "edge_points_by_outline",
     "exact_distance",
     "gray",
     "image_edges",
@@ -123,8 +124,42 @@ def edge_points(
     edges, bins = image_edges(gray(render_rgb))
     if near is not None:
         edges &= near
+    return _back_projected(edges, bins, _nearest_depth(render_depth), camera, distortion)
+
+
+def edge_points_by_outline(
+    render_rgb: NDArray[np.uint8],
+    render_depth: NDArray[np.float32],
+    camera: PinholeCamera,
+    distortion: LensDistortion | None,
+    near: NDArray[np.bool_],
+) -> tuple[EdgePoints, EdgePoints]:
+    """:func:`edge_points` ``near`` the outline and off it, from one pass of the detector."""
+    edges, bins = image_edges(gray(render_rgb))
+    nearest = _nearest_depth(render_depth)
+    on, off = (_back_projected(edges & m, bins, nearest, camera, distortion) for m in (near, ~near))
+    return on, off
+
+
+def _nearest_depth(render_depth: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Each pixel's smallest depth in its 3x3 neighbourhood (inf where no surface): an edge at a
+    silhouette belongs to the nearer, occluding surface."""
     depth = np.where(render_depth > 0.0, render_depth, np.inf).astype(np.float32)
-    nearest = cv2.erode(depth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return np.asarray(
+        cv2.erode(depth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE),
+        dtype=np.float32,
+    )
+
+
+def _back_projected(
+    edges: NDArray[np.bool_],
+    bins: NDArray[np.intp],
+    nearest: NDArray[np.float32],
+    camera: PinholeCamera,
+    distortion: LensDistortion | None,
+) -> EdgePoints:
+    """The ``edges`` pixels (at most :data:`MAX_POINTS`, evenly spaced) back-projected through
+    the ``nearest`` depth to world points, with their orientation bins."""
     rows, cols = np.nonzero(edges & np.isfinite(nearest))
     if rows.size > MAX_POINTS:
         keep = np.linspace(0, rows.size - 1, MAX_POINTS).round().astype(np.intp)
