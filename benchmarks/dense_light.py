@@ -21,17 +21,16 @@ and the reverse.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from collections import defaultdict
 from pathlib import Path
 from typing import Any, Final
 
-import cv2
 import numpy as np
 
+from benchmarks.dense_refine import load_pair, save_pair
 from cosmos.bench.free_bench.targets import variant_image
-from cosmos.bench.free_targets.dense import _render
+from cosmos.bench.free_targets.dense import render_at
 from cosmos.bench.free_targets.draw import DrawError, FreeTarget, draw_targets
 from cosmos.bench.free_targets.metrics import rotation_angle_deg
 from cosmos.bench.free_targets.rendering import LocalRenderer
@@ -44,7 +43,6 @@ from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.scene import LoadedScene
 from services.optimizer.free import SceneObjects, scene_objects
 from services.optimizer.free.dense import refine_dense
-from services.optimizer.free.edges import outline
 from services.renderer.settings import RendererSettings
 
 VARIANTS: Final = ("clean", "jpeg", "photo")
@@ -100,50 +98,39 @@ def _capture_target(
     answer = solve_target(target, objects, np.random.default_rng([seed, target.index, 2]))
     if answer.pose is None:
         return
-    rendered = _render(renderer, target, answer.pose.free_camera(), VIEW_SPP)
+    rendered = render_at(renderer, target, answer.pose.free_camera(), VIEW_SPP)
     if rendered is None:
         return
-    rgb, geometry, pinhole = rendered
-    if geometry.shading is None:
-        raise RuntimeError("the renderer's geometry has no outline shading")
     for variant in VARIANTS:
         image = variant_image(
             renderer, scene, target, variant, seed, altered_dir=altered, spp=TARGET_SPP
         )
         if image is None:
             continue
-        gray = cv2.imdecode(np.frombuffer(image.image, np.uint8), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            raise ValueError("a target image does not decode")
-        np.savez_compressed(
+        save_pair(
             folder / _name(scene.id, seed, target.index, variant),
-            target=gray,
-            rgb=rgb,
-            depth=geometry.depth,
-            objects=geometry.objects,
-            shading=geometry.shading,
-            camera=json.dumps(pinhole.model_dump(mode="json")),
-            truth=json.dumps(target.annotations.camera.model_dump(mode="json")),
-            radius=scene.spec.camera.radius,
+            image.image,
+            rendered,
+            target.annotations.camera,
+            scene.spec.camera.radius,
             fit_focal=not target.intrinsics_given,
             variant=variant,
             band=target.band,
         )
 
 
-def _errors(case: Any, near: np.ndarray | None) -> tuple[float, float]:
+def _errors(case: dict[str, Any], near: np.ndarray | None) -> tuple[float, float]:
     """One refinement's position error (share of the radius) and rotation error (°)."""
-    camera = PinholeCamera.model_validate(json.loads(str(case["camera"])))
-    truth = PinholeCamera.model_validate(json.loads(str(case["truth"])))
+    truth: PinholeCamera = case["truth"]
     fit = refine_dense(
         case["target"],
         case["rgb"],
         case["depth"],
-        camera,
+        case["camera"],
         fit_focal=bool(case["fit_focal"]),
         near=near,
     )
-    moved = float(np.linalg.norm(fit.position - np.asarray(truth.position))) / float(case["radius"])
+    moved = float(np.linalg.norm(fit.position - np.asarray(truth.position))) / case["radius"]
     return moved, rotation_angle_deg(fit.rotation, np.asarray(truth.rotation))
 
 
@@ -160,23 +147,20 @@ def main() -> None:
     )
     changed: dict[str, list[int]] = defaultdict(lambda: [0, 0])
     for path in sorted(args.cases.glob("*.npz")):
-        with np.load(path) as case:
-            near = outline(case["depth"], case["objects"], case["shading"])
-            inside = {}
-            for method, mask in zip(METHODS, (None, near), strict=True):
-                moved, turned = _errors(case, mask)
-                inside[method] = moved <= 0.05 and turned <= 2.0
-                for key in (
-                    (str(case["variant"]), str(case["band"])),
-                    (str(case["variant"]), "all"),
-                ):
-                    row = table[key][method]
-                    row[0] += 1
-                    row[1] += inside[method]
-                    row[2] += moved <= 0.02 and turned <= 1.0
-            counts = changed[str(case["variant"])]
-            counts[0] += inside["outline"] and not inside["all edges"]
-            counts[1] += inside["all edges"] and not inside["outline"]
+        case = load_pair(path)
+        variant = str(case["variant"])
+        inside = {}
+        for method, mask in zip(METHODS, (None, case["near"]), strict=True):
+            moved, turned = _errors(case, mask)
+            inside[method] = moved <= 0.05 and turned <= 2.0
+            for key in ((variant, str(case["band"])), (variant, "all")):
+                row = table[key][method]
+                row[0] += 1
+                row[1] += inside[method]
+                row[2] += moved <= 0.02 and turned <= 1.0
+        counts = changed[variant]
+        counts[0] += inside["outline"] and not inside["all edges"]
+        counts[1] += inside["all edges"] and not inside["outline"]
     print("variant  band    n   all edges ≤5%/2° · ≤2%/1°   outline ≤5%/2° · ≤2%/1°")
     for (variant, band), rows in sorted(table.items()):
         n = rows[METHODS[0]][0]

@@ -28,8 +28,9 @@ from typing import Any, Final
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
-from cosmos.bench.free_targets.dense import _render
+from cosmos.bench.free_targets.dense import render_at
 from cosmos.bench.free_targets.draw import draw_targets
 from cosmos.bench.free_targets.metrics import rotation_angle_deg
 from cosmos.bench.free_targets.rendering import LocalRenderer
@@ -37,6 +38,7 @@ from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.free_targets.solver import solve_target
 from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
+from services.common.depth_archive import DepthImage
 from services.common.geometry.camera import PinholeCamera
 from services.optimizer.free import dense as dense_module
 from services.optimizer.free import scene_objects
@@ -78,44 +80,58 @@ def _capture(folder: Path, n: int) -> None:
                     answer = solve_target(target, objects, rng)
                     if answer.pose is None:
                         continue
-                    rendered = _render(renderer, target, answer.pose.free_camera(), 16)
+                    rendered = render_at(renderer, target, answer.pose.free_camera(), 16)
                     if rendered is None:
                         continue
-                    rgb, geometry, pinhole = rendered
-                    if geometry.shading is None:
-                        raise RuntimeError("the renderer's geometry has no outline shading")
-                    gray = np.asarray(
-                        cv2.imdecode(np.frombuffer(target.png, np.uint8), cv2.IMREAD_GRAYSCALE)
-                    )
-                    truth = target.annotations.camera
-                    np.savez_compressed(
+                    save_pair(
                         folder / f"{scene_id}-{target.index:02d}.npz",
-                        target=gray,
-                        rgb=rgb,
-                        depth=geometry.depth,
-                        objects=geometry.objects,
-                        shading=geometry.shading,
-                        camera=json.dumps(pinhole.model_dump(mode="json")),
-                        truth=json.dumps(truth.model_dump(mode="json")),
-                        radius=scene.spec.camera.radius,
+                        target.png,
+                        rendered,
+                        target.annotations.camera,
+                        scene.spec.camera.radius,
                     )
 
 
-def _load(path: Path) -> dict[str, Any]:
+def save_pair(
+    path: Path,
+    image: bytes,
+    rendered: tuple[NDArray[np.uint8], DepthImage, PinholeCamera],
+    truth: PinholeCamera,
+    radius: float,
+    **extra: object,
+) -> None:
+    """One refinement case: the target ``image`` (grey), the render at the start pose (colours,
+    depth, object ids, outline shading, camera), the true camera, the scene radius and
+    ``extra`` scalars; read back by :func:`load_pair`."""
+    rgb, geometry, camera = rendered
+    gray = cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if gray is None or geometry.shading is None:
+        raise ValueError("a target that does not decode, or a render without outline shading")
+    np.savez_compressed(
+        path,
+        target=gray,
+        rgb=rgb,
+        depth=geometry.depth,
+        objects=geometry.objects,
+        shading=geometry.shading,
+        camera=json.dumps(camera.model_dump(mode="json")),
+        truth=json.dumps(truth.model_dump(mode="json")),
+        radius=radius,
+        **extra,  # type: ignore[arg-type]
+    )
+
+
+def load_pair(path: Path) -> dict[str, Any]:
+    """A :func:`save_pair` case, its cameras parsed and the render's outline (``near``) made."""
     with np.load(path) as data:
-        return {
-            "target": data["target"],
-            "rgb": data["rgb"],
-            "depth": data["depth"],
-            "near": (
-                outline(data["depth"], data["objects"], data["shading"])
-                if "shading" in data.files
-                else None
-            ),
-            "camera": PinholeCamera.model_validate(json.loads(str(data["camera"]))),
-            "truth": PinholeCamera.model_validate(json.loads(str(data["truth"]))),
-            "radius": float(data["radius"]),
-        }
+        pair: dict[str, Any] = {name: data[name] for name in data.files}
+    pair["near"] = (
+        outline(pair["depth"], pair["objects"], pair["shading"]) if "shading" in pair else None
+    )
+    pair["camera"] = PinholeCamera.model_validate(json.loads(str(pair["camera"])))
+    pair["truth"] = PinholeCamera.model_validate(json.loads(str(pair["truth"])))
+    pair["radius"] = float(pair["radius"])
+    return pair
 
 
 def _run(pair: dict[str, Any], fit_focal: bool) -> tuple[float, float, float]:
@@ -144,7 +160,7 @@ def main() -> None:
     args = parser.parse_args()
     if not any(args.pairs.glob("*.npz")):
         _capture(args.pairs, args.n)
-    pairs = [_load(p) for p in sorted(args.pairs.glob("*.npz"))]
+    pairs = [load_pair(p) for p in sorted(args.pairs.glob("*.npz"))]
     settings = {"now": {}, "reference": REFERENCE}
     for fit_focal in (True, False):
         ms: dict[str, list[float]] = {name: [] for name in settings}

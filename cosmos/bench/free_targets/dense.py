@@ -87,7 +87,7 @@ def _near(geometry: DepthImage) -> NDArray[np.bool_] | None:
     return outline(geometry.depth, geometry.objects, geometry.shading)
 
 
-def _render(
+def render_at(
     renderer: Renderer, target: FreeTarget, camera: FreeCamera, spp: int
 ) -> tuple[NDArray[np.uint8], DepthImage, PinholeCamera] | None:
     """The render and its geometry (depth, outline shading) at ``camera`` on the target's film;
@@ -144,7 +144,7 @@ def run_dense(
         np.asarray(answer.pose.position, dtype=np.float64),
         answer.pose.intrinsics.fov_deg,
     )
-    first = _render(renderer, target, answer.pose.free_camera(), spp)
+    first = render_at(renderer, target, answer.pose.free_camera(), spp)
     spent, calls = int(first is not None), []
     for variant in FREE_VARIANTS:
         rendered, estimate, budget, step = first, fallback, renders, 0
@@ -165,7 +165,7 @@ def run_dense(
             if step == budget == renders and worth_another_render(fit, pinhole):
                 budget += 1
             if step < budget:
-                rendered = _render(renderer, target, _free_camera(fit.camera(pinhole)), spp)
+                rendered = render_at(renderer, target, _free_camera(fit.camera(pinhole)), spp)
                 spent += int(rendered is not None and variant == FREE_VARIANTS[0])
         estimates[dense_method(variant)] = estimate
     return DenseRun(estimates, spent, sum(calls), tuple(calls))
