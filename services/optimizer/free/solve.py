@@ -226,16 +226,23 @@ def _refined(
     masks: NDArray[np.bool_],
     compatible: NDArray[np.bool_],
     first: tuple[PoseFit, bool],
+    pairs: tuple[NDArray[np.intp], NDArray[np.intp]],
     intrinsics: Intrinsics,
     size: tuple[int, int],
 ) -> _Fit | None:
-    """A hypothesis' first fit (:func:`_focal_fits`) with its pairs re-drawn and its edges
-    refitted (module docstring); None when the refined pose pairs no detection at all."""
+    """A hypothesis' first fit (:func:`_focal_fits`, on the hypothesis' ``pairs``) with its
+    pairs re-drawn and its edges refitted (module docstring); None when the refined pose pairs
+    no detection at all. When the pairs come back as they were and the focal length was not
+    fitted, the first fit stands: it has converged on them already, a refit only moves it
+    within the fit's tolerance (with the focal fitted it can go on from where the first fit's
+    bounded steps stopped, and does)."""
     fit, focal = first
     dets, objs = _reassign(objects, boxes, masks, compatible, fit, *size)
     if len(dets) == 0:
         return None
     estimated = focal and len(dets) >= MIN_FOCAL_PAIRS
+    if not focal and _same_pairs((dets, objs), pairs):
+        return _Fit(fit=fit, detections=pairs[0], objects=pairs[1], source="scene")
     # Too few pairs left to hold the focal length: back to the scene camera's.
     k = fit.intrinsics if estimated or not focal else intrinsics
     if len(dets) >= 3:
@@ -245,6 +252,18 @@ def _refined(
     return _Fit(
         fit=fit, detections=dets, objects=objs, source="estimated" if estimated else "scene"
     )
+
+
+def _same_pairs(
+    a: tuple[NDArray[np.intp], NDArray[np.intp]], b: tuple[NDArray[np.intp], NDArray[np.intp]]
+) -> bool:
+    """Whether two pairings ``(detections, objects)`` pair the same detections with the same
+    objects, in any order."""
+
+    def pairs(p: tuple[NDArray[np.intp], NDArray[np.intp]]) -> list[tuple[int, int]]:
+        return sorted(zip(p[0].tolist(), p[1].tolist(), strict=True))
+
+    return pairs(a) == pairs(b)
 
 
 def _candidate(
@@ -369,8 +388,9 @@ def solve_free_pose(
     )
     starts = [(h.rvec, h.tvec, h.detections, h.objects) for h in hyps[:REFINED_HYPOTHESES]]
     fits = []
-    for first in _focal_fits(objects, boxes, masks, starts, k0, not given):
-        fit = _refined(objects, boxes, masks, compatible, first, k0, (width, height))
+    firsts = _focal_fits(objects, boxes, masks, starts, k0, not given)
+    for first, (_, _, dets, objs) in zip(firsts, starts, strict=True):
+        fit = _refined(objects, boxes, masks, compatible, first, (dets, objs), k0, (width, height))
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else _Fit(fit.fit, fit.detections, fit.objects, "given"))
     if not fits:
