@@ -12,12 +12,12 @@ or when the optimizer refused the request or stayed away, the box pose stays the
 reason says why. The status is never changed: an ambiguous answer stays ambiguous, whatever
 the fit.
 
-A fit that fitted the focal length far from the render's (``render_again``) is rendered once
-more at the refined pose and refitted from there (the first render's silhouettes, seen from
-the box pose, bias the focal length, which the distance follows). With it, free targets of
-generated scenes without given intrinsics went from 76 % to 97 % within 5 %/2° (measured
-in-process: ``python -m cosmos.bench.free_targets``). That render counts in the answer's
-renders.
+A fit that moved far from the render (``render_again``: it fitted the focal length far from
+the render's, or moved the camera far) is rendered once more at the refined pose and refitted
+from there (the first render's silhouettes, seen from the box pose, bias the fit: the focal
+length, which the distance follows, and the pose). With it, free targets of generated scenes
+without given intrinsics went from 76 % to 97 % within 5 %/2° (measured in-process:
+``python -m cosmos.bench.free_targets``). That render counts in the answer's renders.
 """
 
 from __future__ import annotations

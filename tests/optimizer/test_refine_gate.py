@@ -5,13 +5,19 @@ clutter, nor one that slipped far."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from services.common.contracts.free import FreeCorrespondence, FreePose, IntrinsicsUsed
-from services.common.geometry.free_camera import FreeCamera, quaternion_of_rotation
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    free_pinhole_camera,
+    quaternion_of_rotation,
+)
 from services.optimizer.free import DenseFit, Intrinsics
+from services.optimizer.free.dense import worth_another_render
 from services.optimizer.refine_pose import box_shift_px, dense_report
 
 START = FreeCamera(position=(0.0, -10.0, 5.0), look_at=(0.0, 0.0, 0.0))
@@ -113,3 +119,27 @@ def test_the_box_shift_is_the_rms_move_of_the_paired_boxes_edges():
     # a's edges move 3, 0, 3, 0; b's not at all; c has no start box: sqrt(18 / 8)
     assert box_shift_px(start, moved) == pytest.approx(1.5)
     assert box_shift_px(start, {"a": None, "b": None}) == 0.0
+
+
+@pytest.mark.parametrize(
+    ("shift", "inliers", "focal_fitted", "again"),
+    [
+        (0.5, 700, False, False),  # a near move: the render's silhouettes still hold
+        (1.5, 700, False, True),  # beyond a tenth of the depth, edges left over: render again
+        (1.5, 900, False, False),  # as far, but the edges all match: nothing to gain
+        (0.5, 900, True, True),  # the focal length fitted: a thirtieth of the depth is far
+        (0.2, 900, True, False),
+    ],
+)
+def test_a_fit_that_moved_the_camera_far_from_its_render_asks_for_another(
+    shift, inliers, focal_fitted, again
+):
+    """:func:`worth_another_render`: a fit of the pose alone asks for a render at it once its
+    camera moved more than ``REFIT_MOVE`` of the points' depth with less than ``REFIT_SHARE``
+    of its points on the target's edges; with the focal length fitted, once it moved more than
+    ``REFIT_ZOOM``. Turning the camera alone never does (the silhouettes stay)."""
+    moved = replace(fit(shift, 0.0, inliers, 680), depth=DEPTH, focal_fitted=focal_fitted)
+    turned = replace(fit(0.0, 20.0, 700, 680), depth=DEPTH, focal_fitted=focal_fitted)
+    camera = free_pinhole_camera(START.model_copy(update={"fov_deg": 43.6}), 320, 240, 43.6)
+    assert worth_another_render(moved, camera) is again
+    assert not worth_another_render(turned, camera)

@@ -170,9 +170,9 @@ class DenseReport(FrozenModel):
     end within 2 px of a target edge (``start_inliers`` at the start), their RMS distance
     ``residual_px`` (target pixels; null when none); ``focal_fitted`` when the focal length was
     fitted too; ``moved`` and ``moved_rotation_deg`` how far the pose moved (scene units,
-    degrees); ``render_again`` when the focal length was fitted and the fit moved far from the
-    render (its silhouettes, seen from there, bias the focal length): a render at the refined
-    pose and a refit from it would be closer."""
+    degrees); ``render_again`` when the fit moved far from the render (its silhouettes, seen
+    from there, bias the fit: its focal length, when fitted, and its pose): a render at the
+    refined pose and a refit from it would be closer."""
 
     converged: bool
     accepted: bool
