@@ -93,23 +93,32 @@ def test_searches_survive_a_cut_renderer_a_slow_lossy_detector_and_a_killed_cont
     load = Searches(cluster.urls(CONTROLLER), cluster.headers)
     waves = iter(WAVES)
 
-    def submit_wave() -> None:
-        for _ in range(next(waves)):
+    def submit(count: int) -> None:
+        for _ in range(count):
             n = len(load.truth)
             load.submit(images[n % len(TARGETS)], TARGETS[n % len(TARGETS)], {**SEARCH, "seed": n})
         say(f"{len(load.truth)} searches submitted to {controller} so far")
+
+    def submit_wave() -> None:
+        submit(next(waves))
+
+    def busy() -> None:
+        """New searches when every search has ended: a wait for a moment inside a search must
+        not outlast the searches (one-render searches end fast)."""
+        if not load.unfinished:
+            submit(2)
 
     try:
         submit_wave()
 
         # 1. cut a renderer host's link while it renders for a search
         renderer = cluster.host("renderer-1")
-        load.wait(
-            lambda: load.recorded >= 2 and load.replica("renderer-1")["in_flight"] > 0,
-            60,
-            "a render in flight on renderer-1",
-            poll_s=0.1,
-        )
+
+        def rendering_there() -> bool:
+            busy()
+            return load.recorded >= 2 and load.replica("renderer-1")["in_flight"] > 0
+
+        load.wait(rendering_there, 60, "a render in flight on renderer-1", poll_s=0.1)
         renderer.cut()
         cut_at, recorded = time.monotonic(), load.recorded
         say(f"renderer-1 ({renderer.address}) cut with a render in flight")
@@ -117,6 +126,7 @@ def test_searches_survive_a_cut_renderer_a_slow_lossy_detector_and_a_killed_cont
 
         def carried_on() -> bool:
             nonlocal stranded
+            busy()
             stranded = max(stranded, load.replica("renderer-1")["in_flight"])
             return (
                 load.recorded >= recorded + PROGRESS
@@ -144,15 +154,15 @@ def test_searches_survive_a_cut_renderer_a_slow_lossy_detector_and_a_killed_cont
         def detected_through_it() -> int:
             return int(load.replica(name)["served"]) - served
 
-        load.wait(
-            lambda: (
+        def went_on() -> bool:
+            busy()
+            return (
                 load.recorded >= recorded + PROGRESS
                 and time.monotonic() > impaired_at + IMPAIRED_S[0]
                 and (detected_through_it() > 0 or time.monotonic() > impaired_at + IMPAIRED_S[1])
-            ),
-            90,
-            f"progress with {name} impaired",
-        )
+            )
+
+        load.wait(went_on, 90, f"progress with {name} impaired")
         through_impaired = detected_through_it()
         say(
             f"{load.recorded - recorded} iterations recorded; {name} served "
@@ -166,7 +176,12 @@ def test_searches_survive_a_cut_renderer_a_slow_lossy_detector_and_a_killed_cont
 
         # 4. SIGKILL the controller while searches run; start it again on its host
         submit_wave()
-        load.wait(load.snapshot, 60, "a running search")  # the kill follows that refresh
+
+        def running() -> int:
+            busy()
+            return load.snapshot()  # the kill follows the refresh this wait ends on
+
+        load.wait(running, 60, "a running search")
         cluster.kill("controller-1")
         say(f"controller-1 killed with {len(load.at_kill)} searches running")
         cluster.restart("controller-1")

@@ -152,14 +152,21 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
     def pid(name: str) -> int:
         return cluster.process(name).process.pid
 
-    def holding(name: str) -> set[str]:
-        """The unfinished searches the controller on ``name`` holds, once one of them has
-        recorded iterations."""
-        load.wait(
-            lambda: {s.id for s in load.running if s.iterations} & ledger.held_by(pid(name)),
-            60,
-            f"{name} running searches",
-        )
+    def busy(controllers: tuple[int, ...]) -> None:
+        """New searches on ``controllers`` when every search has ended: a wait for a moment
+        inside a search must not outlast the searches (one-render searches end fast)."""
+        if not load.unfinished:
+            submit(2, controllers)
+
+    def holding(name: str, controller: int) -> set[str]:
+        """The unfinished searches the controller on ``name`` (``controller``) holds, once one
+        of them has recorded iterations."""
+
+        def seen_running() -> set[str]:
+            busy((controller,))
+            return {s.id for s in load.running if s.iterations} & ledger.held_by(pid(name))
+
+        load.wait(seen_running, 60, f"{name} running searches", poll_s=0.1)
         return ledger.held_by(pid(name)) - ended()
 
     def taken_over(held: set[str], name: str, since: float) -> float:
@@ -184,18 +191,18 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
         def in_flight() -> int:
             return max(int(load.replica("renderer-1", c)["in_flight"]) for c in (0, 1))
 
-        load.wait(
-            lambda: load.recorded >= 2 and in_flight() > 0,
-            60,
-            "a render on renderer-1",
-            poll_s=0.1,
-        )
+        def rendering_there() -> bool:
+            busy((0, 1))
+            return load.recorded >= 2 and in_flight() > 0
+
+        load.wait(rendering_there, 60, "a render on renderer-1", poll_s=0.1)
         renderer.cut()
         cut_at, recorded, stranded = time.monotonic(), load.recorded, 0
         say(f"renderer-1 ({renderer.address}) cut with a render in flight")
 
         def carried_on() -> bool:
             nonlocal stranded
+            busy((0, 1))
             stranded = max(stranded, in_flight())
             return (
                 load.recorded >= recorded + PROGRESS
@@ -218,15 +225,15 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
         def detected_through_it() -> int:  # by either controller
             return sum(int(load.replica(name, c)["served"]) for c in (0, 1)) - served
 
-        load.wait(
-            lambda: (
+        def went_on() -> bool:
+            busy((0, 1))
+            return (
                 load.recorded >= recorded + PROGRESS
                 and time.monotonic() > impaired_at + 3
                 and (detected_through_it() > 0 or time.monotonic() > impaired_at + 15)
-            ),
-            90,
-            f"progress with {name} impaired",
-        )
+            )
+
+        load.wait(went_on, 90, f"progress with {name} impaired")
         through_impaired = detected_through_it()
 
         # 3. heal both
@@ -236,7 +243,7 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
 
         # 4. SIGKILL controller-1 while it runs searches; controller-2 takes them over
         submit(3, (0,))
-        orphans = holding("controller-1")  # waits for one with recorded iterations
+        orphans = holding("controller-1", 0)  # waits for one with recorded iterations
         load.snapshot()  # after that wait, so the kill finds it running with them
         cluster.kill("controller-1")
         killed_at = time.monotonic()
@@ -246,7 +253,7 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
 
         # 5. partition controller-2 from PostgreSQL for two leases, then heal
         submit(3, (1,))
-        cut_off = holding("controller-2")
+        cut_off = holding("controller-2", 1)
         controller_2 = cluster.host("controller-2")
         controller_2.partition(database)
         partitioned_at = time.monotonic()
