@@ -16,13 +16,13 @@ stage call, ~2 ms (~1 %) of a search, within noise; not worth ~500 lines of prot
 from __future__ import annotations
 
 import json
-import secrets
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import aiohttp
+from urllib3 import encode_multipart_formdata
 
 from services.common.auth import bearer
 
@@ -61,22 +61,14 @@ class StageRequest:
         headers: Mapping[str, str],
     ) -> StageRequest:
         """``POST path`` with a ``multipart/form-data`` body of ``parts`` (name, media type,
-        bytes; a part of media type ``text/plain`` is a text field, any other a file), the
-        boundary a fresh random one (RFC 7578)."""
-        boundary = f"cosmos-{secrets.token_hex(16)}"
-        chunks: list[bytes] = []
-        for name, media_type, data in parts:
-            filename = "" if media_type == "text/plain" else f'; filename="{name}"'
-            chunks += [
-                f"--{boundary}\r\n".encode(),
-                f'Content-Disposition: form-data; name="{name}"{filename}\r\n'.encode(),
-                f"Content-Type: {media_type}\r\n\r\n".encode(),
-                data,
-                b"\r\n",
-            ]
-        chunks.append(f"--{boundary}--\r\n".encode())
-        content_type = f"multipart/form-data; boundary={boundary}"
-        return cls("POST", path, b"".join(chunks), {**headers, "Content-Type": content_type})
+        bytes; a part of media type ``text/plain`` is a text field, any other a file named as
+        its field), encoded by urllib3 with a fresh random boundary (RFC 7578)."""
+        fields: list[tuple[str, str | bytes | tuple[str, bytes, str]]] = [
+            (name, data) if media_type == "text/plain" else (name, (name, data, media_type))
+            for name, media_type, data in parts
+        ]
+        body, content_type = encode_multipart_formdata(fields)
+        return cls("POST", path, body, {**headers, "Content-Type": content_type})
 
 
 @dataclass(frozen=True)
