@@ -41,7 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import ValidationError
 
-from services.common.contracts.detect import Detection, DetectResponse
+from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.contracts.free import (
     FreeAnswer,
     FreePose,
@@ -288,13 +288,19 @@ class FreeSearchLoop:
         return seen.detections, seen.image_size, seen
 
     async def _ask(
-        self, search: Search, target: tuple[Detection, ...], size: tuple[int, int]
+        self,
+        search: Search,
+        target: tuple[tuple[Detection, ...], tuple[int, int]],
+        model: ModelInfo | None,
     ) -> tuple[FreePoseResponse, float]:
-        """The optimizer's pose from the target's boxes, and its milliseconds."""
+        """The optimizer's pose from the target's boxes (found by the detector ``model``), and
+        its milliseconds."""
+        detections, size = target
         request = FreePoseRequest(
             scene=search.scene,
-            target=ImageDetections(image_size=size, detections=target),
+            target=ImageDetections(image_size=size, detections=detections),
             intrinsics=search.intrinsics,
+            detector_input=model.input_size if model is not None else None,
         )
         t0 = time.perf_counter()
         try:
@@ -324,7 +330,8 @@ class FreeSearchLoop:
                 "the scene's objects (at least 3 for a pose, 4 without intrinsics)"
             )
             await self._fail_without_pose(writes, seen, detail, "no-target-objects")
-        answer, optimize_ms = await self._ask(search, target, size)
+        model = seen.model if seen is not None else search.target_model
+        answer, optimize_ms = await self._ask(search, (target, size), model)
         if answer.pose is None:
             await self._fail_without_pose(writes, seen, answer.reason, "no-free-pose")
         candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]

@@ -13,8 +13,10 @@ first: :data:`EDGE_SAMPLES` points along each side of a box are undistorted
 same way. A box's side is curved by the lens; its extreme is sampled to within the spacing.
 
 Confidence of a pose: ``c = (n_paired / n_usable) · exp(−½ (r / (3 σ))²)`` with ``r`` its edge
-RMS residual and ``σ`` = :data:`~services.optimizer.free.solve.NOISE_FLOOR_PX` (the detector's
-box-edge noise), halved when the answer is ``ambiguous``.
+RMS residual and ``σ`` = :data:`~services.optimizer.free.tolerances.NOISE_FLOOR_PX` (the
+detector's box-edge noise) in the target's pixels (times
+:func:`~services.optimizer.free.tolerances.pixel_scale`: the request's ``detector_input``
+shrank the image), halved when the answer is ``ambiguous``.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ from services.optimizer.free import (
     scene_objects,
     solve_free_pose,
 )
-from services.optimizer.free.solve import NOISE_FLOOR_PX
+from services.optimizer.free.tolerances import NOISE_FLOOR_PX, pixel_scale
 from services.optimizer.geometry import FloatArray
 from services.optimizer.planning import check_box
 
@@ -214,12 +216,15 @@ def _pose(
     candidate: PoseCandidate,
     objects: SceneObjects,
     lens: LensDistortion | None,
-    usable: int,
+    evidence: tuple[int, float],
     ambiguous: bool,
 ) -> FreePose:
+    """``candidate`` in the contract's terms; ``evidence`` is the usable detections and the
+    target pixels per pixel of the detector's input."""
+    usable, scale = evidence
     k = candidate.intrinsics
     predicted = _predicted(objects, candidate, lens)
-    fit = math.exp(-0.5 * (candidate.residual_px / (3.0 * NOISE_FLOOR_PX)) ** 2)
+    fit = math.exp(-0.5 * (candidate.residual_px / (3.0 * NOISE_FLOOR_PX * scale)) ** 2)
     confidence = min(1.0, candidate.inliers / max(usable, 1)) * fit * (0.5 if ambiguous else 1.0)
     return FreePose(
         position=candidate.position,
@@ -269,13 +274,15 @@ def free_pose(
         if lens is not None and detections:
             detections = _undistorted(detections, k, lens, (width, height))
     objects = cache.get(scene)
-    answer = _renderable(solve_free_pose(objects, detections, width, height, k), objects)
+    scale = pixel_scale((width, height), request.detector_input)
+    solved = solve_free_pose(objects, detections, width, height, k, pixel_scale=scale)
+    answer = _renderable(solved, objects)
     grid = scene.spec.search.grid()
     ambiguous = answer.status == "ambiguous"
     usable = answer.usable_detections
 
     def pose(candidate: PoseCandidate) -> FreePose:
-        return _pose(candidate, objects, lens, usable, ambiguous)
+        return _pose(candidate, objects, lens, (usable, scale), ambiguous)
 
     best = answer.pose
     return FreePoseResponse(

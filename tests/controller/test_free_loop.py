@@ -272,8 +272,10 @@ def test_a_found_pose_whose_render_agrees_is_confirmed_after_one_render(tmp_path
     assert free.nearest_grid == result.pose
     assert result.pose == nearest_grid_pose((0.0, -3.9, 5.0), detail.spec.search.grid())
     assert result.confidence == pytest.approx(0.9)
-    # the optimizer was asked with the photo's intrinsics; the render is the pose's camera
+    # the optimizer was asked with the photo's intrinsics and the input size of the detector
+    # that found its boxes; the render is the pose's camera
     assert stages.requests[0].intrinsics == intrinsics
+    assert stages.requests[0].detector_input == MODEL.input_size
     (iteration,) = final.iterations
     assert iteration.done
     assert iteration.camera == stages.rendered[0][0]
@@ -485,6 +487,7 @@ def test_an_interrupted_free_search_resumes_with_the_next_alternative(tmp_path, 
     assert final.status == "succeeded", final.error
     assert again.calls["detect target"] == 0
     assert again.calls["render"] == 1
+    assert again.requests[0].detector_input == MODEL.input_size  # the recorded target's model
     assert [it.index for it in final.iterations] == [0, 1, 2]
     assert final.result is not None
     assert final.result.renders == 3

@@ -14,7 +14,7 @@ from services.common.contracts.detect import Detection
 from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.common.geometry.scene import parse_scene
 from services.optimizer.free import Intrinsics, project_boxes, scene_objects, solve_free_pose
-from services.optimizer.free.solve import NOISE_FLOOR_PX
+from services.optimizer.free.tolerances import NOISE_FLOOR_PX
 
 W, H = 320, 240
 

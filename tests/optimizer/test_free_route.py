@@ -119,6 +119,41 @@ async def test_a_distorted_photo_is_solved_through_its_lens(client, engine, cata
     assert body["pose"]["intrinsics"]["distortion"] == lens.model_dump()
 
 
+async def test_a_large_photo_is_judged_in_the_detectors_pixels(client, engine, catalog):
+    """The same view in a photo 12.5 times larger (4000 x 3000), its boxes as far off in the
+    detector's pixels (320 x 256 input, the photo shrunk into it): with ``detector_input`` it
+    gets the small one's answer and confidence, in its own pixels. Taken as the photo's own
+    pixels, its box errors (12.5 times the detector's noise) cost it most of its confidence."""
+    image, truth = target(engine, catalog, "garden", TILTED)
+    rng = np.random.default_rng(3)
+    for d in image["detections"]:  # about the detector's box-edge noise, clipped to the film
+        d["box"] = list(np.clip(np.add(d["box"], rng.normal(0.0, 1.0, 4)), 0, [W, H, W, H]))
+    k = {"fx_px": truth.fx, "fy_px": truth.fy, "cx_px": truth.cx, "cy_px": truth.cy}
+    s = 12.5
+    large = {
+        "image_size": [round(W * s), round(H * s)],
+        "detections": [{**d, "box": [v * s for v in d["box"]]} for d in image["detections"]],
+    }
+    large_k = {name: value * s for name, value in k.items()}
+
+    async def ask(target: dict, intrinsics: dict, detector_input=None) -> dict:
+        request = {"scene": "garden", "target": target, "intrinsics": intrinsics}
+        answer = await client.post("/free-pose", json={**request, "detector_input": detector_input})
+        assert answer.status_code == 200, answer.text
+        return answer.json()
+
+    small = await ask(image, k, [320, 256])
+    judged = await ask(large, large_k, [320, 256])
+    assert small["status"] == judged["status"] == "found", judged["reason"]
+    assert judged["pose"]["position"] == pytest.approx(small["pose"]["position"], abs=1e-6)
+    assert judged["pose"]["confidence"] == pytest.approx(small["pose"]["confidence"], abs=1e-6)
+    assert judged["pose"]["residual_px"] == pytest.approx(small["pose"]["residual_px"] * s)
+    assert judged["pose"]["intrinsics"]["fx_px"] == pytest.approx(truth.fx * s)
+    assert small["pose"]["confidence"] > 0.5
+    as_own_pixels = await ask(large, large_k)
+    assert as_own_pixels["pose"]["confidence"] < 0.5 * small["pose"]["confidence"]
+
+
 async def test_two_detections_are_ambiguous_with_alternatives_and_none_failed(
     client, engine, catalog
 ):

@@ -14,7 +14,12 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from services.common.base import BoxXYXY, FrozenModel, Integer, Number
-from services.common.contracts.optimize import MAX_DETECTIONS, GridPose, ImageDetections
+from services.common.contracts.optimize import (
+    MAX_DETECTIONS,
+    GridPose,
+    ImageDetections,
+    ImageSide,
+)
 from services.common.geometry.free_camera import (
     FocalPx,
     FovDeg,
@@ -81,13 +86,20 @@ class PhotoIntrinsics(FrozenModel):
 
 class FreePoseRequest(FrozenModel):
     """``POST /free-pose``: the scene, the target image's size and detections (boxes in its
-    pixels; none is a ``failed`` answer, not an error), and the photo's intrinsics if known
+    pixels; none is a ``failed`` answer, not an error), the photo's intrinsics if known
     (otherwise the scene camera's field of view is the start and the focal length is estimated
-    from four paired objects on)."""
+    from four paired objects on), and the network input of the detector that found the boxes
+    (``detector_input``: its box errors grow in the image's pixels with the image it shrank;
+    without it they are taken as at the image's own size)."""
 
     scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)]
     target: ImageDetections
     intrinsics: PhotoIntrinsics | None = None
+    detector_input: tuple[ImageSide, ImageSide] | None = Field(
+        default=None,
+        description="The detector's network input (width, height) in pixels: the "
+        "`model.input_size` of its `/detect` answer.",
+    )
 
 
 class IntrinsicsUsed(FrozenModel):

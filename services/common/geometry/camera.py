@@ -83,7 +83,7 @@ def camera_axes(
     return right, -up, forward
 
 
-def focal_length_px(fov_deg: float, width: int) -> float:
+def focal_length_px(fov_deg: float, width: float) -> float:
     """Focal length in pixels for a horizontal field of view: ``f = (W / 2) / tan(fov / 2)``."""
     return (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
 

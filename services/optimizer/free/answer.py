@@ -5,7 +5,7 @@ Frozen dataclasses of the domain; the HTTP contract that carries them comes with
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 from services.common.geometry.free_camera import FreeCamera
@@ -52,7 +52,7 @@ class PoseCandidate:
     """A camera pose: position (world, scene units), camera-to-world quaternion ``(w, x, y, z)``
     and yaw/pitch/roll (the conventions of :mod:`services.common.geometry.free_camera`), the
     intrinsics, the edge RMS residual in pixels, the pairs it explains, and its 1-σ position and
-    rotation uncertainty under :data:`~.solve.NOISE_FLOOR_PX` of edge noise (:func:`~.refine.
+    rotation uncertainty under :data:`~.tolerances.NOISE_FLOOR_PX` of edge noise (:func:`~.refine.
     pose_uncertainty`: how firmly the boxes pin this pose; inf when they do not)."""
 
     position: tuple[float, float, float]
@@ -84,6 +84,24 @@ class PoseCandidate:
         """The camera-to-world rotation."""
         return FreeCamera(position=self.position, quaternion_wxyz=self.quaternion_wxyz).rotation()
 
+    def in_target_pixels(self, scale: float) -> PoseCandidate:
+        """This pose solved on the image shrunk ``scale`` times, in the image's own pixels: the
+        pixel intrinsics and the residuals times ``scale`` (the fov and pose are the same)."""
+        if scale == 1.0:
+            return self
+        k = self.intrinsics
+        pixels = replace(
+            k,
+            fx_px=k.fx_px * scale,
+            fy_px=k.fy_px * scale,
+            cx_px=k.cx_px * scale,
+            cy_px=k.cy_px * scale,
+        )
+        pairs = tuple(replace(c, residual_px=c.residual_px * scale) for c in self.correspondences)
+        return replace(
+            self, intrinsics=pixels, residual_px=self.residual_px * scale, correspondences=pairs
+        )
+
 
 @dataclass(frozen=True)
 class FreePoseAnswer:
@@ -94,3 +112,11 @@ class FreePoseAnswer:
     pose: PoseCandidate | None
     alternatives: tuple[PoseCandidate, ...]
     usable_detections: int
+
+    def in_target_pixels(self, scale: float) -> FreePoseAnswer:
+        """This answer's poses in the image's pixels (:meth:`PoseCandidate.in_target_pixels`)."""
+        return replace(
+            self,
+            pose=None if self.pose is None else self.pose.in_target_pixels(scale),
+            alternatives=tuple(a.in_target_pixels(scale) for a in self.alternatives),
+        )

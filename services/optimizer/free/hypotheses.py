@@ -132,7 +132,7 @@ class _Evidence:
     gates: FloatArray
     costs: FloatArray
     intrinsics: Intrinsics
-    size: tuple[int, int]
+    size: tuple[float, float]
     general: bool
     """Whether labels are the general model's (the box sizes are then checked)."""
 
@@ -164,7 +164,7 @@ def general_labels(objects: SceneObjects, labels: tuple[str, ...]) -> NDArray[np
     return np.array([x in SHAPE_CLASSES and x not in own for x in labels], dtype=np.bool_)
 
 
-def centre_gate(boxes: ArrayLike, width: int, height: int) -> FloatArray:
+def centre_gate(boxes: ArrayLike, width: float, height: float) -> FloatArray:
     """(D,) how far (pixels) a projected centroid may lie from a box's centre to pair with it:
     half the box's diagonal, at least 3 % of the image's (a minimal set's pose, solved on
     uncorrected centres, is that rough)."""
@@ -381,8 +381,8 @@ def hypotheses(
     boxes: ArrayLike,
     costs: ArrayLike,
     intrinsics: Intrinsics,
-    width: int,
-    height: int,
+    width: float,
+    height: float,
     *,
     confidence: ArrayLike | None = None,
     general: bool = False,

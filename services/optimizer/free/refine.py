@@ -69,7 +69,7 @@ class Intrinsics:
     cy: float
 
     @classmethod
-    def of_fov(cls, fov_deg: float, width: int, height: int) -> Intrinsics:
+    def of_fov(cls, fov_deg: float, width: float, height: float) -> Intrinsics:
         """Square pixels, principal point at the image centre, horizontal field of view."""
         f = focal_length_px(fov_deg, width)
         return cls(fx=f, fy=f, cx=width / 2.0, cy=height / 2.0)
@@ -78,7 +78,11 @@ class Intrinsics:
         """The focal lengths times ``factor`` (a zoom), the principal point kept."""
         return replace(self, fx=self.fx * factor, fy=self.fy * factor)
 
-    def fov_deg(self, width: int) -> float:
+    def on_film(self, factor: float) -> Intrinsics:
+        """These intrinsics on the image scaled by ``factor`` (all four times it)."""
+        return Intrinsics(self.fx * factor, self.fy * factor, self.cx * factor, self.cy * factor)
+
+    def fov_deg(self, width: float) -> float:
         """The horizontal field of view over an image ``width`` pixels wide."""
         return math.degrees(2.0 * math.atan(width / (2.0 * self.fx)))
 

@@ -86,15 +86,17 @@ from services.optimizer.free.refine import (
     pose_uncertainty,
     refine_edges,
 )
+from services.optimizer.free.tolerances import (
+    NOISE_FLOOR_PX,
+    inlier_gate,
+    truncated_cost,
+)
 from services.optimizer.geometry import FloatArray
 from services.optimizer.mapping import clipped_sides
 from services.optimizer.matching import assign
 
 __all__ = [
     "AMBIGUITY_RATIO",
-    "NOISE_FLOOR_PX",
-    "inlier_gate",
-    "truncated_cost",
     "solve_free_pose",
 ]
 
@@ -111,8 +113,6 @@ pose to 1e-3 units and 0.05°, fov to 0.02°) was the one all starts gave, on th
 -m cosmos.bench.free_targets --scene demo --random-scenes 2 --n 8 --seed 1`` (9 without
 intrinsics). One keeps the other zooms for the pose that will be answered; the solve without
 intrinsics took 0.6-0.7 times as long."""
-NOISE_FLOOR_PX: Final = 0.7
-"""Edge RMS that any pose is granted: about the detector's measured box-edge error."""
 AMBIGUITY_RATIO: Final = 2.0
 WRONG_POSITION: Final = 0.10
 """A position error (fraction of the scene radius) past which an answer is wrong."""
@@ -122,8 +122,6 @@ FIRM_SIGMAS: Final = 3.0
 """How many standard deviations of its own uncertainty a ``found`` pose keeps inside
 :data:`WRONG_POSITION` and :data:`WRONG_ROTATION_DEG`."""
 UNIQUE_RATIO_3: Final = 3.0
-INLIER_MIN_PX: Final = 3.0
-INLIER_BOX_FRACTION: Final = 0.15
 REFINED_HYPOTHESES: Final = 6
 MAX_ALTERNATIVES: Final = 4
 
@@ -140,23 +138,14 @@ class _Fit:
         return self.fit.rvec, self.fit.tvec
 
 
-def inlier_gate(boxes: FloatArray) -> FloatArray:
-    """(D,) the largest edge RMS (pixels) at which a refined pose's box still pairs with a
-    detection: :data:`INLIER_BOX_FRACTION` of its diagonal, at least :data:`INLIER_MIN_PX`
-    (partly hidden objects' boxes shrink)."""
-    diag = np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
-    gate: FloatArray = np.maximum(INLIER_MIN_PX, INLIER_BOX_FRACTION * diag)
-    return gate
-
-
 def _reassign(
     objects: SceneObjects,
     boxes: FloatArray,
     masks: NDArray[np.bool_],
     compatible: NDArray[np.bool_],
     fit: PoseFit,
-    width: int,
-    height: int,
+    width: float,
+    height: float,
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Pairs at a refined pose: gated Hungarian on the masked edge RMS of the clipped boxes."""
     k = fit.intrinsics
@@ -228,7 +217,7 @@ def _refined(
     first: tuple[PoseFit, bool],
     pairs: tuple[NDArray[np.intp], NDArray[np.intp]],
     intrinsics: Intrinsics,
-    size: tuple[int, int],
+    size: tuple[float, float],
 ) -> _Fit | None:
     """A hypothesis' first fit (:func:`_focal_fits`, on the hypothesis' ``pairs``) with its
     pairs re-drawn and its edges refitted (module docstring); None when the refined pose pairs
@@ -270,7 +259,7 @@ def _candidate(
     fit: _Fit,
     objects: SceneObjects,
     evidence: tuple[FloatArray, NDArray[np.bool_], tuple[str, ...], NDArray[np.intp]],
-    width: int,
+    width: float,
 ) -> PoseCandidate:
     boxes, masks, labels, index = evidence
     sigmas = pose_uncertainty(
@@ -312,17 +301,6 @@ def _candidate(
     )
 
 
-def truncated_cost(fit: PoseFit, detections: NDArray[np.intp], gates: FloatArray) -> float:
-    """A ``fit``'s robust cost over all ``D`` usable detections (MSAC's truncated quadratic):
-    ``Σ_paired min(r_i / g_i, 1)² + (D - pairs)``, ``r_i`` the box-edge RMS of its pair on
-    ``detections[i]`` and ``g_i`` that detection's :func:`inlier_gate`; an unpaired detection
-    costs as much as the worst pair. Ranking by pairs first let a wrong pose that pairs every
-    box loosely beat the right one that leaves a moved object's box out: on a changed scene it
-    was called found 20-125° away (``tests/optimizer/test_free_changed.py``)."""
-    ratio = np.minimum(fit.pair_rms_px / gates[detections], 1.0)
-    return float(np.sum(ratio**2)) + (len(gates) - len(detections))
-
-
 def _distinct_best(fits: list[_Fit], radius: float, gates: FloatArray) -> list[_Fit]:
     """The fits, best first (least :func:`truncated_cost`, then most pairs), one of each
     distinct pose."""
@@ -345,6 +323,7 @@ def solve_free_pose(
     *,
     min_confidence: float = 0.0,
     seed: int = 0,
+    pixel_scale: float = 1.0,
 ) -> FreePoseAnswer:
     """The camera pose from the target's detections alone (module docstring).
 
@@ -356,7 +335,33 @@ def solve_free_pose(
         and the focal length is estimated from four pairs on.
     min_confidence : detections below it are not used.
     seed : for the sampled minimal sets when there are too many to solve them all.
+    pixel_scale : target pixels per pixel of the detector's input
+        (:func:`~.tolerances.pixel_scale`). Every pixel tolerance of the solve
+        (:data:`~.tolerances.NOISE_FLOOR_PX`, the gates, the edge fit's robust scale, the border
+        margin) is one of the detector's, whose box errors grow with the image it shrank: the
+        solve runs on the boxes and intrinsics divided by it, and answers in target pixels. The
+        same view at 320 and 4000 pixels wide was answered with confidence 0.99 and 0.20 when
+        the tolerances were target pixels.
     """
+    s = pixel_scale
+    scaled = [d.model_copy(update={"box": tuple(v / s for v in d.box)}) for d in detections]
+    k = intrinsics.on_film(1.0 / s) if intrinsics is not None else None
+    answer = _solve(objects, scaled, (width / s, height / s), k, min_confidence, seed, s)
+    return answer.in_target_pixels(s)
+
+
+def _solve(
+    objects: SceneObjects,
+    detections: Sequence[Detection],
+    size: tuple[float, float],
+    intrinsics: Intrinsics | None,
+    min_confidence: float,
+    seed: int,
+    unit: float,
+) -> FreePoseAnswer:
+    """:func:`solve_free_pose` in the detector's pixels (``size`` the image's in them); the
+    reasons say pixels times ``unit``, the target's."""
+    width, height = size
     labels_all = tuple(d.label for d in detections)
     costs_all = label_costs(objects, labels_all)
     compatible_all = np.isfinite(costs_all)
@@ -425,7 +430,8 @@ def solve_free_pose(
     if rivals:
         reason = (
             f"ambiguous: {len(rivals)} distinct pose(s) explain the boxes almost as well "
-            f"(edge RMS ≤ {limit:.2f} px against the best {best.residual_px:.2f} px): a "
+            f"(edge RMS ≤ {limit * unit:.2f} px against the best {best.residual_px * unit:.2f} "
+            "px): a "
             "symmetric layout or look-alike objects; more objects in view would decide"
         )
         return FreePoseAnswer("ambiguous", reason, best, rivals[:MAX_ALTERNATIVES], len(index))
@@ -444,7 +450,7 @@ def solve_free_pose(
         "given": "intrinsics given",
     }
     reason = (
-        f"found: {best.inliers} objects paired, edge RMS {best.residual_px:.2f} px; "
+        f"found: {best.inliers} objects paired, edge RMS {best.residual_px * unit:.2f} px; "
         f"{focal[best.intrinsics.source]}"
     )
     return FreePoseAnswer("found", reason, best, (), len(index))
