@@ -207,6 +207,8 @@ BALL = {"label": "sphere", "class_id": 0, "confidence": 0.9, "box": [100, 80, 14
             422,
             "target.detections[0].box",
         ),
+        ({"detector_input": [0, 256]}, 422, "detector_input"),
+        ({"detector_input": [320]}, 422, "detector_input"),
     ],
 )
 async def test_bad_requests_are_problems_naming_the_field(client, change, status, field):
