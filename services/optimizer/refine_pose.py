@@ -30,10 +30,11 @@ Accepted
 
     The fit must also keep to the boxes it started from, unless the image vouches for leaving
     them: when it moves the paired objects' predicted box edges by more than the box fit can
-    err (RMS shift over ``max(BOX_SLACK_PX, BOX_SLACK_RATIO · r)``, ``r`` the start's box-edge
-    RMS), it is accepted only when it leaves at least :data:`FAR_SHARE` of its edge points on
-    the target's. Measured through the real stack (``cosmos bench --free --scene demo
-    --random-scenes 2 --n 8 --seed 5``): fits that moved the boxes 2-6 px and left 0.52-0.72
+    err (RMS shift over ``max(BOX_SLACK_PX / s, BOX_SLACK_RATIO · r)`` target pixels, ``r`` the
+    start's box-edge RMS, ``s`` the render's film over the target's), it is accepted only when
+    it leaves at least :data:`FAR_SHARE` of its edge points on the target's. Measured through
+    the real stack (``cosmos bench --free --scene demo --random-scenes 2 --n 8 --seed 5``, the
+    targets and renders 320 pixels wide): fits that moved the boxes 2-6 px and left 0.52-0.72
     of their edges were all wrong, two of them confirmed (a moved light let shadow edges pull a
     right box pose 10-18 % / 6-9° away); right fits that moved the boxes that far (2-25 px: the
     general model's boxes were wrong) left 0.796-0.97.
@@ -94,8 +95,9 @@ FAR: Final = 4.0
 FAR_GAIN: Final = 1.2
 """…that is, when the fit explains this many times the start's edge points."""
 BOX_SLACK_PX: Final = 2.0
-"""Box-edge shift (target pixels) any fit may make: about three times the detector's
-measured box-edge error."""
+"""Box-edge shift any fit may make, in pixels of the render's film (at most the view width, as
+the detector sees a target: a photo's own pixels are that many times finer): about three times
+the detector's measured box-edge error."""
 BOX_SLACK_RATIO: Final = 3.0
 """…or this many times the start's own box-edge RMS, when its boxes fitted worse."""
 FAR_SHARE: Final = 0.75
@@ -182,7 +184,7 @@ def dense_report(
     near = moved <= allowed and turned <= MAX_TURN_DEG
     vouched = fit.inliers >= FAR_GAIN * fit.start_inliers
     plausible = near or (vouched and moved <= FAR * allowed and turned <= FAR * MAX_TURN_DEG)
-    slack = max(BOX_SLACK_PX, BOX_SLACK_RATIO * start.residual_px)
+    slack = max(BOX_SLACK_PX / scale, BOX_SLACK_RATIO * start.residual_px)
     kept_boxes = box_shift <= slack or fit.inliers >= FAR_SHARE * fit.points
     accepted = converged and plausible and kept_boxes
     if not converged:

@@ -143,3 +143,14 @@ def test_a_fit_that_moved_the_camera_far_from_its_render_asks_for_another(
     camera = free_pinhole_camera(START.model_copy(update={"fov_deg": 43.6}), 320, 240, 43.6)
     assert worth_another_render(moved, camera) is again
     assert not worth_another_render(turned, camera)
+
+
+def test_the_box_slack_is_in_the_renders_pixels():
+    """A photo ten times the render's film: its box edges may move ten times as many of its
+    own pixels (the detector and the render see it at about the film's size)."""
+    small = fit(0.5, 2.0, 720, 600)
+    large = replace(small, intrinsics=Intrinsics(40.0, 40.0, 16.0, 12.0))  # the render's film
+    assert not dense_report(small, start_pose(), DEPTH, 1.0, box_shift=10.0).accepted
+    report = dense_report(large, start_pose(), DEPTH, 0.1, box_shift=10.0)
+    assert report.accepted, report.reason
+    assert not dense_report(large, start_pose(), DEPTH, 0.1, box_shift=30.0).accepted
