@@ -191,6 +191,32 @@ async def test_detections_carry_the_objects_colour(client):
         assert colour == pytest.approx([30, 90, 220], abs=1)
 
 
+async def test_a_large_jpeg_is_detected_from_a_shrunk_decode_like_the_whole_image(model_dir):
+    """A JPEG at least twice the network input is decoded shrunk (here 1280 x 1280 by 2, into
+    320 x 320): its boxes come back in its own pixels as those of the whole image (a PNG of the
+    same pixels), and the colour is measured where they are."""
+    image = grey(1280, 1280)
+    cv2.ellipse(image, (400, 480), (76, 156), 0, 0, 360, (30, 90, 220), thickness=-1)
+    settings = settings_for(
+        model_dir / "constant.onnx",
+        detector_max_image_pixels=4_000_000,
+        detector_max_upload_bytes=10_000_000,
+    )
+    async for client in serve(settings):
+        whole = (await detect(client, png(image))).json()
+        shrunk = (await detect(client, jpeg(image))).json()
+    assert shrunk["image_size"] == whole["image_size"] == [1280, 1280]
+    assert [d["box"] for d in shrunk["detections"]] == [d["box"] for d in whole["detections"]]
+    on_it = [d for d in shrunk["detections"] if d["box"] == [320.0, 320.0, 480.0, 640.0]]
+    assert len(on_it) == 2  # anchor A, both classes, four times its input box
+    for a, b in zip(shrunk["detections"], whole["detections"], strict=True):
+        if a in on_it:
+            assert a["color"] == pytest.approx(b["color"], abs=3)
+            assert a["color"] == pytest.approx([30, 90, 220], abs=4)
+        else:
+            assert a["color"] is b["color"] is None  # bare ground
+
+
 async def test_ppm_uploads_are_detected_like_png(client):
     image = grey(320, 180)  # under the test upload limit uncompressed
     cv2.ellipse(image, (100, 50), (19, 39), 0, 0, 360, (30, 90, 220), thickness=-1)
