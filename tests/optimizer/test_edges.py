@@ -11,6 +11,7 @@ from services.common.geometry.camera import PinholeCamera
 from services.optimizer.free.edges import (
     OUTLINE_PX,
     edge_points,
+    edge_points_by_outline,
     exact_distance,
     outline,
     target_level,
@@ -71,7 +72,9 @@ def test_without_the_outline_every_colour_edge_is_kept():
 
 def test_near_the_outline_the_shadow_edge_goes_and_silhouette_and_texture_stay():
     rgb, depth, objects, shading = _images()
-    columns = _columns(edge_points(rgb, depth, _camera(), near=outline(depth, objects, shading)))
+    near = outline(depth, objects, shading)
+    on, _ = edge_points_by_outline(rgb, depth, _camera(), None, near)
+    columns = _columns(on)
     assert not _near(columns, SHADOW_COL).any()
     assert _near(columns, OUTLINE_COL).sum() >= H // 2
     assert _near(columns, TEXTURE_COL).sum() >= H // 2

@@ -117,13 +117,10 @@ def edge_points(
     render_depth: NDArray[np.float32],
     camera: PinholeCamera,
     distortion: LensDistortion | None = None,
-    near: NDArray[np.bool_] | None = None,
 ) -> EdgePoints:
-    """The render's edge pixels back-projected through its depth to world points, only those
-    ``near`` its outline when given (:func:`outline`), at most :data:`MAX_POINTS`."""
+    """The render's edge pixels back-projected through its depth to world points, at most
+    :data:`MAX_POINTS` (near its outline, and off it: :func:`edge_points_by_outline`)."""
     edges, bins = image_edges(gray(render_rgb))
-    if near is not None:
-        edges &= near
     return _back_projected(edges, bins, _nearest_depth(render_depth), camera, distortion)
 
 
