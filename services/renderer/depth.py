@@ -33,19 +33,13 @@ from numpy.typing import NDArray
 
 from services.common.depth_archive import DEPTH_MEDIA_TYPE, DepthImage
 from services.renderer.free_view import FreeView
+from services.renderer.imaging import linear_to_srgb8
 
 __all__ = ["DEPTH_MEDIA_TYPE", "GEOMETRY_AOVS", "DepthImage", "depth_image", "outline_shading"]
 
 GEOMETRY_AOVS: Final = "dd.y:depth,p:position,si:shape_index,a:albedo,n:sh_normal"
 """The aov integrator's channels: ray distance (0 on a miss), world position, shape key,
 albedo (RGB), shading normal (world)."""
-
-
-def _srgb(linear: NDArray[np.float32]) -> NDArray[np.uint8]:
-    """Linear values in [0, 1] as 8-bit sRGB (IEC 61966-2-1)."""
-    x = np.clip(linear, 0.0, 1.0)
-    encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-    return np.asarray(np.rint(encoded * 255.0), dtype=np.uint8)
 
 
 def outline_shading(
@@ -59,7 +53,7 @@ def outline_shading(
     facing = np.abs(np.einsum("ijk,ijk->ij", channels[..., 8:11], towards))
     albedo = channels[..., 5:8].mean(axis=-1)
     lit = albedo * facing / np.maximum(length, np.float32(1e-12))
-    return _srgb(np.where(hit, lit, np.float32(0.0)))
+    return linear_to_srgb8(np.where(hit, lit, np.float32(0.0)))
 
 
 def depth_image(
