@@ -25,6 +25,7 @@ from services.common.images import checked_header, decode_image
 from services.controller.broker import Broker
 from services.controller.form import photo_intrinsics
 from services.controller.keys import ApiKey
+from services.controller.photo_exif import exif_intrinsics
 from services.controller.quotas import Quotas
 from services.controller.runner import NotRetryable, SearchRunner
 from services.controller.settings import ControllerSettings
@@ -125,10 +126,12 @@ async def create_search(
     starts from only when the pose predicted from its target cannot be used (:mod:`.start`);
     a free search (``mode=free``) records it too but starts from the pose the optimizer
     solves for, with the photo's intrinsics when given
-    (:func:`~services.controller.form.photo_intrinsics`). With ``start_early`` a given start
-    view's render is under way while the pixels are decoded and the search stored
-    (:meth:`Stages.render_early`; dropped again if the image turns out broken); a predicted
-    start needs the target's detections first, so nothing is rendered early for it.
+    (:func:`~services.controller.form.photo_intrinsics`), else those its EXIF states unless
+    ``exif`` is false (:func:`~services.controller.photo_exif.exif_intrinsics`). With
+    ``start_early`` a given start view's render is under way while the pixels are decoded and
+    the search stored (:meth:`Stages.render_early`; dropped again if the image turns out
+    broken); a predicted start needs the target's detections first, so nothing is rendered
+    early for it.
     ``owner`` is the id of the API key that submits it. A large image is written to the store
     off the event loop (:data:`INLINE_WRITE_BYTES`), and the search deleted again if the caller
     is cancelled meanwhile (:func:`_store_large`): stored means answered and handed to the
@@ -150,6 +153,8 @@ async def create_search(
             "give start_theta_deg and start_phi_deg together", field="start_theta_deg"
         )
     intrinsics = photo_intrinsics(options)
+    if intrinsics is None and options.mode == "free" and options.exif:
+        intrinsics = exif_intrinsics(image, (header.width, header.height))
     if re.match(SCENE_ID_PATTERN, options.scene) is None:
         raise NotFoundError(
             f"unknown scene {options.scene!r}",

@@ -116,6 +116,12 @@ class SearchOptions(FrozenModel):
         description="Free mode: the photo's OpenCV lens distortion `k1,k2,p1,p2` (with fov_deg "
         "or intrinsics).",
     )
+    exif: bool = Field(
+        default=True,
+        description="Free mode, without fov_deg and intrinsics: take the focal length from the "
+        "photo's EXIF (FocalLengthIn35mmFilm, or FocalLength with FocalPlaneXResolution) when it "
+        "states one; false estimates it from the boxes instead.",
+    )
 
 
 class StageTimings(FrozenModel):
