@@ -275,7 +275,10 @@ def free_pose(
             detections = _undistorted(detections, k, lens, (width, height))
     objects = cache.get(scene)
     scale = pixel_scale((width, height), request.detector_input)
-    solved = solve_free_pose(objects, detections, width, height, k, pixel_scale=scale)
+    known_from = request.intrinsics.source if request.intrinsics is not None else "given"
+    solved = solve_free_pose(
+        objects, detections, width, height, k, pixel_scale=scale, known_from=known_from
+    )
     answer = _renderable(solved, objects)
     grid = scene.spec.search.grid()
     ambiguous = answer.status == "ambiguous"

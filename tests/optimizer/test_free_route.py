@@ -95,6 +95,26 @@ async def test_given_intrinsics_give_the_camera_and_its_nearest_grid_pose(client
     assert abs(grid["phi_deg"] - 161.6) <= 7.5
 
 
+async def test_intrinsics_from_the_exif_are_used_as_given_and_said_to_be(client, engine, catalog):
+    image, truth = target(engine, catalog, "garden", TILTED)
+    k = {"fx_px": truth.fx, "fy_px": truth.fy}
+    answers = [
+        (
+            await client.post(
+                "/free-pose",
+                json={"scene": "garden", "target": image, "intrinsics": {**k, "source": source}},
+            )
+        ).json()
+        for source in ("given", "exif")
+    ]
+    given, exif = answers
+    assert exif["pose"]["intrinsics"]["source"] == "exif"
+    assert "EXIF" in exif["reason"]
+    assert exif["pose"]["position"] == given["pose"]["position"]
+    assert exif["pose"]["intrinsics"]["fx_px"] == pytest.approx(truth.fx)
+    assert exif["status"] == given["status"]
+
+
 async def test_without_intrinsics_the_focal_length_is_estimated(client, engine, catalog):
     image, truth = target(engine, catalog, "garden", TILTED)
     body = (await client.post("/free-pose", json={"scene": "garden", "target": image})).json()

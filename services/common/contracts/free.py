@@ -46,7 +46,7 @@ __all__ = [
 ]
 
 FreeStatus = Literal["found", "ambiguous", "failed"]
-IntrinsicsSource = Literal["given", "estimated", "scene"]
+IntrinsicsSource = Literal["given", "exif", "estimated", "scene"]
 Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
 NonNeg = Annotated[Number, Field(ge=0.0)]
 
@@ -54,7 +54,8 @@ NonNeg = Annotated[Number, Field(ge=0.0)]
 class PhotoIntrinsics(FrozenModel):
     """The photo's intrinsics, when known: ``fov_deg`` (horizontal, square pixels, centred
     principal point) or OpenCV's ``fx_px``, ``fy_px`` (with ``cx_px``, ``cy_px``: the image's
-    centre when left out), and optionally OpenCV's lens ``distortion`` (which needs one of them).
+    centre when left out), and optionally OpenCV's lens ``distortion`` (which needs one of them);
+    ``source`` says whether the user gave them or the photo's EXIF stated them.
     """
 
     fov_deg: FovDeg | None = None
@@ -63,6 +64,10 @@ class PhotoIntrinsics(FrozenModel):
     cx_px: PixelCoordinate | None = None
     cy_px: PixelCoordinate | None = None
     distortion: LensDistortion | None = None
+    source: Literal["given", "exif"] = Field(
+        default="given",
+        description="`given` by the user, or read from the photo's `exif` (its focal length).",
+    )
 
     @model_validator(mode="after")
     def _one_focal(self) -> PhotoIntrinsics:
@@ -81,7 +86,7 @@ class PhotoIntrinsics(FrozenModel):
 
     def camera_fields(self) -> dict[str, object]:
         """These intrinsics as the fields of a :class:`FreeCamera`."""
-        return self.model_dump(exclude_none=True)
+        return self.model_dump(exclude_none=True, exclude={"source"})
 
 
 class FreePoseRequest(FrozenModel):
@@ -104,8 +109,9 @@ class FreePoseRequest(FrozenModel):
 
 class IntrinsicsUsed(FrozenModel):
     """The intrinsics a pose was computed with, in pixels of the target image: ``given`` by the
-    request, ``estimated`` from the boxes, or the ``scene`` camera's field of view (not given,
-    too few objects to estimate it). ``distortion`` is the given lens, if any."""
+    request, read from the photo's ``exif``, ``estimated`` from the boxes, or the ``scene``
+    camera's field of view (not given, too few objects to estimate it). ``distortion`` is the
+    given lens, if any."""
 
     fx_px: Number
     fy_px: Number

@@ -21,7 +21,7 @@ __all__ = [
 ]
 
 Status = Literal["found", "ambiguous", "failed"]
-IntrinsicsSource = Literal["given", "estimated", "scene"]
+IntrinsicsSource = Literal["given", "exif", "estimated", "scene"]
 
 
 @dataclass(frozen=True)
@@ -36,8 +36,9 @@ class Correspondence:
 
 @dataclass(frozen=True)
 class IntrinsicsUsed:
-    """The intrinsics a pose was computed with: ``given``, ``estimated`` from the boxes, or the
-    ``scene`` camera's field of view (not given, too few pairs to estimate)."""
+    """The intrinsics a pose was computed with: ``given``, read from the photo's ``exif`` (as
+    good as given), ``estimated`` from the boxes, or the ``scene`` camera's field of view (not
+    given, too few pairs to estimate)."""
 
     fx_px: float
     fy_px: float

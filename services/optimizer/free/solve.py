@@ -54,7 +54,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Final
+from typing import Final, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -324,6 +324,7 @@ def solve_free_pose(
     min_confidence: float = 0.0,
     seed: int = 0,
     pixel_scale: float = 1.0,
+    known_from: Literal["given", "exif"] = "given",
 ) -> FreePoseAnswer:
     """The camera pose from the target's detections alone (module docstring).
 
@@ -342,11 +343,15 @@ def solve_free_pose(
         solve runs on the boxes and intrinsics divided by it, and answers in target pixels. The
         same view at 320 and 4000 pixels wide was answered with confidence 0.99 and 0.20 when
         the tolerances were target pixels.
+    known_from : where ``intrinsics`` come from: ``given`` by the user or read from the photo's
+        ``exif``; the answer's intrinsics say so. Both are used alike.
     """
     s = pixel_scale
     scaled = [d.model_copy(update={"box": tuple(v / s for v in d.box)}) for d in detections]
     k = intrinsics.on_film(1.0 / s) if intrinsics is not None else None
-    answer = _solve(objects, scaled, (width / s, height / s), k, min_confidence, seed, s)
+    answer = _solve(
+        objects, scaled, (width / s, height / s), (k, known_from), min_confidence, seed, s
+    )
     return answer.in_target_pixels(s)
 
 
@@ -354,14 +359,16 @@ def _solve(
     objects: SceneObjects,
     detections: Sequence[Detection],
     size: tuple[float, float],
-    intrinsics: Intrinsics | None,
+    known: tuple[Intrinsics | None, Literal["given", "exif"]],
     min_confidence: float,
     seed: int,
     unit: float,
 ) -> FreePoseAnswer:
-    """:func:`solve_free_pose` in the detector's pixels (``size`` the image's in them); the
-    reasons say pixels times ``unit``, the target's."""
+    """:func:`solve_free_pose` in the detector's pixels (``size`` the image's in them), with the
+    ``known`` intrinsics (None if not) and where they come from; the reasons say pixels times
+    ``unit``, the target's."""
     width, height = size
+    intrinsics, known_from = known
     labels_all = tuple(d.label for d in detections)
     costs_all = label_costs(objects, labels_all)
     compatible_all = np.isfinite(costs_all)
@@ -397,23 +404,20 @@ def _solve(
     for first, (_, _, dets, objs) in zip(firsts, starts, strict=True):
         fit = _refined(objects, boxes, masks, compatible, first, (dets, objs), k0, (width, height))
         if fit is not None and fit.fit.position()[2] > 0.0:
-            fits.append(fit if not given else _Fit(fit.fit, fit.detections, fit.objects, "given"))
+            fits.append(
+                fit if not given else _Fit(fit.fit, fit.detections, fit.objects, known_from)
+            )
     if not fits:
         few = few_detections(compatible, np.argsort(-scores, kind="stable"))
-        source: IntrinsicsSource = "given" if given else "scene"
+        source: IntrinsicsSource = known_from if given else "scene"
         fits = [
             _Fit(f, d, o, source)
             for f, d, o in few_fits(objects, boxes, masks, compatible, few, k0)
         ]
     ranked = _distinct_best(fits, objects.radius, inlier_gate(boxes))
     if not ranked:
-        return FreePoseAnswer(
-            "failed",
-            "no camera pose above the ground explains the detections",
-            None,
-            (),
-            len(index),
-        )
+        nothing = "no camera pose above the ground explains the detections"
+        return FreePoseAnswer("failed", nothing, None, (), len(index))
     poses = [_candidate(f, objects, (boxes, masks, labels, index), width) for f in ranked]
     best = poses[0]
     ratio = UNIQUE_RATIO_3 if best.inliers == 3 else AMBIGUITY_RATIO
@@ -448,6 +452,7 @@ def _solve(
         "estimated": "focal length estimated",
         "scene": "the scene camera's field of view assumed (too few objects to estimate it)",
         "given": "intrinsics given",
+        "exif": "focal length from the photo's EXIF",
     }
     reason = (
         f"found: {best.inliers} objects paired, edge RMS {best.residual_px * unit:.2f} px; "
