@@ -6,6 +6,7 @@ it densely (closer to the truth than the boxes put it)."""
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Iterator
 
@@ -13,6 +14,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from PIL import ExifTags, Image
 
 from cosmos.cli import main
 from cosmos.stack import Stack
@@ -128,6 +130,42 @@ def test_without_intrinsics_the_focal_length_is_estimated_and_said_so(stack):
     )
 
 
+def exif_jpeg(png: bytes, focal_35mm: int) -> bytes:
+    """``png`` as a JPEG whose EXIF states ``focal_35mm`` as FocalLengthIn35mmFilm."""
+    exif = Image.Exif()
+    exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = focal_35mm
+    out = io.BytesIO()
+    Image.open(io.BytesIO(png)).convert("RGB").save(out, "JPEG", quality=92, exif=exif)
+    return out.getvalue()
+
+
+def test_a_photo_s_exif_focal_length_is_used_and_said_so(stack):
+    """The camera's EXIF, as a camera writes it (whole millimetres), stands for the fov."""
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, truth = renderer.render_camera("demo", DRONE)
+    k = truth.camera
+    focal_35mm = round(k.fx * math.hypot(36.0, 24.0) / math.hypot(k.width, k.height))
+    final = search_for(stack, exif_jpeg(image, focal_35mm))
+    assert final.status == "succeeded", final.error
+    assert final.result is not None
+    free = final.result.free
+    assert free is not None
+    assert free.status == "found", final.result.reason
+    assert "EXIF" in final.result.reason
+    assert free.pose.intrinsics.source == "exif"
+    assert free.pose.intrinsics.fx_px == pytest.approx(k.fx, rel=0.02)  # the rounding only
+    assert math.dist(free.pose.position, DRONE.position) < 0.02 * RADIUS
+    assert rotation_error_deg(free.pose.quaternion_wxyz, DRONE) < 1.0
+    assert final.result.renders == 1
+    assert free.dense is not None
+    assert not free.dense.focal_fitted
+    # told not to, the search estimates the focal length from the boxes
+    unread = search_for(stack, exif_jpeg(image, focal_35mm), exif="false")
+    assert unread.result is not None
+    assert unread.result.free is not None
+    assert unread.result.free.pose.intrinsics.source == "estimated"
+
+
 def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, capsys):
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, _ = renderer.render_camera("demo", DRONE)
@@ -144,3 +182,11 @@ def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, caps
     assert "yaw/pitch/roll" in printed
     assert "nearest grid pose: lat" in printed
     assert len(list((tmp_path / "out").glob("search-*-trajectory.png"))) == 1
+    # a camera's JPEG: its EXIF focal length, unless told not to read it
+    photo = tmp_path / "drone.jpg"
+    photo.write_bytes(exif_jpeg(image, 45))
+    argv = ["search", str(photo), "--scene", "demo", "--free", "--url", stack.controller]
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 0
+    assert "intrinsics exif: fov" in capsys.readouterr().out
+    assert main([*argv, "--no-exif", "--out", str(tmp_path / "out")]) == 0
+    assert "intrinsics estimated: fov" in capsys.readouterr().out

@@ -2,7 +2,8 @@
 when to come back, for up to ``--retry-for`` seconds), follow it, save its plots.
 
 ``--free`` searches for any camera (``mode=free``), optionally with the photo's ``--fov DEG`` or
-``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2`` (the controller checks them)."""
+``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2`` (the controller checks them);
+without them the controller reads the focal length from the photo's EXIF, unless ``--no-exif``."""
 
 from __future__ import annotations
 
@@ -45,6 +46,7 @@ _FREE_ONLY = ("fov", "intrinsics", "distortion")
 
 def run(args: argparse.Namespace) -> int:
     given = [f"--{name}" for name in _FREE_ONLY if getattr(args, name) is not None]
+    given += ["--no-exif"] if args.no_exif else []
     if given and not args.free:
         print(f"cosmos: {', '.join(given)} go with --free", file=sys.stderr)
         return 2
@@ -65,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
                 fov_deg=args.fov,
                 intrinsics=args.intrinsics,
                 distortion=args.distortion,
+                exif="false" if args.no_exif else None,
             )
         except ControllerError as exc:
             if exc.status not in RETRYABLE_STATUSES or exc.retry_after_s is None:
@@ -103,6 +106,11 @@ def register(commands: Commands) -> None:
         "--intrinsics", metavar="FX,FY,CX,CY", help="the photo's OpenCV intrinsics in its pixels"
     )
     free.add_argument("--distortion", metavar="K1,K2,P1,P2", help="the photo's lens distortion")
+    free.add_argument(
+        "--no-exif",
+        action="store_true",
+        help="do not take the focal length from the photo's EXIF: estimate it from the boxes",
+    )
     search.add_argument(
         "--retry-for",
         type=float,

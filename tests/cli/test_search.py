@@ -11,7 +11,13 @@ from cosmos.cli import main
 
 
 @pytest.mark.parametrize(
-    "flags", [["--fov", "50"], ["--intrinsics", "300,300,160,120"], ["--distortion", "0,0,0,0"]]
+    "flags",
+    [
+        ["--fov", "50"],
+        ["--intrinsics", "300,300,160,120"],
+        ["--distortion", "0,0,0,0"],
+        ["--no-exif"],
+    ],
 )
 def test_lens_flags_need_free(tmp_path: Path, capsys: pytest.CaptureFixture[str], flags) -> None:
     photo = tmp_path / "photo.png"
