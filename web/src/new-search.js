@@ -43,7 +43,7 @@ export function showNewSearch({ view, api }, params) {
     h("option", { value: "hemisphere" }, "hemisphere (the paper's grid)"),
     h("option", { value: "free" }, "free (any camera)"),
   );
-  const fov = h("input", { name: "fov_deg", id: "fov_deg", type: "number", min: 0, max: 180, step: "any", placeholder: "estimated", disabled: true });
+  const fov = h("input", { name: "fov_deg", id: "fov_deg", type: "number", min: 0, max: 180, step: "any", placeholder: "EXIF, else estimated", disabled: true });
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
   const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
   const phi = h("input", { name: "start_phi_deg", id: "start_phi_deg", type: "number", step: "any", placeholder: "random" });
