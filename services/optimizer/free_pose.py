@@ -295,14 +295,15 @@ def free_pose(
         alternatives=tuple(pose(a) for a in answer.alternatives),
         nearest_grid=nearest_grid_pose(best.position, grid) if best is not None else None,
         usable_detections=usable,
+        ambiguity=answer.ambiguity,
     )
 
 
 def _renderable(answer: FreePoseAnswer, objects: SceneObjects) -> FreePoseAnswer:
     """``answer`` without the poses inside an object's world bounding box (the box of its
     points, as the renderer refuses such a camera): a wrong pose that no render could check.
-    When the best one goes, the next alternative takes its place (``ambiguous`` still), and
-    with none left the answer is ``failed``."""
+    When the best one goes, the next alternative takes its place (``ambiguous`` still, as one of
+    ``rivals``), and with none left the answer is ``failed``."""
     lo = np.minimum.reduceat(objects.points, objects.starts)
     hi = np.maximum.reduceat(objects.points, objects.starts)
 
@@ -316,5 +317,10 @@ def _renderable(answer: FreePoseAnswer, objects: SceneObjects) -> FreePoseAnswer
         return answer
     if not kept:
         reason = "failed: every camera pose that explains the detections stands inside an object"
-        return replace(answer, status="failed", reason=reason, pose=None, alternatives=())
-    return replace(answer, pose=kept[0], alternatives=tuple(kept[1:]))
+        return replace(
+            answer, status="failed", reason=reason, pose=None, alternatives=(), ambiguity=None
+        )
+    if kept[0] is answer.pose:
+        return replace(answer, alternatives=tuple(kept[1:]))
+    # an alternative in the best one's place: one of several the boxes allow, not the one
+    return replace(answer, pose=kept[0], alternatives=tuple(kept[1:]), ambiguity="rivals")

@@ -92,6 +92,7 @@ def test_exact_boxes_give_the_exact_pose(scenes, scene, view):
     # Straight down on centres at one height, a tilt and a shift move the boxes alike to first
     # order (an unbounded σ): exact boxes still give the exact pose, but it is not ``found``.
     assert_exact(answer, pinhole, objects.radius, "ambiguous" if view == "nadir" else "found")
+    assert answer.ambiguity == ("loose" if view == "nadir" else None)
     assert answer.pose.residual_px < 1e-3
     assert answer.pose.intrinsics.source == "given"
     names = {c.object for c in answer.pose.correspondences}
@@ -219,6 +220,7 @@ def test_two_detections_are_ambiguous_with_alternatives(scenes):
     dets = exact_detections(objects, pinhole)[:2]
     answer = solve_free_pose(objects, dets, W, H, intrinsics_of(pinhole))
     assert answer.status == "ambiguous"
+    assert answer.ambiguity == "few"
     assert answer.pose is not None
     assert answer.alternatives
     assert all(p.inliers <= 2 for p in (answer.pose, *answer.alternatives))
@@ -245,6 +247,8 @@ def test_a_symmetric_layout_is_ambiguous_never_found():
         objects, exact_detections(objects, pinhole), W, H, intrinsics_of(pinhole)
     )
     assert answer.status == "ambiguous", answer.reason
+    # seen from above too, yet its rivals, not a loose fit, that a render's edges never pin
+    assert answer.ambiguity == "rivals"
     twins = [p for p in answer.alternatives if p.residual_px < 0.1]
     assert twins, answer.alternatives
     # the twins are the camera turned a quarter (or half) turn about the vertical

@@ -181,11 +181,13 @@ async def test_two_detections_are_ambiguous_with_alternatives_and_none_failed(
     two = {**image, "detections": image["detections"][:2]}
     body = (await client.post("/free-pose", json={"scene": "garden", "target": two})).json()
     assert body["status"] == "ambiguous"
+    assert body["ambiguity"] == "few"
     assert body["alternatives"]
     assert body["pose"]["confidence"] <= 0.5
     none = {**image, "detections": []}
     body = (await client.post("/free-pose", json={"scene": "garden", "target": none})).json()
     assert body["status"] == "failed"
+    assert body["ambiguity"] is None
     assert body["pose"] is None
     assert body["nearest_grid"] is None
     assert "no object was detected" in body["reason"]
@@ -251,10 +253,13 @@ def test_a_pose_inside_an_object_is_never_answered(engine, catalog):
     assert answer.pose is not None
     assert _renderable(answer, objects) is answer
     inside = replace(answer.pose, position=tuple(float(v) for v in objects.centroids[0]))
-    promoted = _renderable(replace(answer, pose=inside, alternatives=(answer.pose,)), objects)
+    loose = replace(answer, status="ambiguous", ambiguity="loose")
+    promoted = _renderable(replace(loose, pose=inside, alternatives=(answer.pose,)), objects)
     assert promoted.pose == answer.pose
     assert promoted.alternatives == ()
+    assert promoted.ambiguity == "rivals"  # one of the poses the boxes allow, not the one
     failed = _renderable(replace(answer, pose=inside, alternatives=()), objects)
     assert failed.status == "failed"
+    assert failed.ambiguity is None
     assert failed.pose is None
     assert "inside an object" in failed.reason

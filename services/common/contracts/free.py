@@ -33,6 +33,7 @@ from services.common.geometry.scene import SCENE_ID_PATTERN
 
 __all__ = [
     "DenseReport",
+    "FreeAmbiguity",
     "FreeAnswer",
     "FreeCorrespondence",
     "FreePose",
@@ -47,6 +48,7 @@ __all__ = [
 
 FreeStatus = Literal["found", "ambiguous", "failed"]
 IntrinsicsSource = Literal["given", "exif", "estimated", "scene"]
+FreeAmbiguity = Literal["few", "rivals", "focal", "loose"]
 Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
 NonNeg = Annotated[Number, Field(ge=0.0)]
 
@@ -177,6 +179,13 @@ class FreePoseResponse(FrozenModel):
     alternatives: tuple[FreePose, ...] = ()
     nearest_grid: GridPose | None = None
     usable_detections: Annotated[Integer, Field(ge=0)] = 0
+    ambiguity: FreeAmbiguity | None = Field(
+        default=None,
+        description="Why an `ambiguous` answer is: `few` objects paired (under 3); `rivals`, "
+        "distinct poses that explain the boxes almost as well; `focal`, 3 objects without "
+        "intrinsics; `loose`, one pose that the boxes pin only loosely (a render's edges can "
+        "pin it). Null unless ambiguous.",
+    )
 
 
 class DenseReport(FrozenModel):

@@ -12,6 +12,7 @@ from services.common.geometry.free_camera import FreeCamera
 from services.optimizer.geometry import FloatArray
 
 __all__ = [
+    "Ambiguity",
     "Correspondence",
     "FreePoseAnswer",
     "IntrinsicsSource",
@@ -21,6 +22,10 @@ __all__ = [
 ]
 
 Status = Literal["found", "ambiguous", "failed"]
+Ambiguity = Literal["few", "rivals", "focal", "loose"]
+"""Why an answer is ``ambiguous``: ``few`` objects paired (under 3); ``rivals``, distinct poses
+that explain the boxes almost as well; ``focal``, 3 objects and no intrinsics (the scene
+camera's fov assumed); ``loose``, one pose whose boxes pin it only loosely (its σ)."""
 IntrinsicsSource = Literal["given", "exif", "estimated", "scene"]
 
 
@@ -106,13 +111,15 @@ class PoseCandidate:
 
 @dataclass(frozen=True)
 class FreePoseAnswer:
-    """The pose from the boxes alone (:mod:`.solve`): ``pose`` is None only when ``failed``."""
+    """The pose from the boxes alone (:mod:`.solve`): ``pose`` is None only when ``failed``;
+    ``ambiguity`` says why an ``ambiguous`` one is."""
 
     status: Status
     reason: str
     pose: PoseCandidate | None
     alternatives: tuple[PoseCandidate, ...]
     usable_detections: int
+    ambiguity: Ambiguity | None = None
 
     def in_target_pixels(self, scale: float) -> FreePoseAnswer:
         """This answer's poses in the image's pixels (:meth:`PoseCandidate.in_target_pixels`)."""

@@ -65,6 +65,7 @@ from services.common.geometry.free_camera import (
     yaw_pitch_roll_of_rotation,
 )
 from services.optimizer.free.answer import (
+    Ambiguity,
     Correspondence,
     FreePoseAnswer,
     IntrinsicsSource,
@@ -428,26 +429,20 @@ def _solve(
             f"ambiguous: only {best.inliers} object(s) paired; at least 3 are needed for a "
             "pose (4 to be sure): a wider view, or a photo with more of the scene's objects"
         )
-        return FreePoseAnswer(
-            "ambiguous", reason, best, tuple(poses[1 : 1 + MAX_ALTERNATIVES]), len(index)
-        )
+        others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
+        return FreePoseAnswer("ambiguous", reason, best, others, len(index), "few")
     if rivals:
         reason = (
             f"ambiguous: {len(rivals)} distinct pose(s) explain the boxes almost as well "
             f"(edge RMS ≤ {limit * unit:.2f} px against the best {best.residual_px * unit:.2f} "
-            "px): a "
-            "symmetric layout or look-alike objects; more objects in view would decide"
+            "px): a symmetric layout or look-alike objects; more objects in view would decide"
         )
-        return FreePoseAnswer("ambiguous", reason, best, rivals[:MAX_ALTERNATIVES], len(index))
-    loose = _loose(best, objects.radius)
-    if loose:
-        return FreePoseAnswer(
-            "ambiguous",
-            f"ambiguous: {loose}",
-            best,
-            tuple(poses[1 : 1 + MAX_ALTERNATIVES]),
-            len(index),
-        )
+        others = rivals[:MAX_ALTERNATIVES]
+        return FreePoseAnswer("ambiguous", reason, best, others, len(index), "rivals")
+    kind, loose = _loose(best, objects.radius)
+    if kind is not None:
+        others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
+        return FreePoseAnswer("ambiguous", f"ambiguous: {loose}", best, others, len(index), kind)
     focal = {
         "estimated": "focal length estimated",
         "scene": "the scene camera's field of view assumed (too few objects to estimate it)",
@@ -461,10 +456,11 @@ def _solve(
     return FreePoseAnswer("found", reason, best, (), len(index))
 
 
-def _loose(best: PoseCandidate, radius: float) -> str:
-    """Why the boxes pin ``best`` too loosely to call it found (module docstring), or ''."""
+def _loose(best: PoseCandidate, radius: float) -> tuple[Ambiguity | None, str]:
+    """Why the boxes pin ``best`` too loosely to call it found (module docstring): the kind,
+    ``focal`` (the scene camera's fov assumed) or ``loose`` (its σ), and a sentence; or None."""
     if best.intrinsics.source == "scene":
-        return (
+        return "focal", (
             f"only {best.inliers} objects paired and no intrinsics given: the scene camera's "
             "field of view was assumed, and distance trades against focal length; give the "
             "photo's intrinsics, or a view with at least 4 of the scene's objects"
@@ -473,12 +469,12 @@ def _loose(best: PoseCandidate, radius: float) -> str:
         FIRM_SIGMAS * best.position_sigma > WRONG_POSITION * radius
         or FIRM_SIGMAS * best.rotation_sigma_deg > WRONG_ROTATION_DEG
     ):
-        return (
+        return "loose", (
             f"the boxes pin the pose only loosely (1σ {best.position_sigma:.2g} scene units, "
             f"{best.rotation_sigma_deg:.2g}°): more objects in view, or the photo's intrinsics, "
             "would decide"
         )
-    return ""
+    return None, ""
 
 
 def _failure(
