@@ -18,8 +18,10 @@
    renders remain (``max_iterations``).
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`) is ``found`` and
-``confirmed`` only when the optimizer found a unique pose and its render agreed. An ambiguous
-pose whose render agrees is answered ``ambiguous`` with its alternatives, never confirmed; when
+``confirmed`` only when the optimizer found a unique pose and its render agreed, or when the
+boxes pinned their one pose only loosely and the render's edges pin it (the intrinsics known:
+:func:`~services.controller.free_refine.edges_pin`). Any other ambiguous pose whose render
+agrees is answered ``ambiguous`` with its alternatives, never confirmed; when
 no render agrees, the rendered pose that best explains the target (the most edges on the
 target's after an accepted fit, then the box match) is answered, ``ambiguous`` and
 unconfirmed, saying so.
@@ -63,6 +65,7 @@ from services.controller.free_match import FreeMatch, compare_view, view_film
 from services.controller.free_refine import (
     edges_agree,
     edges_contradict,
+    edges_pin,
     refine_by_render,
     refined_result,
     with_refit_renders,
@@ -135,10 +138,12 @@ def _result(
     edges: dict[int, RefinePoseResponse | str],
     *,
     by_edges: bool = False,
+    pinned: RefinePoseResponse | None = None,
 ) -> tuple[SearchResult, int]:
     """The search's answer from its rendered candidates (module docstring), and which one it
     chose; ``edges`` holds the dense fits of the candidates rendered in this run, ``by_edges``
-    says that the last one agreed by its edges only."""
+    says that the last one agreed by its edges only, ``pinned`` is its fit when that pins a
+    pose the boxes pinned only loosely (:func:`~.free_refine.edges_pin`)."""
     candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
     agreed = bool(history) and history[-1].done
     chosen = (
@@ -146,9 +151,16 @@ def _result(
     )
     pose = candidates[chosen.index]
     score = chosen.match.score if chosen.match is not None else 0.0
-    found = agreed and answer.status == "found"
+    found = agreed and (answer.status == "found" or pinned is not None)
     how = "by its edges (its boxes disagree)" if by_edges else "box by box"
-    if found:
+    if found and pinned is not None:
+        fit = pinned.fit
+        reason = (
+            f"found: {answer.reason.removeprefix('ambiguous: ')}; the render at the pose agrees "
+            f"with the target {how}, and its edges pin the pose: {fit.inliers} of "
+            f"{fit.edge_points} on the target's after the dense fit, the intrinsics known"
+        )
+    elif found:
         reason = f"{answer.reason}; the render at the pose agrees with the target {how}"
     elif agreed:
         reason = (
@@ -173,7 +185,9 @@ def _result(
         free=FreeAnswer(
             status="found" if found else "ambiguous",
             pose=pose,
-            alternatives=tuple(p for i, p in enumerate(candidates) if i != chosen.index),
+            alternatives=()
+            if found
+            else tuple(p for i, p in enumerate(candidates) if i != chosen.index),
             nearest_grid=nearest,
             renders=len(history),
             match_rms_px=chosen.match.rms_px if chosen.match is not None else None,
@@ -361,7 +375,9 @@ class FreeSearchLoop:
                     search, scene, (target, size), image, outcome, len(history)
                 )
                 by_edges = not seen_view.check.agree
-                result, _ = _result(answer, history, grid, edges, by_edges=by_edges)
+                pin = edges_pin(outcome, search.intrinsics, answer.ambiguity)
+                pinned = outcome if pin and isinstance(outcome, RefinePoseResponse) else None
+                result, _ = _result(answer, history, grid, edges, by_edges=by_edges, pinned=pinned)
                 return await writes.succeed(
                     with_refit_renders(refined_result(result, outcome, grid), extra)
                 )

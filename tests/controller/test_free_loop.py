@@ -85,6 +85,7 @@ class FakeStages:
         refits: int = 0,
         edges: tuple[int, ...] | None = None,
         inliers: int = 800,
+        ambiguity: str | None = None,
     ):
         self.detail = scene
         self.status = status
@@ -101,6 +102,7 @@ class FakeStages:
         self.refinements: list[RefinePoseRequest] = []
         self.edges = (right,) if edges is None else edges
         self.inliers = inliers  # of 900 edge points, when a fit explains the target
+        self.ambiguity = ambiguity  # why the optimizer's answer is ambiguous
 
     def _call(self, name: str) -> None:
         self.calls[name] += 1
@@ -207,6 +209,7 @@ class FakeStages:
             alternatives=tuple(poses[1:]),
             nearest_grid=nearest_grid_pose(poses[0].position, grid),
             usable_detections=3,
+            ambiguity=self.ambiguity,  # type: ignore[arg-type]
         )
 
 
@@ -439,6 +442,40 @@ def test_an_ambiguous_answer_renders_the_next_alternative_and_is_never_confirmed
     assert second.done
     assert first.next_pose == second.pose
     assert "alternatives explain its boxes too" in result.reason
+
+
+@pytest.mark.parametrize(
+    ("ambiguity", "intrinsics", "inliers", "pinned"),
+    [
+        ("loose", PhotoIntrinsics(fov_deg=45.0), 850, True),
+        ("loose", PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif"), 810, True),
+        ("loose", PhotoIntrinsics(fov_deg=45.0), 800, False),  # 0.89 of the edges: not enough
+        ("loose", None, 850, False),  # no intrinsics: distance trades against focal length
+        ("rivals", PhotoIntrinsics(fov_deg=45.0), 900, False),  # a symmetric layout
+        ("focal", PhotoIntrinsics(fov_deg=45.0), 900, False),
+    ],
+    ids=["given", "exif", "too-few-edges", "no-intrinsics", "rivals", "focal"],
+)
+def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_it(
+    tmp_path, detail, ambiguity, intrinsics, inliers, pinned
+):
+    """Two candidates, the first one right: its render agrees, box by box and by its edges."""
+    stages = FakeStages(detail, status="ambiguous", count=2, ambiguity=ambiguity, inliers=inliers)
+    final = run(tmp_path, stages, intrinsics=intrinsics)
+    result = final.result
+    assert result is not None
+    assert result.renders == 1
+    assert result.free is not None
+    assert result.confirmed is pinned
+    assert result.ambiguous is not pinned
+    assert result.free.status == ("found" if pinned else "ambiguous")
+    if pinned:
+        assert result.free.alternatives == ()
+        assert result.reason.startswith("found: the boxes")
+        assert f"its edges pin the pose: {inliers} of 900" in result.reason
+    else:
+        assert [p.position[0] for p in result.free.alternatives] == [1.0]
+        assert "not confirmed" in result.reason
 
 
 def test_the_render_budget_bounds_the_alternatives_tried(tmp_path, detail):
