@@ -6,7 +6,6 @@ it densely (closer to the truth than the boxes put it)."""
 
 from __future__ import annotations
 
-import io
 import math
 from collections.abc import Iterator
 
@@ -14,7 +13,6 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from PIL import ExifTags, Image
 
 from cosmos.cli import main
 from cosmos.stack import Stack
@@ -24,7 +22,7 @@ from services.common.geometry.free_camera import FreeCamera
 from services.controller.client import ControllerClient
 from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
-from tests.support import e2e_stack
+from tests.support import e2e_stack, exif_jpeg
 
 pytestmark = pytest.mark.slow
 
@@ -128,15 +126,6 @@ def test_without_intrinsics_the_focal_length_is_estimated_and_said_so(stack):
     assert math.dist(free.pose.position, DRONE.position) < math.dist(
         free.box_pose.position, DRONE.position
     )
-
-
-def exif_jpeg(png: bytes, focal_35mm: int) -> bytes:
-    """``png`` as a JPEG whose EXIF states ``focal_35mm`` as FocalLengthIn35mmFilm."""
-    exif = Image.Exif()
-    exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = focal_35mm
-    out = io.BytesIO()
-    Image.open(io.BytesIO(png)).convert("RGB").save(out, "JPEG", quality=92, exif=exif)
-    return out.getvalue()
 
 
 def test_a_photo_s_exif_focal_length_is_used_and_said_so(stack):

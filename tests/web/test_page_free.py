@@ -13,6 +13,7 @@ from playwright.sync_api import expect
 
 from services.common.geometry.free_camera import FreeCamera
 from services.renderer.client import RendererClient
+from tests.support import exif_jpeg
 from tests.web.conftest import api
 from tests.web.test_page import TIMEOUT_MS, colours, decoded, open_new_search, shoot
 
@@ -27,20 +28,34 @@ def fixed(values, digits: int) -> str:
     return ", ".join(f"{v:.{digits}f}" for v in values)
 
 
-def free_search(page, stack, target, camera: FreeCamera, *, give_fov: bool) -> dict:
-    """A free search from the page for ``camera`` rendered (its fov given or not), once it
-    succeeded: the search as the API has it."""
+def free_search(
+    page,
+    stack,
+    target,
+    camera: FreeCamera,
+    *,
+    give_fov: bool,
+    exif: int | None = None,
+    read_exif: bool = True,
+) -> dict:
+    """A free search from the page for ``camera`` rendered (its fov given or not; a JPEG whose
+    EXIF says ``exif`` mm as FocalLengthIn35mmFilm when given, read or not), once it succeeded:
+    the search as the API has it."""
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, truth = renderer.render_camera("demo", camera)
-    target.write_bytes(image)
+    target.write_bytes(image if exif is None else exif_jpeg(image, exif))
     open_new_search(page, stack)
     page.set_input_files("#target-file", str(target))
     assert page.is_disabled("#fov_deg")  # a lens is for free searches only
+    assert page.is_disabled("#exif")
     page.select_option("#mode", "free")
     assert page.is_disabled("#strategy")
     assert page.is_disabled("#start_theta_deg")
+    assert page.is_checked("#exif")  # the EXIF is read unless unticked
     if give_fov:
         page.fill("#fov_deg", f"{truth.camera.fov_deg}")
+    if not read_exif:
+        page.uncheck("#exif")
     page.click("#go")
     page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
     search_id = page.url.rsplit("/", 1)[1]
@@ -93,6 +108,20 @@ def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, s
     # the frustum's red lines are drawn (the lit red ball stays > 80 away: at most (169, 54, 54))
     assert near_answer.sum() > 60, near_answer.sum()
     shoot(page, "free-search")
+
+
+def test_a_photo_s_exif_focal_length_is_read_unless_unticked(page, stack, tmp_path):
+    """The demo scene's camera (45° over 320 × 240) is a 42 mm lens in 35 mm terms."""
+    read = free_search(page, stack, tmp_path / "drone.jpg", DRONE, give_fov=False, exif=42)
+    intrinsics = read["intrinsics"]
+    assert intrinsics["source"] == "exif"
+    assert read["result"]["free"]["pose"]["intrinsics"]["source"] == "exif"
+    assert "from the photo's EXIF" in page.inner_text("#free-answer td[data-field=fov]")
+    unread = free_search(
+        page, stack, tmp_path / "drone.jpg", DRONE, give_fov=False, exif=42, read_exif=False
+    )
+    assert unread["intrinsics"] is None
+    assert unread["result"]["free"]["pose"]["intrinsics"]["source"] == "estimated"
 
 
 def test_an_ambiguous_free_answer_shows_its_alternatives(page, stack, tmp_path):

@@ -44,6 +44,7 @@ export function showNewSearch({ view, api }, params) {
     h("option", { value: "free" }, "free (any camera)"),
   );
   const fov = h("input", { name: "fov_deg", id: "fov_deg", type: "number", min: 0, max: 180, step: "any", placeholder: "EXIF, else estimated", disabled: true });
+  const exif = h("input", { name: "exif", id: "exif", type: "checkbox", checked: true, disabled: true });
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
   const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
   const phi = h("input", { name: "start_phi_deg", id: "start_phi_deg", type: "number", step: "any", placeholder: "random" });
@@ -61,6 +62,7 @@ export function showNewSearch({ view, api }, params) {
       h("h2", {}, "Search"),
       h("label", {}, "Mode ", mode),
       h("label", {}, "Photo's horizontal fov° (free mode, optional) ", fov),
+      h("label", {}, exif, " without a fov, read the focal length from the photo's EXIF"),
       h("label", {}, "Strategy ", strategy),
       h("fieldset", {}, h("legend", {}, "Start (optional, snapped to the grid)"), h("label", {}, "θ° ", theta), h("label", {}, "φ° ", phi)),
       h("label", {}, "Max iterations ", maxIterations),
@@ -153,6 +155,7 @@ export function showNewSearch({ view, api }, params) {
   mode.addEventListener("change", () => {
     const free = mode.value === "free"; // a free search has no strategy or start, a grid one no fov
     fov.disabled = !free;
+    exif.disabled = !free;
     for (const input of [strategy, theta, phi]) input.disabled = free;
   });
   fileInput.addEventListener("change", () => useFile(fileInput.files[0]));
@@ -181,6 +184,7 @@ export function showNewSearch({ view, api }, params) {
     body.append("mode", mode.value);
     const options = mode.value === "free" ? [fov, maxIterations] : [theta, phi, maxIterations];
     if (mode.value !== "free") body.append("strategy", strategy.value);
+    if (mode.value === "free" && !exif.checked) body.append("exif", "false");
     for (const input of options) if (input.value !== "") body.append(input.name, input.value);
     go.disabled = true;
     try {
