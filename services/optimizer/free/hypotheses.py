@@ -23,14 +23,12 @@ their pairs' centres (iterative PnP) and scored again; the best distinct ones (m
 :data:`DISTINCT_POSITION` of the scene radius or :data:`DISTINCT_ROTATION_DEG` apart) with at
 least three pairs are kept.
 
-With at most :data:`MAX_MINIMAL_SOLVES` minimal sets in all, every one is solved (deterministic).
-Beyond it (the general model: every object fits every detection, ``C(D,3)·M(M-1)(M-2)`` sets)
-the detection triples are taken in order of confidence, the most confident triples first
-(ordered by their least confident member, then by the sum of ranks, so that one bad box spoils
-few of them), from the detections that are not a second box on a more confident one's object,
-and every assignment of each
-triple is solved, matching shapes first, until :data:`MAX_MINIMAL_SOLVES` sets; one correct
-triple with its every assignment holds the true pose. The poses are ranked first by a cheap
+Which minimal sets are solved is :mod:`.minimal_sets`'s: every one up to
+:data:`~.minimal_sets.MAX_MINIMAL_SOLVES`, else the most confident detection triples with every
+assignment (the general model: every object fits every detection, ``C(D,3)·M(M-1)(M-2)`` sets;
+one correct triple with its every assignment holds the true pose) or with the assignments
+whose triangle the box sizes make most plausible (many look-alikes). With the general model,
+the poses are ranked first by a cheap
 vectorised score (each detection's best gated partner, not one-to-one, which never pairs fewer
 than the exact score), and the :data:`EXACT_SCORES` best get the exact gated Hungarian score.
 
@@ -41,7 +39,6 @@ object's centre at about the same height) give P3P.
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 from typing import Final
@@ -52,11 +49,17 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from services.common.geometry.free_camera import rotation_angle_deg
+from services.optimizer.free.minimal_sets import (
+    MAX_MINIMAL_SOLVES,
+    Spans,
+    diagonal,
+    minimal_sets,
+    seeds_of,
+)
 from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import assign
-from services.optimizer.observations import DUPLICATE_IOU, box_overlaps
 
 __all__ = [
     "DISTINCT_POSITION",
@@ -72,9 +75,6 @@ __all__ = [
     "pose_distance",
 ]
 
-MAX_MINIMAL_SOLVES: Final = 1500
-MAX_GENERAL_SOLVES: Final = 6000
-"""The cap with the general model's labels (every object fits every detection)."""
 EXACT_SCORES: Final = 400
 """Poses scored exactly (gated Hungarian), the best by the cheap score."""
 SHAPE_CLASSES: Final = frozenset({"sphere", "cube", "cylinder", "cone", "mesh"})
@@ -195,65 +195,6 @@ def distinct(
     return moved > DISTINCT_POSITION * radius or turned > DISTINCT_ROTATION_DEG
 
 
-def _seeds(boxes: FloatArray, order: NDArray[np.intp], usable: list[int]) -> list[int]:
-    """The usable detections in ``order`` (most confident first), less the second boxes on a
-    kept one's object (IoU ≥ ``DUPLICATE_IOU``)."""
-    iou = box_overlaps(boxes)[0]
-    kept: list[int] = []
-    for i in (int(i) for i in order if int(i) in usable):
-        if not np.any(iou[i, kept] >= DUPLICATE_IOU):
-            kept.append(i)
-    return kept
-
-
-def _minimal_sets(
-    costs: FloatArray,
-    boxes: FloatArray,
-    order: NDArray[np.intp],
-    rng: np.random.Generator,
-    general: bool,
-) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
-    """(detections, objects) triples: all of them up to :data:`MAX_MINIMAL_SOLVES`, else every
-    assignment of the most confident detection triples, up to that many (module docstring)."""
-    compatible = np.isfinite(costs)
-    usable = [i for i in range(len(compatible)) if compatible[i].any()]
-    candidates = [np.flatnonzero(row) for row in compatible]
-    triples = list(itertools.combinations(usable, 3))
-    counts = [math.prod(len(candidates[i]) for i in t) for t in triples]
-    cap = MAX_GENERAL_SOLVES if general else MAX_MINIMAL_SOLVES
-    if sum(counts) <= cap:
-        return [
-            (tuple(t), objs)
-            for t in triples
-            for objs in itertools.product(*(candidates[i].tolist() for i in t))
-            if len(set(objs)) == 3
-        ]
-    if not general:
-        sampled: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
-        for _ in range(MAX_MINIMAL_SOLVES):
-            t = triples[int(rng.integers(len(triples)))]
-            picked = tuple(int(rng.choice(candidates[i])) for i in t)
-            if len(set(picked)) == 3:
-                sampled.append((t, picked))
-        return sampled
-    seeds = _seeds(boxes, order, usable)
-    ranked = sorted(itertools.combinations(range(len(seeds)), 3), key=lambda t: (t[2], sum(t)))
-    sets: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
-    for ranks in ranked:
-        dets = tuple(seeds[r] for r in ranks)
-        objs = np.array(
-            [a for a in itertools.product(*(candidates[i] for i in dets)) if len(set(a)) == 3],
-            dtype=np.intp,
-        ).reshape(-1, 3)
-        objs = objs[rng.permutation(len(objs))]
-        price = sum(costs[d, objs[:, n]] for n, d in enumerate(dets))
-        objs = objs[np.argsort(price, kind="stable")][: cap - len(sets)]
-        sets += [(dets, (int(a), int(b), int(c))) for a, b, c in objs]
-        if len(sets) >= cap:
-            break
-    return sets
-
-
 def _gated(dist: FloatArray, costs: FloatArray) -> FloatArray:
     """Pair costs: the centre distance in gate units plus the label's cost, inf past the gate."""
     out: FloatArray = np.where(dist < 1.0, dist + costs, np.inf)
@@ -302,16 +243,11 @@ def _sized(
     for at in range(0, len(rotations), _SIZED_CHUNK):
         rs, ts = rotations[at : at + _SIZED_CHUNK], tvecs[at : at + _SIZED_CHUNK]
         boxes = project_boxes(objects, rs, ts, (k.fx, k.fy), (k.cx, k.cy))
-        diagonals[at : at + _SIZED_CHUNK] = _diagonal(np.clip(boxes, 0.0, limits))
+        diagonals[at : at + _SIZED_CHUNK] = diagonal(np.clip(boxes, 0.0, limits))
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = _diagonal(evidence.boxes)[np.newaxis, :, np.newaxis] / diagonals[:, np.newaxis]
+        ratio = diagonal(evidence.boxes)[np.newaxis, :, np.newaxis] / diagonals[:, np.newaxis]
         ok: NDArray[np.bool_] = np.abs(np.log(ratio)) <= math.log(SIZE_RATIO)
     return ok
-
-
-def _diagonal(boxes: FloatArray) -> FloatArray:
-    d: FloatArray = np.hypot(boxes[..., 2] - boxes[..., 0], boxes[..., 3] - boxes[..., 1])
-    return d
 
 
 def _refit(objects: SceneObjects, evidence: _Evidence, h: Hypothesis) -> Hypothesis:
@@ -406,7 +342,9 @@ def hypotheses(
     score = np.ones(len(b)) if confidence is None else np.asarray(confidence, dtype=np.float64)
     order = np.argsort(-score, kind="stable")
     rvecs, tvecs = [], []
-    for dets, objs in _minimal_sets(label_cost, b, order, np.random.default_rng(seed), general):
+    spans = Spans.of(objects, b, intrinsics)
+    rng = np.random.default_rng(seed)
+    for dets, objs in minimal_sets(label_cost, b, order, rng, general, spans):
         count, rs, ts = cv2.solveP3P(
             objects.centroids[list(objs)],
             centres[list(dets)],
@@ -434,7 +372,7 @@ def hypotheses(
         return _best(scored, objects.radius, keep, 0)
     # Second boxes on one object (the general model's two shapes) take no part in the score:
     # one-to-one, they would pair with two neighbouring objects at a wrong pose.
-    seeds = _seeds(b, order, list(range(len(b))))
+    seeds = seeds_of(b, order, list(range(len(b))))
     label_cost[np.setdiff1d(np.arange(len(b)), seeds)] = np.inf
     pairs, total = _cheap(objects, evidence, (rotations, t_all))
     best_first = np.lexsort((total, -pairs))[:EXACT_SCORES]
