@@ -3,7 +3,6 @@ schema-driven fuzzing of a running service."""
 
 from __future__ import annotations
 
-import io
 import os
 from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager, contextmanager
@@ -15,7 +14,6 @@ import pytest
 import schemathesis
 from asgi_lifespan import LifespanManager
 from hypothesis import HealthCheck, given, settings
-from PIL import ExifTags, Image
 from schemathesis.checks import positive_data_acceptance
 from starlette.types import ASGIApp
 
@@ -28,7 +26,6 @@ __all__ = [
     "ServiceProcess",
     "assert_token_required",
     "e2e_stack",
-    "exif_jpeg",
     "skip_unless_on_ci",
     "free_port",
     "fuzz_service",
@@ -134,12 +131,3 @@ async def in_process(app: ASGIApp, base_url: str, token: str) -> AsyncIterator[h
             transport=transport, base_url=base_url, headers=bearer(token)
         ) as client:
             yield client
-
-
-def exif_jpeg(png: bytes, focal_35mm: int) -> bytes:
-    """``png`` as a JPEG whose EXIF states ``focal_35mm`` as FocalLengthIn35mmFilm."""
-    exif = Image.Exif()
-    exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = focal_35mm
-    out = io.BytesIO()
-    Image.open(io.BytesIO(png)).convert("RGB").save(out, "JPEG", quality=92, exif=exif)
-    return out.getvalue()

@@ -14,6 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
+from cosmos.bench.variants import exif_jpeg
 from cosmos.cli import main
 from cosmos.stack import Stack
 from services.common.auth import bearer
@@ -22,7 +23,7 @@ from services.common.geometry.free_camera import FreeCamera
 from services.controller.client import ControllerClient
 from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
-from tests.support import e2e_stack, exif_jpeg
+from tests.support import e2e_stack
 
 pytestmark = pytest.mark.slow
 

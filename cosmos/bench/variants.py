@@ -29,12 +29,14 @@ reproducible to the pixel (the renderer is deterministic for a given seed).
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from typing import Final, Literal, get_args
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from PIL import ExifTags, Image
 
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.pose import GridIndex, Pose
@@ -49,6 +51,7 @@ __all__ = [
     "Variant",
     "degrade",
     "draw_pose",
+    "exif_jpeg",
     "photo_finish",
 ]
 
@@ -137,3 +140,13 @@ def photo_finish(bgr: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np
     blurred = cv2.GaussianBlur(v * 255.0, (0, 0), sigmaX=sigma)
     out: NDArray[np.uint8] = np.clip(np.rint(blurred), 0, 255).astype(np.uint8)
     return out
+
+
+def exif_jpeg(png: bytes, focal_35mm: int) -> bytes:
+    """``png`` as a camera's JPEG (quality 92) whose EXIF states ``focal_35mm`` as
+    FocalLengthIn35mmFilm (a free search reads it: :mod:`services.controller.photo_exif`)."""
+    exif = Image.Exif()
+    exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = focal_35mm
+    out = io.BytesIO()
+    Image.open(io.BytesIO(png)).convert("RGB").save(out, "JPEG", quality=92, exif=exif)
+    return out.getvalue()

@@ -18,11 +18,12 @@ missing EXIF is not an error: the search estimates the focal length from the box
 
 A focal length found is used as if given, in the box solve and in the dense refinement.
 ``FocalLengthIn35mmFilm`` is a whole number of millimetres, so it is up to ~2 % off at 24 mm;
-fitting the focal length densely from it did worse all the same. On 9 random views of demo
-(640 × 480 JPEGs, fov 45–75°, elevation 35–88°, searched through ``cosmos up`` once each
-way): position error median 0.86 % of the radius, all 9 within 2 %, with the EXIF focal kept;
-0.75 % but two of 9 at 5.2 % and 6.9 % with it refitted; 1.54 % and five within 2 % without
-EXIF; 0.25 % with the fov given exactly.
+fitting the focal length densely from it did worse all the same (9 views of demo, once each
+way: two of 9 then 5.2 % and 6.9 % of the radius off, none so with it kept). ``python -m
+benchmarks.exif_focal`` (16 drone views of demo and garden, 640 × 480 JPEGs) measured once:
+with the EXIF read, 100 % within 2 % of the radius and 1°, median 0.72 %, 16 confirmed; with
+it not read, 56 %, median 1.48 %, 2 confirmed; with the fov given exactly, 100 %, median
+0.35 %.
 
 Only a JPEG's EXIF is read (what cameras and drones write): Pillow parses its APP1 segment
 without decoding pixels, whereas a PNG's ``eXIf`` chunk may follow the pixels, which it would

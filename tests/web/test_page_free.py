@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from playwright.sync_api import expect
 
+from cosmos.bench.variants import exif_jpeg
 from services.common.geometry.free_camera import FreeCamera
 from services.renderer.client import RendererClient
-from tests.support import exif_jpeg
 from tests.web.conftest import api
 from tests.web.test_page import TIMEOUT_MS, colours, decoded, open_new_search, shoot
 
