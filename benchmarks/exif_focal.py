@@ -6,8 +6,9 @@ A local stack (:func:`cosmos.stack.local_stack`) serves the searches. Per scene,
 views are drawn at random (distance 0.5-1.2 of the scene radius, elevation 35-88°, looking near
 the centre, roll within ±20°, fov 45-75°), rendered at 640 × 480 and stored as JPEGs whose EXIF
 states ``FocalLengthIn35mmFilm`` rounded to the millimetre, as cameras write it. Each is
-searched three ways (``mode=free``): with ``fov_deg`` exact, with nothing (the EXIF read), and
-with ``exif=false`` (the focal length estimated from the boxes). It prints per way the shares
+searched four ways (``mode=free``): with ``fov_deg`` exact; with nothing (the EXIF read); with
+nothing, its EXIF stating a focal length 15 % too long; and with ``exif=false`` (the focal
+length estimated from the boxes). It prints per way the shares
 within 5 % of the radius and 2°, and within 2 % and 1°, the median position error and how
 many answers were confirmed.
 """
@@ -30,7 +31,10 @@ from services.common.geometry.free_camera import FreeCamera
 from services.controller.client import ControllerClient
 from services.renderer.client import RendererClient
 
-WAYS = ("fov given", "EXIF read", "EXIF not read")
+WAYS = ("fov given", "EXIF read", "EXIF 15 % long", "EXIF not read")
+WRONG_EXIF = 1.15
+"""The wrong EXIF's focal length, as a share of the true one (a crop whose EXIF says nothing of
+it, a digital zoom left out)."""
 
 
 def drone(rng: np.random.Generator, radius: float) -> FreeCamera:
@@ -80,10 +84,10 @@ def main(argv: list[str] | None = None) -> None:
                     png, truth = renderer.render_camera(scene, camera, width=640, height=480)
                     k = truth.camera
                     f35 = round(k.fx * math.hypot(36.0, 24.0) / math.hypot(k.width, k.height))
-                    photo = exif_jpeg(png, f35)
                     for way in WAYS:
+                        stated = round(f35 * WRONG_EXIF) if way == "EXIF 15 % long" else f35
                         search = client.submit(
-                            photo,
+                            exif_jpeg(png, stated),
                             scene,
                             mode="free",
                             fov_deg=k.fov_deg if way == "fov given" else None,

@@ -140,8 +140,11 @@ def test_a_photo_s_exif_focal_length_is_used_and_said_so(stack):
     assert final.result is not None
     free = final.result.free
     assert free is not None
-    assert free.status == "found", final.result.reason
-    assert "EXIF" in final.result.reason
+    # found from the boxes, its render agrees, but no render can check an EXIF focal length
+    assert free.status == "ambiguous", final.result.reason
+    assert not final.result.confirmed
+    assert "focal length from the photo's EXIF" in final.result.reason
+    assert "no render can check the photo's EXIF focal length" in final.result.reason
     assert free.pose.intrinsics.source == "exif"
     assert free.pose.intrinsics.fx_px == pytest.approx(k.fx, rel=0.02)  # the rounding only
     assert math.dist(free.pose.position, DRONE.position) < 0.02 * RADIUS

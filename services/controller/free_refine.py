@@ -10,7 +10,7 @@ The answer's pose is the refined one only when the optimizer ``accepted`` the fi
 and moved the pose plausibly); the box pose is then kept beside it (``box_pose``). Otherwise,
 or when the optimizer refused the request or stayed away, the box pose stays the answer and the
 reason says why. The status changes in one case only (:func:`edges_pin`): a pose that the
-boxes pinned only loosely, whose render agreed, is confirmed when the intrinsics were known and
+boxes pinned only loosely, whose render agreed, is confirmed when the intrinsics were given and
 the fit leaves nearly all the render's edges on the target's. Any other ambiguous answer stays
 ambiguous, whatever the fit.
 
@@ -74,7 +74,8 @@ def edges_pin(
 ) -> bool:
     """Whether the dense fit pins a pose that the boxes pinned only ``loose``-ly: the fit was
     accepted and leaves at least :data:`PIN_SHARE` of the render's edge points on the target's,
-    and the photo's intrinsics were ``known`` (given, or from its EXIF).
+    and the photo's intrinsics were ``known``: given (an EXIF focal length no render can check:
+    :mod:`~services.controller.free_loop`).
 
     The boxes' σ is large along a valley that the many edge points close. Not so without the
     intrinsics: distance then trades against focal length (a dolly zoom), which the edges of a
@@ -85,7 +86,9 @@ def edges_pin(
     off) were at 0.87 and below; without them, a miss 39 % off was at 0.89, and earlier
     versions' misses 15-39 % off at 0.91-0.92. Rival poses (a symmetric layout, look-alikes)
     are never pinned so: a render of one cannot tell it from the others."""
-    if ambiguity != "loose" or known is None or not isinstance(outcome, RefinePoseResponse):
+    if ambiguity != "loose" or known is None or known.source != "given":
+        return False
+    if not isinstance(outcome, RefinePoseResponse):
         return False
     fit = outcome.fit
     return fit.accepted and fit.inliers >= PIN_SHARE * fit.edge_points

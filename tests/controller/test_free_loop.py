@@ -103,6 +103,7 @@ class FakeStages:
         self.edges = (right,) if edges is None else edges
         self.inliers = inliers  # of 900 edge points, when a fit explains the target
         self.ambiguity = ambiguity  # why the optimizer's answer is ambiguous
+        self.source = "given"  # where the optimizer says its intrinsics came from
 
     def _call(self, name: str) -> None:
         self.calls[name] += 1
@@ -200,7 +201,7 @@ class FakeStages:
         self.requests.append(request)
         if self.status == "failed":
             return FreePoseResponse(status="failed", reason="failed: no detection names", pose=None)
-        poses = [candidate(float(x)) for x in range(self.count)]
+        poses = [candidate(float(x), self.source) for x in range(self.count)]
         grid = self.detail.spec.search.grid()
         return FreePoseResponse(
             status=self.status,  # type: ignore[arg-type]
@@ -448,13 +449,13 @@ def test_an_ambiguous_answer_renders_the_next_alternative_and_is_never_confirmed
     ("ambiguity", "intrinsics", "inliers", "pinned"),
     [
         ("loose", PhotoIntrinsics(fov_deg=45.0), 850, True),
-        ("loose", PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif"), 810, True),
+        ("loose", PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif"), 900, False),
         ("loose", PhotoIntrinsics(fov_deg=45.0), 800, False),  # 0.89 of the edges: not enough
         ("loose", None, 850, False),  # no intrinsics: distance trades against focal length
         ("rivals", PhotoIntrinsics(fov_deg=45.0), 900, False),  # a symmetric layout
         ("focal", PhotoIntrinsics(fov_deg=45.0), 900, False),
     ],
-    ids=["given", "exif", "too-few-edges", "no-intrinsics", "rivals", "focal"],
+    ids=["given", "exif-unchecked", "too-few-edges", "no-intrinsics", "rivals", "focal"],
 )
 def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_it(
     tmp_path, detail, ambiguity, intrinsics, inliers, pinned
@@ -476,6 +477,25 @@ def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_
     else:
         assert [p.position[0] for p in result.free.alternatives] == [1.0]
         assert "not confirmed" in result.reason
+
+
+def test_an_exif_focal_length_never_confirms_the_pose(tmp_path, detail):
+    """A unique pose whose render agrees, but from the photo's EXIF focal length: a wrong one
+    moves the camera along its axis and the render agrees all the same."""
+    stages = FakeStages(detail)
+    stages.source = "exif"
+    exif = PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif")
+    final = run(tmp_path, stages, intrinsics=exif)
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert result.renders == 1
+    assert not result.confirmed
+    assert result.ambiguous
+    assert result.free.status == "ambiguous"
+    assert result.free.pose.intrinsics.source == "exif"
+    assert "no render can check the photo's EXIF focal length" in result.reason
+    assert "give fov_deg or the intrinsics to confirm it" in result.reason
 
 
 def test_the_render_budget_bounds_the_alternatives_tried(tmp_path, detail):
