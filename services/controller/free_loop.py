@@ -387,8 +387,7 @@ class FreeSearchLoop:
                     search, scene, (target, size), image, outcome, len(history)
                 )
                 by_edges = not seen_view.check.agree
-                pin = edges_pin(outcome, search.intrinsics, answer.ambiguity)
-                pinned = outcome if pin and isinstance(outcome, RefinePoseResponse) else None
+                pinned = edges_pin(outcome, search.intrinsics, answer.ambiguity)
                 result, _ = _result(answer, history, grid, edges, by_edges=by_edges, pinned=pinned)
                 return await writes.succeed(
                     with_refit_renders(refined_result(result, outcome, grid), extra)

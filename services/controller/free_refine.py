@@ -29,7 +29,12 @@ from typing import Final
 
 from pydantic import ValidationError
 
-from services.common.contracts.free import FreePose, PhotoIntrinsics, nearest_grid_pose
+from services.common.contracts.free import (
+    FreeAmbiguity,
+    FreePose,
+    PhotoIntrinsics,
+    nearest_grid_pose,
+)
 from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
 from services.common.contracts.search import Search, SearchResult
 from services.common.geometry.free_camera import direction_pose
@@ -70,9 +75,12 @@ edges to pin a pose the boxes pinned only loosely (:func:`edges_pin`)."""
 
 
 def edges_pin(
-    outcome: RefinePoseResponse | str | None, known: PhotoIntrinsics | None, ambiguity: str | None
-) -> bool:
-    """Whether the dense fit pins a pose that the boxes pinned only ``loose``-ly: the fit was
+    outcome: RefinePoseResponse | str | None,
+    known: PhotoIntrinsics | None,
+    ambiguity: FreeAmbiguity | None,
+) -> RefinePoseResponse | None:
+    """The dense fit, when it pins a pose that the boxes pinned only ``loose``-ly (else None):
+    the fit was
     accepted and leaves at least :data:`PIN_SHARE` of the render's edge points on the target's,
     and the photo's intrinsics were ``known``: given (an EXIF focal length no render can check:
     :mod:`~services.controller.free_loop`).
@@ -87,11 +95,11 @@ def edges_pin(
     versions' misses 15-39 % off at 0.91-0.92. Rival poses (a symmetric layout, look-alikes)
     are never pinned so: a render of one cannot tell it from the others."""
     if ambiguity != "loose" or known is None or known.source != "given":
-        return False
+        return None
     if not isinstance(outcome, RefinePoseResponse):
-        return False
+        return None
     fit = outcome.fit
-    return fit.accepted and fit.inliers >= PIN_SHARE * fit.edge_points
+    return outcome if fit.accepted and fit.inliers >= PIN_SHARE * fit.edge_points else None
 
 
 def edges_contradict(outcome: RefinePoseResponse | str | None) -> bool:

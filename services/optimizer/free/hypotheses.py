@@ -28,9 +28,9 @@ Which minimal sets are solved is :mod:`.minimal_sets`'s: every one up to
 assignment (the general model: every object fits every detection, ``C(D,3)·M(M-1)(M-2)`` sets;
 one correct triple with its every assignment holds the true pose) or with the assignments
 whose triangle the box sizes make most plausible (many look-alikes). With the general model,
-the poses are ranked first by a cheap
-vectorised score (each detection's best gated partner, not one-to-one, which never pairs fewer
-than the exact score), and the :data:`EXACT_SCORES` best get the exact gated Hungarian score.
+the poses are ranked first by a cheap vectorised score (each detection's best gated partner,
+not one-to-one, which never pairs fewer than the exact score), and the :data:`EXACT_SCORES`
+best get the exact gated Hungarian score.
 
 A pose whose camera is below the ground (``z ≤ 0``) is dropped: the ground is opaque and the
 renderer refuses such cameras. This removes the mirror twin that coplanar centroids (every
@@ -49,15 +49,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from services.common.geometry.free_camera import rotation_angle_deg
-from services.optimizer.free.minimal_sets import (
-    MAX_MINIMAL_SOLVES,
-    Spans,
-    diagonal,
-    minimal_sets,
-    seeds_of,
-)
+from services.optimizer.free.minimal_sets import MAX_MINIMAL_SOLVES, minimal_sets, seeds_of
 from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics
+from services.optimizer.free.tolerances import box_diagonals
 from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import assign
 
@@ -169,9 +164,8 @@ def centre_gate(boxes: ArrayLike, width: float, height: float) -> FloatArray:
     half the box's diagonal, at least 3 % of the image's (a minimal set's pose, solved on
     uncorrected centres, is that rough)."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    diag = np.hypot(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1])
     gate: FloatArray = np.maximum(
-        GATE_BOX_FRACTION * diag, GATE_IMAGE_FRACTION * math.hypot(width, height)
+        GATE_BOX_FRACTION * box_diagonals(b), GATE_IMAGE_FRACTION * math.hypot(width, height)
     )
     return gate
 
@@ -243,9 +237,9 @@ def _sized(
     for at in range(0, len(rotations), _SIZED_CHUNK):
         rs, ts = rotations[at : at + _SIZED_CHUNK], tvecs[at : at + _SIZED_CHUNK]
         boxes = project_boxes(objects, rs, ts, (k.fx, k.fy), (k.cx, k.cy))
-        diagonals[at : at + _SIZED_CHUNK] = diagonal(np.clip(boxes, 0.0, limits))
+        diagonals[at : at + _SIZED_CHUNK] = box_diagonals(np.clip(boxes, 0.0, limits))
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = diagonal(evidence.boxes)[np.newaxis, :, np.newaxis] / diagonals[:, np.newaxis]
+        ratio = box_diagonals(evidence.boxes)[np.newaxis, :, np.newaxis] / diagonals[:, np.newaxis]
         ok: NDArray[np.bool_] = np.abs(np.log(ratio)) <= math.log(SIZE_RATIO)
     return ok
 
@@ -342,9 +336,9 @@ def hypotheses(
     score = np.ones(len(b)) if confidence is None else np.asarray(confidence, dtype=np.float64)
     order = np.argsort(-score, kind="stable")
     rvecs, tvecs = [], []
-    spans = Spans.of(objects, b, intrinsics)
     rng = np.random.default_rng(seed)
-    for dets, objs in minimal_sets(label_cost, b, order, rng, general, spans):
+    camera = (objects, intrinsics)
+    for dets, objs in minimal_sets(label_cost, b, order, rng, general, camera):
         count, rs, ts = cv2.solveP3P(
             objects.centroids[list(objs)],
             centres[list(dets)],

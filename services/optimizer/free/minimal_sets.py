@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from services.optimizer.free.objects import SceneObjects
 from services.optimizer.free.refine import Intrinsics
+from services.optimizer.free.tolerances import box_diagonals
 from services.optimizer.geometry import FloatArray
 from services.optimizer.observations import DUPLICATE_IOU, box_overlaps
 
@@ -33,7 +34,6 @@ __all__ = [
     "MAX_GENERAL_SOLVES",
     "MAX_MINIMAL_SOLVES",
     "Spans",
-    "diagonal",
     "minimal_sets",
     "seeds_of",
 ]
@@ -43,12 +43,6 @@ CONSISTENT_PER_TRIPLE: Final = 30
 """Assignments solved per detection triple when look-alikes are too many to solve them all."""
 MAX_GENERAL_SOLVES: Final = 6000
 """The cap with the general model's labels (every object fits every detection)."""
-
-
-def diagonal(boxes: FloatArray) -> FloatArray:
-    """The diagonals of ``(..., 4)`` boxes ``(x1, y1, x2, y2)``."""
-    d: FloatArray = np.hypot(boxes[..., 2] - boxes[..., 0], boxes[..., 3] - boxes[..., 1])
-    return d
 
 
 def seeds_of(boxes: FloatArray, order: NDArray[np.intp], usable: list[int]) -> list[int]:
@@ -68,12 +62,13 @@ def minimal_sets(
     order: NDArray[np.intp],
     rng: np.random.Generator,
     general: bool,
-    spans: Spans,
+    camera: tuple[SceneObjects, Intrinsics],
 ) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
     """(detections, objects) triples: all of them up to :data:`MAX_MINIMAL_SOLVES`, else the
     most consistent assignments of the most confident detection triples (a scene's own
     detector: :func:`_consistent_sets`), or every assignment of them (the general model), up to
-    that many (module docstring)."""
+    that many (module docstring); ``camera`` (the objects and the intrinsics) places the
+    look-alikes' triangles (:class:`Spans`)."""
     compatible = np.isfinite(costs)
     usable = [i for i in range(len(compatible)) if compatible[i].any()]
     candidates = [np.flatnonzero(row) for row in compatible]
@@ -88,7 +83,9 @@ def minimal_sets(
             if len(set(objs)) == 3
         ]
     if not general:
-        return _consistent_sets(candidates, [int(i) for i in order if int(i) in usable], spans)
+        ordered = [int(i) for i in order if int(i) in usable]
+        objects, k = camera
+        return _consistent_sets(candidates, ordered, Spans.of(objects, boxes, k))
     seeds = seeds_of(boxes, order, usable)
     ranked = sorted(itertools.combinations(range(len(seeds)), 3), key=lambda t: (t[2], sum(t)))
     sets: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
@@ -122,7 +119,7 @@ class Spans:
         lo = np.minimum.reduceat(objects.points, objects.starts)
         hi = np.maximum.reduceat(objects.points, objects.starts)
         size = np.linalg.norm(hi - lo, axis=1)
-        spanned = np.maximum(diagonal(boxes), 1.0)
+        spanned = np.maximum(box_diagonals(boxes), 1.0)
         centres = (boxes[:, :2] + boxes[:, 2:]) / 2.0
         rays = np.column_stack(
             [(centres[:, 0] - k.cx) / k.fx, (centres[:, 1] - k.cy) / k.fy, np.ones(len(boxes))]

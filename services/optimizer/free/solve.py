@@ -336,7 +336,8 @@ def solve_free_pose(
     intrinsics : the photo's, when known; otherwise the scene camera's field of view is the start
         and the focal length is estimated from four pairs on.
     min_confidence : detections below it are not used.
-    seed : for the sampled minimal sets when there are too many to solve them all.
+    seed : orders the general model's equally priced assignments when there are too many
+        minimal sets to solve them all (:mod:`.minimal_sets`).
     pixel_scale : target pixels per pixel of the detector's input
         (:func:`~.tolerances.pixel_scale`). Every pixel tolerance of the solve
         (:data:`~.tolerances.NOISE_FLOOR_PX`, the gates, the edge fit's robust scale, the border

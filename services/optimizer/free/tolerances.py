@@ -17,6 +17,7 @@ from services.optimizer.free.refine import PoseFit
 from services.optimizer.geometry import FloatArray
 
 __all__ = [
+    "box_diagonals",
     "INLIER_BOX_FRACTION",
     "INLIER_MIN_PX",
     "NOISE_FLOOR_PX",
@@ -31,12 +32,17 @@ INLIER_MIN_PX: Final = 3.0
 INLIER_BOX_FRACTION: Final = 0.15
 
 
+def box_diagonals(boxes: FloatArray) -> FloatArray:
+    """The diagonals (pixels) of ``(..., 4)`` boxes ``(x1, y1, x2, y2)``."""
+    d: FloatArray = np.hypot(boxes[..., 2] - boxes[..., 0], boxes[..., 3] - boxes[..., 1])
+    return d
+
+
 def inlier_gate(boxes: FloatArray) -> FloatArray:
     """(D,) the largest edge RMS (pixels) at which a refined pose's box still pairs with a
     detection: :data:`INLIER_BOX_FRACTION` of its diagonal, at least :data:`INLIER_MIN_PX`
     (partly hidden objects' boxes shrink)."""
-    diag = np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
-    gate: FloatArray = np.maximum(INLIER_MIN_PX, INLIER_BOX_FRACTION * diag)
+    gate: FloatArray = np.maximum(INLIER_MIN_PX, INLIER_BOX_FRACTION * box_diagonals(boxes))
     return gate
 
 
