@@ -25,7 +25,7 @@ from cosmos.bench.faults.rig import Rig, wait_until
 from services.common.auth import bearer
 from services.controller.client import ControllerClient
 
-__all__ = ["SENTINEL_OPTIONS", "Timing", "UnderLoad", "in_flight_at", "listed"]
+__all__ = ["SENTINEL_EARLY", "SENTINEL_OPTIONS", "Timing", "UnderLoad", "in_flight_at", "listed"]
 
 SENTINEL_OPTIONS: Final[Mapping[str, Any]] = {
     "strategy": "simple",
@@ -33,6 +33,10 @@ SENTINEL_OPTIONS: Final[Mapping[str, Any]] = {
     "start_phi_deg": 0.0,
     "max_iterations": 80,
 }
+SENTINEL_EARLY: Final = 4
+"""A fault strikes while a sentinel search has done 2 to this many of its 12 iterations: with
+only "at least 2" it could be at its 11th, end before the fault bit, and leave no search to
+ride the fault out (a detector outage once measured 3 searches in flight, none waiting)."""
 
 
 @dataclass(frozen=True)
@@ -141,7 +145,8 @@ class UnderLoad:
         return [self.load] + ([] if self.sentinel is None else [self.sentinel])
 
     def warm(self) -> None:
-        """The load before the fault; with a sentinel, until one of its searches is under way."""
+        """The load before the fault; with a sentinel, until one of its searches is under way
+        and far from done (:data:`SENTINEL_EARLY`)."""
         time.sleep(self.timing.warm_s)
         if self.sentinel is None:
             return
@@ -149,7 +154,8 @@ class UnderLoad:
         with ControllerClient(self.rig.controller_url, api_key=self.key) as client:
 
             def under_way() -> bool:
-                return any(len(client.get(i).iterations) >= 2 for i in sentinel.in_flight)
+                done = (len(client.get(i).iterations) for i in sentinel.in_flight)
+                return any(2 <= n <= SENTINEL_EARLY for n in done)
 
             wait_until(under_way, self.timing.recover_s, interval_s=0.05)
 
