@@ -74,6 +74,8 @@ class SceneObjects:
     starts : (M,) index of each object's first point in ``points`` (for ``np.*.reduceat``).
     radius : the scene camera's hemisphere radius, the scale of position errors.
     fov_deg : the scene camera's horizontal field of view.
+    colors : (M, 3) each object's linear-RGB colour from the scene file, NaN for a textured
+        one; None when unknown.
     """
 
     names: tuple[str, ...]
@@ -84,6 +86,7 @@ class SceneObjects:
     starts: NDArray[np.intp]
     radius: float
     fov_deg: float
+    colors: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -108,6 +111,7 @@ class SceneObjects:
             starts=np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp),
             radius=self.radius,
             fov_deg=self.fov_deg,
+            colors=None if self.colors is None else self.colors[idx],
         )
 
     def moved(self, rotation: ArrayLike, translation: ArrayLike) -> SceneObjects:
@@ -124,6 +128,7 @@ class SceneObjects:
             starts=self.starts,
             radius=self.radius,
             fov_deg=self.fov_deg,
+            colors=self.colors,
         )
 
 
@@ -222,6 +227,7 @@ def scene_objects(spec: SceneSpec, assets: Mapping[str, Path] | None = None) -> 
         starts=np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp),
         radius=float(spec.camera.radius),
         fov_deg=float(spec.camera.fov_deg),
+        colors=np.array([o.color if o.color is not None else (np.nan,) * 3 for o in spec.objects]),
     )
 
 

@@ -3,7 +3,8 @@
 The steps (each in its module):
 
 1. hypotheses from minimal sets of box centres, over the label-compatible assignments
-   (:mod:`.hypotheses`);
+   (:mod:`.hypotheses`; an own-detector label contradicted by the detection's colour also
+   allows the object its colour names: :mod:`.colours`);
 2. for each distinct hypothesis: PnP on the paired centres corrected for the box-centre bias,
    then least squares on the box edges (:mod:`.refine`); the pairs are then re-drawn at the
    refined pose with a box-edge gate (:func:`inlier_gate`) and the edges refitted on them; the
@@ -72,6 +73,7 @@ from services.optimizer.free.answer import (
     IntrinsicsUsed,
     PoseCandidate,
 )
+from services.optimizer.free.colours import recoloured
 from services.optimizer.free.few import few_detections, few_fits
 from services.optimizer.free.hypotheses import (
     distinct,
@@ -372,7 +374,9 @@ def _solve(
     width, height = size
     intrinsics, known_from = known
     labels_all = tuple(d.label for d in detections)
-    costs_all = label_costs(objects, labels_all)
+    measured = [d.color if d.color is not None else (np.nan,) * 3 for d in detections]
+    general_all = general_labels(objects, labels_all)
+    costs_all = recoloured(label_costs(objects, labels_all), objects, general_all, measured)
     compatible_all = np.isfinite(costs_all)
     boxes_all = np.array([d.box for d in detections], dtype=np.float64).reshape(-1, 4)
     finite = np.all(np.isfinite(boxes_all), axis=1)
