@@ -479,5 +479,6 @@ class FreeSearchLoop:
         found = await self._detect(search, encode_ppm(colours))
         detect_ms = (time.perf_counter() - started) * 1000
         paired = [c.detection for c in pose.correspondences]
-        check = compare_view(detections, size, paired, found.detections, found.image_size)
+        names = [c.object for c in pose.correspondences]
+        check = compare_view(detections, size, paired, found.detections, found.image_size, names)
         return found, check, detect_ms

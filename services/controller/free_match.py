@@ -3,8 +3,10 @@ target's, box by box.
 
 The render is made at the pose with the intrinsics used, on a film the target's shape scaled by
 ``s`` (:func:`view_film`); its boxes are scaled back by ``1 / s``. Each target detection that the
-pose paired with an object must be seen again in the render: a detection of the same label
-whose box-edge RMS from the target's is within the gate ``g_i = max(GATE_MIN_PX / s,
+pose paired with an object must be seen again in the render: a detection of the same label,
+or named as the object the pose paired it with (the optimizer pairs a detection whose colour
+contradicts its label with the object its colour names: the render's may name it right), whose
+box-edge RMS from the target's is within the gate ``g_i = max(GATE_MIN_PX / s,
 GATE_FRACTION · diag_i)`` (``diag_i`` the target box's diagonal, ``GATE_MIN_PX / s`` one
 render pixel's quantisation at the scale, doubled). Pairs are drawn by the Hungarian method
 (scipy's ``linear_sum_assignment``) on the edge RMS over the sides that touch neither image's
@@ -78,11 +80,14 @@ def compare_view(
     paired: Sequence[int],
     view: Sequence[Detection],
     view_size: tuple[int, int],
+    objects: Sequence[str] = (),
 ) -> FreeMatch:
     """The render's detections ``view`` (on a ``view_size`` film) against the ``paired``
-    target detections (indices into ``target``), in target pixels (module docstring)."""
+    target detections (indices into ``target``), in target pixels (module docstring);
+    ``objects`` the names of the objects they were paired with, in that order, when known."""
     width, height = target_size
     scale = view_size[0] / width
+    names = dict(zip(paired, objects, strict=False))
     want = [i for i in paired if 0 <= i < len(target)]
     t = _boxes([target[i] for i in want], 1.0)
     v = _boxes(view, 1.0 / scale)
@@ -94,8 +99,8 @@ def compare_view(
     diff[masked] = 0.0
     used = np.maximum((~masked).sum(axis=-1), 1)
     rms = np.sqrt(diff.sum(axis=-1) / used)
-    labels_t = [target[i].label for i in want]
-    same = np.array([[lt == d.label for d in view] for lt in labels_t], dtype=np.bool_)
+    accepted = [{target[i].label, names.get(i, target[i].label)} for i in want]
+    same = np.array([[d.label in a for d in view] for a in accepted], dtype=np.bool_)
     cost = np.where(same.reshape(rms.shape) & (rms <= gates[:, None]), rms, 1e9)
     rows, cols = linear_sum_assignment(cost) if cost.size else (np.zeros(0, int), np.zeros(0, int))
     keep = cost[rows, cols] < 1e9

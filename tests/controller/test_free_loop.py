@@ -582,6 +582,20 @@ def test_compare_view_pairs_by_label_within_the_gate():
     assert check.match.unpaired_current == pytest.approx(0.9)
 
 
+def test_compare_view_takes_the_paired_object_s_name_for_a_mislabelled_detection():
+    """The target's ``green`` box that the pose paired with ``red`` (its colour said so) is seen
+    again where the render's detector names it ``red``; nor by any other name."""
+    target = [Detection(label=label, class_id=0, confidence=0.9, box=box)
+              for label, box in zip(("green", "green", "blue"), BOXES, strict=True)]  # fmt: skip
+    view = [d.model_copy(update={"label": label}) for d, label in zip(target, LABELS, strict=True)]
+    names = ("red", "green", "blue")
+    assert compare_view(target, (320, 240), [0, 1, 2], view, (320, 240), names).agree
+    assert compare_view(target, (320, 240), [0, 1, 2], view, (320, 240)).missing == (0,)
+    renamed = [view[0].model_copy(update={"label": "blue"}), *view[1:]]
+    check = compare_view(target, (320, 240), [0, 1, 2], renamed, (320, 240), names)
+    assert check.missing == (0,)
+
+
 @pytest.mark.parametrize(
     ("fields", "field"),
     [
