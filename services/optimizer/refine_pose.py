@@ -247,6 +247,7 @@ def dense_report(
         moved_rotation_deg=turned,
         render_again=render_again and accepted,
         box_shift_px=box_shift,
+        focal_sigma=fit.focal_sigma if math.isfinite(fit.focal_sigma) else None,
     )
 
 

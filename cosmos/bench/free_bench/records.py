@@ -16,6 +16,7 @@ import numpy as np
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.metrics import PoseError, pose_error
 from services.common.base import FrozenModel
+from services.common.contracts.free import DenseReport
 from services.common.geometry.free_camera import quaternion_of_rotation, rotation_of_quaternion
 
 __all__ = [
@@ -84,6 +85,9 @@ class FreeRecord(FrozenModel):
     scene: str
     random: bool
     """A scene the bench generated (else a built-in one)."""
+    onboarded: bool = False
+    """Searched with the generated scene's own detector, after onboarding it (else a generated
+    scene's searches use the general model; a built-in scene's, its own)."""
     variant: str
     index: int
     band: str
@@ -117,12 +121,19 @@ class FreeRecord(FrozenModel):
     floor_view_detect_ms: float | None = None
     poses: dict[str, CameraRecord | None]
     """Per method of :data:`METHODS`: its pose (None: it gave none)."""
+    dense: DenseReport | None = None
+    """How the answer's dense refinement went (``result.free.dense``), when one was made."""
 
     @property
     def floor_ms(self) -> float | None:
         """Detect the target + one render + one detect, through the same services."""
         parts = (self.floor_detect_ms, self.floor_render_ms, self.floor_view_detect_ms)
         return None if any(p is None for p in parts) else sum(p for p in parts if p is not None)
+
+    @property
+    def detector(self) -> str:
+        """``own`` (the scene's own model) or ``general`` (the shipped shape model)."""
+        return "general" if self.random and not self.onboarded else "own"
 
     @property
     def given(self) -> str:

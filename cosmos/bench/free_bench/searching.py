@@ -38,6 +38,7 @@ from cosmos.bench.free_targets.draw import FreeTarget
 from cosmos.bench.free_targets.estimate import Estimate, fov_of_focal
 from cosmos.bench.runner import SearchRefused, post_and_follow
 from services.common.auth import bearer
+from services.common.contracts.free import DenseReport
 from services.common.images import PPM_MEDIA_TYPE, media_type_of
 from services.optimizer.free import SceneObjects
 
@@ -55,6 +56,12 @@ class StackCalls:
     api_key: str | None
     service_token: str | None
     max_iterations: int
+
+
+def _dense(result: Mapping[str, Any]) -> DenseReport | None:
+    """The answer's dense refinement report, when one was made."""
+    dense = (result.get("free") or {}).get("dense")
+    return DenseReport.model_validate(dense) if dense else None
 
 
 def _query(scene: str, target: FreeTarget, max_iterations: int) -> dict[str, str]:
@@ -160,14 +167,17 @@ async def search_target(
     objects: SceneObjects,
     bound: Estimate,
     random: bool,
+    onboarded: bool = False,
 ) -> FreeRecord:
     """Search ``image`` of ``target`` through the stack, time its floor, run the baseline on
-    the search's detections; the record (``bound``: the target's box-only bound)."""
+    the search's detections; the record (``bound``: the target's box-only bound; ``random``
+    a generated scene, ``onboarded`` once it has its own model)."""
     film = target.annotations.camera
     truth = Estimate.of_camera(target.camera, film.fov_deg, film.width)
     common: dict[str, Any] = {
         "scene": target.scene,
         "random": random,
+        "onboarded": onboarded,
         "variant": image.variant,
         "index": target.index,
         "band": target.band,
@@ -224,4 +234,5 @@ async def search_target(
             BASELINE: camera_record(baseline),
             BOUND: camera_record(bound),
         },
+        dense=_dense(result),
     )
