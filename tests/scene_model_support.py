@@ -68,6 +68,22 @@ def onboard(
     return folder
 
 
+def stand_in_onboarding(scene_path: Path, work_dir: Path) -> None:
+    """Onboarding stood in for (``training.onboard.onboard_scene``'s shape): a model that finds
+    one object of the scene's first class everywhere, installed beside the scene file as
+    onboarding installs one."""
+    from services.common.geometry.scene import load_scene
+    from services.common.scene_models import object_classes
+
+    work_dir.mkdir(parents=True)
+    classes = [c.label for c in object_classes(load_scene(scene_path).spec)]
+    predictions = np.zeros((4 + len(classes), 1), np.float32)
+    predictions[:4, 0] = (160, 128, 60, 60)
+    predictions[4, 0] = 0.9
+    model = constant_model(work_dir / "m.onnx", predictions, input_size=(320, 256))
+    onboard(scene_path.parent, scene_path.stem, model, classes=classes)
+
+
 def blue_model(directory: Path) -> Path:
     """A five-class model that always finds one ball of class 2 (blue), at a 320x256 input's
     (100, 80)-(140, 120)."""

@@ -2,7 +2,10 @@
 
 1. ``--random-scenes N`` scenes are generated as the random-scene bench generates them (scene
    ``i`` from the seed ``[seed, i]``) into a folder the local stack reads, beside the built-in
-   ``--scenes``; they are searched with the general detector (not onboarded).
+   ``--scenes``; they are searched with the general detector (not onboarded). With
+   ``--onboard tiny|default`` each is then onboarded as a user would (``cosmos scenes add``:
+   :func:`cosmos.bench.random_run.onboarder`), and once the detector serves its own model its
+   targets are searched again with it (records ``onboarded``).
 2. Per scene, ``--n`` free targets are drawn (:func:`cosmos.bench.free_targets.draw_targets`:
    distance, elevation with nadir views, roll, fov ±30 %, a third without their intrinsics, at
    least three objects 60 % visible) and rendered by the stack's renderer; each gets its image of
@@ -32,7 +35,12 @@ import numpy as np
 
 from cosmos.bench.free_bench.checkpoint import Checkpoint, Key
 from cosmos.bench.free_bench.records import FreeRecord
-from cosmos.bench.free_bench.report import free_tables, goal_checks, time_line, wrong_line
+from cosmos.bench.free_bench.report import (
+    free_tables,
+    goal_checks_by_detector,
+    time_line,
+    wrong_line,
+)
 from cosmos.bench.free_bench.searching import StackCalls, search_target
 from cosmos.bench.free_bench.targets import VariantImage, variant_image
 from cosmos.bench.free_targets.draw import DrawError, FreeTarget, draw_targets
@@ -40,6 +48,7 @@ from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.free_targets.solve import box_only_bound
 from cosmos.bench.machine import machine_info
+from cosmos.bench.random_run import onboarder, onboarding_summary, wait_for_model
 from cosmos.bench.runner import TARGET_SPP
 from cosmos.bench.scenes import generate_scene
 from cosmos.bench.session import (
@@ -62,6 +71,7 @@ Job = tuple[FreeTarget, VariantImage, Estimate]
 
 def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
     return {
+        "onboard": config.onboard or "none",
         "scenes": list(scenes),
         "n": config.n,
         "seed": config.seed,
@@ -73,12 +83,20 @@ def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
 
 
 def _jobs(
-    config: BenchConfig, ep: Endpoints, scene_id: str, done: dict[Key, FreeRecord], notes: list[str]
+    config: BenchConfig,
+    ep: Endpoints,
+    scene_id: str,
+    done: dict[Key, FreeRecord],
+    notes: list[str],
+    onboarded: bool = False,
 ) -> list[Job]:
-    """The scene's targets not searched yet, drawn and made in every variant still to do."""
-    pending = {
-        i for i in range(config.n) if any((scene_id, v, i) not in done for v in config.variants)
-    }
+    """The scene's targets not searched yet (with an ``onboarded`` model or not), drawn and made
+    in every variant still to do."""
+
+    def todo(variant: str, index: int) -> bool:
+        return (scene_id, variant, index, onboarded) not in done
+
+    pending = {i for i in range(config.n) if any(todo(v, i) for v in config.variants)}
     if not pending:
         return []
     scene = ep.scene_of(scene_id)
@@ -97,7 +115,7 @@ def _jobs(
             rng = np.random.default_rng([config.seed, target.index, 1])  # as free_targets' own
             bound = box_only_bound(target, shapes, rng)
             for variant in config.variants:
-                if (scene_id, variant, target.index) in done:
+                if not todo(variant, target.index):
                     continue
                 image = variant_image(
                     renderer, scene, target, variant, config.seed,
@@ -115,12 +133,14 @@ async def _search_jobs(
     calls: StackCalls,
     jobs: Sequence[Job],
     objects: SceneObjects,
-    random: bool,
+    arm: tuple[bool, bool],
     checkpoint: Checkpoint,
     deadline: float,
     verbose: bool,
 ) -> bool:
-    """Search every job one at a time, checkpointing each; False when the deadline stopped it."""
+    """Search every job one at a time, checkpointing each; False when the deadline stopped it.
+    ``arm`` is (a generated scene, searched with its onboarded model)."""
+    random, onboarded = arm
     headers = {"Authorization": f"Bearer {calls.api_key}"} if calls.api_key else None
     timeout = aiohttp.ClientTimeout(total=600.0, connect=5.0)
     async with aiohttp.ClientSession(timeout=timeout, headers=headers) as http:
@@ -130,8 +150,9 @@ async def _search_jobs(
             if time.monotonic() > deadline:
                 return False
             record = await search_target(
-                http, calls, target, image, objects=objects, bound=bound, random=random
-            )
+                http, calls, target, image, objects=objects, bound=bound, random=random,
+                onboarded=onboarded,
+            )  # fmt: skip
             checkpoint.add(record)
             if verbose or record.outcome == "error":
                 say(
@@ -140,6 +161,60 @@ async def _search_jobs(
                     f"{record.wall_ms:6.0f} ms  {record.reason[:100]}"
                 )
     return True
+
+
+class _OwnArm:
+    """The generated scenes onboarded one by one, each searched again with its own model."""
+
+    def __init__(
+        self,
+        config: BenchConfig,
+        ep: Endpoints,
+        calls: StackCalls,
+        checkpoint: Checkpoint,
+        notes: list[str],
+        deadline: float,
+    ) -> None:
+        self.config, self.ep, self.calls = config, ep, calls
+        self.checkpoint, self.notes, self.deadline = checkpoint, notes, deadline
+
+    def _note(self, text: str) -> None:
+        self.notes.append(text)
+        say(text)
+
+    def run(self, scenes: Sequence[str], scene_dir: Path, work_root: Path) -> bool:
+        """Onboard and search each of ``scenes``; False when the deadline stopped it."""
+        onboard, why_not = onboarder(self.config.onboard or "default")
+        if onboard is None:
+            self._note(why_not)
+            return True
+        for scene_id in scenes:
+            if time.monotonic() > self.deadline:
+                return False
+            jobs = _jobs(self.config, self.ep, scene_id, self.checkpoint.records, self.notes, True)
+            if not jobs:
+                continue
+            say(f"onboarding {scene_id} ({self.config.onboard})")
+            try:
+                report = onboard(scene_dir / f"{scene_id}.yaml", work_root / scene_id)
+            except (ImportError, OSError, RuntimeError, ValueError) as exc:
+                self._note(f"onboarding {scene_id} failed: {type(exc).__name__}: {exc}")
+                continue
+            model = wait_for_model(self.ep, scene_id, jobs[0][0].png)
+            if model.get("scene") != scene_id:
+                self._note(f"{scene_id}: the detector does not serve its own model")
+                continue
+            self._note(f"{scene_id} onboarded: {onboarding_summary(report)}")
+            scene = self.ep.scene_of(scene_id)
+            finished = asyncio.run(
+                _search_jobs(
+                    self.calls, jobs, scene_objects(scene.spec, scene.assets), (True, True),
+                    self.checkpoint, self.deadline, self.config.verbose,
+                )
+            )  # fmt: skip
+            if not finished:
+                return False
+        return True
 
 
 def _run(config: BenchConfig, root: Path) -> int:
@@ -163,6 +238,8 @@ def _run(config: BenchConfig, root: Path) -> int:
         )
     if random_ids:
         notes.append("random scenes are searched with the general detector (not onboarded)")
+        if (config.onboard or "none") != "none":
+            notes.append(f"then onboarded ({config.onboard}) and searched with their own")
     complete = True
     with open_endpoints(config, spp=config.spp, width=config.width, scene_dirs=(scene_dir,)) as ep:
         machine = machine_info(services_info(ep, config.spp, config.width))
@@ -182,18 +259,21 @@ def _run(config: BenchConfig, root: Path) -> int:
             objects = scene_objects(scene.spec, scene.assets)
             finished = asyncio.run(
                 _search_jobs(
-                    calls, jobs, objects, scene_id in random_ids, checkpoint, deadline,
+                    calls, jobs, objects, (scene_id in random_ids, False), checkpoint, deadline,
                     config.verbose,
                 )
             )  # fmt: skip
             if not finished:
                 complete = False
                 break
+        if complete and random_ids and (config.onboard or "none") != "none":
+            own = _OwnArm(config, ep, calls, checkpoint, notes, deadline)
+            complete = own.run(random_ids, scene_dir, root / "onboard")
     records = [r for r in checkpoint.records.values() if r.scene in scenes]
     say("")
     say(free_tables(records))
     say(f"\n{wrong_line(records)}")
-    for line in goal_checks(records):
+    for line in goal_checks_by_detector(records):
         say(f"  {line}")
     say(time_line(records))
     skipped = sum(note.startswith("skipped ") for note in notes)  # scenes with no targets

@@ -46,7 +46,16 @@ from cosmos.bench.session import (
 from services.common.auth import bearer
 from services.common.geometry.scene import load_scene
 
-__all__ = ["MODEL_WAIT_S", "model_status", "run_random", "served_model"]
+__all__ = [
+    "MODEL_WAIT_S",
+    "describe_model",
+    "model_status",
+    "onboarder",
+    "onboarding_summary",
+    "run_random",
+    "served_model",
+    "wait_for_model",
+]
 
 MODEL_WAIT_S: Final = 60.0
 """How long the detector has to pick up a newly onboarded model."""
@@ -87,12 +96,12 @@ def model_status(detector_url: str, scene: str, token: str | None = None) -> str
     return "not listed by GET /models"
 
 
-def _describe(model: dict[str, Any]) -> str:
+def describe_model(model: dict[str, Any]) -> str:
     kind = f"the scene's own ({model['scene']})" if model.get("scene") else "general"
     return f"{kind}: {model.get('name')} (sha256 {str(model.get('sha256'))[:12]})"
 
 
-def _onboarder(preset: str) -> tuple[Onboard | None, str]:
+def onboarder(preset: str) -> tuple[Onboard | None, str]:
     """A function onboarding one scene with ``preset``'s options, or why there is none."""
     try:  # torch may be missing: then only the general arm runs
         module = importlib.import_module("training.onboard")
@@ -106,7 +115,7 @@ def _onboarder(preset: str) -> tuple[Onboard | None, str]:
     return onboard, ""
 
 
-def _onboarding_summary(report: Any) -> str:
+def onboarding_summary(report: Any) -> str:
     parts = []
     for field, fmt in (
         ("minutes", "{:.1f} min"),
@@ -122,7 +131,7 @@ def _onboarding_summary(report: Any) -> str:
     return ", ".join(parts) or str(report)
 
 
-def _wait_for_model(endpoints: Endpoints, scene: str, image: bytes) -> dict[str, Any]:
+def wait_for_model(endpoints: Endpoints, scene: str, image: bytes) -> dict[str, Any]:
     """Ask every detector until each serves ``scene``'s own model (or :data:`MODEL_WAIT_S`
     passes); what the first one served last."""
     deadline = time.monotonic() + MODEL_WAIT_S
@@ -159,12 +168,12 @@ def _scene_arm(
             if isinstance(exc, ImportError):  # torch missing: no other scene will do better
                 break
             continue
-        summary = _onboarding_summary(report)
+        summary = onboarding_summary(report)
         say(f"  onboarded {scene} in {time.perf_counter() - started:.0f} s: {summary}")
         image = next(t.image for t in targets if t.scene == scene)
-        model = _wait_for_model(endpoints, scene, image)
+        model = wait_for_model(endpoints, scene, image)
         models.append(
-            {"scene": scene, "arm": "scene", "served": _describe(model), "onboarding": summary}
+            {"scene": scene, "arm": "scene", "served": describe_model(model), "onboarding": summary}
         )
         if model.get("scene") == scene:
             ready.append(scene)
@@ -219,10 +228,10 @@ def _run(config: BenchConfig, root: Path) -> int:
             image = next(t.image for t in targets if t.scene == scene)
             token = ep.service_token
             served = served_model(ep.detectors[0], scene, image, token) if ep.detectors else {}
-            models.append({"scene": scene, "arm": "general", "served": _describe(served)})
+            models.append({"scene": scene, "arm": "general", "served": describe_model(served)})
         onboard, why_not = (None, "onboarding skipped (--onboard none)")
-        if config.onboard != "none":
-            onboard, why_not = _onboarder(config.onboard)
+        if config.onboard is not None and config.onboard != "none":
+            onboard, why_not = onboarder(config.onboard)
         if onboard is None:
             notes.append(why_not)
             say(why_not)
@@ -263,6 +272,7 @@ def run_random(config: BenchConfig) -> int:
     """The random-scene bench (module docstring); the exit status (1 if any search errored)."""
     if config.url is not None:
         raise ValueError("--random-scenes starts its own stack: leave out --url")
+    config = replace(config, onboard=config.onboard or "default")
     if config.scenes_out is not None:
         return _run(config, config.scenes_out)
     with tempfile.TemporaryDirectory(prefix="cosmos-random-scenes-") as tmp:

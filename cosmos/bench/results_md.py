@@ -136,7 +136,8 @@ def section_of_free(data: Mapping[str, Any]) -> str:
     )
     text.write(free_report.free_tables(records, markdown=True) + "\n\n")
     text.write(f"**Goals** ({free_report.GOALS}):\n\n")
-    text.write("".join(f"- {line}\n" for line in free_report.goal_checks(records)) + "\n")
+    goals = free_report.goal_checks_by_detector(records)
+    text.write("".join(f"- {line}\n" for line in goals) + "\n")
     text.write(_escape(free_report.time_line(records)) + ".\n\n")
     return text.getvalue()
 

@@ -87,7 +87,9 @@ class BenchConfig:
     detectors: int = 2
     max_concurrent_searches: int | None = None
     random_scenes: int = 0
-    onboard: Literal["none", "tiny", "default"] = "default"
+    onboard: Literal["none", "tiny", "default"] | None = None
+    """With ``random_scenes``: the onboarding preset of the scenes' own models; unset, the
+    hemisphere bench onboards (``default``) and the free bench does not (``none``)."""
     scenes_out: Path | None = None
     free: bool = False
     """Free-camera targets (``cosmos bench --free``, :mod:`cosmos.bench.free_bench`)."""

@@ -146,8 +146,10 @@ def register(commands: Commands) -> None:
     bench.add_argument(
         "--onboard",
         choices=["none", "tiny", "default"],
-        default="default",
-        help="with --random-scenes: the onboarding preset of the per-scene models (none: skip)",
+        default=None,
+        help="with --random-scenes: the onboarding preset of the per-scene models (none: skip; "
+        "default: default, and none with --free, whose generated scenes are then searched again "
+        "with their own models)",
     )
     bench.add_argument(
         "--scenes-out", help="with --random-scenes: keep the scenes and models here (default: temp)"

@@ -96,7 +96,7 @@ def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
     with path.open("a") as file:
         file.write('{"scene": "demo", "vari')  # a run killed mid-line
     again = Checkpoint(path, {"seed": 1})
-    assert sorted(again.records) == [("demo", "clean", 0), ("demo", "clean", 1)]
+    assert sorted(again.records) == [("demo", "clean", 0, False), ("demo", "clean", 1, False)]
     assert not again.set_aside
     other = Checkpoint(path, {"seed": 2})
     assert other.set_aside
@@ -204,3 +204,43 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
     assert f"```sh\n{report['command']}\n```" in md  # the command that prints it
     assert "| variant | elevation | n |" in md
     assert "**Confirmed wrong: " in md
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_generated_scene_is_searched_again_once_onboarded(tmp_path, capsys, monkeypatch):
+    """``--onboard``: onboarding stood in for by a model that finds one object of the scene's
+    first class everywhere, installed as onboarding installs one. The generated scene's target
+    is searched with the general model, then again with the scene's own once the running
+    detector serves it; the tables and goals split by detector."""
+    from tests.scene_model_support import stand_in_onboarding
+
+    monkeypatch.setattr(free_run, "onboarder", lambda preset: (stand_in_onboarding, ""))
+    out = tmp_path / "results"
+    status = main(
+        [
+            "bench", "--free",
+            "--scene", "demo",
+            "--random-scenes", "1",
+            "--n", "1",
+            "--onboard", "tiny",
+            "--variants", "clean",
+            "--seed", "3",
+            "--out", str(out),
+            "--results-md", "",
+        ]
+    )  # fmt: skip
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    report = json.loads((out / "free.json").read_text())
+    records = [FreeRecord.model_validate(r) for r in report["records"]]
+    keys = sorted((r.scene, r.onboarded, r.detector) for r in records)
+    assert keys == [("demo", False, "own"), ("rand3-0", False, "general"), ("rand3-0", True, "own")]
+    own = next(r for r in records if r.onboarded)
+    general = next(r for r in records if r.scene == "rand3-0" and not r.onboarded)
+    assert own.truth == general.truth  # the same target
+    assert own.detections == 1  # the stand-in model's one box
+    assert any(note.startswith("rand3-0 onboarded") for note in report["notes"])
+    assert "rand3-0 (own)" in printed
+    assert "general detector: " in printed
+    assert "own detector: " in printed

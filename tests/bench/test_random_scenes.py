@@ -366,7 +366,7 @@ def test_without_training_only_the_general_arm_runs(monkeypatch):
         raise ModuleNotFoundError(f"No module named {name!r}")
 
     monkeypatch.setattr(random_run.importlib, "import_module", missing)
-    onboard, why = random_run._onboarder("tiny")
+    onboard, why = random_run.onboarder("tiny")
     assert onboard is None
     assert "onboarding unavailable" in why
 
@@ -393,10 +393,10 @@ def test_the_onboard_preset_reaches_onboard_scene(monkeypatch, tmp_path):
     fake = SimpleNamespace(OnboardOptions=Options, onboard_scene=onboard_scene)
     monkeypatch.setattr(random_run.importlib, "import_module", lambda name: fake)
     for preset in ("tiny", "default"):
-        onboard, why = random_run._onboarder(preset)
+        onboard, why = random_run.onboarder(preset)
         assert why == ""
         report = onboard(tmp_path / "s.yaml", tmp_path / "work")
-        assert random_run._onboarding_summary(report) == "0.5 min, P 0.900, R 0.800, mAP50 0.850"
+        assert random_run.onboarding_summary(report) == "0.5 min, P 0.900, R 0.800, mAP50 0.850"
     assert [c[1] for c in calls] == ["tiny", "default"]
     assert calls[0][2] == tmp_path / "work"
 
@@ -492,21 +492,9 @@ def test_the_scene_arm_runs_with_a_model_the_detector_picks_up_without_restart(
     everywhere, installed as onboarding installs one: the running detector must serve it, and
     the same targets run again labelled ``scene``."""
     from cosmos.bench import random_run
-    from services.common.scene_models import object_classes
-    from services.detector.synthetic import constant_model
-    from tests.scene_model_support import onboard as install
+    from tests.scene_model_support import stand_in_onboarding
 
-    def stand_in(scene_path, work_dir):
-        work_dir.mkdir(parents=True)
-        classes = [c.label for c in object_classes(load_scene(scene_path).spec)]
-        predictions = np.zeros((4 + len(classes), 1), np.float32)
-        predictions[:4, 0] = (160, 128, 60, 60)
-        predictions[4, 0] = 0.9
-        onnx = constant_model(work_dir / "m.onnx", predictions, input_size=(320, 256))
-        install(scene_path.parent, scene_path.stem, onnx, classes=classes)
-        return None
-
-    monkeypatch.setattr(random_run, "_onboarder", lambda preset: (stand_in, ""))
+    monkeypatch.setattr(random_run, "onboarder", lambda preset: (stand_in_onboarding, ""))
     out = tmp_path / "results"
     status = main(
         [

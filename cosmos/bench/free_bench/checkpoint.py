@@ -20,12 +20,12 @@ from cosmos.bench.free_bench.records import FreeRecord
 
 __all__ = ["Checkpoint", "Key", "key_of"]
 
-Key = tuple[str, str, int]
-"""(scene, variant, target index)."""
+Key = tuple[str, str, int, bool]
+"""(scene, variant, target index, searched with an onboarded model)."""
 
 
 def key_of(record: FreeRecord) -> Key:
-    return (record.scene, record.variant, record.index)
+    return (record.scene, record.variant, record.index, record.onboarded)
 
 
 class Checkpoint:

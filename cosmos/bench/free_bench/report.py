@@ -29,6 +29,7 @@ __all__ = [
     "confirmed_wrong",
     "free_tables",
     "goal_checks",
+    "goal_checks_by_detector",
     "time_line",
     "wall_ratio",
     "wrong_line",
@@ -132,9 +133,29 @@ def free_tables(records: Sequence[FreeRecord], *, markdown: bool = False) -> str
         ("variant", "intrinsics", *HEADER),
         _rows(records, lambda r: r.given, ("fov given", "fov not given")),
     )
-    scenes = list(dict.fromkeys(r.scene for r in records))
-    per_scene = table(("variant", "scene", *HEADER), _rows(records, lambda r: r.scene, scenes))
-    return f"{bands}\n\n{given}\n\n{per_scene}"
+    scenes = list(dict.fromkeys(_scene_label(r) for r in records))
+    per_scene = table(("variant", "scene", *HEADER), _rows(records, _scene_label, scenes))
+    out = f"{bands}\n\n{given}\n\n{per_scene}"
+    if len({r.detector for r in records}) > 1:
+        detectors = _rows(records, lambda r: r.detector, ("own", "general"))
+        out += "\n\n" + table(("variant", "detector", *HEADER), detectors)
+    return out
+
+
+def _scene_label(record: FreeRecord) -> str:
+    """The scene's id, marked when its own model was onboarded for the search."""
+    return f"{record.scene} (own)" if record.onboarded else record.scene
+
+
+def goal_checks_by_detector(records: Sequence[FreeRecord]) -> list[str]:
+    """:func:`goal_checks` over all records, then over each detector's (``own``: a scene's own
+    model, ``general``: the shipped one) when both searched."""
+    lines = goal_checks(records)
+    if len({r.detector for r in records}) > 1:
+        for detector in ("own", "general"):
+            mine = [r for r in records if r.detector == detector]
+            lines += [f"{detector} detector: {line}" for line in goal_checks(mine)]
+    return lines
 
 
 def time_line(records: Sequence[FreeRecord]) -> str:
