@@ -5,7 +5,9 @@
    ``--scenes``; they are searched with the general detector (not onboarded). With
    ``--onboard tiny|default`` each is then onboarded as a user would (``cosmos scenes add``:
    :func:`cosmos.bench.random_run.onboarder`), and once the detector serves its own model its
-   targets are searched again with it (records ``onboarded``).
+   targets are searched again with it (records ``onboarded``). The models stay beside the
+   scenes: a run that resumes in the same ``--scenes-out`` after onboarding began has its
+   general arm done already, but a new run there would search them with their own.
 2. Per scene, ``--n`` free targets are drawn (:func:`cosmos.bench.free_targets.draw_targets`:
    distance, elevation with nadir views, roll, fov ±30 %, a third without their intrinsics, at
    least three objects 60 % visible) and rendered by the stack's renderer; each gets its image of
@@ -277,7 +279,8 @@ def _run(config: BenchConfig, root: Path) -> int:
         say(f"  {line}")
     say(time_line(records))
     skipped = sum(note.startswith("skipped ") for note in notes)  # scenes with no targets
-    planned = (len(scenes) - skipped) * config.n * len(config.variants)
+    onboarded = len(random_ids) if (config.onboard or "none") != "none" else 0
+    planned = (len(scenes) + onboarded - skipped) * config.n * len(config.variants)
     if not complete:
         notes.append(
             f"partial: {len(records)} of {planned} searches; run the same command to resume"
