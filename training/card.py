@@ -59,6 +59,7 @@ def scene_model_card(
         f"| training data | {onboarding['train_images']} renders (seed {onboarding['train_seed']}"
         f"), film {onboarding['film'][0]}x{onboarding['film'][1]}, poses over "
         f"θ {onboarding['theta_range_deg'][0]}–{onboarding['theta_range_deg'][1]}° and all φ, "
+        "a third drone views (any distance, mostly down, rolled, fov ±30 %), "
         "lighting jittered, spp 8/16/32 |",
         f"| training | {onboarding['epochs']} epochs from the general model, "
         f"{minutes['train']:.1f} min on {onboarding['threads']} CPU threads, "

@@ -161,9 +161,15 @@ def _require_torch() -> None:
         raise TorchMissingError(TORCH_HINT) from exc
 
 
+VIEWS_RECIPE = "drone-views-1"
+"""Changes when the views rendered change (:func:`~training.scene_dataset.scene_views`): a
+dataset of the old views is rendered again, not reused."""
+
+
 def _spec_digest(scene: LoadedScene) -> str:
-    """Changes when anything rendered changes: the spec or an asset file's content."""
-    digest = hashlib.sha256(scene.spec.model_dump_json().encode())
+    """Changes when anything rendered changes: the spec, an asset file's content or the views'
+    recipe."""
+    digest = hashlib.sha256((VIEWS_RECIPE + scene.spec.model_dump_json()).encode())
     for key in sorted(scene.assets):
         digest.update(key.encode() + scene.assets[key].read_bytes())
     return digest.hexdigest()[:12]

@@ -107,7 +107,8 @@ def test_cli_scenes_add_resumes_and_prints_the_model_path(onboarded, capsys, mon
 
 
 def test_scene_views_depend_only_on_seed_and_index(tmp_path):
-    from training.scene_dataset import scene_views
+    from services.common.geometry.free_camera import FreeCamera
+    from training.scene_dataset import DRONE_FOV_SPREAD, DRONE_ROLL_DEG, scene_views
 
     scene = load_scene(_scene_folder(tmp_path))
     all_views = {v.index: (v.pose, v.spp, v.seed, v.scene.spec) for v in scene_views(scene, 3, 10)}
@@ -119,10 +120,39 @@ def test_scene_views_depend_only_on_seed_and_index(tmp_path):
     other = [v.pose for v in scene_views(scene, 4, 10)]
     assert other != [all_views[i][0] for i in range(10)]
     search = scene.spec.search
-    for pose, _, _, spec in all_views.values():
-        assert search.min_theta_deg - 1e-9 <= pose.theta_deg <= search.max_theta_deg + 1e-9
+    for index, (pose, _, _, spec) in all_views.items():
+        if index % 3 == 2:  # a drone view
+            assert isinstance(pose, FreeCamera)
+            assert pose.position[2] > 0.0
+            assert 10.0 <= pose.pitch_deg <= 90.0
+            assert abs(pose.roll_deg) <= DRONE_ROLL_DEG
+            fov = scene.spec.camera.fov_deg
+            assert (1 - DRONE_FOV_SPREAD) * fov <= pose.fov_deg <= (1 + DRONE_FOV_SPREAD) * fov
+        else:
+            assert search.min_theta_deg - 1e-9 <= pose.theta_deg <= search.max_theta_deg + 1e-9
         assert spec.objects == scene.spec.objects
         assert 0.5 * 150 <= spec.lighting.point.intensity <= 2 * 150
+
+
+def test_drone_views_look_at_the_objects_from_any_height(tmp_path):
+    """Seeded drone cameras: every one sees the objects' area in front of it, a quarter look
+    straight down, and their distances span the range."""
+    from training.scene_dataset import DRONE_DISTANCE, drone_camera
+
+    scene = load_scene(_scene_folder(tmp_path))
+    rng = np.random.default_rng(5)
+    cameras = [drone_camera(scene, rng) for _ in range(200)]
+    r = scene.spec.camera.radius
+    nadir = sum(c.pitch_deg == 90.0 for c in cameras)
+    assert 30 <= nadir <= 70
+    heights = [c.position[2] / r for c in cameras]
+    assert min(heights) < 0.6 * DRONE_DISTANCE[1]
+    assert max(heights) > 0.8 * DRONE_DISTANCE[1]
+    centre = np.mean([o.position for o in scene.spec.objects], axis=0)
+    for c in cameras:
+        forward = c.rotation()[:, 2]  # the camera's +z in the world: where it looks
+        to_objects = np.array([*centre, 0.0]) - np.asarray(c.position)
+        assert forward @ to_objects > 0.0
 
 
 @pytest.mark.parametrize(
