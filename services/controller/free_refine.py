@@ -203,8 +203,10 @@ def refined_result(
         answer = answer.model_copy(update={"status": "ambiguous", "alternatives": (free.pose,)})
         reason += (
             f"; not confirmed: the render checked the box pose, and the fit turned it "
-            f"{fit.moved_rotation_deg:.1f}° explaining few more edges ({fit.start_inliers} → "
-            f"{fit.inliers} of {fit.edge_points}); the box pose is the alternative"
+            f"{fit.moved_rotation_deg:.1f}° without the image's firm support ({fit.start_inliers} "
+            f"→ {fit.inliers} of {fit.edge_points} edge points on the target's; "
+            f"{VOUCH_GAIN:g} times as many, or {PIN_SHARE:.0%} of them, would vouch for it); "
+            "the box pose is the alternative"
         )
     return result.model_copy(
         update={

@@ -509,7 +509,7 @@ def test_a_confirmed_pose_the_fit_turned_with_little_support_is_not_confirmed(
     if not confirmed:
         assert result.free.alternatives == (result.free.box_pose,)
         assert f"the fit turned it {turn:.1f}°" in result.reason
-        assert f"600 → {inliers} of 900" in result.reason
+        assert f"600 → {inliers} of 900 edge points" in result.reason
     else:
         assert result.free.alternatives == ()
 
