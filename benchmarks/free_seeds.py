@@ -45,7 +45,7 @@ def _row(label: str, records: Sequence[FreeRecord]) -> str:
         for band in BANDS
     )
     return (
-        f"{label:<22} given {_share(given, ANSWER, THRESHOLDS[1]):>7}  "
+        f"{label:<40} given {_share(given, ANSWER, THRESHOLDS[1]):>7}  "
         f"boxes {_share(given, BOXES, THRESHOLDS[2]):>7}  "
         f"not given {_share(unknown, ANSWER, THRESHOLDS[1]):>7}  "
         f"confirmed wrong {len(confirmed_wrong(records))}  | given by band: {bands}"
@@ -61,6 +61,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         report = json.loads(Path(path).read_text())
         records = [FreeRecord.model_validate(r) for r in report["records"]]
         runs.append((str(report["config"]["seed"]), records))
+    seeds = [seed for seed, _ in runs]
+    if len(set(seeds)) < len(seeds):  # one seed run twice: name each run by its file too
+        runs = [(f"{s} ({p})", r) for (s, r), p in zip(runs, args.reports, strict=True)]
     print("within 5 %/2° (clean, JPEG, noise); boxes: the box estimate within 10 %/5°")
     everything: list[FreeRecord] = []
     for seed, records in runs:
