@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["RotationFit", "solve_rotation"]
 
@@ -63,6 +63,13 @@ class RotationFit:
     def determined(self) -> bool:
         """Whether the pairs fix an angle at all."""
         return math.isfinite(self.phi_deg)
+
+
+def _unit_scaled(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``values`` divided by their largest magnitude (unchanged when all are 0 or none)."""
+    largest = float(np.max(np.abs(values))) if values.size else 0.0
+    out: NDArray[np.float64] = values / largest if largest > 0.0 else values
+    return out
 
 
 def solve_rotation(
@@ -94,11 +101,15 @@ def solve_rotation(
         raise ValueError("weights must be non-negative")
     keep = np.isfinite(q).all(axis=1) & np.isfinite(p).all(axis=1) & np.isfinite(w) & (w > 0)
     q, p, w = q[keep], p[keep], w[keep]
-    c = float(np.sum(w * (q[:, 0] * p[:, 0] + q[:, 1] * p[:, 1])))
-    s = float(np.sum(w * (q[:, 0] * p[:, 1] - q[:, 1] * p[:, 0])))
+    # c, s and their scale each scale by max|q| max|p| max w, which leaves φ and the coherence
+    # alone: on the sets scaled to at most 1, points of 1e-155 do not underflow to subnormals
+    # (they made the coherence test depend on the weights' scale).
+    qn, pn, wn = (_unit_scaled(a) for a in (q, p, w))
+    c = float(np.sum(wn * (qn[:, 0] * pn[:, 0] + qn[:, 1] * pn[:, 1])))
+    s = float(np.sum(wn * (qn[:, 0] * pn[:, 1] - qn[:, 1] * pn[:, 0])))
     magnitude = math.hypot(c, s)
     total = float(np.sum(w))
-    scale = float(np.sum(w * np.linalg.norm(q, axis=1) * np.linalg.norm(p, axis=1)))
+    scale = float(np.sum(wn * np.linalg.norm(qn, axis=1) * np.linalg.norm(pn, axis=1)))
     if total <= 0.0 or magnitude <= 1e-12 * max(scale, 1e-300):
         spread = float(np.sum(w * (np.sum(q**2, axis=1) + np.sum(p**2, axis=1))))
         rms = math.sqrt(spread / total) if total > 0 else math.nan

@@ -133,3 +133,14 @@ def test_eq7_offsets_and_world_positions_are_inverse_rotations(points, phi):
     # e1 = (cos φ, sin φ) points at the camera's foot: offset (1, 0) lands there.
     foot = world_from_offsets([1.0, 0.0], phi)
     assert foot == pytest.approx([math.cos(math.radians(phi)), math.sin(math.radians(phi))])
+
+
+def test_tiny_points_give_the_same_answer_at_any_weight_scale():
+    """Points of 1e-155 (found by Hypothesis): their products underflowed to subnormals, so the
+    weights' scale decided whether the rotation was determined (NaN at weight 1/1600)."""
+    points = np.array([[2.62277337e-155, 0.0], [0.0, 1.3e-155]])
+    world = rotate2d(points, 30.0)
+    for w in (np.ones(2), np.full(2, 0.01 * 0.0625), np.full(2, 64.0)):
+        fit = solve_rotation(points, world, w)
+        assert fit.determined
+        assert circular_gap(fit.phi_deg, 30.0) < 1e-9
