@@ -27,7 +27,7 @@ from cosmos.bench.variants import exif_jpeg
 from cosmos.stack import local_stack
 from services.common.contracts.render import RenderAnnotations
 from services.common.contracts.search import Search
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import FreeCamera, orbit_position
 from services.controller.client import ControllerClient
 from services.renderer.client import RendererClient
 
@@ -39,13 +39,9 @@ it, a digital zoom left out)."""
 
 def drone(rng: np.random.Generator, radius: float) -> FreeCamera:
     distance = rng.uniform(0.5, 1.2) * radius
-    elevation = math.radians(rng.uniform(35.0, 88.0))
-    azimuth = rng.uniform(0.0, 2.0 * math.pi)
-    position = (
-        distance * math.cos(elevation) * math.cos(azimuth),
-        distance * math.cos(elevation) * math.sin(azimuth),
-        distance * math.sin(elevation),
-    )
+    elevation = float(rng.uniform(35.0, 88.0))
+    azimuth = math.degrees(rng.uniform(0.0, 2.0 * math.pi))
+    position = orbit_position((0.0, 0.0, 0.0), distance, elevation, azimuth)
     return FreeCamera(
         position=position,
         look_at=(rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5), 0.0),

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from services.common.contracts.detect import Detection
-from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
+from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera, orbit_position
 from services.common.geometry.scene import parse_scene
 from services.optimizer.free import (
     FreePoseAnswer,
@@ -68,13 +68,9 @@ def layout(count: int, rng: np.random.Generator, unique: bool) -> SceneObjects:
 
 def drone(rng: np.random.Generator) -> FreeCamera:
     distance = rng.uniform(5.0, 10.0)
-    elevation = math.radians(rng.uniform(50.0, 89.0))
-    azimuth = rng.uniform(0.0, 2.0 * math.pi)
-    position = (
-        distance * math.cos(elevation) * math.cos(azimuth),
-        distance * math.cos(elevation) * math.sin(azimuth),
-        distance * math.sin(elevation),
-    )
+    elevation = float(rng.uniform(50.0, 89.0))
+    azimuth = math.degrees(rng.uniform(0.0, 2.0 * math.pi))
+    position = orbit_position((0.0, 0.0, 0.0), distance, elevation, azimuth)
     look = (rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), 0.0)
     return FreeCamera(
         position=position, look_at=look, roll_deg=rng.uniform(-20.0, 20.0), fov_deg=FOV

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from services.common.contracts.render import RenderAnnotations
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import FreeCamera, orbit_position
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import Lighting, LoadedScene, PointLight
 from services.common.scene_models import object_classes
@@ -97,15 +97,10 @@ def drone_camera(scene: LoadedScene, rng: np.random.Generator) -> FreeCamera:
     nadir = rng.uniform() < DRONE_NADIR_SHARE
     elevation = 90.0 if nadir else float(rng.uniform(10.0, 89.0))
     azimuth = float(rng.uniform(0.0, 360.0))
-    e, a = math.radians(elevation), math.radians(azimuth)
-    offset = (math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e))
     spread = float(rng.uniform(1.0 - DRONE_FOV_SPREAD, 1.0 + DRONE_FOV_SPREAD))
+    point = (float(look[0]), float(look[1]), 0.0)
     return FreeCamera(
-        position=(
-            float(look[0] + distance * offset[0]),
-            float(look[1] + distance * offset[1]),
-            distance * offset[2],
-        ),
+        position=orbit_position(point, distance, elevation, azimuth),
         yaw_deg=(azimuth + 180.0) % 360.0,
         pitch_deg=elevation,
         roll_deg=float(rng.uniform(-DRONE_ROLL_DEG, DRONE_ROLL_DEG)),

@@ -17,6 +17,7 @@ from services.common.geometry.free_camera import (
     LensDistortion,
     free_camera_of_pose,
     free_pinhole_camera,
+    orbit_position,
     quaternion_of_rotation,
     rotation_of_quaternion,
     rotation_of_yaw_pitch_roll,
@@ -233,3 +234,20 @@ def test_a_strong_barrel_distortion_folds_a_wide_film():
     assert not image_folds(pinhole, LensDistortion(k1=-0.05))
     assert image_folds(pinhole, LensDistortion(k1=-0.1))
     assert not image_folds(pinhole, LensDistortion(k1=0.5, k2=0.1))
+
+
+@pytest.mark.parametrize(("elevation", "azimuth"), [(10.0, 0.0), (45.0, 123.0), (90.0, 300.0)])
+def test_an_orbit_position_looks_back_at_its_point(elevation, azimuth):
+    """From ``orbit_position``, yaw α + 180° and pitch ε put the looked-at point at the image
+    centre, at the given distance."""
+    look = (1.0, -2.0, 0.5)
+    position = orbit_position(look, 4.0, elevation, azimuth)
+    assert math.dist(position, look) == pytest.approx(4.0)
+    camera = FreeCamera(
+        position=position, yaw_deg=azimuth + 180.0, pitch_deg=elevation, fov_deg=60.0
+    )
+    pinhole = free_pinhole_camera(camera, 320, 240, 60.0)
+    cam = np.asarray(pinhole.rotation) @ np.asarray(look) + np.asarray(pinhole.translation)
+    u, v = pinhole.fx * cam[0] / cam[2] + pinhole.cx, pinhole.fy * cam[1] / cam[2] + pinhole.cy
+    assert cam[2] == pytest.approx(4.0)
+    assert (u, v) == pytest.approx((160.0, 120.0))

@@ -23,7 +23,6 @@ does not cut off: :func:`visible_shares`), is drawn again at that elevation and 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from typing import Final, Literal, get_args
@@ -37,7 +36,11 @@ from cosmos.bench.free_targets.shapes import SceneShapes, project_boxes
 from cosmos.bench.variants import degrade
 from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.common.errors import UnprocessableError
-from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    free_pinhole_camera,
+    orbit_position,
+)
 from services.common.geometry.scene import LoadedScene
 from services.renderer.client import RendererError
 
@@ -207,9 +210,7 @@ def draw_camera(
     distance = float(rng.uniform(*DISTANCE_RANGE)) * scene.spec.camera.radius
     azimuth = float(rng.uniform(0.0, 360.0))
     roll = float(rng.uniform(-ROLL_LIMIT_DEG, ROLL_LIMIT_DEG))
-    e, a = math.radians(elevation), math.radians(azimuth)
-    offset = (math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e))
-    position = tuple(p + distance * o for p, o in zip(look, offset, strict=True))
+    position = orbit_position(look, distance, elevation, azimuth)
     camera = FreeCamera(
         position=position,
         yaw_deg=(azimuth + 180.0) % 360.0,  # looking back at the point

@@ -57,6 +57,7 @@ __all__ = [
     "free_camera_of_pose",
     "free_pinhole_camera",
     "look_at_angles",
+    "orbit_position",
     "quaternion_of_rotation",
     "rotation_of_quaternion",
     "rotation_of_yaw_pitch_roll",
@@ -333,6 +334,18 @@ def free_pinhole_camera(
         translation=(float(translation[0]), float(translation[1]), float(translation[2])),
         position=(float(position[0]), float(position[1]), float(position[2])),
     )
+
+
+def orbit_position(
+    look: tuple[float, float, float], distance: float, elevation_deg: float, azimuth_deg: float
+) -> tuple[float, float, float]:
+    """The point ``distance`` from ``look`` at ``elevation_deg`` above the ground plane and
+    ``azimuth_deg`` from +x: ``look + d (cos ε cos α, cos ε sin α, sin ε)``. A camera there
+    looks back at ``look`` with yaw ``α + 180°`` and pitch ``ε``."""
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    offset = (math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e))
+    x, y, z = (float(p + distance * o) for p, o in zip(look, offset, strict=True))
+    return x, y, z
 
 
 def free_camera_of_pose(pose: Pose, radius: float, fov_deg: float | None = None) -> FreeCamera:
