@@ -5,17 +5,14 @@ The steps (each in its module):
 1. hypotheses from minimal sets of box centres, over the label-compatible assignments
    (:mod:`.hypotheses`; an own-detector label contradicted by the detection's colour also
    allows the object its colour names: :mod:`.colours`);
-2. for each distinct hypothesis: PnP on the paired centres corrected for the box-centre bias,
-   then least squares on the box edges (:mod:`.refine`); the pairs are then re-drawn at the
-   refined pose with a box-edge gate (:func:`inlier_gate`) and the edges refitted on them; the
-   fits are ranked by :func:`truncated_cost` over all detections, not by pairs first;
-3. without given intrinsics and with at least :data:`MIN_FOCAL_PAIRS` pairs, the focal length
-   joins the edge fit of every hypothesis, started from the scene camera's; the
-   :data:`FOCAL_WIDENED` best of those fits (least :func:`truncated_cost`) are also started from
-   the other zooms of :data:`FOCAL_STARTS`. With fewer pairs the scene camera's field of view
-   is used and the answer says so. Every hypothesis gets the focal: a fixed-focal fit is a dolly
-   zoom of the free one (farther and narrower), which at noise-level residuals would pass for a
-   rival;
+2. for each distinct hypothesis, its edge fits (:mod:`.hypothesis_fits`): PnP on the paired
+   centres corrected for the box-centre bias, then least squares on the box edges
+   (:mod:`.refine`); the pairs are then re-drawn at the refined pose with a box-edge gate
+   (:func:`inlier_gate`) and the edges refitted on them; the fits are ranked by
+   :func:`truncated_cost` over all detections, not by pairs first;
+3. without given intrinsics and with at least :data:`~.hypothesis_fits.MIN_FOCAL_PAIRS` pairs,
+   the focal length joins every hypothesis' edge fit (:mod:`.hypothesis_fits`). With fewer
+   pairs the scene camera's field of view is used and the answer says so;
 4. the answer's status (:class:`FreePoseAnswer`).
 
 With fewer than three usable detections no minimal set exists: the edges are fitted from a ring
@@ -54,7 +51,6 @@ Status
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Final, Literal
 
 import numpy as np
@@ -81,14 +77,9 @@ from services.optimizer.free.hypotheses import (
     hypotheses,
     label_costs,
 )
-from services.optimizer.free.objects import SceneObjects, project_boxes
-from services.optimizer.free.refine import (
-    Intrinsics,
-    PoseFit,
-    centre_pnp,
-    pose_uncertainty,
-    refine_edges,
-)
+from services.optimizer.free.hypothesis_fits import EdgeFits, Fit, focal_fits, refined
+from services.optimizer.free.objects import SceneObjects
+from services.optimizer.free.refine import Intrinsics, pose_uncertainty
 from services.optimizer.free.tolerances import (
     NOISE_FLOOR_PX,
     inlier_gate,
@@ -96,26 +87,12 @@ from services.optimizer.free.tolerances import (
 )
 from services.optimizer.geometry import FloatArray
 from services.optimizer.mapping import clipped_sides
-from services.optimizer.matching import assign
 
 __all__ = [
     "AMBIGUITY_RATIO",
     "solve_free_pose",
 ]
 
-MIN_FOCAL_PAIRS: Final = 4
-FOCAL_STARTS: Final = (0.75, 1.0, 1.33)
-"""Zooms of the scene camera's focal length the joint pose-and-focal fit starts from."""
-FOCAL_WIDENED: Final = 1
-"""Hypotheses whose focal fit also starts from the other :data:`FOCAL_STARTS` (the best by
-:func:`truncated_cost` of their fits from the scene camera's focal; measured when the best was
-the one with the most pairs, then the least RMS). Every hypothesis from every start
-spent two thirds of a solve without intrinsics; yet with 0, 1 or 2 widened every answer (status,
-pose to 1e-3 units and 0.05°, fov to 0.02°) was the one all starts gave, on the 16 cameras of
-``tests/optimizer/test_free_pose.py`` (own and general labels) and the free targets of ``python
--m cosmos.bench.free_targets --scene demo --random-scenes 2 --n 8 --seed 1`` (9 without
-intrinsics). One keeps the other zooms for the pose that will be answered; the solve without
-intrinsics took 0.6-0.7 times as long."""
 AMBIGUITY_RATIO: Final = 2.0
 WRONG_POSITION: Final = 0.10
 """A position error (fraction of the scene radius) past which an answer is wrong."""
@@ -129,137 +106,8 @@ REFINED_HYPOTHESES: Final = 6
 MAX_ALTERNATIVES: Final = 4
 
 
-@dataclass(frozen=True)
-class _Fit:
-    fit: PoseFit
-    detections: NDArray[np.intp]
-    objects: NDArray[np.intp]
-    source: IntrinsicsSource
-
-    @property
-    def key(self) -> tuple[FloatArray, FloatArray]:
-        return self.fit.rvec, self.fit.tvec
-
-
-def _reassign(
-    objects: SceneObjects,
-    boxes: FloatArray,
-    masks: NDArray[np.bool_],
-    compatible: NDArray[np.bool_],
-    fit: PoseFit,
-    width: float,
-    height: float,
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Pairs at a refined pose: gated Hungarian on the masked edge RMS of the clipped boxes."""
-    k = fit.intrinsics
-    projected = project_boxes(objects, fit.rotation(), fit.tvec, (k.fx, k.fy), (k.cx, k.cy))
-    projected = np.clip(projected, 0.0, [width, height, width, height])
-    diff = (boxes[:, np.newaxis, :] - projected[np.newaxis, :, :]) ** 2
-    diff[np.broadcast_to(masks[:, np.newaxis, :], diff.shape)] = 0.0
-    used = np.maximum((~masks).sum(axis=1), 1)[:, np.newaxis]
-    cost = np.sqrt(diff.sum(axis=-1) / used) / inlier_gate(boxes)[:, np.newaxis]
-    cost[~compatible] = np.inf
-    pairs = assign(cost, 1.0)
-    return pairs.rows, pairs.cols
-
-
-def _fit_pairs(
-    objects: SceneObjects,
-    boxes: FloatArray,
-    masks: NDArray[np.bool_],
-    dets: NDArray[np.intp],
-    objs: NDArray[np.intp],
-    rvec: FloatArray,
-    tvec: FloatArray,
-    intrinsics: Intrinsics,
-    fit_focal: bool,
-) -> PoseFit:
-    paired = objects.subset(objs)
-    r, t = centre_pnp(paired, boxes[dets], masks[dets], rvec, tvec, intrinsics)
-    return refine_edges(paired, boxes[dets], masks[dets], r, t, intrinsics, fit_focal=fit_focal)
-
-
-def _focal_fits(
-    objects: SceneObjects,
-    boxes: FloatArray,
-    masks: NDArray[np.bool_],
-    starts: Sequence[tuple[FloatArray, FloatArray, NDArray[np.intp], NDArray[np.intp]]],
-    intrinsics: Intrinsics,
-    estimate_focal: bool,
-) -> list[tuple[PoseFit, bool]]:
-    """Each hypothesis' first edge fit, and whether its focal length was fitted (module
-    docstring, step 3): from the scene camera's focal, then the :data:`FOCAL_WIDENED` best
-    (least :func:`truncated_cost`) also from the other :data:`FOCAL_STARTS`, the least RMS
-    kept."""
-    fits = []
-    for rvec, tvec, dets, objs in starts:
-        focal = estimate_focal and len(dets) >= MIN_FOCAL_PAIRS
-        fit = _fit_pairs(objects, boxes, masks, dets, objs, rvec, tvec, intrinsics, focal)
-        fits.append((fit, focal))
-    gates = inlier_gate(boxes)
-    order = sorted(
-        range(len(fits)),
-        key=lambda i: (truncated_cost(fits[i][0], starts[i][2], gates), -len(starts[i][2])),
-    )
-    for i in [i for i in order if fits[i][1]][:FOCAL_WIDENED]:
-        rvec, tvec, dets, objs = starts[i]
-        others = [
-            _fit_pairs(objects, boxes, masks, dets, objs, rvec, tvec, intrinsics.scaled(s), True)
-            for s in FOCAL_STARTS
-            if s != 1.0
-        ]
-        fits[i] = (min([fits[i][0], *others], key=lambda f: f.rms_px), True)
-    return fits
-
-
-def _refined(
-    objects: SceneObjects,
-    boxes: FloatArray,
-    masks: NDArray[np.bool_],
-    compatible: NDArray[np.bool_],
-    first: tuple[PoseFit, bool],
-    pairs: tuple[NDArray[np.intp], NDArray[np.intp]],
-    intrinsics: Intrinsics,
-    size: tuple[float, float],
-) -> _Fit | None:
-    """A hypothesis' first fit (:func:`_focal_fits`, on the hypothesis' ``pairs``) with its
-    pairs re-drawn and its edges refitted (module docstring); None when the refined pose pairs
-    no detection at all. When the pairs come back as they were and the focal length was not
-    fitted, the first fit stands: it has converged on them already, a refit only moves it
-    within the fit's tolerance (with the focal fitted it can go on from where the first fit's
-    bounded steps stopped, and does)."""
-    fit, focal = first
-    dets, objs = _reassign(objects, boxes, masks, compatible, fit, *size)
-    if len(dets) == 0:
-        return None
-    estimated = focal and len(dets) >= MIN_FOCAL_PAIRS
-    if not focal and _same_pairs((dets, objs), pairs):
-        return _Fit(fit=fit, detections=pairs[0], objects=pairs[1], source="scene")
-    # Too few pairs left to hold the focal length: back to the scene camera's.
-    k = fit.intrinsics if estimated or not focal else intrinsics
-    if len(dets) >= 3:
-        fit = _fit_pairs(objects, boxes, masks, dets, objs, fit.rvec, fit.tvec, k, estimated)
-    else:
-        fit = refine_edges(objects.subset(objs), boxes[dets], masks[dets], fit.rvec, fit.tvec, k)
-    return _Fit(
-        fit=fit, detections=dets, objects=objs, source="estimated" if estimated else "scene"
-    )
-
-
-def _same_pairs(
-    a: tuple[NDArray[np.intp], NDArray[np.intp]], b: tuple[NDArray[np.intp], NDArray[np.intp]]
-) -> bool:
-    """Whether two pairings ``(detections, objects)`` pair the same detections with the same
-    objects, in any order."""
-
-    def pairs(p: tuple[NDArray[np.intp], NDArray[np.intp]]) -> list[tuple[int, int]]:
-        return sorted(zip(p[0].tolist(), p[1].tolist(), strict=True))
-
-    return pairs(a) == pairs(b)
-
-
 def _candidate(
-    fit: _Fit,
+    fit: Fit,
     objects: SceneObjects,
     evidence: tuple[FloatArray, NDArray[np.bool_], tuple[str, ...], NDArray[np.intp]],
     width: float,
@@ -304,13 +152,13 @@ def _candidate(
     )
 
 
-def _distinct_best(fits: list[_Fit], radius: float, gates: FloatArray) -> list[_Fit]:
+def _distinct_best(fits: list[Fit], radius: float, gates: FloatArray) -> list[Fit]:
     """The fits, best first (least :func:`truncated_cost`, then most pairs), one of each
     distinct pose."""
     ranked = sorted(
         fits, key=lambda f: (truncated_cost(f.fit, f.detections, gates), -len(f.detections))
     )
-    kept: list[_Fit] = []
+    kept: list[Fit] = []
     for f in ranked:
         if all(distinct(f.key, k.key, radius) for k in kept):
             kept.append(f)
@@ -406,19 +254,17 @@ def _solve(
     )
     starts = [(h.rvec, h.tvec, h.detections, h.objects) for h in hyps[:REFINED_HYPOTHESES]]
     fits = []
-    firsts = _focal_fits(objects, boxes, masks, starts, k0, not given)
+    edge_fits = EdgeFits(objects, boxes, masks)
+    firsts = focal_fits(edge_fits, starts, k0, not given)
     for first, (_, _, dets, objs) in zip(firsts, starts, strict=True):
-        fit = _refined(objects, boxes, masks, compatible, first, (dets, objs), k0, (width, height))
+        fit = refined(edge_fits, compatible, first, (dets, objs), k0, (width, height))
         if fit is not None and fit.fit.position()[2] > 0.0:
-            fits.append(
-                fit if not given else _Fit(fit.fit, fit.detections, fit.objects, known_from)
-            )
+            fits.append(fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from))
     if not fits:
         few = few_detections(compatible, np.argsort(-scores, kind="stable"))
         source: IntrinsicsSource = known_from if given else "scene"
         fits = [
-            _Fit(f, d, o, source)
-            for f, d, o in few_fits(objects, boxes, masks, compatible, few, k0)
+            Fit(f, d, o, source) for f, d, o in few_fits(objects, boxes, masks, compatible, few, k0)
         ]
     ranked = _distinct_best(fits, objects.radius, inlier_gate(boxes))
     if not ranked:
