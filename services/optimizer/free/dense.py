@@ -53,9 +53,14 @@ Fit
     the other): 559 → 245 ms median (p95 784 → 387) with the focal fitted, 113 → 70 ms (p95
     186 → 100) with the intrinsics given.
 
-    ``least_squares`` solves its trust-region steps by LSMR: its default (an SVD of the
-    Jacobian each step) took ~35 ms instead of ~1 ms per step on this 2-core machine under load,
-    the multi-threaded BLAS fighting the other processes.
+    ``least_squares`` solves the pose's trust-region steps exactly (an SVD of the ``n x 6``
+    Jacobian) and the pose-and-focal ones by LSMR. LSMR was first chosen for both on a report
+    of ~35 ms per SVD under load; measured again (numpy 2.4, demo free targets of seed 1, ms
+    per call, median), the pose alone took 75 ms with LSMR and 45 exact when idle, 67-85 and
+    52 with two busy processes on the two cores, landing on the same poses (to 0.02 units).
+    With the focal fitted the exact steps were faster too (160 against 210 ms idle), but the
+    fits moved along the dolly-zoom valley (below), which neither solver pins: the garden-steep
+    case of ``tests/optimizer/test_dense.py`` ended 1.4 % off in fov instead of within 1 %.
 
 Unknown focal length
     Distance and focal length trade off along a long, flat valley (a dolly zoom), and the box
@@ -240,7 +245,7 @@ def _fit(problem: ChamferProblem, x: FloatArray) -> FloatArray:
         loss="soft_l1",
         f_scale=problem.level.sigma,
         x_scale="jac",
-        tr_solver="lsmr",
+        tr_solver="lsmr" if problem.fit_focal else "exact",
         xtol=X_TOLERANCE,
         max_nfev=MAX_EVALUATIONS,
     ).x
