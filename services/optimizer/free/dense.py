@@ -53,14 +53,17 @@ Fit
     the other): 559 → 245 ms median (p95 784 → 387) with the focal fitted, 113 → 70 ms (p95
     186 → 100) with the intrinsics given.
 
-    ``least_squares`` solves the pose's trust-region steps exactly (an SVD of the ``n x 6``
-    Jacobian) and the pose-and-focal ones by LSMR. LSMR was first chosen for both on a report
-    of ~35 ms per SVD under load; measured again (numpy 2.4, demo free targets of seed 1, ms
-    per call, median), the pose alone took 75 ms with LSMR and 45 exact when idle, 67-85 and
-    52 with two busy processes on the two cores, landing on the same poses (to 0.02 units).
-    With the focal fitted the exact steps were faster too (160 against 210 ms idle), but the
-    fits moved along the dolly-zoom valley (below), which neither solver pins: the garden-steep
-    case of ``tests/optimizer/test_dense.py`` ended 1.4 % off in fov instead of within 1 %.
+    ``least_squares`` solves its trust-region steps exactly (an SVD of the ``n x 6`` or
+    ``n x 7`` Jacobian). LSMR was chosen first, on a report of ~35 ms per SVD under load;
+    measured again (numpy 2.4, demo free targets of seed 1, ms per call, median), the pose
+    alone took 75 ms with LSMR and 45 exact when idle, 67-85 and 52 with two busy processes on
+    the two cores, landing on the same poses (to 0.02 units); the pose and focal 210 and 160 ms
+    idle. Fits of the focal then land elsewhere along the dolly-zoom valley (below). Through the
+    stack (``cosmos bench --free --scene demo --random-scenes 2 --n 8``, 27 targets without
+    the fov on clean, JPEG and noise per seed, one run each way), exact steps took 27 of 27
+    within 5 %/2° against 26 on seed 1 (median fov error 0.54 % against 0.47 %) and 14 against
+    11 on seed 2 (3.7 % against 5.3 %), and the median search without the fov took 669 against
+    840 ms (seed 1) and 1034 against 1224 ms (seed 2).
 
 Unknown focal length
     Distance and focal length trade off along a long, flat valley (a dolly zoom), and the box
@@ -245,7 +248,7 @@ def _fit(problem: ChamferProblem, x: FloatArray) -> FloatArray:
         loss="soft_l1",
         f_scale=problem.level.sigma,
         x_scale="jac",
-        tr_solver="lsmr" if problem.fit_focal else "exact",
+        tr_solver="exact",
         xtol=X_TOLERANCE,
         max_nfev=MAX_EVALUATIONS,
     ).x
