@@ -338,23 +338,23 @@ def hypotheses(
     k = intrinsics.matrix()
     score = np.ones(len(b)) if confidence is None else np.asarray(confidence, dtype=np.float64)
     order = np.argsort(-score, kind="stable")
-    rvecs, tvecs = [], []
     rng = np.random.default_rng(seed)
-    camera = (objects, intrinsics)
-    for dets, objs in minimal_sets(label_cost, b, order, rng, general, camera):
-        count, rs, ts = cv2.solveP3P(
-            objects.centroids[list(objs)],
-            centres[list(dets)],
-            k,
-            None,
-            flags=cv2.SOLVEPNP_AP3P,
-        )
-        for s in range(int(count)):
-            rvecs.append(np.asarray(rs[s], dtype=np.float64).reshape(3))
-            tvecs.append(np.asarray(ts[s], dtype=np.float64).reshape(3))
+    sets = minimal_sets(label_cost, b, order, rng, general, (objects, intrinsics))
+    if not sets:
+        return []
+    # Indexed once for all sets: per set, the indexing took half as long again as the solve.
+    world = objects.centroids[np.array([objs for _, objs in sets], dtype=np.intp)]
+    image = centres[np.array([dets for dets, _ in sets], dtype=np.intp)]
+    rvecs: list[ArrayLike] = []
+    tvecs: list[ArrayLike] = []
+    for n in range(len(sets)):
+        count, rs, ts = cv2.solveP3P(world[n], image[n], k, None, flags=cv2.SOLVEPNP_AP3P)
+        rvecs.extend(rs[: int(count)])
+        tvecs.extend(ts[: int(count)])
     if not rvecs:
         return []
-    r_all, t_all = np.array(rvecs), np.array(tvecs)
+    r_all = np.array(rvecs, dtype=np.float64).reshape(-1, 3)
+    t_all = np.array(tvecs, dtype=np.float64).reshape(-1, 3)
     rotations = Rotation.from_rotvec(r_all).as_matrix()
     above = np.all(np.isfinite(t_all), axis=1) & (
         -np.einsum("nji,nj->ni", rotations, t_all)[:, 2] > 0.0
