@@ -39,8 +39,9 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable
 from dataclasses import dataclass
-from typing import NoReturn
+from typing import NoReturn, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -208,6 +209,9 @@ def _result(
     return result, chosen.index
 
 
+T = TypeVar("T")
+
+
 @dataclass(frozen=True)
 class _Step:
     """Which candidate an iteration renders: its index, of how many, whether the optimizer's
@@ -222,7 +226,8 @@ class _Step:
 @dataclass(frozen=True)
 class _Seen:
     """A candidate's render: the camera rendered, its archive (colours, depth, object ids),
-    its detections, how they compare with the target's, render and detect milliseconds."""
+    its detections, how they compare with the target's, render, detect and dense refinement
+    milliseconds (the last two side by side)."""
 
     camera: FreeCamera
     archive: bytes
@@ -230,6 +235,14 @@ class _Seen:
     check: FreeMatch
     render_ms: float
     detect_ms: float
+    refine_ms: float
+
+
+async def _timed(work: Awaitable[T]) -> tuple[T, float]:
+    """``work``'s result and the milliseconds it took."""
+    started = time.perf_counter()
+    result = await work
+    return result, (time.perf_counter() - started) * 1000
 
 
 def _iteration(
@@ -259,7 +272,8 @@ def _iteration(
             render_ms=seen.render_ms,
             detect_ms=seen.detect_ms,
             optimize_ms=step.optimize_ms,
-            total_ms=seen.render_ms + seen.detect_ms + step.optimize_ms,
+            refine_ms=seen.refine_ms,
+            total_ms=seen.render_ms + max(seen.detect_ms, seen.refine_ms) + step.optimize_ms,
         ),
         estimate=direction_pose(pose.position),
         estimate_grid=nearest,
@@ -431,15 +445,15 @@ class FreeSearchLoop:
         needs the other: the refinement takes the render's own depth, not its detections)."""
         camera, archive, colours, render_ms = await self._render(search, scene, target[1], pose)
         refined = asyncio.create_task(
-            refine_by_render(self.stages, self.outages, search, image, pose, archive)
+            _timed(refine_by_render(self.stages, self.outages, search, image, pose, archive))
         )
         try:
             found, check, detect_ms = await self._compare(search, target, pose, colours)
         except BaseException:
             refined.cancel()  # the search fails (or is cancelled) as it would have without it
             raise
-        outcome = await refined
-        return _Seen(camera, archive, found, check, render_ms, detect_ms), outcome
+        outcome, refine_ms = await refined
+        return _Seen(camera, archive, found, check, render_ms, detect_ms, refine_ms), outcome
 
     async def _render(
         self, search: Search, scene: SceneDetail, size: tuple[int, int], pose: FreePose

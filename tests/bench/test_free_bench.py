@@ -169,6 +169,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         assert r.floor_ms > 0
         assert r.detections >= 3
         assert r.render_ms > 0  # the search's own render, from its iterations' timings
+        assert r.refine_ms > 0  # and the dense fit by it
         raw, query = answered[r.search_id]
         target = drawn[r.search_id]
         assert query["mode"] == "free"

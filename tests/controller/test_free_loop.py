@@ -749,6 +749,21 @@ def test_the_render_is_detected_and_refined_at_once(tmp_path, detail):
     assert stages.order == ["detect starts", "fit starts", "fit ends", "detect ends"]
 
 
+@pytest.mark.parametrize("fit_s", [0.01, 0.12])
+def test_an_iteration_times_its_dense_fit_beside_its_detection(tmp_path, detail, fit_s):
+    """The fit's own milliseconds, whether it ends before the view's detection (50 ms) or
+    after; the iteration's total counts the longer of the two."""
+    final = run(tmp_path, Overlapping(detail, fit_s=fit_s))
+    assert final.status == "succeeded", final.error
+    timings = final.iterations[0].timings
+    assert timings.detect_ms >= 50.0
+    assert timings.refine_ms >= fit_s * 1000
+    # the fit's own time, not the wait for the detection that ran beside it
+    assert (timings.refine_ms < timings.detect_ms) == (fit_s < 0.05)
+    slower = max(timings.detect_ms, timings.refine_ms)
+    assert timings.total_ms == pytest.approx(timings.render_ms + slower + timings.optimize_ms)
+
+
 def test_a_view_the_detector_refuses_fails_the_search_and_stops_its_fit(tmp_path, detail):
     problem = ProblemDetails(
         type="urn:cosmos:problem:bad-request", title="Bad request", status=422, detail="too big"

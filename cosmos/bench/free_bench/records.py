@@ -116,6 +116,8 @@ class FreeRecord(FrozenModel):
     iterations' timings say (the target's detection is not among them)."""
     detect_ms: float = 0.0
     optimize_ms: float = 0.0
+    refine_ms: float = 0.0
+    """The dense refinements by the search's renders (each alongside a view detection)."""
     floor_detect_ms: float | None = None
     floor_render_ms: float | None = None
     floor_view_detect_ms: float | None = None

@@ -159,9 +159,9 @@ def goal_checks_by_detector(records: Sequence[FreeRecord]) -> list[str]:
 
 
 def time_line(records: Sequence[FreeRecord]) -> str:
-    """Where a search's wall time goes (medians, ms): its renders, view detections and
-    optimizer calls as its iterations time them, the rest (target detection, HTTP, queue,
-    database); and the floor's parts."""
+    """Where a search's wall time goes (medians, ms): its renders, view detections, box solves
+    and dense refinements (each alongside a view detection) as its iterations time them, the
+    rest (target detection, HTTP, queue, database); and the floor's parts."""
     ran = [r for r in records if r.outcome != "error"]
     timed = [r for r in ran if r.floor_ms is not None]
     if not ran or not timed:
@@ -175,7 +175,8 @@ def time_line(records: Sequence[FreeRecord]) -> str:
     return (
         f"time (medians, ms): wall {med([r.wall_ms for r in ran])} = renders "
         f"{med([r.render_ms for r in ran])} + view detections {med([r.detect_ms for r in ran])}"
-        f" + optimizer {med([r.optimize_ms for r in ran])} + the rest; floor "
+        f" + box solve {med([r.optimize_ms for r in ran])} + dense refinement "
+        f"{med([r.refine_ms for r in ran])} (alongside the detections) + the rest; floor "
         f"{med([r.floor_ms for r in timed])} = detect the target "
         f"{med([r.floor_detect_ms for r in timed])} + render "
         f"{med([r.floor_render_ms for r in timed])} + detect "

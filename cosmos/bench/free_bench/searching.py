@@ -225,6 +225,7 @@ async def search_target(
         render_ms=sum(t.get("render_ms", 0.0) for t in timings),
         detect_ms=sum(t.get("detect_ms", 0.0) for t in timings),
         optimize_ms=sum(t.get("optimize_ms", 0.0) for t in timings),
+        refine_ms=sum(t.get("refine_ms", 0.0) for t in timings),
         floor_detect_ms=floor[0] if floor else None,
         floor_render_ms=floor[1] if floor else None,
         floor_view_detect_ms=floor[2] if floor else None,

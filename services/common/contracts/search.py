@@ -130,6 +130,10 @@ class StageTimings(FrozenModel):
     render_ms: NonNegMs = 0.0
     detect_ms: NonNegMs = 0.0
     optimize_ms: NonNegMs = 0.0
+    refine_ms: NonNegMs = Field(
+        default=0.0,
+        description="A free search's dense refinement by the render (alongside the detection).",
+    )
     total_ms: NonNegMs = 0.0
 
 
