@@ -39,9 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Awaitable
-from dataclasses import dataclass
-from typing import NoReturn, TypeVar
+from typing import NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,17 +56,16 @@ from services.common.contracts.free import (
 from services.common.contracts.optimize import ImageDetections
 from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.render import SceneDetail
-from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
+from services.common.contracts.search import Iteration, Search, SearchResult
 from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import FreeCamera, direction_pose
 from services.common.geometry.grid import HemisphereGrid
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
+from services.controller.free_iterations import Seen, Step, iteration_of, timed, timings_of
 from services.controller.free_match import FreeMatch, compare_view, view_film
 from services.controller.free_refine import (
-    edges_agree,
-    edges_contradict,
     edges_pin,
     refine_by_render,
     refined_result,
@@ -94,36 +91,6 @@ def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
             "cy_px": k.cy_px * scale,
         }
     )
-
-
-def _agreement(check: FreeMatch, edges: RefinePoseResponse | str | None) -> str:
-    m = check.match
-    if check.agree and edges_contradict(edges):
-        assert isinstance(edges, RefinePoseResponse)
-        fit = edges.fit
-        return (
-            f"its render's boxes agree with the target's (RMS {m.rms_px or 0.0:.2f} px), but "
-            f"its edges do not: {fit.inliers} of {fit.edge_points} on the target's after the "
-            "dense fit"
-        )
-    if check.agree:
-        return f"its render agrees with the target box by box (RMS {m.rms_px or 0.0:.2f} px)"
-    boxes = (
-        f"{len(check.missing)} paired object(s) not seen where the target shows them "
-        f"({m.pairs} seen again)"
-    )
-    if edges_agree(edges):
-        assert isinstance(edges, RefinePoseResponse)
-        fit = edges.fit
-        return (
-            f"its render's boxes disagree with the target's ({boxes}), but its edges agree: "
-            f"{fit.inliers} of {fit.edge_points} on the target's after the dense fit"
-        )
-    said = f"its render disagrees with the target: {boxes}"
-    if isinstance(edges, RefinePoseResponse):
-        fit = edges.fit
-        return f"{said}; {fit.inliers} of {fit.edge_points} edges on the target's ({fit.reason})"
-    return said
 
 
 def _explains(iteration: Iteration, edges: RefinePoseResponse | str | None) -> tuple[float, ...]:
@@ -207,85 +174,6 @@ def _result(
         ),
     )
     return result, chosen.index
-
-
-T = TypeVar("T")
-
-
-@dataclass(frozen=True)
-class _Step:
-    """Which candidate an iteration renders: its index, of how many, whether the optimizer's
-    answer was ambiguous, and the optimizer's milliseconds spent for it (the first's)."""
-
-    index: int
-    count: int
-    ambiguous: bool
-    optimize_ms: float
-
-
-@dataclass(frozen=True)
-class _Seen:
-    """A candidate's render: the camera rendered, its archive (colours, depth, object ids),
-    its detections, how they compare with the target's, render, detect and dense refinement
-    milliseconds (the last two side by side)."""
-
-    camera: FreeCamera
-    archive: bytes
-    found: DetectResponse
-    check: FreeMatch
-    render_ms: float
-    detect_ms: float
-    refine_ms: float
-
-
-async def _timed(work: Awaitable[T]) -> tuple[T, float]:
-    """``work``'s result and the milliseconds it took."""
-    started = time.perf_counter()
-    result = await work
-    return result, (time.perf_counter() - started) * 1000
-
-
-def _iteration(
-    step: _Step,
-    pose: FreePose,
-    following: FreePose | None,
-    seen: _Seen,
-    grid: HemisphereGrid,
-    edges: RefinePoseResponse | str | None,
-) -> Iteration:
-    """The iteration that rendered ``pose`` (its dense fit ``edges``), going on to
-    ``following`` if its render disagreed."""
-    nearest = nearest_grid_pose(pose.position, grid)
-    check = seen.check
-    agreed = (check.agree and not edges_contradict(edges)) or edges_agree(edges)
-    next_pose = (
-        nearest_grid_pose(following.position, grid)
-        if following is not None and not agreed
-        else None
-    )
-    return Iteration(
-        index=step.index,
-        pose=nearest,
-        image_size=seen.found.image_size,
-        detections=seen.found.detections,
-        timings=StageTimings(
-            render_ms=seen.render_ms,
-            detect_ms=seen.detect_ms,
-            optimize_ms=step.optimize_ms,
-            refine_ms=seen.refine_ms,
-            total_ms=seen.render_ms + max(seen.detect_ms, seen.refine_ms) + step.optimize_ms,
-        ),
-        estimate=direction_pose(pose.position),
-        estimate_grid=nearest,
-        confidence=pose.confidence * check.match.score,
-        ambiguous=step.ambiguous,
-        next_pose=next_pose,
-        done=agreed,
-        reason=f"pose {step.index + 1} of {step.count}: {_agreement(check, edges)}",
-        match=check.match,
-        detector_sha256=seen.found.model.sha256,
-        camera=seen.camera,
-    )
 
 
 class FreeSearchLoop:
@@ -388,9 +276,9 @@ class FreeSearchLoop:
                 search, scene, (target, size), image, candidates[k]
             )
             edges[k] = outcome
-            step = _Step(k, len(candidates), answer.status != "found", optimize_ms)
+            step = Step(k, len(candidates), answer.status != "found", optimize_ms)
             following = candidates[k + 1] if k + 1 < budget else None
-            iteration = _iteration(step, candidates[k], following, seen_view, grid, outcome)
+            iteration = iteration_of(step, candidates[k], following, seen_view, grid, outcome)
             optimize_ms = 0.0
             history.append(iteration)
             writes.hold(iteration, seen)
@@ -404,7 +292,7 @@ class FreeSearchLoop:
                 pinned = edges_pin(outcome, search.intrinsics, answer.ambiguity)
                 result, _ = _result(answer, history, grid, edges, by_edges=by_edges, pinned=pinned)
                 return await writes.succeed(
-                    with_refit_renders(refined_result(result, outcome, grid), extra)
+                    with_refit_renders(refined_result(result, outcome, grid), timings_of(extra))
                 )
         result, chosen = _result(answer, history, grid, edges)
         if chosen in edges:
@@ -419,18 +307,18 @@ class FreeSearchLoop:
         image: bytes,
         outcome: RefinePoseResponse | str,
         rendered: int,
-    ) -> tuple[RefinePoseResponse | str, int]:
+    ) -> tuple[RefinePoseResponse | str, Seen | None]:
         """One render more at an accepted fit that asks for it (``render_again``: the focal
         length was fitted far from the render), within the search's ``max_iterations``, and the
-        refit from there, kept when accepted: the outcome and the renders it added."""
+        refit from there, kept when accepted: the outcome and the render it added, if any."""
         if isinstance(outcome, str) or not outcome.fit.render_again:
-            return outcome, 0
+            return outcome, None
         if rendered >= search.max_iterations:
-            return outcome, 0
-        _, again = await self._render_and_check(search, scene, target, image, outcome.pose)
+            return outcome, None
+        seen, again = await self._render_and_check(search, scene, target, image, outcome.pose)
         if isinstance(again, str) or not again.fit.accepted:
-            return outcome, 1
-        return again, 1
+            return outcome, seen
+        return again, seen
 
     async def _render_and_check(
         self,
@@ -439,13 +327,13 @@ class FreeSearchLoop:
         target: tuple[tuple[Detection, ...], tuple[int, int]],
         image: bytes,
         pose: FreePose,
-    ) -> tuple[_Seen, RefinePoseResponse | str]:
+    ) -> tuple[Seen, RefinePoseResponse | str]:
         """``pose`` rendered, then at once detected and compared with the ``target`` (its
         detections and size) and refined densely against its ``image`` by that render (neither
         needs the other: the refinement takes the render's own depth, not its detections)."""
         camera, archive, colours, render_ms = await self._render(search, scene, target[1], pose)
         refined = asyncio.create_task(
-            _timed(refine_by_render(self.stages, self.outages, search, image, pose, archive))
+            timed(refine_by_render(self.stages, self.outages, search, image, pose, archive))
         )
         try:
             found, check, detect_ms = await self._compare(search, target, pose, colours)
@@ -453,7 +341,7 @@ class FreeSearchLoop:
             refined.cancel()  # the search fails (or is cancelled) as it would have without it
             raise
         outcome, refine_ms = await refined
-        return _Seen(camera, archive, found, check, render_ms, detect_ms, refine_ms), outcome
+        return Seen(camera, archive, found, check, render_ms, detect_ms, refine_ms), outcome
 
     async def _render(
         self, search: Search, scene: SceneDetail, size: tuple[int, int], pose: FreePose

@@ -39,7 +39,7 @@ from services.common.contracts.free import (
     nearest_grid_pose,
 )
 from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
-from services.common.contracts.search import Search, SearchResult
+from services.common.contracts.search import Search, SearchResult, StageTimings
 from services.common.geometry.free_camera import direction_pose
 from services.common.geometry.grid import HemisphereGrid
 from services.controller.failures import SearchFailed
@@ -220,16 +220,17 @@ def refined_result(
     )
 
 
-def with_refit_renders(result: SearchResult, renders: int) -> SearchResult:
-    """``result`` with ``renders`` more spent on refitting (module docstring), said in its
-    reason."""
+def with_refit_renders(result: SearchResult, timings: StageTimings | None) -> SearchResult:
+    """``result`` with the render spent on refitting (module docstring; its ``timings``, None
+    when none was made), said in its reason."""
     free = result.free
-    if renders == 0 or free is None:
+    if timings is None or free is None:
         return result
     return result.model_copy(
         update={
-            "renders": result.renders + renders,
-            "reason": f"{result.reason}; refitted by {renders} more render(s) at the refined pose",
-            "free": free.model_copy(update={"renders": free.renders + renders}),
+            "renders": result.renders + 1,
+            "reason": f"{result.reason}; refitted by one more render at the refined pose",
+            "free": free.model_copy(update={"renders": free.renders + 1}),
+            "refit_timings": timings,
         }
     )

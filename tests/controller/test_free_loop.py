@@ -313,7 +313,13 @@ def test_a_fit_that_asks_for_it_is_refitted_by_one_more_render(
     if renders == 2:  # rendered at the first fit's pose, refitted from it, once only
         assert stages.rendered[1][0].position == pytest.approx((0.0, -3.9, 5.0))
         assert stages.refinements[1].pose.position == pytest.approx((0.0, -3.9, 5.0))
-        assert "refitted by 1 more render(s)" in result.reason
+        assert "refitted by one more render" in result.reason
+        # its milliseconds are the result's, not an iteration's
+        assert result.refit_timings is not None
+        assert result.refit_timings.render_ms > 0.0
+        assert result.refit_timings.refine_ms > 0.0
+    else:
+        assert result.refit_timings is None
     assert len(final.iterations) == 1  # the refit render is not an iteration of the search
 
 

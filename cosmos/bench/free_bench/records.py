@@ -113,7 +113,8 @@ class FreeRecord(FrozenModel):
     wall_ms: float = 0.0
     render_ms: float = 0.0
     """The search's own renders, detections of its views and optimizer calls, as its
-    iterations' timings say (the target's detection is not among them)."""
+    iterations' timings say, and the refit render's after them (the target's detection is not
+    among them)."""
     detect_ms: float = 0.0
     optimize_ms: float = 0.0
     refine_ms: float = 0.0

@@ -211,6 +211,7 @@ async def search_target(
     baseline = baseline_of_detections(objects, detections, (int(size[0]), int(size[1])), fov)
     error = raw.get("error") or {}
     timings = [it.get("timings") or {} for it in raw.get("iterations") or ()]
+    timings.append(result.get("refit_timings") or {})  # a render after the iterations, if any
     return FreeRecord(
         **common,
         search_id=raw.get("id"),

@@ -196,6 +196,12 @@ class SearchResult(FrozenModel):
         "intrinsics, the pairs, residual and alternatives; `pose` is then the grid pose nearest "
         "it and `refined_pose` its direction from the scene centre. Null for a hemisphere search.",
     )
+    refit_timings: StageTimings | None = Field(
+        default=None,
+        description="A free search's renders after its iterations, at the refined pose (a fit "
+        "of the focal length that moved far from the render): their render, detect and dense "
+        "refinement milliseconds, summed. Null when none was made.",
+    )
 
 
 class Search(FrozenModel):

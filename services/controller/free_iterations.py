@@ -1,0 +1,142 @@
+"""A free search's rendered candidate as the search records it: which candidate it was, what
+its render showed, the iteration that says so (with its timings) and why it agreed or not.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Awaitable
+from dataclasses import dataclass
+from typing import TypeVar
+
+from services.common.contracts.detect import DetectResponse
+from services.common.contracts.free import FreePose, nearest_grid_pose
+from services.common.contracts.refine import RefinePoseResponse
+from services.common.contracts.search import Iteration, StageTimings
+from services.common.geometry.free_camera import FreeCamera, direction_pose
+from services.common.geometry.grid import HemisphereGrid
+from services.controller.free_match import FreeMatch
+from services.controller.free_refine import edges_agree, edges_contradict
+
+__all__ = ["Seen", "Step", "iteration_of", "timed", "timings_of"]
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Step:
+    """Which candidate an iteration renders: its index, of how many, whether the optimizer's
+    answer was ambiguous, and the optimizer's milliseconds spent for it (the first's)."""
+
+    index: int
+    count: int
+    ambiguous: bool
+    optimize_ms: float
+
+
+@dataclass(frozen=True)
+class Seen:
+    """A candidate's render: the camera rendered, its archive (colours, depth, object ids),
+    its detections, how they compare with the target's, render, detect and dense refinement
+    milliseconds (the last two side by side)."""
+
+    camera: FreeCamera
+    archive: bytes
+    found: DetectResponse
+    check: FreeMatch
+    render_ms: float
+    detect_ms: float
+    refine_ms: float
+
+
+async def timed(work: Awaitable[T]) -> tuple[T, float]:
+    """``work``'s result and the milliseconds it took."""
+    started = time.perf_counter()
+    result = await work
+    return result, (time.perf_counter() - started) * 1000
+
+
+def timings_of(seen: Seen | None) -> StageTimings | None:
+    """A render's milliseconds (render, then detection and dense fit side by side)."""
+    if seen is None:
+        return None
+    slower = max(seen.detect_ms, seen.refine_ms)
+    return StageTimings(
+        render_ms=seen.render_ms,
+        detect_ms=seen.detect_ms,
+        refine_ms=seen.refine_ms,
+        total_ms=seen.render_ms + slower,
+    )
+
+
+def iteration_of(
+    step: Step,
+    pose: FreePose,
+    following: FreePose | None,
+    seen: Seen,
+    grid: HemisphereGrid,
+    edges: RefinePoseResponse | str | None,
+) -> Iteration:
+    """The iteration that rendered ``pose`` (its dense fit ``edges``), going on to
+    ``following`` if its render disagreed."""
+    nearest = nearest_grid_pose(pose.position, grid)
+    check = seen.check
+    agreed = (check.agree and not edges_contradict(edges)) or edges_agree(edges)
+    next_pose = (
+        nearest_grid_pose(following.position, grid)
+        if following is not None and not agreed
+        else None
+    )
+    return Iteration(
+        index=step.index,
+        pose=nearest,
+        image_size=seen.found.image_size,
+        detections=seen.found.detections,
+        timings=StageTimings(
+            render_ms=seen.render_ms,
+            detect_ms=seen.detect_ms,
+            optimize_ms=step.optimize_ms,
+            refine_ms=seen.refine_ms,
+            total_ms=seen.render_ms + max(seen.detect_ms, seen.refine_ms) + step.optimize_ms,
+        ),
+        estimate=direction_pose(pose.position),
+        estimate_grid=nearest,
+        confidence=pose.confidence * check.match.score,
+        ambiguous=step.ambiguous,
+        next_pose=next_pose,
+        done=agreed,
+        reason=f"pose {step.index + 1} of {step.count}: {_agreement(check, edges)}",
+        match=check.match,
+        detector_sha256=seen.found.model.sha256,
+        camera=seen.camera,
+    )
+
+
+def _agreement(check: FreeMatch, edges: RefinePoseResponse | str | None) -> str:
+    m = check.match
+    if check.agree and edges_contradict(edges):
+        assert isinstance(edges, RefinePoseResponse)
+        fit = edges.fit
+        return (
+            f"its render's boxes agree with the target's (RMS {m.rms_px or 0.0:.2f} px), but "
+            f"its edges do not: {fit.inliers} of {fit.edge_points} on the target's after the "
+            "dense fit"
+        )
+    if check.agree:
+        return f"its render agrees with the target box by box (RMS {m.rms_px or 0.0:.2f} px)"
+    boxes = (
+        f"{len(check.missing)} paired object(s) not seen where the target shows them "
+        f"({m.pairs} seen again)"
+    )
+    if edges_agree(edges):
+        assert isinstance(edges, RefinePoseResponse)
+        fit = edges.fit
+        return (
+            f"its render's boxes disagree with the target's ({boxes}), but its edges agree: "
+            f"{fit.inliers} of {fit.edge_points} on the target's after the dense fit"
+        )
+    said = f"its render disagrees with the target: {boxes}"
+    if isinstance(edges, RefinePoseResponse):
+        fit = edges.fit
+        return f"{said}; {fit.inliers} of {fit.edge_points} edges on the target's ({fit.reason})"
+    return said
