@@ -56,16 +56,16 @@ async def timed(work: Awaitable[T]) -> tuple[T, float]:
     return result, (time.perf_counter() - started) * 1000
 
 
-def timings_of(seen: Seen | None) -> StageTimings | None:
-    """A render's milliseconds (render, then detection and dense fit side by side)."""
-    if seen is None:
-        return None
+def timings_of(seen: Seen, optimize_ms: float = 0.0) -> StageTimings:
+    """A render's milliseconds: the optimizer's before it, the render, then detection and dense
+    fit side by side."""
     slower = max(seen.detect_ms, seen.refine_ms)
     return StageTimings(
         render_ms=seen.render_ms,
         detect_ms=seen.detect_ms,
+        optimize_ms=optimize_ms,
         refine_ms=seen.refine_ms,
-        total_ms=seen.render_ms + slower,
+        total_ms=optimize_ms + seen.render_ms + slower,
     )
 
 
@@ -92,13 +92,7 @@ def iteration_of(
         pose=nearest,
         image_size=seen.found.image_size,
         detections=seen.found.detections,
-        timings=StageTimings(
-            render_ms=seen.render_ms,
-            detect_ms=seen.detect_ms,
-            optimize_ms=step.optimize_ms,
-            refine_ms=seen.refine_ms,
-            total_ms=seen.render_ms + max(seen.detect_ms, seen.refine_ms) + step.optimize_ms,
-        ),
+        timings=timings_of(seen, step.optimize_ms),
         estimate=direction_pose(pose.position),
         estimate_grid=nearest,
         confidence=pose.confidence * check.match.score,

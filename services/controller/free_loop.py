@@ -288,11 +288,12 @@ class FreeSearchLoop:
                 outcome, extra = await self._refit(
                     search, scene, (target, size), image, outcome, len(history)
                 )
+                refit = timings_of(extra) if extra is not None else None
                 by_edges = not seen_view.check.agree
                 pinned = edges_pin(outcome, search.intrinsics, answer.ambiguity)
                 result, _ = _result(answer, history, grid, edges, by_edges=by_edges, pinned=pinned)
                 return await writes.succeed(
-                    with_refit_renders(refined_result(result, outcome, grid), timings_of(extra))
+                    with_refit_renders(refined_result(result, outcome, grid), refit)
                 )
         result, chosen = _result(answer, history, grid, edges)
         if chosen in edges:
