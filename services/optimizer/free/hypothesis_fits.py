@@ -97,8 +97,9 @@ class EdgeFits:
     boxes: FloatArray
     masks: NDArray[np.bool_]
     _made: list[tuple[tuple[object, ...], tuple[FloatArray, FloatArray], PoseFit]] = field(
-        default_factory=list
+        default_factory=list, init=False, repr=False
     )
+    """Each fit made: its problem (pairs, focal fitted, intrinsics), its start, the fit."""
 
     def fit(
         self,
