@@ -84,6 +84,12 @@ def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, s
     assert page.inner_text("#result").startswith("Found: camera at (")
     expect_view = f"free camera at ({fixed(final['iterations'][0]['camera']['position'], 2)})"
     assert expect_view in page.inner_text("#view-caption")
+    # the iteration's row says what its dense fit took, beside its detection
+    timings = final["iterations"][0]["timings"]
+    assert timings["refine_ms"] > 0
+    cells = page.locator("#iterations tbody tr").first.locator("td").all_inner_texts()
+    assert cells[8] == f"{timings['refine_ms']:.0f}"
+    assert cells[9] == f"{timings['total_ms']:.0f}"
 
     # the target with the boxes predicted at the answer, beside the detected ones
     predicted = [c for c in pose["correspondences"] if c["predicted_box"] is not None]
