@@ -33,6 +33,7 @@ from services.common.geometry.free_camera import FreeCamera
 from services.controller.events import Notifier
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
+from services.controller.free_refine import edges_contradict
 from services.controller.runner import SearchRunner
 from services.controller.stages import StageError
 from services.controller.store import SearchStore, open_store, utcnow
@@ -783,3 +784,33 @@ def test_a_view_the_detector_refuses_fails_the_search_and_stops_its_fit(tmp_path
     assert "too big" in (final.error.detail or "")
     assert final.iterations == ()
     assert stages.order == ["detect starts", "fit starts", "detect ends"]  # the fit cancelled
+
+
+@pytest.mark.parametrize(
+    ("converged", "accepted", "start", "end", "contradicts"),
+    [
+        (False, False, 600, 300, True),  # did not converge, few edges at its end
+        (False, False, 600, 500, False),  # did not converge, most edges at its end
+        (True, False, 50, 550, True),  # converged far from a render that showed few edges
+        (True, False, 400, 550, False),  # ... from one that showed many (another light)
+        (True, True, 50, 850, False),  # accepted: the render's pose refined
+    ],
+)
+def test_a_fit_contradicts_a_render_s_boxes_when_the_image_is_explained_elsewhere(
+    converged, accepted, start, end, contradicts
+):
+    fit = DenseReport(
+        converged=converged,
+        accepted=accepted,
+        reason="",
+        edge_points=900,
+        inliers=end,
+        start_inliers=start,
+        residual_px=0.4,
+        focal_fitted=False,
+        moved=30.0,
+        moved_rotation_deg=90.0,
+    )
+    outcome = RefinePoseResponse(pose=candidate(0.0), fit=fit)
+    assert edges_contradict(outcome) is contradicts
+    assert not edges_contradict("the optimizer stayed away")
