@@ -29,6 +29,7 @@ import math
 import tempfile
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +74,7 @@ Job = tuple[FreeTarget, VariantImage, Estimate]
 
 def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
     return {
-        "onboard": config.onboard or "none",
+        "onboard": config.onboard,
         "scenes": list(scenes),
         "n": config.n,
         "seed": config.seed,
@@ -186,7 +187,7 @@ class _OwnArm:
 
     def run(self, scenes: Sequence[str], scene_dir: Path, work_root: Path) -> bool:
         """Onboard and search each of ``scenes``; False when the deadline stopped it."""
-        onboard, why_not = onboarder(self.config.onboard or "default")
+        onboard, why_not = onboarder(self.config.onboard or "none")
         if onboard is None:
             self._note(why_not)
             return True
@@ -240,7 +241,7 @@ def _run(config: BenchConfig, root: Path) -> int:
         )
     if random_ids:
         notes.append("random scenes are searched with the general detector (not onboarded)")
-        if (config.onboard or "none") != "none":
+        if config.onboard != "none":
             notes.append(f"then onboarded ({config.onboard}) and searched with their own")
     complete = True
     with open_endpoints(config, spp=config.spp, width=config.width, scene_dirs=(scene_dir,)) as ep:
@@ -268,7 +269,7 @@ def _run(config: BenchConfig, root: Path) -> int:
             if not finished:
                 complete = False
                 break
-        if complete and random_ids and (config.onboard or "none") != "none":
+        if complete and random_ids and config.onboard != "none":
             own = _OwnArm(config, ep, calls, checkpoint, notes, deadline)
             complete = own.run(random_ids, scene_dir, root / "onboard")
     records = [r for r in checkpoint.records.values() if r.scene in scenes]
@@ -279,7 +280,7 @@ def _run(config: BenchConfig, root: Path) -> int:
         say(f"  {line}")
     say(time_line(records))
     skipped = sum(note.startswith("skipped ") for note in notes)  # scenes with no targets
-    onboarded = len(random_ids) if (config.onboard or "none") != "none" else 0
+    onboarded = len(random_ids) if config.onboard != "none" else 0
     planned = (len(scenes) + onboarded - skipped) * config.n * len(config.variants)
     if not complete:
         notes.append(
@@ -306,6 +307,7 @@ def run_free(config: BenchConfig) -> int:
     """The free-target bench (module docstring); the exit status (1 if any search errored)."""
     if config.url is not None:
         raise ValueError("--free starts its own stack (photo and changed need it): leave out --url")
+    config = replace(config, onboard=config.onboard or "none")
     if config.scenes_out is not None:
         return _run(config, config.scenes_out)
     with tempfile.TemporaryDirectory(prefix="cosmos-free-scenes-") as tmp:

@@ -148,8 +148,8 @@ def register(commands: Commands) -> None:
         choices=["none", "tiny", "default"],
         default=None,
         help="with --random-scenes: the onboarding preset of the per-scene models (none: skip; "
-        "default: default, and none with --free, whose generated scenes are then searched again "
-        "with their own models)",
+        "unset: default, or none with --free; with --free an onboarded scene's targets are "
+        "searched again with its own model)",
     )
     bench.add_argument(
         "--scenes-out", help="with --random-scenes: keep the scenes and models here (default: temp)"

@@ -198,9 +198,9 @@ class SearchResult(FrozenModel):
     )
     refit_timings: StageTimings | None = Field(
         default=None,
-        description="A free search's renders after its iterations, at the refined pose (a fit "
-        "of the focal length that moved far from the render): their render, detect and dense "
-        "refinement milliseconds, summed. Null when none was made.",
+        description="A free search's render after its iterations, at the refined pose (a fit "
+        "of the focal length that moved far from the render): its render, detect and dense "
+        "refinement milliseconds. Null when none was made.",
     )
 
 
