@@ -7,12 +7,16 @@ Every scene is random: 1–10 objects of the detector's classes (sphere, cube, c
 mesh), any size, colour (any hue, greys and dark ones included) or texture, touching and partly
 occluding; a plain or textured ground of random colour; a point light anywhere above the ground
 with random intensity and ambient; a camera of random fov and radius. Each scene is seen from
-``views_per_scene`` random poses over the whole hemisphere at one random image size. A share of
-the scenes are the built-in ``demo`` and ``garden`` from random poses. Labels come from the
+``views_per_scene`` random poses over the whole hemisphere at one random image size, or, for a
+share ``drone_share`` of the views, from a drone (:func:`~training.drone_views.drone_camera`: any
+distance, mostly down, rolled, fov ±30 %). A share of the scenes are the built-in ``demo`` and
+``garden`` from random poses. Labels come from the
 renderer's ground truth (per-pixel shape ids), so occlusion and image edges are exact.
 
-Sample ``i`` of seed ``s`` depends only on ``(s, i)``: datasets are reproducible, and a held-out
-set is one rendered with a seed never used for training.
+Sample ``i`` of seed ``s`` depends only on ``(s, i)`` (and the drone share): datasets are
+reproducible, and a held-out set is one rendered with a seed never used for training. Whether a
+view is a drone's is drawn from a stream of its own, so a dataset rendered without drone views is
+the one it always was.
 """
 
 from __future__ import annotations
@@ -31,10 +35,13 @@ import numpy as np
 from scene_assets import value_noise
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.contracts.render import ObjectAnnotation, RenderAnnotations
+from services.common.geometry.free_camera import FreeCamera
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import LoadedScene, SceneSpec
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
+from services.renderer.view import resolve_free_camera
+from training.drone_views import drone_camera
 
 __all__ = [
     "View",
@@ -85,7 +92,7 @@ class Sample:
     scene: str
     width: int
     height: int
-    pose: Pose
+    pose: Pose | FreeCamera
     objects: tuple[LabelledObject, ...]
 
     def to_json(self) -> dict[str, Any]:
@@ -292,7 +299,7 @@ class View:
 
     index: int
     scene: LoadedScene
-    pose: Pose
+    pose: Pose | FreeCamera
     width: int
     height: int
     spp: int
@@ -306,6 +313,7 @@ def views(
     views_per_scene: int = 4,
     builtin_share: float = 0.15,
     skip: Callable[[range], bool] | None = None,
+    drone_share: float = 0.0,
 ) -> Iterator[View]:
     """The views ``0 .. count-1`` of dataset ``seed`` (groups for which ``skip`` is true are
     left out); ``assets`` is a folder prepared by :func:`asset_folder`."""
@@ -322,16 +330,24 @@ def views(
             scene = _loaded(random_scene(rng, textures), f"s{seed}-{first}", assets)
         width, height = IMAGE_SIZES[int(rng.integers(len(IMAGE_SIZES)))]
         for i in group:
-            pose = Pose(
+            pose: Pose | FreeCamera = Pose(
                 theta_deg=float(np.degrees(np.arccos(rng.uniform(0.06, 1.0)))),
                 phi_deg=float(rng.uniform(0, 360)),
             )
+            drone = np.random.default_rng([seed, i, 2])
+            if drone.random() < drone_share:
+                pose = drone_camera(scene, drone)
             spp = int(rng.choice([8, 16, 32]))
             yield View(i, scene, pose, width, height, spp, int(rng.integers(2**31)))
 
 
 def render_dataset(
-    out: Path, count: int, seed: int, views_per_scene: int = 4, builtin_share: float = 0.15
+    out: Path,
+    count: int,
+    seed: int,
+    views_per_scene: int = 4,
+    builtin_share: float = 0.15,
+    drone_share: float = 0.0,
 ) -> int:
     """Render samples ``0 .. count-1`` of ``seed`` into ``out`` (skipping finished ones).
 
@@ -348,12 +364,19 @@ def render_dataset(
     done = 0
     started = time.perf_counter()
     try:
-        todo = views(asset_folder(out), seed, count, views_per_scene, builtin_share, finished)
+        todo = views(
+            asset_folder(out), seed, count, views_per_scene, builtin_share, finished, drone_share
+        )
         for view in todo:
-            image = engine.render(
-                view.scene, view.pose, view.width, view.height, view.spp, seed=view.seed
+            where = (
+                resolve_free_camera(view.scene, view.pose, view.width, view.height)
+                if isinstance(view.pose, FreeCamera)
+                else view.pose
             )
-            ann = engine.annotate(view.scene, view.pose, view.width, view.height, None)
+            image = engine.render(
+                view.scene, where, view.width, view.height, view.spp, seed=view.seed
+            )
+            ann = engine.annotate(view.scene, where, view.width, view.height, None)
             sample = Sample(
                 view.index, view.scene.id, view.width, view.height, view.pose, _labels(ann)
             )
@@ -377,9 +400,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, required=True)
     parser.add_argument("--views-per-scene", type=int, default=4)
     parser.add_argument("--builtin-share", type=float, default=0.15)
+    parser.add_argument(
+        "--drone-share", type=float, default=0.0, help="share of the views taken from a drone"
+    )
     args = parser.parse_args(argv)
     started = time.perf_counter()
-    done = render_dataset(args.out, args.count, args.seed, args.views_per_scene, args.builtin_share)
+    done = render_dataset(
+        args.out,
+        args.count,
+        args.seed,
+        args.views_per_scene,
+        args.builtin_share,
+        args.drone_share,
+    )
     elapsed = time.perf_counter() - started
     print(f"rendered {done} samples into {args.out} in {elapsed:.0f} s")
     return 0

@@ -127,6 +127,7 @@ def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> 
             "datasets": state.get("data"),
             "training_minutes": round(sum(h["epoch_s"] for h in history) / 60, 1),
             "validation": history[-1] if history else None,
+            **({"fine_tuned_from": state["init"]} if state.get("init") else {}),
             "export_max_abs_error": error,
             **(extra or {}),
         },

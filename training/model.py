@@ -114,6 +114,7 @@ class Detector(nn.Module):
         super().__init__()
         c1, c2, c3, c4, c5 = width // 2, width, width * 2, width * 4, width * 6
         self.num_classes = num_classes
+        self.width = width
         self.stem = nn.Sequential(ConvBnAct(3, c1, 3, 2), ConvBnAct(c1, c2, 3, 2), CSPBlock(c2, c2))
         self.down3 = nn.Sequential(ConvBnAct(c2, c3, 3, 2), CSPBlock(c3, c3, 2))
         self.down4 = nn.Sequential(ConvBnAct(c3, c4, 3, 2), CSPBlock(c4, c4, 2))

@@ -7,9 +7,10 @@ label file exists). What varies from sample to sample:
 - the pose: of every six samples, two are grid poses of the scene's search grid, two lie anywhere
   in its θ range ``[min_theta_deg, max_theta_deg]`` (uniform in cos θ) and at any φ, so the model
   sees the views between grid poses that an off-grid target shows, and two are drone views
-  (:func:`drone_camera`): anywhere, looking anywhere at the objects, mostly down, rolled, through
-  another lens. A model trained on the hemisphere alone found 1 of 3 objects in such views of a
-  generated scene (``cosmos bench --free --onboard``, seed 2), where the general model found 3;
+  (:func:`~training.drone_views.drone_camera`): anywhere, looking anywhere at the objects,
+  mostly down, rolled, through another lens. A model trained on the hemisphere alone found 1 of 3
+  objects in such views of a generated scene (``cosmos bench --free --onboard``, seed 2), where
+  the general model found 3;
 - the lighting, per group of :data:`VIEWS_PER_LIGHTING` consecutive samples (each lighting is a
   scene load): the point light moves to a random place above the ground at 0.7–1.4 times its
   distance, its intensity is scaled by ``2^u``, ``u ~ U(-1, 1)`` (×0.5–2), the ambient by
@@ -34,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from services.common.contracts.render import RenderAnnotations
-from services.common.geometry.free_camera import FreeCamera, orbit_position
+from services.common.geometry.free_camera import FreeCamera
 from services.common.geometry.pose import Pose
 from services.common.geometry.scene import Lighting, LoadedScene, PointLight
 from services.common.scene_models import object_classes
@@ -42,12 +43,9 @@ from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 from services.renderer.view import resolve_free_camera
 from training.dataset import labelled_objects
+from training.drone_views import drone_camera
 
 __all__ = [
-    "DRONE_DISTANCE",
-    "DRONE_FOV_SPREAD",
-    "DRONE_NADIR_SHARE",
-    "DRONE_ROLL_DEG",
     "VIEWS_PER_LIGHTING",
     "SceneView",
     "class_ids",
@@ -62,17 +60,6 @@ SPP_CHOICES = (8, 16, 32)
 SPP_WEIGHTS = (0.5, 0.3, 0.2)  # a 32-spp render costs ~3x an 8-spp one; the search renders at 8
 
 
-DRONE_DISTANCE = (0.4, 1.6)
-"""A drone view's distance from the point it looks at, in scene radii…"""
-DRONE_NADIR_SHARE = 0.25
-"""…the share of them that look straight down (the others at 10–89° of elevation)…"""
-DRONE_ROLL_DEG = 25.0
-"""…their roll, uniform within ±this…"""
-DRONE_FOV_SPREAD = 0.3
-"""…and their horizontal fov, uniform within ±this share of the scene camera's: as the free
-bench draws its targets (``cosmos/bench/free_targets/draw.py``)."""
-
-
 @dataclass(frozen=True)
 class SceneView:
     """Sample ``index``: the scene (with its lighting for this sample), a hemisphere pose or a
@@ -83,29 +70,6 @@ class SceneView:
     pose: Pose | FreeCamera
     spp: int
     seed: int
-
-
-def drone_camera(scene: LoadedScene, rng: np.random.Generator) -> FreeCamera:
-    """A drone's view of ``scene``: looking at a point of the objects' footprint (grown by a
-    tenth of the radius) from :data:`DRONE_DISTANCE`, at an elevation of 10–89° or straight
-    down, any azimuth, rolled and zoomed (module docstring)."""
-    r = scene.spec.camera.radius
-    xy = np.array([o.position for o in scene.spec.objects], dtype=np.float64).reshape(-1, 2)
-    lo, hi = xy.min(axis=0) - 0.1 * r, xy.max(axis=0) + 0.1 * r
-    look = rng.uniform(lo, hi)
-    distance = float(rng.uniform(*DRONE_DISTANCE)) * r
-    nadir = rng.uniform() < DRONE_NADIR_SHARE
-    elevation = 90.0 if nadir else float(rng.uniform(10.0, 89.0))
-    azimuth = float(rng.uniform(0.0, 360.0))
-    spread = float(rng.uniform(1.0 - DRONE_FOV_SPREAD, 1.0 + DRONE_FOV_SPREAD))
-    point = (float(look[0]), float(look[1]), 0.0)
-    return FreeCamera(
-        position=orbit_position(point, distance, elevation, azimuth),
-        yaw_deg=(azimuth + 180.0) % 360.0,
-        pitch_deg=elevation,
-        roll_deg=float(rng.uniform(-DRONE_ROLL_DEG, DRONE_ROLL_DEG)),
-        fov_deg=min(scene.spec.camera.fov_deg * spread, 120.0),
-    )
 
 
 def class_ids(scene: LoadedScene) -> dict[str, int]:

@@ -3,6 +3,11 @@
 Run ``python -m training.train --data data/train --val data/val --run data/runs/v1 --epochs 60``.
 It saves ``last.pt`` every epoch and ``best.pt`` at the best validation mAP50, and stops on its
 own after ``--max-minutes`` (run it again to continue from ``last.pt``).
+
+``--init models/detector.onnx`` fine-tunes an exported model instead of starting from random
+weights (:func:`~training.warm_start.warm_start`). Its BatchNorms are folded into the convs and
+stay fixed (:func:`~training.warm_start.freeze_batchnorm`); the checkpoint records the starting
+model's sha256 and provenance, and the export carries them on.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from training.dataset import CLASSES
 from training.loss import detection_loss
 from training.metrics import Evaluation
 from training.model import Detector, anchor_points
+from training.warm_start import freeze_batchnorm, warm_start
 
 __all__ = [
     "INPUT_HEIGHT",
@@ -203,9 +209,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--max-minutes", type=float, default=1e9)
     parser.add_argument("--val-limit", type=int, default=300)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--init", type=Path, default=None, help="an exported ONNX model to fine-tune"
+    )
     args = parser.parse_args(argv)
     with torch_cpu(args.threads):
         return _main(args)
+
+
+def _initial_model(onnx_path: Path | None, width: int) -> tuple[Detector, dict[str, Any] | None]:
+    """A fresh detector of ``width``, or the exported model ``onnx_path`` to fine-tune, with the
+    record of where it came from (its sidecar's sha256 and provenance)."""
+    if onnx_path is None:
+        return Detector(len(CLASSES), width), None
+    sidecar = json.loads(onnx_path.with_suffix(".json").read_text())
+    if list(sidecar["classes"]) != list(CLASSES):
+        raise SystemExit(f"{onnx_path}: classes {sidecar['classes']}, expected {list(CLASSES)}")
+    init = {
+        "model": onnx_path.name,
+        "sha256": sidecar["sha256"],
+        "provenance": sidecar.get("provenance"),
+    }
+    return warm_start(onnx_path, CLASSES), init
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -215,7 +240,7 @@ def _main(args: argparse.Namespace) -> int:
     train = [s for root in args.data for s in load_dataset(root)]
     val = load_dataset(args.val, args.val_limit)
     print(f"{len(train)} training images, {len(val)} validation images", flush=True)
-    model = Detector(len(CLASSES), args.width)
+    model, init = _initial_model(args.init, args.width)
     ema = copy.deepcopy(model).eval()
     optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
     steps_per_epoch = math.ceil(len(train) / args.batch)
@@ -246,6 +271,8 @@ def _main(args: argparse.Namespace) -> int:
             print("time budget used; run again to resume", flush=True)
             return 0
         model.train()
+        if init is not None:
+            freeze_batchnorm(model)
         rng = np.random.default_rng([7, epoch])
         order = rng.permutation(len(train))
         totals = {"loss": 0.0, "box": 0.0, "cls": 0.0}
@@ -280,12 +307,13 @@ def _main(args: argparse.Namespace) -> int:
             "best": max(best, record["map50"]),
             "history": history,
             "config": {
-                "width": args.width,
+                "width": model.width,
                 "input": [INPUT_WIDTH, INPUT_HEIGHT],
                 "classes": CLASSES,
             },
             "data": [str(d) for d in args.data],
             "train_images": len(train),
+            "init": init,
         }
         if record["map50"] > best:
             best = record["map50"]

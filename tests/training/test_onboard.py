@@ -108,7 +108,8 @@ def test_cli_scenes_add_resumes_and_prints_the_model_path(onboarded, capsys, mon
 
 def test_scene_views_depend_only_on_seed_and_index(tmp_path):
     from services.common.geometry.free_camera import FreeCamera
-    from training.scene_dataset import DRONE_FOV_SPREAD, DRONE_ROLL_DEG, scene_views
+    from training.drone_views import DRONE_FOV_SPREAD, DRONE_ROLL_DEG
+    from training.scene_dataset import scene_views
 
     scene = load_scene(_scene_folder(tmp_path))
     all_views = {v.index: (v.pose, v.spp, v.seed, v.scene.spec) for v in scene_views(scene, 3, 10)}
@@ -137,7 +138,7 @@ def test_scene_views_depend_only_on_seed_and_index(tmp_path):
 def test_drone_views_look_at_the_objects_from_any_height(tmp_path):
     """Seeded drone cameras: every one sees the objects' area in front of it, a quarter look
     straight down, and their distances span the range."""
-    from training.scene_dataset import DRONE_DISTANCE, drone_camera
+    from training.drone_views import DRONE_DISTANCE, drone_camera
 
     scene = load_scene(_scene_folder(tmp_path))
     rng = np.random.default_rng(5)

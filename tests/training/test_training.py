@@ -11,8 +11,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.common.geometry.scene import SceneSpec
+from services.detector.settings import DEFAULT_MODEL as GENERAL_MODEL
 from training.data import LabelledImage, augment, load_dataset
-from training.dataset import CLASSES, TEXTURES, random_scene, render_dataset, views
+from training.dataset import (
+    CLASSES,
+    TEXTURES,
+    labelled_objects,
+    random_scene,
+    render_dataset,
+    views,
+)
 from training.metrics import Evaluation, box_iou
 
 
@@ -37,6 +45,24 @@ def test_views_are_reproducible_and_seeds_differ(tmp_path):
     assert [v for v in first if v[0].startswith("s")], "no random scene among 12 views"
 
 
+def test_drone_views_leave_the_other_views_as_they_were(tmp_path):
+    from services.common.geometry.free_camera import FreeCamera
+
+    def key(v):
+        return (v.scene.id, v.pose, v.width, v.spp, v.seed)
+
+    plain = [key(v) for v in views(tmp_path, 5, 24)]
+    mixed = [key(v) for v in views(tmp_path, 5, 24, drone_share=0.5)]
+    drone = [m for m in mixed if isinstance(m[1], FreeCamera)]
+    assert 0 < len(drone) < len(mixed)
+    for p, m in zip(plain, mixed, strict=True):
+        if not isinstance(m[1], FreeCamera):
+            assert m == p
+        else:
+            assert (m[0], *m[2:]) == (p[0], *p[2:])  # the same scene, size, spp and seed
+    assert all(isinstance(v.pose, FreeCamera) for v in views(tmp_path, 5, 8, drone_share=1.0))
+
+
 def test_rendered_dataset_matches_the_renderer_ground_truth(tmp_path):
     assert render_dataset(tmp_path, count=4, seed=11) == 4
     assert render_dataset(tmp_path, count=4, seed=11) == 0  # resumes: nothing left to do
@@ -50,6 +76,26 @@ def test_rendered_dataset_matches_the_renderer_ground_truth(tmp_path):
             assert 0 <= y1 < y2 <= meta["height"]
             assert CLASSES[obj["class_id"]] == obj["class"]
             assert 0 < obj["visible_fraction"] <= 1
+
+
+def test_a_drone_view_is_labelled_from_its_own_camera(tmp_path):
+    from services.common.geometry.free_camera import FreeCamera
+    from services.renderer.engine import RenderEngine
+    from services.renderer.view import resolve_free_camera
+
+    assert render_dataset(tmp_path, count=2, seed=11, drone_share=1.0) == 2
+    view = next(iter(views(tmp_path / "check", 11, 1, drone_share=1.0)))
+    meta = json.loads((tmp_path / "labels" / "000000.json").read_text())
+    assert FreeCamera.model_validate(meta["pose"]) == view.pose
+    engine = RenderEngine("auto", cache_size=1)
+    engine.start()
+    try:
+        where = resolve_free_camera(view.scene, view.pose, view.width, view.height)
+        ann = engine.annotate(view.scene, where, view.width, view.height, None)
+    finally:
+        engine.close()
+    expected = sorted(o.box for o in labelled_objects(ann))
+    assert sorted(tuple(o["box"]) for o in meta["objects"]) == expected
 
 
 @settings(max_examples=30, deadline=None)
@@ -142,6 +188,23 @@ def test_export_writes_the_yolo_layout_with_class_names(tmp_path):
     anchors = (64 // 8) * (96 // 8) + (64 // 16) * (96 // 16) + (64 // 32) * (96 // 32)
     assert out.shape == (3, 4 + len(CLASSES), anchors)
     assert ((out[:, 4:] >= 0) & (out[:, 4:] <= 1)).all()
+
+
+def test_fine_tuning_starts_from_the_shipped_model_and_says_so(tmp_path):
+    pytest.importorskip("torch")
+    from training.export import export
+    from training.train import main as train_main
+
+    shipped = json.loads(GENERAL_MODEL.with_suffix(".json").read_text())
+    render_dataset(tmp_path / "data", count=4, seed=11, drone_share=0.5)
+    run = tmp_path / "run"
+    args = ["--data", str(tmp_path / "data"), "--val", str(tmp_path / "data"), "--run", str(run)]
+    assert train_main([*args, "--epochs", "1", "--batch", "4", "--init", str(GENERAL_MODEL)]) == 0
+    sidecar = export(run / "last.pt", tmp_path / "tuned.onnx")
+    origin = sidecar["provenance"]["fine_tuned_from"]
+    assert origin["sha256"] == shipped["sha256"]
+    assert origin["provenance"]["train_images"] == shipped["provenance"]["train_images"]
+    assert sidecar["parameters"] == shipped["parameters"]  # the shipped width, not --width's
 
 
 def test_training_leaves_subnormal_floats_as_it_found_them():
