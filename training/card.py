@@ -97,6 +97,46 @@ def scene_model_card(
 _GENERAL_GOALS = "precision >= 0.97 and recall >= 0.97 overall, box-centre error <= 2 px (median)"
 
 
+DRONE_EPOCHS = 12
+"""The drone fine-tune's epochs (its recipe below)."""
+_BASE_RECIPE = (
+    ".venv/bin/python -m training.dataset --out data/train --count 4000 --seed 1",
+    ".venv/bin/python -m training.dataset --out data/val --count 300 --seed 3",
+    ".venv/bin/python -m training.train --data data/train --val data/val --run data/runs/w16 "
+    "--epochs 24 --width 16",
+    ".venv/bin/python -m training.export --checkpoint data/runs/w16/best.pt --out "
+    "models/detector.onnx",
+)
+_DRONE_RECIPE = (
+    "# then the fine-tune on drone views, from the model just exported",
+    ".venv/bin/python -m training.dataset --out data/drone/train --count 3000 --seed 21 "
+    "--drone-share 0.5",
+    ".venv/bin/python -m training.dataset --out data/drone/val --count 300 --seed 3 "
+    "--drone-share 0.33",
+    ".venv/bin/python -m training.train --data data/drone/train --val data/drone/val "
+    f"--run data/runs/drone --epochs {DRONE_EPOCHS} --lr 1e-3 --init models/detector.onnx",
+    ".venv/bin/python -m training.export --checkpoint data/runs/drone/best.pt --out "
+    "models/detector.onnx",
+)
+
+
+def _training_rows(provenance: Mapping[str, Any]) -> list[str]:
+    """The card's training rows: one run, or a base run and the fine-tune from it."""
+    origin = provenance.get("fine_tuned_from")
+    this = (
+        f"{provenance.get('epochs')} epochs, {provenance.get('training_minutes')} minutes of "
+        f"training steps on 2 shared CPU cores, PyTorch {provenance.get('torch')}"
+    )
+    if not origin:
+        return [f"| training | {this} |"]
+    base = origin.get("provenance") or {}
+    return [
+        f"| base model | `{origin['sha256'][:16]}…`: {base.get('train_images')} rendered "
+        f"hemisphere views, {base.get('epochs')} epochs, {base.get('training_minutes')} minutes |",
+        f"| fine-tune | from the base model, BatchNorms fixed: {this} |",
+    ]
+
+
 def write_general_card(card: Path, model: Path, report: Mapping[str, Any], table: str) -> None:
     """Write the shipped general detector's card to ``card``: its sidecar beside ``model``,
     and the held-out figures of a ``python -m benchmarks.detector --card`` run (``report``,
@@ -118,8 +158,7 @@ def write_general_card(card: Path, model: Path, report: Mapping[str, Any], table
         f"| file | {model.stat().st_size:,} bytes, sha256 `{sidecar['sha256'][:16]}…` |",
         f"| training data | {provenance.get('train_images')} rendered images, datasets "
         f"{provenance.get('datasets')} |",
-        f"| training | {provenance.get('epochs')} epochs, {provenance.get('training_minutes')} "
-        f"minutes of training steps on 2 shared CPU cores, PyTorch {provenance.get('torch')} |",
+        *_training_rows(provenance),
         "",
         "## Accuracy on held-out renders",
         "",
@@ -135,12 +174,8 @@ def write_general_card(card: Path, model: Path, report: Mapping[str, Any], table
         "## Reproduce",
         "",
         "```sh",
-        ".venv/bin/python -m training.dataset --out data/train --count 4000 --seed 1",
-        ".venv/bin/python -m training.dataset --out data/val --count 300 --seed 3",
-        ".venv/bin/python -m training.train --data data/train --val data/val --run data/runs/w16 "
-        "--epochs 24 --width 16",
-        ".venv/bin/python -m training.export --checkpoint data/runs/w16/best.pt --out "
-        "models/detector.onnx",
+        *_BASE_RECIPE,
+        *(_DRONE_RECIPE if provenance.get("fine_tuned_from") else ()),
         f".venv/bin/python -m benchmarks.detector --card {card.as_posix()}",
         "```",
         "",

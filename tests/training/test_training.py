@@ -216,3 +216,46 @@ def test_training_leaves_subnormal_floats_as_it_found_them():
     with torch_cpu(1):
         pass
     assert tiny * np.float64(1.0) > 0
+
+
+@pytest.mark.parametrize("tuned", [False, True])
+def test_the_general_card_names_the_base_model_of_a_fine_tune(tmp_path, tuned):
+    from benchmarks.detector import table
+    from training.card import write_general_card
+
+    sidecar = json.loads(GENERAL_MODEL.with_suffix(".json").read_text())
+    base = dict(sidecar["provenance"])
+    if tuned:
+        sidecar["provenance"] = {
+            **base,
+            "epochs": 12,
+            "fine_tuned_from": {
+                "model": "detector.onnx",
+                "sha256": "ab" * 32,
+                "provenance": {**base, "epochs": 24},
+            },
+        }
+    model = tmp_path / "detector.onnx"
+    model.write_bytes(b"onnx")
+    model.with_suffix(".json").write_text(json.dumps(sidecar))
+    per = {"objects": 10, "precision": 0.9, "recall": 0.8, "ap50": 0.85, "map50": 0.85}
+    report = {
+        **per,
+        "images": 3,
+        "seed": 2,
+        "scenes": ["demo"],
+        "per_class": {"sphere": per},
+        "by_view": {"drone": per},
+        "centre_error_median_px": 0.8,
+        "centre_error_p95_px": 3.0,
+        "colour_error_median": None,
+        "latency_images": 3,
+        "latency_http_p50_ms": 15.0,
+        "latency_in_process_p50_ms": 12.0,
+    }
+    write_general_card(tmp_path / "CARD.md", model, report, table(report))
+    card = (tmp_path / "CARD.md").read_text()
+    assert "(drone views)" in card
+    assert ("| base model | `abababababababab…`" in card) is tuned
+    assert ("--init models/detector.onnx" in card) is tuned
+    assert "--epochs 24 --width 16" in card
