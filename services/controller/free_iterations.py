@@ -26,12 +26,14 @@ T = TypeVar("T")
 @dataclass(frozen=True)
 class Step:
     """Which candidate an iteration renders: its index, of how many, whether the optimizer's
-    answer was ambiguous, and the optimizer's milliseconds spent for it (the first's)."""
+    answer was ambiguous, the optimizer's milliseconds spent for it (the first's), and whether
+    the search renders the next candidate even when this one agrees (its rivals are checked)."""
 
     index: int
     count: int
     ambiguous: bool
     optimize_ms: float
+    goes_on: bool = False
 
 
 @dataclass(frozen=True)
@@ -78,15 +80,15 @@ def iteration_of(
     edges: RefinePoseResponse | str | None,
 ) -> Iteration:
     """The iteration that rendered ``pose`` (its dense fit ``edges``), going on to
-    ``following`` if its render disagreed."""
+    ``following`` if its render disagreed or the step goes on regardless."""
     nearest = nearest_grid_pose(pose.position, grid)
     check = seen.check
     agreed = (check.agree and not edges_contradict(edges)) or edges_agree(edges)
-    next_pose = (
-        nearest_grid_pose(following.position, grid)
-        if following is not None and not agreed
-        else None
-    )
+    goes_on = following is not None and (not agreed or step.goes_on)
+    next_pose = nearest_grid_pose(following.position, grid) if goes_on and following else None
+    reason = f"pose {step.index + 1} of {step.count}: {_agreement(check, edges)}"
+    if agreed and goes_on:
+        reason += "; its rivals are rendered next"
     return Iteration(
         index=step.index,
         pose=nearest,
@@ -98,8 +100,9 @@ def iteration_of(
         confidence=pose.confidence * check.match.score,
         ambiguous=step.ambiguous,
         next_pose=next_pose,
-        done=agreed,
-        reason=f"pose {step.index + 1} of {step.count}: {_agreement(check, edges)}",
+        done=agreed and not goes_on,
+        agrees=agreed,
+        reason=reason,
         match=check.match,
         detector_sha256=seen.found.model.sha256,
         camera=seen.camera,

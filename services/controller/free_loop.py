@@ -15,19 +15,21 @@
    target's): a detector that names the render's objects unlike the target's (the general
    model on a scene it was not trained on) then still confirms a pose the image vouches for.
    If the render agrees, the search ends; if not, the next alternative is rendered, while
-   renders remain (``max_iterations``).
+   renders remain (``max_iterations``). A ``rivals`` answer (distinct poses explain the boxes
+   almost as well), the intrinsics given, goes on after an agreeing render: its rivals are
+   rendered too, for one render can tell its own pose from the target but not from a rival.
 
-The answer (:class:`~services.common.contracts.free.FreeAnswer`) is ``found`` and
-``confirmed`` only when the optimizer found a unique pose and its render agreed, or when the
-boxes pinned their one pose only loosely and the render's edges pin it (the intrinsics given:
-:func:`~services.controller.free_refine.edges_pin`); never with the focal length of the photo's
-EXIF, which no render can check: with one 15 % off, 14 of 16 answers of ``python -m
-benchmarks.exif_focal`` agreed with their render while 12-14 % of the radius off. Any other
-ambiguous pose whose render agrees is answered ``ambiguous`` with its alternatives, never
-confirmed; when
-no render agrees, the rendered pose that best explains the target (the most edges on the
-target's after an accepted fit, then the box match) is answered, ``ambiguous`` and
-unconfirmed, saying so.
+The answer (:class:`~services.common.contracts.free.FreeAnswer`, composed by
+:mod:`~services.controller.free_verdict`) is ``found`` and ``confirmed`` only when the optimizer
+found a unique pose and its render agreed; when the boxes pinned their one pose only loosely and
+the render's edges pin it (the intrinsics given: :func:`~.free_refine.edges_pin`); or when, of a
+``rivals`` answer's candidates, every one was rendered and only one agreed, and its edges pin it.
+Never with the focal length of the photo's EXIF, which no render can check: with one 15 % off,
+14 of 16 answers of ``python -m benchmarks.exif_focal`` agreed with their render while 12-14 %
+of the radius off. Any other ambiguous pose whose render agrees is answered ``ambiguous`` with
+its alternatives (the other agreeing ones first), never confirmed; when no render agrees, the
+rendered pose that best explains the target (the most edges on the target's after an accepted
+fit, then the box match) is answered, ``ambiguous`` and unconfirmed, saying so.
 
 Every render is an iteration (its ``camera`` the free camera rendered, its ``pose`` the grid
 pose nearest it), recorded as the hemisphere loop records its own (:class:`Writes`); the
@@ -47,19 +49,16 @@ from pydantic import ValidationError
 
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
 from services.common.contracts.free import (
-    FreeAnswer,
     FreePose,
     FreePoseRequest,
     FreePoseResponse,
-    nearest_grid_pose,
 )
 from services.common.contracts.optimize import ImageDetections
 from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Iteration, Search, SearchResult
 from services.common.depth_archive import DepthImage
-from services.common.geometry.free_camera import FreeCamera, direction_pose
-from services.common.geometry.grid import HemisphereGrid
+from services.common.geometry.free_camera import FreeCamera
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
@@ -67,10 +66,12 @@ from services.controller.free_iterations import Seen, Step, iteration_of, timed,
 from services.controller.free_match import FreeMatch, compare_view, view_film
 from services.controller.free_refine import (
     edges_pin,
+    edges_pin_pose,
     refine_by_render,
     refined_result,
     with_refit_renders,
 )
+from services.controller.free_verdict import Verdict, agrees, checks_rivals, choice, free_result
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -91,89 +92,6 @@ def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
             "cy_px": k.cy_px * scale,
         }
     )
-
-
-def _explains(iteration: Iteration, edges: RefinePoseResponse | str | None) -> tuple[float, ...]:
-    """How well a rendered candidate explains the target: the share of its render's edges on
-    the target's after an accepted dense fit (0 without one), then its box match score."""
-    share = 0.0
-    if isinstance(edges, RefinePoseResponse) and edges.fit.accepted:
-        share = edges.fit.inliers / max(edges.fit.edge_points, 1)
-    return (share, iteration.match.score if iteration.match else 0.0, -iteration.index)
-
-
-def _result(
-    answer: FreePoseResponse,
-    history: list[Iteration],
-    grid: HemisphereGrid,
-    edges: dict[int, RefinePoseResponse | str],
-    *,
-    by_edges: bool = False,
-    pinned: RefinePoseResponse | None = None,
-) -> tuple[SearchResult, int]:
-    """The search's answer from its rendered candidates (module docstring), and which one it
-    chose; ``edges`` holds the dense fits of the candidates rendered in this run, ``by_edges``
-    says that the last one agreed by its edges only, ``pinned`` is its fit when that pins a
-    pose the boxes pinned only loosely (:func:`~.free_refine.edges_pin`)."""
-    candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
-    agreed = bool(history) and history[-1].done
-    chosen = (
-        history[-1] if agreed else max(history, key=lambda it: _explains(it, edges.get(it.index)))
-    )
-    pose = candidates[chosen.index]
-    score = chosen.match.score if chosen.match is not None else 0.0
-    confirmable = answer.status == "found" or pinned is not None
-    exif = pose.intrinsics.source == "exif"
-    found = agreed and confirmable and not exif
-    how = "by its edges (its boxes disagree)" if by_edges else "box by box"
-    if found and pinned is not None:
-        fit = pinned.fit
-        reason = (
-            f"found: {answer.reason.removeprefix('ambiguous: ')}; the render at the pose agrees "
-            f"with the target {how}, and its edges pin the pose: {fit.inliers} of "
-            f"{fit.edge_points} on the target's after the dense fit, the intrinsics given"
-        )
-    elif found:
-        reason = f"{answer.reason}; the render at the pose agrees with the target {how}"
-    elif agreed and confirmable:
-        reason = (
-            f"{answer.reason}; the render at the pose agrees with the target {how}, but no "
-            "render can check the photo's EXIF focal length (a wrong one moves the camera along "
-            "its axis, and the render agrees all the same): not confirmed; give fov_deg or the "
-            "intrinsics to confirm it"
-        )
-    elif agreed:
-        reason = (
-            f"{answer.reason}; the render at pose {chosen.index + 1} agrees with the target "
-            f"{how}, but the alternatives explain its boxes too: not confirmed"
-        )
-    else:
-        reason = (
-            f"not confirmed: no render of the {len(history)} pose(s) tried agreed with the "
-            f"target, box by box or by its edges; the best was pose {chosen.index + 1} (match "
-            f"score {score:.2f}); {answer.reason}"
-        )
-    nearest = nearest_grid_pose(pose.position, grid)
-    result = SearchResult(
-        pose=nearest,
-        refined_pose=direction_pose(pose.position),
-        confidence=pose.confidence * score,
-        renders=len(history),
-        ambiguous=not found,
-        reason=reason,
-        confirmed=found,
-        free=FreeAnswer(
-            status="found" if found else "ambiguous",
-            pose=pose,
-            alternatives=()
-            if found
-            else tuple(p for i, p in enumerate(candidates) if i != chosen.index),
-            nearest_grid=nearest,
-            renders=len(history),
-            match_rms_px=chosen.match.rms_px if chosen.match is not None else None,
-        ),
-    )
-    return result, chosen.index
 
 
 class FreeSearchLoop:
@@ -265,18 +183,21 @@ class FreeSearchLoop:
         candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
         history = list(search.iterations)
         if history and history[-1].done:  # finished by an older run, no result recorded
+            chosen, agreed = choice(history, {})
+            result = free_result(answer, history, grid, chosen, Verdict(agreed))
             unrefined = "no dense refinement (resumed after its render)"
-            result, _ = _result(answer, history, grid, {})
             return await writes.succeed(refined_result(result, unrefined, grid))
         budget = min(len(candidates), search.max_iterations)
+        rivals = checks_rivals(answer, search.intrinsics)
         edges: dict[int, RefinePoseResponse | str] = {}
+        by_box: dict[int, bool] = {}
         for k in range(len(history), budget):
             await writes.flush()
             seen_view, outcome = await self._render_and_check(
                 search, scene, (target, size), image, candidates[k]
             )
-            edges[k] = outcome
-            step = Step(k, len(candidates), answer.status != "found", optimize_ms)
+            edges[k], by_box[k] = outcome, seen_view.check.agree
+            step = Step(k, len(candidates), answer.status != "found", optimize_ms, rivals)
             following = candidates[k + 1] if k + 1 < budget else None
             iteration = iteration_of(step, candidates[k], following, seen_view, grid, outcome)
             optimize_ms = 0.0
@@ -284,21 +205,53 @@ class FreeSearchLoop:
             writes.hold(iteration, seen)
             seen = None
             if iteration.done:
-                await writes.flush()
-                outcome, extra = await self._refit(
-                    search, scene, (target, size), image, outcome, len(history)
-                )
-                refit = timings_of(extra) if extra is not None else None
-                by_edges = not seen_view.check.agree
-                pinned = edges_pin(outcome, search.intrinsics, answer.ambiguity)
-                result, _ = _result(answer, history, grid, edges, by_edges=by_edges, pinned=pinned)
-                return await writes.succeed(
-                    with_refit_renders(refined_result(result, outcome, grid), refit)
-                )
-        result, chosen = _result(answer, history, grid, edges)
-        if chosen in edges:
-            result = refined_result(result, edges[chosen], grid)
-        return await writes.succeed(result)
+                break
+        await writes.flush()
+        return await writes.succeed(
+            await self._answer(search, scene, (target, size), image, answer, history, edges, by_box)
+        )
+
+    async def _answer(
+        self,
+        search: Search,
+        scene: SceneDetail,
+        target: tuple[tuple[Detection, ...], tuple[int, int]],
+        image: bytes,
+        answer: FreePoseResponse,
+        history: list[Iteration],
+        edges: dict[int, RefinePoseResponse | str],
+        by_box: dict[int, bool],
+    ) -> SearchResult:
+        """The answer once the renders are done: the chosen candidate (:func:`_choice`), its
+        fit refitted by one more render when it asks for one, and what the renders said."""
+        grid = scene.spec.search.grid()
+        chosen, agreed = choice(history, edges)
+        outcome: RefinePoseResponse | str | None = edges.get(chosen.index)
+        refit = None
+        if agreed and outcome is not None:
+            outcome, extra = await self._refit(search, scene, target, image, outcome, len(history))
+            refit = timings_of(extra) if extra is not None else None
+        elif agreed:
+            outcome = "no dense refinement (resumed after its render)"
+        candidates = 1 + len(answer.alternatives)
+        ruled_out = (
+            checks_rivals(answer, search.intrinsics)
+            and agreed
+            and len(history) == candidates
+            and sum(agrees(it) for it in history) == 1
+        )
+        known = search.intrinsics
+        pinned = (
+            edges_pin_pose(outcome, known)
+            if ruled_out
+            else edges_pin(outcome, known, answer.ambiguity)
+        )
+        by_edges = agreed and not by_box.get(chosen.index, True)
+        verdict = Verdict(agreed, by_edges, pinned if agreed else None, ruled_out)
+        result = free_result(answer, history, grid, chosen, verdict)
+        if outcome is not None:
+            result = refined_result(result, outcome, grid)
+        return with_refit_renders(result, refit)
 
     async def _refit(
         self,

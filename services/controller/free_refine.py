@@ -53,6 +53,7 @@ __all__ = [
     "edges_agree",
     "edges_contradict",
     "edges_pin",
+    "edges_pin_pose",
     "edges_unvouched",
     "refine_by_render",
     "refined_result",
@@ -94,10 +95,7 @@ def edges_pin(
     ambiguity: FreeAmbiguity | None,
 ) -> RefinePoseResponse | None:
     """The dense fit, when it pins a pose that the boxes pinned only ``loose``-ly (else None):
-    the fit was
-    accepted and leaves at least :data:`PIN_SHARE` of the render's edge points on the target's,
-    and the photo's intrinsics were ``known``: given (an EXIF focal length no render can check:
-    :mod:`~services.controller.free_loop`).
+    :func:`edges_pin_pose`.
 
     The boxes' σ is large along a valley that the many edge points close. Not so without the
     intrinsics: distance then trades against focal length (a dolly zoom), which the edges of a
@@ -107,10 +105,18 @@ def edges_pin(
     given, the 109 fits at or above 0.9 were all within 5 %/2°, and the misses (5.8 % and 7.2 %
     off) were at 0.87 and below; without them, a miss 39 % off was at 0.89, and earlier
     versions' misses 15-39 % off at 0.91-0.92. Rival poses (a symmetric layout, look-alikes)
-    are never pinned so: a render of one cannot tell it from the others."""
-    if ambiguity != "loose" or known is None or known.source != "given":
-        return None
-    if not isinstance(outcome, RefinePoseResponse):
+    are not pinned so: a render of one cannot tell it from the others; only the renders of the
+    others can (:mod:`~services.controller.free_loop`)."""
+    return edges_pin_pose(outcome, known) if ambiguity == "loose" else None
+
+
+def edges_pin_pose(
+    outcome: RefinePoseResponse | str | None, known: PhotoIntrinsics | None
+) -> RefinePoseResponse | None:
+    """The dense fit, when it pins its pose (else None): it was accepted and leaves at least
+    :data:`PIN_SHARE` of the render's edge points on the target's, and the photo's intrinsics
+    were ``known``: given (an EXIF focal length no render can check)."""
+    if known is None or known.source != "given" or not isinstance(outcome, RefinePoseResponse):
         return None
     fit = outcome.fit
     return outcome if fit.accepted and fit.inliers >= PIN_SHARE * fit.edge_points else None

@@ -461,10 +461,10 @@ def test_an_ambiguous_answer_renders_the_next_alternative_and_is_never_confirmed
         ("loose", PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif"), 900, False),
         ("loose", PhotoIntrinsics(fov_deg=45.0), 800, False),  # 0.89 of the edges: not enough
         ("loose", None, 850, False),  # no intrinsics: distance trades against focal length
-        ("rivals", PhotoIntrinsics(fov_deg=45.0), 900, False),  # a symmetric layout
+        ("rivals", None, 900, False),  # rivals no render can settle without the intrinsics
         ("focal", PhotoIntrinsics(fov_deg=45.0), 900, False),
     ],
-    ids=["given", "exif-unchecked", "too-few-edges", "no-intrinsics", "rivals", "focal"],
+    ids=["given", "exif-unchecked", "too-few-edges", "no-intrinsics", "rivals-unknown", "focal"],
 )
 def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_it(
     tmp_path, detail, ambiguity, intrinsics, inliers, pinned
@@ -486,6 +486,48 @@ def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_
     else:
         assert [p.position[0] for p in result.free.alternatives] == [1.0]
         assert "not confirmed" in result.reason
+
+
+@pytest.mark.parametrize(
+    ("edges", "inliers", "max_iterations", "confirmed"),
+    [
+        ((0,), 900, 4, True),  # the rivals' renders disagree: the one left is pinned
+        ((0, 2), 900, 4, False),  # rival 2 agrees by its edges too: a symmetric layout
+        ((0,), 800, 4, False),  # 0.89 of the edges: not pinned
+        ((0,), 900, 2, False),  # the budget leaves a rival unrendered
+    ],
+    ids=["ruled-out", "two-agree", "too-few-edges", "rival-unchecked"],
+)
+def test_rivals_are_rendered_and_only_the_one_left_standing_is_confirmed(
+    tmp_path, detail, edges, inliers, max_iterations, confirmed
+):
+    """Three rival candidates, the first one right, the intrinsics given."""
+    stages = FakeStages(
+        detail, status="ambiguous", count=3, ambiguity="rivals", edges=edges, inliers=inliers
+    )
+    final = run(tmp_path, stages, max_iterations, intrinsics=PhotoIntrinsics(fov_deg=45.0))
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert result.renders == min(3, max_iterations)
+    assert result.confirmed is confirmed
+    assert result.free.status == ("found" if confirmed else "ambiguous")
+    assert result.free.pose.position[0] == 0.0
+    first, *rest = final.iterations
+    assert first.agrees
+    assert not first.done
+    assert first.next_pose == rest[0].pose
+    assert "its rivals are rendered next" in first.reason
+    assert [it.agrees for it in rest] == [k in edges for k in range(1, len(rest) + 1)]
+    if confirmed:
+        assert result.free.alternatives == ()
+        assert "2 rival pose(s) explained the boxes almost as well" in result.reason
+        assert "its edges pin it: 900 of 900" in result.reason
+    else:
+        assert "not confirmed" in result.reason
+        assert [p.position[0] for p in result.free.alternatives][0] == (2.0 if 2 in edges else 1.0)
+    if edges == (0, 2):
+        assert "and so do the renders at pose(s) 3" in result.reason
 
 
 @pytest.mark.parametrize(

@@ -153,6 +153,12 @@ class Iteration(FrozenModel):
     ambiguous: bool = False
     next_pose: GridPose | None = None
     done: bool = False
+    agrees: bool | None = Field(
+        default=None,
+        description="A free search's view: its render agrees with the target (box by box, its "
+        "edges not contradicting, or by its edges). It is not `done` when the search goes on to "
+        "render the pose's rivals. Null for a grid view.",
+    )
     reason: str = ""
     match: ViewMatch | None = Field(
         default=None, description="How well this view matches the target (optimizer's answer)."

@@ -1,0 +1,155 @@
+"""From a free search's rendered candidates to its answer: which one to answer, and whether
+the renders confirm it (:mod:`~services.controller.free_loop`'s docstring says when).
+
+A candidate *agrees* when its render does (box by box, its edges not contradicting, or by its
+edges). The answer is the agreeing candidate that explains the target best (the most edges on
+the target's after an accepted fit, then the box match), else the candidate that explains it
+best. It is ``found`` and confirmed only when the optimizer found a unique pose, or its edges
+pin a pose the boxes pinned loosely, or it is the only one of a ``rivals`` answer's candidates
+whose render agrees (every candidate rendered, the intrinsics given) and its edges pin it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from services.common.contracts.free import (
+    FreeAnswer,
+    FreePoseResponse,
+    PhotoIntrinsics,
+    nearest_grid_pose,
+)
+from services.common.contracts.refine import RefinePoseResponse
+from services.common.contracts.search import Iteration, SearchResult
+from services.common.geometry.free_camera import direction_pose
+from services.common.geometry.grid import HemisphereGrid
+
+__all__ = ["Verdict", "agrees", "checks_rivals", "choice", "free_result"]
+
+
+def _explains(iteration: Iteration, edges: RefinePoseResponse | str | None) -> tuple[float, ...]:
+    """How well a rendered candidate explains the target: the share of its render's edges on
+    the target's after an accepted dense fit (0 without one), then its box match score."""
+    share = 0.0
+    if isinstance(edges, RefinePoseResponse) and edges.fit.accepted:
+        share = edges.fit.inliers / max(edges.fit.edge_points, 1)
+    return (share, iteration.match.score if iteration.match else 0.0, -iteration.index)
+
+
+def agrees(iteration: Iteration) -> bool:
+    """Whether a rendered candidate's render agreed (an older record says so by ``done``)."""
+    return iteration.agrees if iteration.agrees is not None else iteration.done
+
+
+def choice(
+    history: list[Iteration], edges: dict[int, RefinePoseResponse | str]
+) -> tuple[Iteration, bool]:
+    """The rendered candidate to answer, and whether its render agreed: the agreeing one that
+    explains the target best, else the one that explains it best (:func:`_explains`)."""
+    agreeing = [it for it in history if agrees(it)]
+    pool = agreeing or history
+    return max(pool, key=lambda it: _explains(it, edges.get(it.index))), bool(agreeing)
+
+
+def checks_rivals(answer: FreePoseResponse, known: PhotoIntrinsics | None) -> bool:
+    """Whether the search renders a ``rivals`` answer's other poses after one agrees: only
+    when their renders can settle it, the intrinsics given (:func:`~.free_refine.edges_pin_pose`
+    then pins the one that agrees, if it is the only one)."""
+    return answer.ambiguity == "rivals" and known is not None and known.source == "given"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the renders said of the chosen candidate: ``agreed``, ``by_edges`` (its boxes
+    disagreed), ``pinned`` (its fit, when that pins a pose the boxes did not: a loose one, or
+    the one rival left standing) and ``ruled_out`` (every other rival's render disagreed)."""
+
+    agreed: bool
+    by_edges: bool = False
+    pinned: RefinePoseResponse | None = None
+    ruled_out: bool = False
+
+
+def free_result(
+    answer: FreePoseResponse,
+    history: list[Iteration],
+    grid: HemisphereGrid,
+    chosen: Iteration,
+    verdict: Verdict,
+) -> SearchResult:
+    """The search's answer from its rendered candidates (module docstring): ``chosen`` and
+    what its render said (``verdict``)."""
+    candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+    agreed, pinned = verdict.agreed, verdict.pinned
+    pose = candidates[chosen.index]
+    score = chosen.match.score if chosen.match is not None else 0.0
+    confirmable = answer.status == "found" or pinned is not None
+    exif = pose.intrinsics.source == "exif"
+    found = agreed and confirmable and not exif
+    how = "by its edges (its boxes disagree)" if verdict.by_edges else "box by box"
+    also = [it.index + 1 for it in history if agrees(it) and it.index != chosen.index]
+    if found and pinned is not None and verdict.ruled_out:
+        fit = pinned.fit
+        rivals = len(candidates) - 1
+        reason = (
+            f"found: {len(pose.correspondences)} objects paired, and {rivals} rival pose(s) "
+            f"explained the boxes almost as well, but their renders disagree with the target; "
+            f"the render at pose {chosen.index + 1} agrees {how}, and its edges pin it: "
+            f"{fit.inliers} of {fit.edge_points} on the target's after the dense fit, the "
+            "intrinsics given"
+        )
+    elif found and pinned is not None:
+        fit = pinned.fit
+        reason = (
+            f"found: {answer.reason.removeprefix('ambiguous: ')}; the render at the pose agrees "
+            f"with the target {how}, and its edges pin the pose: {fit.inliers} of "
+            f"{fit.edge_points} on the target's after the dense fit, the intrinsics given"
+        )
+    elif found:
+        reason = f"{answer.reason}; the render at the pose agrees with the target {how}"
+    elif agreed and confirmable:
+        reason = (
+            f"{answer.reason}; the render at the pose agrees with the target {how}, but no "
+            "render can check the photo's EXIF focal length (a wrong one moves the camera along "
+            "its axis, and the render agrees all the same): not confirmed; give fov_deg or the "
+            "intrinsics to confirm it"
+        )
+    elif agreed and also:
+        poses = ", ".join(str(i) for i in also)
+        reason = (
+            f"{answer.reason}; the render at pose {chosen.index + 1} agrees with the target "
+            f"{how}, and so do the renders at pose(s) {poses}: not confirmed"
+        )
+    elif agreed:
+        reason = (
+            f"{answer.reason}; the render at pose {chosen.index + 1} agrees with the target "
+            f"{how}, but the alternatives explain its boxes too: not confirmed"
+        )
+    else:
+        reason = (
+            f"not confirmed: no render of the {len(history)} pose(s) tried agreed with the "
+            f"target, box by box or by its edges; the best was pose {chosen.index + 1} (match "
+            f"score {score:.2f}); {answer.reason}"
+        )
+    nearest = nearest_grid_pose(pose.position, grid)
+    first = {i - 1 for i in also}  # the other agreeing poses lead the alternatives
+    others = sorted(
+        (i for i in range(len(candidates)) if i != chosen.index), key=lambda i: i not in first
+    )
+    return SearchResult(
+        pose=nearest,
+        refined_pose=direction_pose(pose.position),
+        confidence=pose.confidence * score,
+        renders=len(history),
+        ambiguous=not found,
+        reason=reason,
+        confirmed=found,
+        free=FreeAnswer(
+            status="found" if found else "ambiguous",
+            pose=pose,
+            alternatives=() if found else tuple(candidates[i] for i in others),
+            nearest_grid=nearest,
+            renders=len(history),
+            match_rms_px=chosen.match.rms_px if chosen.match is not None else None,
+        ),
+    )
