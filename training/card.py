@@ -97,8 +97,6 @@ def scene_model_card(
 _GENERAL_GOALS = "precision >= 0.97 and recall >= 0.97 overall, box-centre error <= 2 px (median)"
 
 
-DRONE_EPOCHS = 12
-"""The drone fine-tune's epochs (its recipe below)."""
 _BASE_RECIPE = (
     ".venv/bin/python -m training.dataset --out data/train --count 4000 --seed 1",
     ".venv/bin/python -m training.dataset --out data/val --count 300 --seed 3",
@@ -107,17 +105,19 @@ _BASE_RECIPE = (
     ".venv/bin/python -m training.export --checkpoint data/runs/w16/best.pt --out "
     "models/detector.onnx",
 )
-_DRONE_RECIPE = (
-    "# then the fine-tune on drone views, from the model just exported",
-    ".venv/bin/python -m training.dataset --out data/drone/train --count 3000 --seed 21 "
-    "--drone-share 0.5",
-    ".venv/bin/python -m training.dataset --out data/drone/val --count 300 --seed 3 "
-    "--drone-share 0.33",
-    ".venv/bin/python -m training.train --data data/drone/train --val data/drone/val "
-    f"--run data/runs/drone --epochs {DRONE_EPOCHS} --lr 1e-3 --init models/detector.onnx",
-    ".venv/bin/python -m training.export --checkpoint data/runs/drone/best.pt --out "
-    "models/detector.onnx",
-)
+
+
+def _fine_tune_recipe(provenance: Mapping[str, Any]) -> list[str]:
+    """The fine-tune's commands, from its provenance (its datasets are rendered by
+    ``training.dataset``, with ``--drone-share`` for drone views)."""
+    data = " ".join(f"--data {d}" for d in provenance.get("datasets") or [])
+    return [
+        "# then the fine-tune from the model just exported",
+        f".venv/bin/python -m training.train {data} --val VAL --run data/runs/tuned "
+        f"--epochs {provenance.get('epochs')} --init models/detector.onnx",
+        ".venv/bin/python -m training.export --checkpoint data/runs/tuned/best.pt --out "
+        "models/detector.onnx",
+    ]
 
 
 def _training_rows(provenance: Mapping[str, Any]) -> list[str]:
@@ -175,7 +175,7 @@ def write_general_card(card: Path, model: Path, report: Mapping[str, Any], table
         "",
         "```sh",
         *_BASE_RECIPE,
-        *(_DRONE_RECIPE if provenance.get("fine_tuned_from") else ()),
+        *(_fine_tune_recipe(provenance) if provenance.get("fine_tuned_from") else ()),
         f".venv/bin/python -m benchmarks.detector --card {card.as_posix()}",
         "```",
         "",
