@@ -16,8 +16,9 @@
    model on a scene it was not trained on) then still confirms a pose the image vouches for.
    If the render agrees, the search ends; if not, the next alternative is rendered, while
    renders remain (``max_iterations``). A ``rivals`` answer (distinct poses explain the boxes
-   almost as well), the intrinsics given, goes on after an agreeing render: its rivals are
-   rendered too, for one render can tell its own pose from the target but not from a rival.
+   almost as well), the intrinsics given, goes on after an agreeing render whose edges pin its
+   pose: its rivals are rendered too, for one render can tell its own pose from the target but
+   not from a rival.
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`, composed by
 :mod:`~services.controller.free_verdict`) is ``found`` and ``confirmed`` only when the optimizer
@@ -71,7 +72,13 @@ from services.controller.free_refine import (
     refined_result,
     with_refit_renders,
 )
-from services.controller.free_verdict import Verdict, agrees, checks_rivals, choice, free_result
+from services.controller.free_verdict import (
+    Verdict,
+    checks_rivals,
+    choice,
+    free_result,
+    others_standing,
+)
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -197,7 +204,9 @@ class FreeSearchLoop:
                 search, scene, (target, size), image, candidates[k]
             )
             edges[k], by_box[k] = outcome, seen_view.check.agree
-            step = Step(k, len(candidates), answer.status != "found", optimize_ms, rivals)
+            # Its rivals are worth rendering only if this render's fit could be confirmed.
+            goes_on = rivals and edges_pin_pose(outcome, search.intrinsics) is not None
+            step = Step(k, len(candidates), answer.status != "found", optimize_ms, goes_on)
             following = candidates[k + 1] if k + 1 < budget else None
             iteration = iteration_of(step, candidates[k], following, seen_view, grid, outcome)
             optimize_ms = 0.0
@@ -233,12 +242,14 @@ class FreeSearchLoop:
             refit = timings_of(extra) if extra is not None else None
         elif agreed:
             outcome = "no dense refinement (resumed after its render)"
-        candidates = 1 + len(answer.alternatives)
+        candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+        radius = scene.spec.camera.radius
+        standing = others_standing(history, chosen, candidates, edges, radius) if agreed else ()
         ruled_out = (
             checks_rivals(answer, search.intrinsics)
             and agreed
-            and len(history) == candidates
-            and sum(agrees(it) for it in history) == 1
+            and len(history) == len(candidates)
+            and not standing
         )
         known = search.intrinsics
         pinned = (
@@ -247,7 +258,7 @@ class FreeSearchLoop:
             else edges_pin(outcome, known, answer.ambiguity)
         )
         by_edges = agreed and not by_box.get(chosen.index, True)
-        verdict = Verdict(agreed, by_edges, pinned if agreed else None, ruled_out)
+        verdict = Verdict(agreed, by_edges, pinned if agreed else None, ruled_out, standing)
         result = free_result(answer, history, grid, chosen, verdict)
         if outcome is not None:
             result = refined_result(result, outcome, grid)

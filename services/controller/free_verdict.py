@@ -11,10 +11,13 @@ whose render agrees (every candidate rendered, the intrinsics given) and its edg
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Final
 
 from services.common.contracts.free import (
     FreeAnswer,
+    FreePose,
     FreePoseResponse,
     PhotoIntrinsics,
     nearest_grid_pose,
@@ -24,7 +27,26 @@ from services.common.contracts.search import Iteration, SearchResult
 from services.common.geometry.free_camera import direction_pose
 from services.common.geometry.grid import HemisphereGrid
 
-__all__ = ["Verdict", "agrees", "checks_rivals", "choice", "free_result"]
+__all__ = [
+    "SAME_POSE_DEG",
+    "SAME_POSE_SHARE",
+    "Verdict",
+    "agrees",
+    "checks_rivals",
+    "choice",
+    "free_result",
+    "others_standing",
+]
+
+SAME_POSE_SHARE: Final = 0.02
+"""Two rendered candidates whose poses, each refined by its own render (the box pose when its
+fit was not accepted), end within this share of the scene's radius…"""
+SAME_POSE_DEG: Final = 1.0
+"""…and this many degrees of each other are one pose (the free bench's tightest tolerance):
+rivals that their renders' fits bring together are not a symmetric layout. On seeds 1–3 of
+``cosmos bench --free --scene demo --random-scenes 2 --n 8`` (360 searches), 16 answers had
+their rivals rendered; in 5 a second render agreed too, and the fits brought 3 of those to the
+first one's pose."""
 
 
 def _explains(iteration: Iteration, edges: RefinePoseResponse | str | None) -> tuple[float, ...]:
@@ -52,22 +74,62 @@ def choice(
 
 
 def checks_rivals(answer: FreePoseResponse, known: PhotoIntrinsics | None) -> bool:
-    """Whether the search renders a ``rivals`` answer's other poses after one agrees: only
-    when their renders can settle it, the intrinsics given (:func:`~.free_refine.edges_pin_pose`
-    then pins the one that agrees, if it is the only one)."""
+    """Whether the search may render a ``rivals`` answer's other poses after one agrees: only
+    when their renders can settle it, the intrinsics given (it does when the agreeing render's
+    fit pins its pose: :func:`~.free_refine.edges_pin_pose`)."""
     return answer.ambiguity == "rivals" and known is not None and known.source == "given"
+
+
+def _final_pose(
+    k: int, candidates: list[FreePose], edges: dict[int, RefinePoseResponse | str]
+) -> FreePose:
+    """Candidate ``k``'s pose as its render's accepted fit left it, else its box pose."""
+    outcome = edges.get(k)
+    if isinstance(outcome, RefinePoseResponse) and outcome.fit.accepted:
+        return outcome.pose
+    return candidates[k]
+
+
+def _same_pose(a: FreePose, b: FreePose, radius: float) -> bool:
+    """Within :data:`SAME_POSE_SHARE` of ``radius`` and :data:`SAME_POSE_DEG` (the turn
+    between the quaternions, ``2 acos |qa·qb|``)."""
+    dot = abs(sum(x * y for x, y in zip(a.quaternion_wxyz, b.quaternion_wxyz, strict=True)))
+    turn = math.degrees(2.0 * math.acos(min(1.0, dot)))
+    return math.dist(a.position, b.position) <= SAME_POSE_SHARE * radius and turn <= SAME_POSE_DEG
+
+
+def others_standing(
+    history: list[Iteration],
+    chosen: Iteration,
+    candidates: list[FreePose],
+    edges: dict[int, RefinePoseResponse | str],
+    radius: float,
+) -> tuple[int, ...]:
+    """The other candidates whose renders agree and whose poses do not end where the chosen
+    one's does (:func:`_same_pose`)."""
+    mine = _final_pose(chosen.index, candidates, edges)
+    return tuple(
+        it.index
+        for it in history
+        if agrees(it)
+        and it.index != chosen.index
+        and not _same_pose(_final_pose(it.index, candidates, edges), mine, radius)
+    )
 
 
 @dataclass(frozen=True)
 class Verdict:
     """What the renders said of the chosen candidate: ``agreed``, ``by_edges`` (its boxes
     disagreed), ``pinned`` (its fit, when that pins a pose the boxes did not: a loose one, or
-    the one rival left standing) and ``ruled_out`` (every other rival's render disagreed)."""
+    the one rival left standing), ``ruled_out`` (every other rival's render disagreed, or its
+    fit ended at the chosen pose) and ``standing`` (the other agreeing candidates that did
+    not)."""
 
     agreed: bool
     by_edges: bool = False
     pinned: RefinePoseResponse | None = None
     ruled_out: bool = False
+    standing: tuple[int, ...] = ()
 
 
 def free_result(
@@ -87,13 +149,14 @@ def free_result(
     exif = pose.intrinsics.source == "exif"
     found = agreed and confirmable and not exif
     how = "by its edges (its boxes disagree)" if verdict.by_edges else "box by box"
-    also = [it.index + 1 for it in history if agrees(it) and it.index != chosen.index]
+    also = [k + 1 for k in verdict.standing]
     if found and pinned is not None and verdict.ruled_out:
         fit = pinned.fit
         rivals = len(candidates) - 1
         reason = (
             f"found: {len(pose.correspondences)} objects paired, and {rivals} rival pose(s) "
-            f"explained the boxes almost as well, but their renders disagree with the target; "
+            "explained the boxes almost as well, but their renders disagree with the target or "
+            "their fits end at this pose; "
             f"the render at pose {chosen.index + 1} agrees {how}, and its edges pin it: "
             f"{fit.inliers} of {fit.edge_points} on the target's after the dense fit, the "
             "intrinsics given"

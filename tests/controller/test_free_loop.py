@@ -88,6 +88,7 @@ class FakeStages:
         inliers: int = 800,
         ambiguity: str | None = None,
         turn: float = 0.0,
+        meet: bool = False,
     ):
         self.detail = scene
         self.status = status
@@ -106,6 +107,7 @@ class FakeStages:
         self.inliers = inliers  # of 900 edge points, when a fit explains the target
         self.ambiguity = ambiguity  # why the optimizer's answer is ambiguous
         self.turn = turn  # degrees an accepted fit turns the pose
+        self.meet = meet  # every fit ends at the right candidate (x = right)
         self.source = "given"  # where the optimizer says its intrinsics came from
 
     def _call(self, name: str) -> None:
@@ -154,7 +156,8 @@ class FakeStages:
         if request.fit_focal:
             k = k.model_copy(update={"fx_px": 390.0, "fy_px": 390.0, "source": "estimated"})
         x, y, z = pose.position
-        refined = pose.model_copy(update={"position": (x, y + 0.1, z), "intrinsics": k})
+        end = float(self.right) if self.meet else x
+        refined = pose.model_copy(update={"position": (end, y + 0.1, z), "intrinsics": k})
         explained = round(x) in self.edges
         accepted = explained and self.refine == "accepted"
         fit = DenseReport(
@@ -489,21 +492,28 @@ def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_
 
 
 @pytest.mark.parametrize(
-    ("edges", "inliers", "max_iterations", "confirmed"),
+    ("edges", "max_iterations", "meet", "confirmed"),
     [
-        ((0,), 900, 4, True),  # the rivals' renders disagree: the one left is pinned
-        ((0, 2), 900, 4, False),  # rival 2 agrees by its edges too: a symmetric layout
-        ((0,), 800, 4, False),  # 0.89 of the edges: not pinned
-        ((0,), 900, 2, False),  # the budget leaves a rival unrendered
+        ((0,), 4, False, True),  # the rivals' renders disagree: the one left is pinned
+        ((0, 2), 4, False, False),  # rival 2 agrees by its edges too: a symmetric layout
+        ((0, 2), 4, True, True),  # …but its fit ends at pose 1: one pose, not two
+        ((0,), 2, False, False),  # the budget leaves a rival unrendered
     ],
-    ids=["ruled-out", "two-agree", "too-few-edges", "rival-unchecked"],
+    ids=["ruled-out", "two-agree", "two-meet", "rival-unchecked"],
 )
 def test_rivals_are_rendered_and_only_the_one_left_standing_is_confirmed(
-    tmp_path, detail, edges, inliers, max_iterations, confirmed
+    tmp_path, detail, edges, max_iterations, meet, confirmed
 ):
-    """Three rival candidates, the first one right, the intrinsics given."""
+    """Three rival candidates, the first one right and pinned by its edges, the intrinsics
+    given."""
     stages = FakeStages(
-        detail, status="ambiguous", count=3, ambiguity="rivals", edges=edges, inliers=inliers
+        detail,
+        status="ambiguous",
+        count=3,
+        ambiguity="rivals",
+        edges=edges,
+        inliers=900,
+        meet=meet,
     )
     final = run(tmp_path, stages, max_iterations, intrinsics=PhotoIntrinsics(fov_deg=45.0))
     result = final.result
@@ -526,8 +536,22 @@ def test_rivals_are_rendered_and_only_the_one_left_standing_is_confirmed(
     else:
         assert "not confirmed" in result.reason
         assert [p.position[0] for p in result.free.alternatives][0] == (2.0 if 2 in edges else 1.0)
-    if edges == (0, 2):
+    if edges == (0, 2) and not meet:
         assert "and so do the renders at pose(s) 3" in result.reason
+
+
+def test_rivals_are_not_rendered_when_the_agreeing_pose_could_not_be_confirmed(tmp_path, detail):
+    """0.89 of the render's edges on the target's: its rivals' renders could not confirm it."""
+    stages = FakeStages(detail, status="ambiguous", count=3, ambiguity="rivals", inliers=800)
+    final = run(tmp_path, stages, intrinsics=PhotoIntrinsics(fov_deg=45.0))
+    result = final.result
+    assert result is not None
+    assert result.renders == 1
+    assert not result.confirmed
+    (only,) = final.iterations
+    assert only.done
+    assert only.agrees
+    assert "rivals" not in only.reason
 
 
 @pytest.mark.parametrize(
