@@ -6,7 +6,8 @@ edges). The answer is the agreeing candidate that explains the target best (the 
 the target's after an accepted fit, then the box match), else the candidate that explains it
 best. It is ``found`` and confirmed only when the optimizer found a unique pose, or its edges
 pin a pose the boxes pinned loosely, or it is the only one of a ``rivals`` answer's candidates
-whose render agrees (every candidate rendered, the intrinsics given) and its edges pin it.
+whose render agrees (every candidate rendered, the intrinsics given; agreeing candidates whose
+fits end at one pose count once: :data:`SAME_POSE_SHARE`) and its edges pin it.
 """
 
 from __future__ import annotations

@@ -26,7 +26,13 @@ from services.common.contracts.free import (
 )
 from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
 from services.common.contracts.render import SceneDetail
-from services.common.contracts.search import Search, SearchOptions, ViewSettings
+from services.common.contracts.search import (
+    Iteration,
+    Search,
+    SearchOptions,
+    StageTimings,
+    ViewSettings,
+)
 from services.common.depth_archive import DepthImage
 from services.common.errors import ProblemDetails, UnprocessableError
 from services.common.geometry.free_camera import FreeCamera
@@ -34,6 +40,7 @@ from services.controller.events import Notifier
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
 from services.controller.free_refine import edges_contradict
+from services.controller.free_verdict import others_standing
 from services.controller.runner import SearchRunner
 from services.controller.stages import StageError
 from services.controller.store import SearchStore, open_store, utcnow
@@ -538,6 +545,35 @@ def test_rivals_are_rendered_and_only_the_one_left_standing_is_confirmed(
         assert [p.position[0] for p in result.free.alternatives][0] == (2.0 if 2 in edges else 1.0)
     if edges == (0, 2) and not meet:
         assert "and so do the renders at pose(s) 3" in result.reason
+
+
+@pytest.mark.parametrize(
+    ("dx", "turn_deg", "standing"),
+    [(0.1, 0.0, False), (0.3, 0.0, True), (0.0, 0.8, False), (0.0, 1.5, True)],
+)
+def test_an_agreeing_rival_stands_unless_its_fit_ends_at_the_chosen_pose(
+    detail, dx, turn_deg, standing
+):
+    """Radius 10: 2 % is 0.2 scene units; 1° the turn."""
+    half = float(np.radians(turn_deg)) / 2
+    chosen, rival = candidate(0.0), candidate(dx)
+    rival = rival.model_copy(
+        update={"quaternion_wxyz": (float(np.cos(half)), 0.0, 0.0, float(np.sin(half)))}
+    )
+    pose = nearest_grid_pose((0.0, -4.0, 5.0), detail.spec.search.grid())
+    history = [
+        Iteration(
+            index=k,
+            pose=pose,
+            image_size=(320, 240),
+            detections=(),
+            timings=StageTimings(),
+            agrees=True,
+        )
+        for k in range(2)
+    ]
+    found = others_standing(history, history[0], [chosen, rival], {}, radius=10.0)
+    assert found == ((1,) if standing else ())
 
 
 def test_rivals_are_not_rendered_when_the_agreeing_pose_could_not_be_confirmed(tmp_path, detail):
