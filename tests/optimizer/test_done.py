@@ -142,6 +142,33 @@ def test_an_estimate_on_the_edge_between_grid_poses_makes_the_answer_ambiguous(d
         assert "lies almost as near lat 2 lon 0" in plan.reason
 
 
+def test_an_estimate_over_two_pairs_makes_the_answer_ambiguous(demo):
+    """Done by the loose test at lat 1 lon 0 with an estimate well inside its cell: two pairs
+    leave the estimate's error too large to confirm it; three do not."""
+    from services.optimizer.problem import Estimate
+    from services.optimizer.strategies.done import done_plan
+
+    _, grid, _ = demo
+    flat = grid.flat(GridIndex(lat=1, lon=0))
+    plans = []
+    for n in (2, 3):
+        view = Observation.from_arrays(["sphere"] * n, row(n))
+        target = Observation.from_arrays(["sphere"] * n, row(n) + 1.5)  # loose, not strict
+        current = Visit(flat, 15.0, 0.0, view)
+        problem = SearchProblem(grid, demo[0].camera, target, (current,))
+        est = Estimate(flat, 15.4, 0.0, 0.4, 0.9)
+        plans.append(done_plan(problem, current, compare_views(view, target), est, True))
+    two, three = plans
+    assert two is not None
+    assert three is not None
+    assert two.done
+    assert three.done
+    assert two.ambiguous, two.reason
+    assert "only 2 pair(s) support the estimate" in two.reason
+    assert len(two.alternatives) == 1
+    assert not three.ambiguous, three.reason
+
+
 def test_one_pair_far_off_is_left_unpaired_when_its_confidence_allows():
     """Seen on a generated scene: a partly visible object boxed as a cone in the view and a cube
     in the target, 15 px apart, while the other pairs agree to a pixel."""
