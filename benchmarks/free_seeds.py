@@ -10,8 +10,8 @@ that ``docs/RESULTS.md`` shows for seed 1 are not those of every draw. Per run a
 and per detector (``own``: a built-in scene's or an onboarded scene's model; ``general``: the
 shipped shape model on a generated scene), it prints over the clean, JPEG and noise variants
 the share within 5 % of the radius and 2° (the goal's measure) with the fov given and not,
-the share of box estimates within 10 % / 5°, and per elevation band; then the confirmed-wrong
-count over every variant.
+the share of box estimates within 10 % / 5°, and per elevation band; then over every variant
+the confirmed answers (``found``), how many of them are wrong, and the renders a search.
 """
 
 from __future__ import annotations
@@ -36,6 +36,10 @@ def _share(records: Sequence[FreeRecord], method: str, limit: tuple[float, float
     return f"{hits}/{len(records)}"
 
 
+def _mean_renders(records: Sequence[FreeRecord]) -> str:
+    return f"{sum(r.renders for r in records) / len(records):.2f}" if records else "—"
+
+
 def _row(label: str, records: Sequence[FreeRecord]) -> str:
     fitting = [r for r in records if r.variant in FITTING]
     given = [r for r in fitting if r.intrinsics_given]
@@ -48,7 +52,9 @@ def _row(label: str, records: Sequence[FreeRecord]) -> str:
         f"{label:<40} given {_share(given, ANSWER, THRESHOLDS[1]):>7}  "
         f"boxes {_share(given, BOXES, THRESHOLDS[2]):>7}  "
         f"not given {_share(unknown, ANSWER, THRESHOLDS[1]):>7}  "
-        f"confirmed wrong {len(confirmed_wrong(records))}  | given by band: {bands}"
+        f"confirmed {sum(r.outcome == 'found' for r in records):>3}, wrong "
+        f"{len(confirmed_wrong(records))}  renders {_mean_renders(records)}  "
+        f"| given by band: {bands}"
     )
 
 
