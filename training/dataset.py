@@ -3,15 +3,15 @@
 Run ``python -m training.dataset --out data/train --count 3000 --seed 1``; it resumes where it
 stopped (a sample is done when its label file exists), so it can run in chunks.
 
-Every scene is random: 1–10 objects of the detector's classes (sphere, cube, cylinder, cone,
-mesh), any size, colour (any hue, greys and dark ones included) or texture, touching and partly
-occluding; a plain or textured ground of random colour; a point light anywhere above the ground
-with random intensity and ambient; a camera of random fov and radius. Each scene is seen from
+Every scene is random: 1–10 objects of the detector's classes (sphere, cube, cylinder, cone, mesh),
+any size, colour (any hue, greys and dark ones included) or texture, touching and partly occluding;
+a plain or textured ground of random colour; a point light anywhere above the ground with random
+intensity and ambient; a camera of random fov and radius. Each scene is seen from
 ``views_per_scene`` random poses over the whole hemisphere at one random image size, or, for a
 share ``drone_share`` of the views, from a drone (:func:`~training.drone_views.drone_camera`: any
 distance, mostly down, rolled, fov ±30 %). A share of the scenes are the built-in ``demo`` and
-``garden`` from random poses. Labels come from the
-renderer's ground truth (per-pixel shape ids), so occlusion and image edges are exact.
+``garden`` from random poses. Labels come from the renderer's ground truth (per-pixel shape ids),
+so occlusion and image edges are exact.
 
 Sample ``i`` of seed ``s`` depends only on ``(s, i)`` (and the drone share): datasets are
 reproducible, and a held-out set is one rendered with a seed never used for training. Whether a
