@@ -22,9 +22,10 @@ def _print_free_iteration(it: Iteration) -> None:
     camera = it.camera
     where = f"camera at ({_triple(camera.position)})" if camera is not None else ""
     score = f"match {it.match.score:.2f}" if it.match is not None else ""
+    agrees = it.agrees if it.agrees is not None else it.done  # an older record: by ``done``
     print(
         f"  [{it.index + 1:>2}] {where} {len(it.detections)} objects  "
-        f"{it.timings.total_ms:6.0f} ms  {score}  {'agrees' if it.done else 'disagrees'}",
+        f"{it.timings.total_ms:6.0f} ms  {score}  {'agrees' if agrees else 'disagrees'}",
         flush=True,
     )
 

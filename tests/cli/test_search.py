@@ -25,3 +25,31 @@ def test_lens_flags_need_free(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     argv = ["search", str(photo), "--scene", "demo", "--url", "http://127.0.0.1:9", *flags]
     assert main(argv) == 2
     assert f"{flags[0]} go with --free" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("agrees", "done", "said"),
+    [(True, False, "agrees"), (False, False, "disagrees"), (None, True, "agrees")],
+    ids=["rivals-next", "disagrees", "older-record"],
+)
+def test_a_free_iteration_says_whether_its_render_agreed(
+    capsys: pytest.CaptureFixture[str], agrees: bool | None, done: bool, said: str
+) -> None:
+    """A render that agrees while its rivals are rendered next is not ``done``."""
+    from cosmos.cli.follow import _print_free_iteration
+    from services.common.contracts.optimize import GridPose
+    from services.common.contracts.search import Iteration, StageTimings
+    from services.common.geometry.pose import GridIndex
+
+    pose = GridPose(index=GridIndex(lat=1, lon=0), theta_deg=15.0, phi_deg=0.0)
+    it = Iteration(
+        index=0,
+        pose=pose,
+        image_size=(320, 240),
+        detections=(),
+        timings=StageTimings(),
+        done=done,
+        agrees=agrees,
+    )
+    _print_free_iteration(it)
+    assert capsys.readouterr().out.rstrip().endswith(f"  {said}")
