@@ -33,9 +33,9 @@ from services.detector.model import DetectorModel
 from services.detector.settings import DetectorSettings
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
-from services.renderer.view import resolve_free_camera
 from training.card import write_general_card
 from training.dataset import CLASSES, asset_folder, views
+from training.drone_views import engine_view
 from training.metrics import Evaluation, box_iou
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,11 +104,7 @@ def run(count: int, seed: int, model: Path, drone_share: float = DRONE_SHARE) ->
             group = view.scene.id if not view.scene.id.startswith("s") else "random"
             scenes.add(group)
             drone = isinstance(view.pose, FreeCamera)
-            where = (
-                resolve_free_camera(view.scene, view.pose, view.width, view.height)
-                if isinstance(view.pose, FreeCamera)
-                else view.pose
-            )
+            where = engine_view(view.scene, view.pose, view.width, view.height)
             rgb = engine.render(view.scene, where, view.width, view.height, view.spp, view.seed).rgb
             ann = engine.annotate(view.scene, where, view.width, view.height, None)
             object_map = engine.object_map(view.scene, where, view.width, view.height)

@@ -40,8 +40,7 @@ from services.common.geometry.pose import Pose
 from services.common.geometry.scene import LoadedScene, SceneSpec
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
-from services.renderer.view import resolve_free_camera
-from training.drone_views import drone_camera
+from training.drone_views import drone_camera, engine_view
 
 __all__ = [
     "View",
@@ -368,11 +367,7 @@ def render_dataset(
             asset_folder(out), seed, count, views_per_scene, builtin_share, finished, drone_share
         )
         for view in todo:
-            where = (
-                resolve_free_camera(view.scene, view.pose, view.width, view.height)
-                if isinstance(view.pose, FreeCamera)
-                else view.pose
-            )
+            where = engine_view(view.scene, view.pose, view.width, view.height)
             image = engine.render(
                 view.scene, where, view.width, view.height, view.spp, seed=view.seed
             )

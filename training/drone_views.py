@@ -11,7 +11,10 @@ from __future__ import annotations
 import numpy as np
 
 from services.common.geometry.free_camera import FreeCamera, orbit_position
+from services.common.geometry.pose import Pose
 from services.common.geometry.scene import LoadedScene
+from services.renderer.free_view import FreeView
+from services.renderer.view import resolve_free_camera
 
 __all__ = [
     "DRONE_DISTANCE",
@@ -19,6 +22,7 @@ __all__ = [
     "DRONE_NADIR_SHARE",
     "DRONE_ROLL_DEG",
     "drone_camera",
+    "engine_view",
 ]
 
 DRONE_DISTANCE = (0.4, 1.6)
@@ -52,3 +56,13 @@ def drone_camera(scene: LoadedScene, rng: np.random.Generator) -> FreeCamera:
         roll_deg=float(rng.uniform(-DRONE_ROLL_DEG, DRONE_ROLL_DEG)),
         fov_deg=min(scene.spec.camera.fov_deg * spread, 120.0),
     )
+
+
+def engine_view(
+    scene: LoadedScene, pose: Pose | FreeCamera, width: int, height: int
+) -> Pose | FreeView:
+    """``pose`` as the render engine takes it on a ``width`` x ``height`` film: a hemisphere
+    pose as it is, a free camera resolved (:func:`~services.renderer.view.resolve_free_camera`)."""
+    if isinstance(pose, FreeCamera):
+        return resolve_free_camera(scene, pose, width, height)
+    return pose

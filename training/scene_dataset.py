@@ -41,9 +41,8 @@ from services.common.geometry.scene import Lighting, LoadedScene, PointLight
 from services.common.scene_models import object_classes
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
-from services.renderer.view import resolve_free_camera
 from training.dataset import labelled_objects
-from training.drone_views import drone_camera
+from training.drone_views import drone_camera, engine_view
 
 __all__ = [
     "VIEWS_PER_LIGHTING",
@@ -191,12 +190,7 @@ def render_scene_dataset(
     finished = finished_samples(out, count)
     rendered = 0
     for view in scene_views(scene, seed, count, lambda i: label_path(i).exists()):
-        pose = view.pose
-        where = (
-            resolve_free_camera(view.scene, pose, width, height)
-            if isinstance(pose, FreeCamera)
-            else pose
-        )
+        where = engine_view(view.scene, view.pose, width, height)
         image = engine.render(view.scene, where, width, height, view.spp, seed=view.seed)
         ann = engine.annotate(view.scene, where, width, height, None)
         (out / "images" / f"{view.index:06d}.png").write_bytes(encode_png(image.rgb))
