@@ -25,7 +25,11 @@ from services.common.contracts.free import (
 )
 from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.search import Iteration, SearchResult
-from services.common.geometry.free_camera import direction_pose
+from services.common.geometry.free_camera import (
+    direction_pose,
+    rotation_angle_deg,
+    rotation_of_quaternion,
+)
 from services.common.geometry.grid import HemisphereGrid
 
 __all__ = [
@@ -92,10 +96,10 @@ def _final_pose(
 
 
 def _same_pose(a: FreePose, b: FreePose, radius: float) -> bool:
-    """Within :data:`SAME_POSE_SHARE` of ``radius`` and :data:`SAME_POSE_DEG` (the turn
-    between the quaternions, ``2 acos |qa·qb|``)."""
-    dot = abs(sum(x * y for x, y in zip(a.quaternion_wxyz, b.quaternion_wxyz, strict=True)))
-    turn = math.degrees(2.0 * math.acos(min(1.0, dot)))
+    """Within :data:`SAME_POSE_SHARE` of ``radius`` and :data:`SAME_POSE_DEG` of each other."""
+    turn = rotation_angle_deg(
+        rotation_of_quaternion(a.quaternion_wxyz), rotation_of_quaternion(b.quaternion_wxyz)
+    )
     return math.dist(a.position, b.position) <= SAME_POSE_SHARE * radius and turn <= SAME_POSE_DEG
 
 
