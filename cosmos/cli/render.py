@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
-from cosmos.cli.common import Commands
+from cosmos.cli.common import Commands, accept_negative_lists
 from services.common.auth import token_from_environment
 from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
@@ -178,9 +177,7 @@ def register(commands: Commands) -> None:
         "camera (--position with --ypr, --look-at or --quaternion). World frame: z up, the "
         "ground at z = 0; camera axes x right, y down, z forward.",
     )
-    # argparse takes "-3,0,2" for a flag unless it counts as a negative number; no flag of this
-    # command starts with a digit, so a leading "-digit" is always a value here.
-    render._negative_number_matcher = re.compile(r"^-\.?\d")
+    accept_negative_lists(render)
     hemisphere = render.add_argument_group("hemisphere pose (the default: θ 45°, φ 0°)")
     hemisphere.add_argument("--theta", type=float, help="polar angle θ in degrees (default 45)")
     hemisphere.add_argument("--phi", type=float, help="azimuth φ in degrees (default 0)")

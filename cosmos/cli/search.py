@@ -11,7 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from cosmos.cli.common import Commands, client_api_key, say
+from cosmos.cli.common import Commands, accept_negative_lists, client_api_key, say
 from cosmos.cli.follow import follow
 from services.controller.client import (
     DEFAULT_RETRY_BUDGET_S,
@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
 def register(commands: Commands) -> None:
     """Add the command's parser to ``commands``."""
     search = commands.add_parser("search", help="search for where an image was taken")
+    accept_negative_lists(search)
     search.add_argument("image", help="the target image (PNG or JPEG)")
     search.add_argument("--scene", required=True)
     search.add_argument("--url", default="http://127.0.0.1:8000", help="the controller")

@@ -28,6 +28,30 @@ def test_lens_flags_need_free(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 
 
 @pytest.mark.parametrize(
+    ("argv", "field", "value"),
+    [
+        (
+            ["search", "p.jpg", "--scene", "demo", "--free", "--distortion", "-0.12,0.03,0,0"],
+            "distortion",
+            "-0.12,0.03,0,0",
+        ),
+        (
+            ["search", "p.jpg", "--scene", "demo", "--free", "--distortion", "-.1,0,0,0"],
+            "distortion",
+            "-.1,0,0,0",
+        ),
+        (["render", "--position", "-4,3,5", "--look-at", "0,-1,0"], "position", "-4,3,5"),
+    ],
+    ids=["search-barrel-lens", "search-no-leading-zero", "render-position"],
+)
+def test_a_list_may_start_with_a_minus_sign(argv: list[str], field: str, value: str) -> None:
+    """A barrel lens's k1 is negative: argparse took ``-0.12,…`` for an unknown flag."""
+    from cosmos.cli import _parser
+
+    assert getattr(_parser().parse_args(argv), field) == value
+
+
+@pytest.mark.parametrize(
     ("agrees", "done", "said"),
     [(True, False, "agrees"), (False, False, "disagrees"), (None, True, "agrees")],
     ids=["rivals-next", "disagrees", "older-record"],
