@@ -109,11 +109,13 @@ _BASE_RECIPE = (
 
 def _fine_tune_recipe(provenance: Mapping[str, Any]) -> list[str]:
     """The fine-tune's commands, from its provenance (its datasets are rendered by
-    ``training.dataset``, with ``--drone-share`` for drone views)."""
+    ``training.dataset``, with ``--drone-share`` for drone views; a model exported before the
+    validation set was recorded names the base recipe's)."""
     data = " ".join(f"--data {d}" for d in provenance.get("datasets") or [])
+    val = provenance.get("val_dataset") or "data/val"
     return [
         "# then the fine-tune from the model just exported",
-        f".venv/bin/python -m training.train {data} --val VAL --run data/runs/tuned "
+        f".venv/bin/python -m training.train {data} --val {val} --run data/runs/tuned "
         f"--epochs {provenance.get('epochs')} --init models/detector.onnx",
         ".venv/bin/python -m training.export --checkpoint data/runs/tuned/best.pt --out "
         "models/detector.onnx",

@@ -312,6 +312,7 @@ def _main(args: argparse.Namespace) -> int:
                 "classes": CLASSES,
             },
             "data": [str(d) for d in args.data],
+            "val": str(args.val),
             "train_images": len(train),
             "init": init,
         }

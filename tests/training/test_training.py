@@ -205,6 +205,7 @@ def test_fine_tuning_starts_from_the_shipped_model_and_says_so(tmp_path):
     assert origin["sha256"] == shipped["sha256"]
     assert origin["provenance"]["train_images"] == shipped["provenance"]["train_images"]
     assert sidecar["parameters"] == shipped["parameters"]  # the shipped width, not --width's
+    assert sidecar["provenance"]["val_dataset"] == str(tmp_path / "data")
 
 
 def test_training_leaves_subnormal_floats_as_it_found_them():
@@ -229,6 +230,7 @@ def test_the_general_card_names_the_base_model_of_a_fine_tune(tmp_path, tuned):
         sidecar["provenance"] = {
             **base,
             "epochs": 12,
+            "val_dataset": "data/drone/val",
             "fine_tuned_from": {
                 "model": "detector.onnx",
                 "sha256": "ab" * 32,
@@ -258,4 +260,6 @@ def test_the_general_card_names_the_base_model_of_a_fine_tune(tmp_path, tuned):
     assert "(drone views)" in card
     assert ("| base model | `abababababababab…`" in card) is tuned
     assert ("--init models/detector.onnx" in card) is tuned
+    assert ("--val data/drone/val --run data/runs/tuned" in card) is tuned
+    assert "--val VAL" not in card
     assert "--epochs 24 --width 16" in card
