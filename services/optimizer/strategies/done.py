@@ -73,15 +73,15 @@ NOISE_SIGMAS: Final = 2.0
 """z: standard deviations of edge noise the loose done test allows (module docstring)."""
 EDGE_MARGIN_STEPS: Final = 0.2
 """An estimate nearer its grid pose than another by less than this many grid steps of angle
-makes a done answer ambiguous (:func:`_on_the_edge`)."""
+makes a done answer ambiguous (:func:`_ambiguous_if_undecided`)."""
 MIN_ESTIMATE_PAIRS: Final = 3
 """A done answer resting on the estimate, with fewer pairs than this between the views, is
-ambiguous (:func:`_on_the_edge`). Measured with the general model on generated scenes (``cosmos
-bench --random-scenes 5 --n 5 --onboard none --seed 7``, 300 searches): 4 of its 5 confirmed
-wrong answers were done so over 2 pairs (two look-alike objects), their estimates 3.4–5.9° off
-on a 5° grid. With this rule: confirmed wrong 5 → 1, confirmed right 186 → 179, found 282
-either way; on the built-in scenes (``cosmos bench --scenes demo,garden --n 5 --strategies
-reprojection --seed 3``, 80 searches) nothing changed."""
+ambiguous (:func:`_ambiguous_if_undecided`). Measured with the general model on generated
+scenes (``cosmos bench --random-scenes 5 --n 5 --onboard none --seed 7``, 300 searches): 4 of
+its 5 confirmed wrong answers were done so over 2 pairs (two look-alike objects), their
+estimates 3.4–5.9° off on a 5° grid. With this rule: confirmed wrong 5 → 1, confirmed right
+186 → 179, found 282 either way; on the built-in scenes (``cosmos bench --scenes demo,garden
+--n 5 --strategies reprojection --seed 3``, 80 searches) nothing changed."""
 
 
 @dataclass(frozen=True)
@@ -153,7 +153,7 @@ def done_plan(
             continue
         loose = agreeing.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
         if _within(agreeing, loose, problem):
-            return _on_the_edge(problem, Plan(
+            return _ambiguous_if_undecided(problem, Plan(
                 True, current.flat, "stay", est, ambiguous, alternatives,
                 f"the estimate puts the target at this grid pose and the views agree within "
                 f"{loose:.2f} px ({matched_text(agreeing)})",
@@ -170,7 +170,7 @@ def done_plan(
     refined_px = refined.residual_px
     if paired:
         assert est is not None  # a refined residual comes with its estimate
-        return _on_the_edge(problem, Plan(
+        return _ambiguous_if_undecided(problem, Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
             f"the target lies between grid poses, nearest this one: at the refined pose "
             f"θ = {est.theta_deg:.2f}°, φ = {est.phi_deg:.2f}° the predicted view matches it "
@@ -189,7 +189,7 @@ def _units(grid: HemisphereGrid) -> FloatArray:
     return pose_to_cartesian(grid.theta_deg, grid.phi_deg).reshape(-1, 3)
 
 
-def _on_the_edge(problem: SearchProblem, plan: Plan, pairs: int) -> Plan:
+def _ambiguous_if_undecided(problem: SearchProblem, plan: Plan, pairs: int) -> Plan:
     """``plan``, done on the strength of its estimate over ``pairs`` pairs, made ambiguous when
     the estimate lies almost as near another grid pose: within :data:`EDGE_MARGIN_STEPS` grid
     steps of angle (``d₂ − d₁``, the angles to the second nearest and the nearest grid pose) of
