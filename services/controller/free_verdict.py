@@ -56,10 +56,11 @@ first one's pose."""
 
 def _explains(iteration: Iteration, edges: RefinePoseResponse | str | None) -> tuple[float, ...]:
     """How well a rendered candidate explains the target: the share of its render's edges on
-    the target's after an accepted dense fit (0 without one), then its box match score."""
+    the target's after an accepted dense fit, above chance (0 without one), then its box match
+    score."""
     share = 0.0
     if isinstance(edges, RefinePoseResponse) and edges.fit.accepted:
-        share = edges.fit.inliers / max(edges.fit.edge_points, 1)
+        share = edges.fit.share()
     return (share, iteration.match.score if iteration.match else 0.0, -iteration.index)
 
 

@@ -39,7 +39,7 @@ from services.common.geometry.free_camera import FreeCamera
 from services.controller.events import Notifier
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
-from services.controller.free_refine import edges_contradict
+from services.controller.free_refine import edges_agree, edges_contradict, edges_pin
 from services.controller.free_verdict import others_standing
 from services.controller.runner import SearchRunner
 from services.controller.stages import StageError
@@ -916,3 +916,29 @@ def test_a_fit_contradicts_a_render_s_boxes_when_the_image_is_explained_elsewher
     outcome = RefinePoseResponse(pose=candidate(0.0), fit=fit)
     assert edges_contradict(outcome) is contradicts
     assert not edges_contradict("the optimizer stayed away")
+
+
+@pytest.mark.parametrize(("chance", "said"), [(0.0, True), (0.6, False)])
+def test_edges_agree_and_pin_only_above_the_chance_of_an_edge_rich_target(chance, said):
+    """900 of 1000 points on the target's edges pin a pose; not when a random pose would
+    leave 600 there (above chance: 0.75)."""
+    fit = DenseReport(
+        converged=True,
+        accepted=True,
+        reason="",
+        edge_points=1000,
+        inliers=900,
+        start_inliers=880,
+        residual_px=0.4,
+        focal_fitted=False,
+        moved=0.1,
+        moved_rotation_deg=0.5,
+        chance=chance,
+    )
+    assert fit.share() == pytest.approx((0.9 - chance) / (1 - chance))
+    outcome = RefinePoseResponse(pose=candidate(0.0), fit=fit)
+    given = PhotoIntrinsics(fov_deg=40.0)
+    assert edges_agree(outcome) is said
+    assert (edges_pin(outcome, given, "loose") is not None) is said
+    # a fit at the target's chance says nothing, and one below it contradicts
+    assert fit.share(600) == pytest.approx(0.0 if chance else 0.6)

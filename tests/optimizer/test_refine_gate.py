@@ -40,7 +40,9 @@ def start_pose() -> FreePose:
     )
 
 
-def fit(shift: float, turn_deg: float, inliers: int, start_inliers: int, points=1000) -> DenseFit:
+def fit(
+    shift: float, turn_deg: float, inliers: int, start_inliers: int, points=1000, chance=0.0
+) -> DenseFit:
     """A fit of the start camera moved ``shift`` along x and turned ``turn_deg`` about z."""
     start = START.rotation().T  # world to camera
     a = math.radians(turn_deg)
@@ -57,6 +59,7 @@ def fit(shift: float, turn_deg: float, inliers: int, start_inliers: int, points=
         points=points,
         inliers=inliers,
         start_inliers=start_inliers,
+        chance=chance,
     )
 
 
@@ -154,3 +157,23 @@ def test_the_box_slack_is_in_the_renders_pixels():
     report = dense_report(large, start_pose(), DEPTH, 0.1, box_shift=10.0)
     assert report.accepted, report.reason
     assert not dense_report(large, start_pose(), DEPTH, 0.1, box_shift=30.0).accepted
+
+
+@pytest.mark.parametrize(
+    ("chance", "inliers", "start", "accepted", "said"),
+    [
+        (0.02, 700, 520, True, "refined"),  # a plain target: about the raw shares
+        (0.55, 700, 520, False, "a random pose would leave 55%"),  # 0.33 above chance
+        (0.55, 950, 900, True, "a random pose would leave 55%"),  # 0.89 above chance
+        (0.55, 760, 500, False, "did not converge"),  # 0.47 above chance: most unexplained
+    ],
+)
+def test_shares_are_taken_above_the_chance_of_an_edge_rich_target(
+    chance, inliers, start, accepted, said
+):
+    """On a target where any pose leaves half its points on edges, 700 of 1000 is no longer
+    most of them."""
+    report = dense_report(fit(0.5, 2.0, inliers, start, chance=chance), start_pose(), DEPTH, 1.0)
+    assert report.accepted is accepted, report.reason
+    assert report.chance == chance
+    assert said in report.reason

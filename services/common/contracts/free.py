@@ -43,6 +43,7 @@ __all__ = [
     "IntrinsicsSource",
     "IntrinsicsUsed",
     "PhotoIntrinsics",
+    "above_chance",
     "nearest_grid_pose",
 ]
 
@@ -188,6 +189,19 @@ class FreePoseResponse(FrozenModel):
     )
 
 
+def above_chance(count: float, total: int, chance: float) -> float:
+    """The share of ``total`` edge points that ``count`` of them on the target's edges is above
+    ``chance``, the share a pose placed at random would leave there:
+    ``(count / total − chance) / (1 − chance)``. If a share ``q`` of the points lie on the edges
+    they belong to and the others fall there by chance, ``count / total = q + (1 − q) chance``,
+    so this is ``q``. On a plain target it is about the raw share (chance 1–3 % on the free
+    bench's renders); on an edge-rich one (gravel, foliage, noise) a wrong pose's raw share
+    rises towards the chance, this one does not. 0 when there are no points."""
+    if total <= 0:
+        return 0.0
+    return (count / total - chance) / (1.0 - chance)
+
+
 class DenseReport(FrozenModel):
     """How the dense edge refinement of a pose by its render went (``POST /refine-pose``):
     ``converged`` when the render's edges, moved with the pose, fell on the target's edges
@@ -225,6 +239,18 @@ class DenseReport(FrozenModel):
         "they are not: measured on free targets, the fov's errors reached 3 to 30 times it. "
         "Null when the focal length was not asked for or too few points were explained.",
     )
+    chance: Annotated[Number, Field(ge=0.0, lt=1.0)] = Field(
+        default=0.0,
+        description="The share of the edge points that a pose placed at random would leave "
+        "within 2 px of a target edge of their orientation: the target's edge density. The "
+        "shares that decide are taken above it (``above_chance``); 0 from an optimizer that "
+        "does not say.",
+    )
+
+    def share(self, count: int | None = None) -> float:
+        """The share of the edge points that ``count`` (the fit's ``inliers`` by default) is
+        above :attr:`chance` (:func:`above_chance`)."""
+        return above_chance(self.inliers if count is None else count, self.edge_points, self.chance)
 
 
 class FreeAnswer(FrozenModel):

@@ -94,6 +94,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from services.common.contracts.free import above_chance
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.free_camera import LensDistortion
 from services.optimizer.free.chamfer import ChamferProblem
@@ -102,6 +103,7 @@ from services.optimizer.free.edges import (
     ORIENTATION_BINS,
     EdgePoints,
     Level,
+    edge_chance,
     edge_points,
     edge_points_by_outline,
     gray,
@@ -201,6 +203,10 @@ class DenseFit:
     was not fitted, ∞ when too few points were explained)."""
     depth: float = math.nan
     """The model points' median depth at the render's pose (scene units; NaN without points)."""
+    chance: float = 0.0
+    """The share of the points a pose placed at random would leave within :data:`INLIER_PX` of
+    a target edge of their orientation (:func:`~.edges.edge_chance`): the target's edge
+    density, above which the shares that decide are taken."""
 
     @property
     def position(self) -> FloatArray:
@@ -403,6 +409,7 @@ def refine_dense(
         focal_fitted=focal_fitted,
         focal_sigma=focal_sigma,
         depth=float(np.median(depths)) if depths.size else math.nan,
+        chance=edge_chance(fine, points.bins, INLIER_PX),
     )
 
 
@@ -433,5 +440,6 @@ def worth_another_render(fit: DenseFit, camera: PinholeCamera) -> bool:
     """
     shift = float(np.linalg.norm(fit.position - np.asarray(camera.position, dtype=np.float64)))
     if not fit.focal_fitted:
-        return shift > REFIT_MOVE * fit.depth and fit.inliers < REFIT_SHARE * fit.points
+        explained = above_chance(fit.inliers, fit.points, fit.chance)
+        return shift > REFIT_MOVE * fit.depth and explained < REFIT_SHARE
     return abs(fit.intrinsics.fx / camera.fx - 1.0) > REFIT_ZOOM or shift > REFIT_ZOOM * fit.depth
