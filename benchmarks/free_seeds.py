@@ -10,8 +10,9 @@ that ``docs/RESULTS.md`` shows for seed 1 are not those of every draw. Per run a
 and per detector (``own``: a built-in scene's or an onboarded scene's model; ``general``: the
 shipped shape model on a generated scene), it prints over the clean, JPEG and noise variants
 the share within 5 % of the radius and 2° (the goal's measure) with the fov given and not,
-the share of box estimates within 10 % / 5°, and per elevation band; then over every variant
-the confirmed answers (``found``), how many of them are wrong, and the renders a search.
+the share of box estimates within 10 % / 5°, and per elevation band with the fov given and not;
+then over every variant the confirmed answers (``found``), how many of them are wrong, and the
+renders a search.
 """
 
 from __future__ import annotations
@@ -44,17 +45,20 @@ def _row(label: str, records: Sequence[FreeRecord]) -> str:
     fitting = [r for r in records if r.variant in FITTING]
     given = [r for r in fitting if r.intrinsics_given]
     unknown = [r for r in fitting if not r.intrinsics_given]
-    bands = "  ".join(
-        f"{band} {_share([r for r in given if r.band == band], ANSWER, THRESHOLDS[1])}"
-        for band in BANDS
-    )
     return (
         f"{label:<40} given {_share(given, ANSWER, THRESHOLDS[1]):>7}  "
         f"boxes {_share(given, BOXES, THRESHOLDS[2]):>7}  "
         f"not given {_share(unknown, ANSWER, THRESHOLDS[1]):>7}  "
         f"confirmed {sum(r.outcome == 'found' for r in records):>3}, wrong "
         f"{len(confirmed_wrong(records))}  renders {_mean_renders(records)}  "
-        f"| given by band: {bands}"
+        f"| given by band: {_bands(given)} | not given by band: {_bands(unknown)}"
+    )
+
+
+def _bands(records: Sequence[FreeRecord]) -> str:
+    return "  ".join(
+        f"{band} {_share([r for r in records if r.band == band], ANSWER, THRESHOLDS[1])}"
+        for band in BANDS
     )
 
 
@@ -64,6 +68,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     runs = []
     for path in args.reports:
+        if not Path(path).is_file():
+            parser.error(f"{path}: no such report (a run still going writes it at its end)")
         report = json.loads(Path(path).read_text())
         records = [FreeRecord.model_validate(r) for r in report["records"]]
         runs.append((str(report["config"]["seed"]), records))
