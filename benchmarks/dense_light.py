@@ -55,7 +55,7 @@ def _name(scene_id: str, seed: int, index: int, variant: str) -> str:
     return f"{scene_id}-s{seed}-{index:02d}-{variant}.npz"
 
 
-def _capture(folder: Path, n: int, seeds: list[int]) -> None:
+def capture(folder: Path, n: int, seeds: list[int]) -> None:
     """Draw, solve, render and degrade the cases into ``folder`` (module docstring); cases
     already there are kept."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -140,7 +140,7 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=8, help="targets drawn per scene (capture)")
     parser.add_argument("--seeds", default="1,5", help="seeds of the generated scenes")
     args = parser.parse_args()
-    _capture(args.cases, args.n, [int(s) for s in args.seeds.split(",")])
+    capture(args.cases, args.n, [int(s) for s in args.seeds.split(",")])
     # (variant, band) -> method -> [n, within 5 %/2°, within 2 %/1°]; and fixed / broken
     table: dict[tuple[str, str], dict[str, list[int]]] = defaultdict(
         lambda: {m: [0, 0, 0] for m in METHODS}

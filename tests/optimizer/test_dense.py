@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from benchmarks.dense_clutter import textured
 from cosmos.bench.altered import alter_scene
 from services.common.catalog import SceneCatalog
 from services.common.contracts.detect import Detection
@@ -109,26 +110,16 @@ def test_a_pose_a_few_percent_off_is_refined_to_the_true_one(engine, catalog, sc
     assert fit.residual_px < 1.0
 
 
-def textured(gray_image, seed: int):
-    """``gray_image`` half under a blocky noise texture (3 px blocks): gravel or foliage at its
-    worst, edges everywhere."""
-    rng = np.random.default_rng(seed)
-    blocks = rng.random((H // 3 + 1, W // 3 + 1))
-    texture = cv2.GaussianBlur(
-        cv2.resize(blocks, (W, H), interpolation=cv2.INTER_NEAREST), (0, 0), 0.8
-    )
-    return np.clip(0.5 * gray_image + 127.5 * texture, 0, 255).astype(np.uint8)
-
-
 def test_on_an_edge_rich_target_a_render_of_another_view_is_no_fit(engine, catalog):
-    """Under the texture, the fit from the nadir view's render leaves most of its points on the
-    oblique target's edges (0.64 measured), as many as a right fit leaves on a plain target:
-    above the chance of the target's edges (0.54), not even a quarter."""
+    """Half under a blocky noise texture (gravel or foliage at its worst), the fit from the nadir
+    view's render leaves most of its points on the oblique target's edges (0.64 measured), as
+    many as a right fit leaves on a plain target: above the chance of the target's edges (0.54),
+    not even a quarter."""
     scene = catalog.get("demo")
     (_, truth), (_, elsewhere) = VIEWS[0], VIEWS[1]
     plain = gray(rendered(engine, scene, truth)[0])
     rgb, depth, camera = rendered(engine, scene, elsewhere)
-    fit = refine_dense(textured(plain, seed=1), rgb, depth, camera, fit_focal=False)
+    fit = refine_dense(textured(plain, 0.5, seed=1), rgb, depth, camera, fit_focal=False)
     assert fit.chance > 0.3
     assert fit.inliers >= MIN_INLIER_SHARE * fit.points  # what used to converge
     assert above_chance(fit.inliers, fit.points, fit.chance) < 0.3
