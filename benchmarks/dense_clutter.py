@@ -20,7 +20,6 @@ chance; and, for the right renders, how many fits end within 5 % of the radius a
 
 from __future__ import annotations
 
-import argparse
 import statistics
 from collections import defaultdict
 from pathlib import Path
@@ -29,7 +28,7 @@ from typing import Any, Final
 import cv2
 import numpy as np
 
-from benchmarks.dense_light import capture
+from benchmarks.dense_light import captured_cases
 from benchmarks.dense_refine import load_pair
 from cosmos.bench.free_targets.metrics import rotation_angle_deg
 from services.common.contracts.free import above_chance
@@ -95,15 +94,10 @@ def _fit(target: np.ndarray, render: dict[str, Any]) -> DenseFit:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", type=Path, default=Path.home() / ".cache/cosmos/dense-light")
-    parser.add_argument("--n", type=int, default=8, help="targets drawn per scene (capture)")
-    parser.add_argument("--seeds", default="1,5", help="seeds of the generated scenes")
-    args = parser.parse_args()
-    capture(args.cases, args.n, [int(s) for s in args.seeds.split(",")])
+    folder = captured_cases(__doc__.splitlines()[0])
     rows: dict[tuple[float, str], list[int]] = defaultdict(lambda: [0] * 6)
     chances: dict[float, list[float]] = defaultdict(list)
-    for group in _scene_groups(args.cases).values():
+    for group in _scene_groups(folder).values():
         cases = [load_pair(path) for path in group]
         for i, case in enumerate(cases):
             other = cases[(i + 1) % len(cases)]

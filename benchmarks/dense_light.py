@@ -134,19 +134,27 @@ def _errors(case: dict[str, Any], near: np.ndarray | None) -> tuple[float, float
     return moved, rotation_angle_deg(fit.rotation, np.asarray(truth.rotation))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def captured_cases(description: str) -> Path:
+    """The cases folder of the command line (``--cases``, ``--n``, ``--seeds``: module
+    docstring), captured there if missing."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--cases", type=Path, default=Path.home() / ".cache/cosmos/dense-light")
     parser.add_argument("--n", type=int, default=8, help="targets drawn per scene (capture)")
     parser.add_argument("--seeds", default="1,5", help="seeds of the generated scenes")
     args = parser.parse_args()
     capture(args.cases, args.n, [int(s) for s in args.seeds.split(",")])
+    folder: Path = args.cases
+    return folder
+
+
+def main() -> None:
+    cases = captured_cases(__doc__.splitlines()[0])
     # (variant, band) -> method -> [n, within 5 %/2°, within 2 %/1°]; and fixed / broken
     table: dict[tuple[str, str], dict[str, list[int]]] = defaultdict(
         lambda: {m: [0, 0, 0] for m in METHODS}
     )
     changed: dict[str, list[int]] = defaultdict(lambda: [0, 0])
-    for path in sorted(args.cases.glob("*.npz")):
+    for path in sorted(cases.glob("*.npz")):
         case = load_pair(path)
         variant = str(case["variant"])
         inside = {}
