@@ -113,6 +113,8 @@ BOX_SLACK_RATIO: Final = 3.0
 FAR_SHARE: Final = 0.75
 """The share of its edge points on the target's that a fit leaving the boxes needs."""
 _SIDE_SLACK_PX: Final = 1.0
+CHANCE_SAID: Final = 0.05
+"""A target edge density at which the reasons say what share a random pose would explain."""
 
 
 @dataclass(frozen=True)
@@ -188,10 +190,6 @@ def box_shift_px(
         if c.predicted_box is not None and (box := boxes.get(c.object)) is not None
     ]
     return float(np.sqrt(np.mean(np.square(shifts)))) if shifts else 0.0
-
-
-CHANCE_SAID: Final = 0.05
-"""A target edge density at which the reasons say what share a random pose would explain."""
 
 
 def _chance_said(fit: DenseFit) -> str:
