@@ -45,9 +45,14 @@ from services.optimizer.free import scene_objects
 from services.optimizer.free.edges import outline
 from services.renderer.settings import RendererSettings
 
-REFERENCE: Final[dict[str, Any]] = {"LEVEL_POINTS": (None, None, None), "X_TOLERANCE": 1e-8}
-"""The module constants as they were before the speed-up: every point at every level, and
-``least_squares``' default ``xtol`` (the numpy projection stays: it changes no result)."""
+REFERENCE: Final[dict[str, Any]] = {
+    "LEVEL_POINTS": (None, None, None),
+    "X_TOLERANCE": 1e-8,
+    "FINE_START_SHARE": math.inf,
+}
+"""The module constants as they were before the speed-ups: every point at every level,
+``least_squares``' default ``xtol``, and every level for every start (the numpy projection
+stays: it changes no result)."""
 SEED: Final = 1
 
 
