@@ -126,6 +126,36 @@ def test_on_an_edge_rich_target_a_render_of_another_view_is_no_fit(engine, catal
     assert refine_dense(plain, rgb, depth, camera, fit_focal=False).chance < 0.05
 
 
+def test_a_start_already_on_the_targets_edges_skips_the_coarse_levels(engine, catalog, monkeypatch):
+    """A start 0.1 % and 0.1° off leaves nearly every edge point on the target's: its pose is
+    fitted at full resolution only (one level's distance maps), and still lands on the truth;
+    with the focal length fitted every level runs."""
+    import services.optimizer.free.dense as dense
+
+    made: list[int] = []
+    level = dense.target_level
+
+    def counted(*args, **kwargs):
+        made.append(args[1])
+        return level(*args, **kwargs)
+
+    monkeypatch.setattr(dense, "target_level", counted)
+    scene = catalog.get("demo")
+    truth = VIEWS[0][1]
+    target, _, _ = rendered(engine, scene, truth)
+    start = moved(truth, 0.1, 0.001 * scene.spec.camera.radius, seed=4, fov_deg=truth.fov_deg)
+    rgb, depth, camera = rendered(engine, scene, start)
+    fit = refine_dense(gray(target), rgb, depth, camera, fit_focal=False)
+    assert fit.start_inliers >= dense.FINE_START_SHARE * fit.points
+    assert made == [1]
+    distance, angle = errors(fit.rotation.T, fit.position, truth)
+    assert distance < 0.003 * scene.spec.camera.radius
+    assert angle < 0.1
+    made.clear()
+    refine_dense(gray(target), rgb, depth, camera, fit_focal=True)
+    assert sorted(made) == [1, 2, 4]
+
+
 def test_the_focal_length_is_refined_when_not_given(engine, catalog):
     """The rolled view, started 8 % wide in fov and 2 %/2° off."""
     scene = catalog.get("garden")
