@@ -47,7 +47,7 @@ Above chance
     foliage, sensor noise) any pose's points find edges. The figures above were measured on
     rendered targets, where that chance is 1-3 %. Under a strong noise texture (chance 0.54) a
     fit from a render of another view moved 651 units and left 0.82 of its points on the
-    target's edges, which would have converged and agreed; above chance it left 0.60.
+    target's edges, enough to converge; above chance it left 0.60.
 """
 
 from __future__ import annotations
