@@ -13,7 +13,7 @@ another camera on the same film).
 
 Per strength and kind it prints the target's median edge chance
 (:attr:`~services.optimizer.free.dense.DenseFit.chance`); how many fits would converge
-(``refine_pose``'s share tests) with the shares taken raw and above chance; how many leave the
+(``refine_pose.converges``) with the shares taken raw and above chance; how many leave the
 share at which a render agrees by its edges (the controller's ``EDGE_SHARE``), raw and above
 chance; and, for the right renders, how many fits end within 5 % of the radius and 2°.
 """
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import statistics
 from collections import defaultdict
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Final
 
@@ -31,10 +32,9 @@ import numpy as np
 from benchmarks.dense_light import captured_cases
 from benchmarks.dense_refine import load_pair
 from cosmos.bench.free_targets.metrics import rotation_angle_deg
-from services.common.contracts.free import above_chance
 from services.controller.free_refine import EDGE_SHARE
 from services.optimizer.free.dense import DenseFit, refine_dense
-from services.optimizer.refine_pose import KEEP_INLIERS, MIN_INLIER_SHARE
+from services.optimizer.refine_pose import converges
 
 STRENGTHS: Final = (0.0, 0.25, 0.5)
 BLOCK_PX: Final = 3
@@ -52,13 +52,6 @@ def textured(gray: np.ndarray, strength: float, seed: int) -> np.ndarray:
     return np.asarray(np.clip(mixed, 0, 255), dtype=np.uint8)
 
 
-def _converges(fit: DenseFit, chance: float) -> bool:
-    """``refine_pose``'s share tests for a converged fit, the shares above ``chance``."""
-    end = above_chance(fit.inliers, fit.points, chance)
-    begin = max(above_chance(fit.start_inliers, fit.points, chance), 0.0)
-    return end >= KEEP_INLIERS * begin and end >= MIN_INLIER_SHARE
-
-
 def _scene_groups(folder: Path) -> dict[str, list[Path]]:
     """The clean cases by scene and seed, in target order."""
     groups: dict[str, list[Path]] = defaultdict(list)
@@ -71,10 +64,11 @@ def _tally(row: list[int], fit: DenseFit, right: dict[str, Any] | None) -> None:
     """Count one fit into ``row``: n, converged raw / above chance, agreeing raw / above chance,
     and (a right render) within 5 %/2°."""
     row[0] += 1
-    row[1] += _converges(fit, 0.0)
-    row[2] += _converges(fit, fit.chance)
-    row[3] += fit.inliers >= EDGE_SHARE * fit.points
-    row[4] += above_chance(fit.inliers, fit.points, fit.chance) >= EDGE_SHARE
+    raw = replace(fit, chance=0.0)
+    row[1] += converges(raw)
+    row[2] += converges(fit)
+    row[3] += raw.share() >= EDGE_SHARE
+    row[4] += fit.share() >= EDGE_SHARE
     if right is not None:
         truth = right["truth"]
         moved = float(np.linalg.norm(fit.position - np.asarray(truth.position))) / right["radius"]

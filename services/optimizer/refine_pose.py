@@ -63,7 +63,7 @@ from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from services.common.catalog import SceneCatalog
-from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed, above_chance
+from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed
 from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
 from services.common.depth_archive import DepthImage
 from services.common.errors import ServiceError, UnprocessableError
@@ -87,6 +87,7 @@ __all__ = [
     "MAX_TURN_DEG",
     "MIN_INLIER_SHARE",
     "ImageLimits",
+    "converges",
     "dense_report",
     "refine_pose",
 ]
@@ -197,6 +198,15 @@ def _chance_said(fit: DenseFit) -> str:
     return f"; a random pose would leave {fit.chance:.0%}" if fit.chance >= CHANCE_SAID else ""
 
 
+def converges(fit: DenseFit) -> bool:
+    """Whether ``fit`` converged (module docstring): enough points, at least about as many
+    explained as at the start, and :data:`MIN_INLIER_SHARE` of them, every share above the
+    target's chance (a raw count would let a fit lost in texture converge on the edges it lands
+    on anywhere)."""
+    end, begin = fit.share(), max(fit.share(fit.start_inliers), 0.0)
+    return fit.points >= MIN_POINTS and end >= KEEP_INLIERS * begin and end >= MIN_INLIER_SHARE
+
+
 def dense_report(
     fit: DenseFit,
     start: FreePose,
@@ -214,11 +224,8 @@ def dense_report(
     moved = float(np.linalg.norm(fit.position - np.asarray(start.position)))
     turned = rotation_angle_deg(fit.rotation.T, start.camera().rotation())
     zoom = fit.intrinsics.fx / (start.intrinsics.fx_px * scale)
-    # Shares above the chance of an edge-rich target (module docstring): a raw count would let
-    # a fit lost in texture converge on the edges it lands on anywhere.
-    end = above_chance(fit.inliers, fit.points, fit.chance)
-    begin = max(above_chance(fit.start_inliers, fit.points, fit.chance), 0.0)
-    converged = fit.points >= MIN_POINTS and end >= KEEP_INLIERS * begin and end >= MIN_INLIER_SHARE
+    end, begin = fit.share(), max(fit.share(fit.start_inliers), 0.0)
+    converged = converges(fit)
     allowed = (MAX_MOVE + abs(zoom - 1.0)) * depth
     near = moved <= allowed and turned <= MAX_TURN_DEG
     vouched = end >= FAR_GAIN * begin

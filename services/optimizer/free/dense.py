@@ -221,6 +221,11 @@ class DenseFit:
     a target edge of their orientation (:func:`~.edges.edge_chance`): the target's edge
     density, above which the shares that decide are taken."""
 
+    def share(self, count: int | None = None) -> float:
+        """The share of the points that ``count`` (:attr:`inliers` by default) is above
+        :attr:`chance` (:func:`~services.common.contracts.free.above_chance`)."""
+        return above_chance(self.inliers if count is None else count, self.points, self.chance)
+
     @property
     def position(self) -> FloatArray:
         """The camera centre ``c = -Rᵀ t`` (scene units)."""
@@ -458,6 +463,5 @@ def worth_another_render(fit: DenseFit, camera: PinholeCamera) -> bool:
     """
     shift = float(np.linalg.norm(fit.position - np.asarray(camera.position, dtype=np.float64)))
     if not fit.focal_fitted:
-        explained = above_chance(fit.inliers, fit.points, fit.chance)
-        return shift > REFIT_MOVE * fit.depth and explained < REFIT_SHARE
+        return shift > REFIT_MOVE * fit.depth and fit.share() < REFIT_SHARE
     return abs(fit.intrinsics.fx / camera.fx - 1.0) > REFIT_ZOOM or shift > REFIT_ZOOM * fit.depth
