@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from benchmarks.free_replay import replayed
 from cosmos.bench import free_run
 from cosmos.bench.free_bench import searching
 from cosmos.bench.free_bench.checkpoint import Checkpoint
@@ -27,7 +28,10 @@ from cosmos.bench.free_bench.report import confirmed_wrong, goal_checks, within,
 from cosmos.bench.free_targets.draw import BANDS
 from cosmos.bench.free_targets.metrics import THRESHOLDS
 from cosmos.cli import main
+from services.common.catalog import SceneCatalog
 from services.common.geometry.free_camera import FreeCamera
+from services.optimizer.free_pose import SceneObjectCache
+from services.renderer.settings import RendererSettings
 
 DEMO_RADIUS = 8.0
 
@@ -154,6 +158,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
     assert report["planned"] == 2
     assert not (out / "free.checkpoint.jsonl").exists()  # removed once complete
     records = [FreeRecord.model_validate(r) for r in report["records"]]
+    catalog, objects = SceneCatalog(RendererSettings().scene_directories()), SceneObjectCache()
     assert sorted((r.scene, r.variant, r.index) for r in records) == [
         ("demo", "clean", 0),
         ("demo", "clean", 1),
@@ -192,6 +197,16 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         # demo targets show ≥ 3 objects: the answer is near the truth, not an arbitrary pose
         assert error.within(0.10, 5.0), (error, r.reason)
         assert r.intrinsics_source == ("given" if r.intrinsics_given else "estimated")
+        # the record keeps the target's detections: solved again offline, they give the pose
+        # the search rendered first (benchmarks.free_replay)
+        assert [d.box for d in r.target_detections] == [
+            pytest.approx(d["box"], abs=1e-3) for d in raw["target_detections"]
+        ]
+        assert r.target_size == tuple(raw["target_size"])
+        again, _ = replayed(r, catalog, objects)
+        first = r.error(BOXES)
+        assert again.position == pytest.approx(first.position, abs=1e-3)
+        assert again.rotation_deg == pytest.approx(first.rotation_deg, abs=0.05)
     loose = sum(r.error(ANSWER).within(*THRESHOLDS[1]) for r in records)
     share = f"{loose / len(records):.0%}"
     all_row = next(line for line in printed.splitlines() if line.startswith("all variants"))

@@ -16,6 +16,7 @@ import numpy as np
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.metrics import PoseError, pose_error
 from services.common.base import FrozenModel
+from services.common.contracts.detect import Detection
 from services.common.contracts.free import DenseReport
 from services.common.geometry.free_camera import quaternion_of_rotation, rotation_of_quaternion
 
@@ -108,7 +109,11 @@ class FreeRecord(FrozenModel):
     intrinsics_source: str | None = None
     """``given``, ``estimated`` or ``scene``: the intrinsics the answer was computed with."""
     detections: int = 0
-    """The target's detections as the search recorded them."""
+    """How many detections the search recorded for the target."""
+    target_detections: tuple[Detection, ...] = ()
+    """The target's detections themselves, in pixels of its ``target_size`` image: what the box
+    solve saw, for replaying it offline (``python -m benchmarks.free_replay``)."""
+    target_size: tuple[int, int] | None = None
     renders: int = 0
     wall_ms: float = 0.0
     render_ms: float = 0.0

@@ -38,6 +38,7 @@ from cosmos.bench.free_targets.draw import FreeTarget
 from cosmos.bench.free_targets.estimate import Estimate, fov_of_focal
 from cosmos.bench.runner import SearchRefused, post_and_follow
 from services.common.auth import bearer
+from services.common.contracts.detect import Detection
 from services.common.contracts.free import DenseReport
 from services.common.images import PPM_MEDIA_TYPE, media_type_of
 from services.optimizer.free import SceneObjects
@@ -221,6 +222,8 @@ async def search_target(
         steps=tuple(str(it.get("reason") or "") for it in raw.get("iterations") or ()),
         intrinsics_source=source,
         detections=len(detections),
+        target_detections=tuple(Detection.model_validate(d) for d in detections),
+        target_size=(int(size[0]), int(size[1])),
         renders=int(result.get("renders", len(raw.get("iterations") or ()))),
         wall_ms=wall_ms,
         render_ms=sum(t.get("render_ms", 0.0) for t in timings),
