@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from services.common.contracts.free import (
+    FreeAmbiguity,
     FreeAnswer,
     FreePose,
     FreePoseResponse,
@@ -138,6 +139,34 @@ class Verdict:
     standing: tuple[int, ...] = ()
 
 
+def _unconfirmed(ambiguity: FreeAmbiguity | None, pose: FreePose) -> str:
+    """Why a pose whose render agrees is not confirmed, by why the boxes left it ambiguous."""
+    source = pose.intrinsics.source
+    if ambiguity == "loose" and source == "given":
+        return (
+            "its edges do not pin the pose the boxes pinned loosely (too few of the render's "
+            "edge points end on the target's)"
+        )
+    if ambiguity == "loose" and source == "exif":
+        return (
+            "no render can check the photo's EXIF focal length, which the distance of a pose "
+            "the boxes pinned loosely follows"
+        )
+    if ambiguity == "loose":
+        return (
+            "without the photo's intrinsics a render cannot pin the pose the boxes pinned "
+            "loosely (distance trades against focal length)"
+        )
+    if ambiguity == "focal":
+        return (
+            "the scene camera's field of view was assumed, and a render at another distance "
+            "and focal length would agree as well"
+        )
+    if ambiguity == "few":
+        return "other poses explain so few objects' boxes as well"
+    return "the alternatives explain its boxes too"
+
+
 def free_result(
     answer: FreePoseResponse,
     history: list[Iteration],
@@ -192,7 +221,7 @@ def free_result(
     elif agreed:
         reason = (
             f"{answer.reason}; the render at pose {chosen.index + 1} agrees with the target "
-            f"{how}, but the alternatives explain its boxes too: not confirmed"
+            f"{how}, but {_unconfirmed(answer.ambiguity, pose)}: not confirmed"
         )
     else:
         reason = (
