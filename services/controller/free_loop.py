@@ -14,11 +14,14 @@
    (``edges_agree``: the fit was accepted and leaves most of the render's edges on the
    target's): a detector that names the render's objects unlike the target's (the general
    model on a scene it was not trained on) then still confirms a pose the image vouches for.
-   If the render agrees, the search ends; if not, the next alternative is rendered, while
-   renders remain (``max_iterations``). A ``rivals`` answer (distinct poses explain the boxes
-   almost as well), the intrinsics given, goes on after an agreeing render whose edges pin its
-   pose: its rivals are rendered too, for one render can tell its own pose from the target but
-   not from a rival.
+   If the render agrees, the search ends. If not, but the fit from it was accepted, the
+   pose it ended at is rendered and checked the same way (``worth_following``): the render
+   says the candidate is not the target's pose, the fit found one near it. If that render
+   agrees, it stands for the candidate and the search ends; if not, the next alternative is
+   rendered, while renders remain (``max_iterations``, which these renders count too). A
+   ``rivals`` answer (distinct poses explain the boxes almost as well), the intrinsics given,
+   goes on after an agreeing render whose edges pin its pose: its rivals are rendered too, for
+   one render can tell its own pose from the target but not from a rival.
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`, composed by
 :mod:`~services.controller.free_verdict`) is ``found`` and ``confirmed`` only when the optimizer
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from dataclasses import replace
 from typing import NoReturn
 
 import numpy as np
@@ -63,7 +67,15 @@ from services.common.geometry.free_camera import FreeCamera
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
-from services.controller.free_iterations import Seen, Step, iteration_of, timed, timings_of
+from services.controller.free_iterations import (
+    Seen,
+    Step,
+    iteration_of,
+    render_agrees,
+    timed,
+    timings_of,
+    worth_following,
+)
 from services.controller.free_match import FreeMatch, compare_view, view_film
 from services.controller.free_refine import (
     edges_pin,
@@ -98,6 +110,17 @@ def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
             "cx_px": k.cx_px * scale,
             "cy_px": k.cy_px * scale,
         }
+    )
+
+
+def _spent(shown: Seen, other: Seen) -> Seen:
+    """``shown`` with ``other``'s render, detection and fit milliseconds added: the time of
+    both renders of a followed candidate is its iteration's."""
+    return replace(
+        shown,
+        render_ms=shown.render_ms + other.render_ms,
+        detect_ms=shown.detect_ms + other.detect_ms,
+        refine_ms=shown.refine_ms + other.refine_ms,
     )
 
 
@@ -198,17 +221,30 @@ class FreeSearchLoop:
         rivals = checks_rivals(answer, search.intrinsics)
         edges: dict[int, RefinePoseResponse | str] = {}
         by_box: dict[int, bool] = {}
+        followed = 0  # renders at candidates' dense fits: no iterations of their own
         for k in range(len(history), budget):
+            if len(history) + followed >= search.max_iterations:
+                break
             await writes.flush()
+            pose = candidates[k]
             seen_view, outcome = await self._render_and_check(
-                search, scene, (target, size), image, candidates[k]
+                search, scene, (target, size), image, pose
             )
+            spare = len(history) + followed + 1 < search.max_iterations
+            follows = spare and worth_following(seen_view.check, outcome)
+            if follows:
+                assert isinstance(outcome, RefinePoseResponse)
+                followed += 1
+                pose, seen_view, outcome, follows = await self._follow(
+                    search, scene, (target, size), image, (pose, seen_view, outcome)
+                )
             edges[k], by_box[k] = outcome, seen_view.check.agree
             # Its rivals are worth rendering only if this render's fit could be confirmed.
             goes_on = rivals and edges_pin_pose(outcome, search.intrinsics) is not None
-            step = Step(k, len(candidates), answer.status != "found", optimize_ms, goes_on)
+            ambiguous = answer.status != "found"
+            step = Step(k, len(candidates), ambiguous, optimize_ms, goes_on, follows)
             following = candidates[k + 1] if k + 1 < budget else None
-            iteration = iteration_of(step, candidates[k], following, seen_view, grid, outcome)
+            iteration = iteration_of(step, pose, following, seen_view, grid, outcome)
             optimize_ms = 0.0
             history.append(iteration)
             writes.hold(iteration, seen)
@@ -216,9 +252,28 @@ class FreeSearchLoop:
             if iteration.done:
                 break
         await writes.flush()
-        return await writes.succeed(
-            await self._answer(search, scene, (target, size), image, answer, history, edges, by_box)
+        result = await self._answer(
+            search, scene, (target, size), image, answer, history, (edges, by_box), followed
         )
+        return await writes.succeed(result)
+
+    async def _follow(
+        self,
+        search: Search,
+        scene: SceneDetail,
+        target: tuple[tuple[Detection, ...], tuple[int, int]],
+        image: bytes,
+        first: tuple[FreePose, Seen, RefinePoseResponse],
+    ) -> tuple[FreePose, Seen, RefinePoseResponse | str, bool]:
+        """A candidate whose ``first`` render (its pose, what it showed, its accepted fit)
+        disagreed, rendered again at its fit (:func:`~.free_iterations.worth_following`): the
+        pose, render and fit the candidate's iteration shows (the fit's when its render
+        agrees, else the first's, the time of both in it), and whether they are the fit's."""
+        pose, seen, outcome = first
+        again, refit = await self._render_and_check(search, scene, target, image, outcome.pose)
+        if render_agrees(again.check, refit):
+            return outcome.pose, _spent(again, seen), refit, True
+        return pose, _spent(seen, again), outcome, False
 
     async def _answer(
         self,
@@ -228,11 +283,14 @@ class FreeSearchLoop:
         image: bytes,
         answer: FreePoseResponse,
         history: list[Iteration],
-        edges: dict[int, RefinePoseResponse | str],
-        by_box: dict[int, bool],
+        renders: tuple[dict[int, RefinePoseResponse | str], dict[int, bool]],
+        followed: int,
     ) -> SearchResult:
         """The answer once the renders are done: the chosen candidate (:func:`_choice`), its
-        fit refitted by one more render when it asks for one, and what the renders said."""
+        fit refitted by one more render when it asks for one, and what the renders said
+        (``renders``: each candidate's fit and whether its boxes agreed; ``followed``: the
+        renders at dense fits, counted in the answer's renders)."""
+        edges, by_box = renders
         grid = scene.spec.search.grid()
         chosen, agreed = choice(history, edges)
         outcome: RefinePoseResponse | str | None = edges.get(chosen.index)
@@ -262,7 +320,7 @@ class FreeSearchLoop:
         result = free_result(answer, history, grid, chosen, verdict)
         if outcome is not None:
             result = refined_result(result, outcome, grid)
-        return with_refit_renders(result, refit)
+        return with_refit_renders(result, refit, followed)
 
     async def _refit(
         self,

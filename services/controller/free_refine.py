@@ -247,17 +247,27 @@ def refined_result(
     )
 
 
-def with_refit_renders(result: SearchResult, timings: StageTimings | None) -> SearchResult:
-    """``result`` with the render spent on refitting (module docstring; its ``timings``, None
-    when none was made), said in its reason."""
+def with_refit_renders(
+    result: SearchResult, timings: StageTimings | None, followed: int = 0
+) -> SearchResult:
+    """``result`` with the renders that are no iteration of their own, said in its reason:
+    the one spent on refitting (module docstring; its ``timings``, None when none was made)
+    and the ``followed`` ones at candidates' dense fits whose renders disagreed
+    (:func:`~services.controller.free_iterations.worth_following`)."""
     free = result.free
-    if timings is None or free is None:
+    if free is None or (timings is None and not followed):
         return result
+    extra = followed + (timings is not None)
+    reason = result.reason
+    if followed:
+        reason += f"; {followed} render(s) at a candidate's dense fit, its own render disagreeing"
+    if timings is not None:
+        reason += "; refitted by one more render at the refined pose"
     return result.model_copy(
         update={
-            "renders": result.renders + 1,
-            "reason": f"{result.reason}; refitted by one more render at the refined pose",
-            "free": free.model_copy(update={"renders": free.renders + 1}),
+            "renders": result.renders + extra,
+            "reason": reason,
+            "free": free.model_copy(update={"renders": free.renders + extra}),
             "refit_timings": timings,
         }
     )

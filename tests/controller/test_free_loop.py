@@ -397,7 +397,12 @@ def test_with_no_render_agreeing_the_pose_the_image_explains_best_is_answered(tm
     final = run(tmp_path, stages)
     result = final.result
     assert result is not None
-    assert result.renders == 3
+    # the second candidate's accepted fit was rendered too (and disagreed): 4 renders, 3 poses
+    assert result.renders == result.free.renders == stages.calls["render"] == 4
+    assert [camera.position[0] for camera, _ in stages.rendered] == [0.0, 1.0, 1.0, 2.0]
+    assert stages.rendered[2][0].position[1] == pytest.approx(-3.9)
+    assert "1 render(s) at a candidate's dense fit" in result.reason
+    assert len(final.iterations) == 3
     assert not result.confirmed
     assert result.free is not None
     assert result.free.status == "ambiguous"
@@ -465,22 +470,35 @@ def test_an_ambiguous_answer_renders_the_next_alternative_and_is_never_confirmed
 
 
 @pytest.mark.parametrize(
-    ("ambiguity", "intrinsics", "inliers", "pinned"),
+    ("ambiguity", "intrinsics", "inliers", "why"),
     [
-        ("loose", PhotoIntrinsics(fov_deg=45.0), 850, True),
-        ("loose", PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif"), 900, False),
-        ("loose", PhotoIntrinsics(fov_deg=45.0), 800, False),  # 0.89 of the edges: not enough
-        ("loose", None, 850, False),  # no intrinsics: distance trades against focal length
-        ("rivals", None, 900, False),  # rivals no render can settle without the intrinsics
-        ("focal", PhotoIntrinsics(fov_deg=45.0), 900, False),
+        ("loose", PhotoIntrinsics(fov_deg=45.0), 850, None),  # pinned
+        (
+            "loose",
+            PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif"),
+            900,
+            "no render can check the photo's EXIF focal length",
+        ),
+        # 0.89 of the edges: not enough
+        ("loose", PhotoIntrinsics(fov_deg=45.0), 800, "its edges do not pin the pose"),
+        # no intrinsics: distance trades against focal length
+        ("loose", None, 850, "without the photo's intrinsics a render cannot pin the pose"),
+        # rivals no render can settle without the intrinsics
+        ("rivals", None, 900, "the alternatives explain its boxes too"),
+        ("focal", PhotoIntrinsics(fov_deg=45.0), 900, "the scene camera's field of view was"),
     ],
     ids=["given", "exif-unchecked", "too-few-edges", "no-intrinsics", "rivals-unknown", "focal"],
 )
 def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_it(
-    tmp_path, detail, ambiguity, intrinsics, inliers, pinned
+    tmp_path, detail, ambiguity, intrinsics, inliers, why
 ):
-    """Two candidates, the first one right: its render agrees, box by box and by its edges."""
+    """Two candidates, the first one right: its render agrees, box by box and by its edges;
+    an unconfirmed one says ``why``, by why the boxes left it ambiguous."""
+    pinned = why is None
     stages = FakeStages(detail, status="ambiguous", count=2, ambiguity=ambiguity, inliers=inliers)
+    stages.source = "given" if intrinsics is None else intrinsics.source
+    if intrinsics is None:
+        stages.source = "scene" if ambiguity == "focal" else "estimated"
     final = run(tmp_path, stages, intrinsics=intrinsics)
     result = final.result
     assert result is not None
@@ -495,7 +513,8 @@ def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_
         assert f"its edges pin the pose: {inliers} of 900" in result.reason
     else:
         assert [p.position[0] for p in result.free.alternatives] == [1.0]
-        assert "not confirmed" in result.reason
+        assert f"agrees with the target box by box, but {why}" in result.reason
+        assert result.reason.count("not confirmed") == 1
 
 
 @pytest.mark.parametrize(
@@ -640,6 +659,40 @@ def test_an_exif_focal_length_never_confirms_the_pose(tmp_path, detail):
     assert result.free.pose.intrinsics.source == "exif"
     assert "no render can check the photo's EXIF focal length" in result.reason
     assert "give fov_deg or the intrinsics to confirm it" in result.reason
+
+
+@pytest.mark.parametrize(("max_iterations", "renders"), [(4, 2), (1, 1)])
+def test_a_disagreeing_render_whose_fit_is_accepted_is_rendered_again_at_the_fit(
+    tmp_path, detail, max_iterations, renders
+):
+    """The box pose's render disagrees (an object not where the target shows it), but the fit
+    from it is accepted, and ends at the target's pose without leaving enough of its edges on
+    the target's to agree by them: the search renders that pose, which agrees box by box, and
+    confirms it, within its renders (with one only, the box pose stays unconfirmed)."""
+    stages = FakeStages(detail, right=5, edges=(0, 5), inliers=600, meet=True)
+    final = run(tmp_path, stages, max_iterations=max_iterations)
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert result.renders == result.free.renders == stages.calls["render"] == renders
+    (iteration,) = final.iterations
+    if renders == 1:
+        assert not result.confirmed
+        assert not iteration.done
+        return
+    assert result.confirmed
+    assert result.free.status == "found"
+    assert iteration.done
+    assert iteration.camera is not None
+    assert iteration.camera.position == pytest.approx((5.0, -3.9, 5.0))  # the fit's render
+    assert iteration.reason.startswith("pose 1 of 1 at its dense fit (its own render disagreed)")
+    assert "agrees with the target box by box" in iteration.reason
+    # the answer is refined by the second render's fit; the box pose stays beside it
+    assert result.free.pose.position == pytest.approx((5.0, -3.8, 5.0))
+    assert result.free.box_pose is not None
+    assert result.free.box_pose.position == (0.0, -4.0, 5.0)
+    assert "1 render(s) at a candidate's dense fit" in result.reason
+    assert iteration.timings.render_ms > 0.0
 
 
 def test_the_render_budget_bounds_the_alternatives_tried(tmp_path, detail):
