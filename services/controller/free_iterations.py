@@ -36,15 +36,15 @@ class Step:
     """Which candidate an iteration renders: its index, of how many, whether the optimizer's
     answer was ambiguous, the optimizer's milliseconds spent for it (the first's), whether
     the search renders the next candidate even when this one agrees (its rivals are checked),
-    and whether the render shown is the one at the candidate's dense fit, its first render
-    having disagreed (:func:`worth_following`)."""
+    and, when the render shown is the one at the candidate's dense fit, its first render
+    having disagreed (:func:`worth_following`), the camera of that first render."""
 
     index: int
     count: int
     ambiguous: bool
     optimize_ms: float
     goes_on: bool = False
-    followed: bool = False
+    followed: FreeCamera | None = None
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ def iteration_of(
     agreed = render_agrees(check, edges)
     goes_on = following is not None and (not agreed or step.goes_on)
     next_pose = nearest_grid_pose(following.position, grid) if goes_on and following else None
-    at = " at its dense fit (its own render disagreed)" if step.followed else ""
+    at = " at its dense fit (its own render disagreed)" if step.followed is not None else ""
     reason = f"pose {step.index + 1} of {step.count}{at}: {_agreement(check, edges)}"
     if agreed and goes_on:
         reason += "; its rivals are rendered next"
@@ -140,6 +140,7 @@ def iteration_of(
         match=check.match,
         detector_sha256=seen.found.model.sha256,
         camera=seen.camera,
+        candidate_camera=step.followed,
     )
 
 

@@ -231,8 +231,8 @@ class FreeSearchLoop:
                 search, scene, (target, size), image, pose
             )
             spare = len(history) + followed + 1 < search.max_iterations
-            follows = spare and worth_following(seen_view.check, outcome)
-            if follows:
+            follows: FreeCamera | None = None
+            if spare and worth_following(seen_view.check, outcome):
                 assert isinstance(outcome, RefinePoseResponse)
                 followed += 1
                 pose, seen_view, outcome, follows = await self._follow(
@@ -264,16 +264,17 @@ class FreeSearchLoop:
         target: tuple[tuple[Detection, ...], tuple[int, int]],
         image: bytes,
         first: tuple[FreePose, Seen, RefinePoseResponse],
-    ) -> tuple[FreePose, Seen, RefinePoseResponse | str, bool]:
+    ) -> tuple[FreePose, Seen, RefinePoseResponse | str, FreeCamera | None]:
         """A candidate whose ``first`` render (its pose, what it showed, its accepted fit)
         disagreed, rendered again at its fit (:func:`~.free_iterations.worth_following`): the
         pose, render and fit the candidate's iteration shows (the fit's when its render
-        agrees, else the first's, the time of both in it), and whether they are the fit's."""
+        agrees, else the first's, the time of both in it), and the first render's camera when
+        they are the fit's."""
         pose, seen, outcome = first
         again, refit = await self._render_and_check(search, scene, target, image, outcome.pose)
         if render_agrees(again.check, refit):
-            return outcome.pose, _spent(again, seen), refit, True
-        return pose, _spent(seen, again), outcome, False
+            return outcome.pose, _spent(again, seen), refit, seen.camera
+        return pose, _spent(seen, again), outcome, None
 
     async def _answer(
         self,

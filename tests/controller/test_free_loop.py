@@ -403,6 +403,7 @@ def test_with_no_render_agreeing_the_pose_the_image_explains_best_is_answered(tm
     assert stages.rendered[2][0].position[1] == pytest.approx(-3.9)
     assert "1 render(s) at a candidate's dense fit" in result.reason
     assert len(final.iterations) == 3
+    assert all(it.candidate_camera is None for it in final.iterations)  # each shows its own
     assert not result.confirmed
     assert result.free is not None
     assert result.free.status == "ambiguous"
@@ -691,6 +692,8 @@ def test_a_disagreeing_render_whose_fit_is_accepted_is_rendered_again_at_the_fit
     assert iteration.done
     assert iteration.camera is not None
     assert iteration.camera.position == pytest.approx((5.0, -3.9, 5.0))  # the fit's render
+    assert iteration.candidate_camera == stages.rendered[0][0]  # the candidate's own render
+    assert iteration.candidate_camera.position == (0.0, -4.0, 5.0)
     assert iteration.reason.startswith("pose 1 of 1 at its dense fit (its own render disagreed)")
     assert "agrees with the target box by box" in iteration.reason
     # the answer is refined by the second render's fit; the box pose stays beside it

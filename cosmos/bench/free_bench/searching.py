@@ -96,12 +96,14 @@ def _answer(raw: Mapping[str, Any]) -> tuple[CameraRecord | None, str | None]:
 
 
 def _first_view(raw: Mapping[str, Any]) -> tuple[dict[str, Any], tuple[int, int]] | None:
-    """The first iteration's camera (JSON) and film, when the search rendered one."""
+    """The camera (JSON) and film the search rendered first, when it rendered one: the first
+    iteration's, or its candidate's own when it shows the render at that one's dense fit."""
     iterations = raw.get("iterations") or ()
     if not iterations or not iterations[0].get("camera"):
         return None
     width, height = iterations[0]["image_size"]
-    return iterations[0]["camera"], (int(width), int(height))
+    first = iterations[0].get("candidate_camera") or iterations[0]["camera"]
+    return first, (int(width), int(height))
 
 
 def _boxes_pose(view: tuple[dict[str, Any], tuple[int, int]] | None) -> CameraRecord | None:

@@ -172,6 +172,12 @@ class Iteration(FrozenModel):
         description="A free search's view: the camera rendered, intrinsics in pixels of this "
         "view (`image_size`); `pose` is then the grid pose nearest it. Null for a grid view.",
     )
+    candidate_camera: FreeCamera | None = Field(
+        default=None,
+        description="A free search's view rendered at a candidate's dense fit, the candidate's "
+        "own render having disagreed with the target: the camera of that first render (on the "
+        "same film). Null otherwise.",
+    )
 
 
 class SearchResult(FrozenModel):
