@@ -149,9 +149,12 @@ def test_an_ambiguous_free_answer_shows_its_alternatives(page, stack, tmp_path):
     assert source in {"estimated", "scene"}
     assert page.inner_text("#result").count(f"({source})") == 1
     # the answer and each alternative a frustum, and each view rendered that is neither (the
-    # box pose a dense fit moved the answer from)
+    # box pose a dense fit moved the answer from, a candidate's own render before the one at
+    # its dense fit)
     candidates = {tuple(p["position"]) for p in (free["pose"], *free["alternatives"])}
-    views = {tuple(it["camera"]["position"]) for it in final["iterations"]} - candidates
+    cameras = [it["camera"] for it in final["iterations"]]
+    cameras += [it["candidate_camera"] for it in final["iterations"] if it["candidate_camera"]]
+    views = {tuple(c["position"]) for c in cameras} - candidates
     frusta = len(views) + 1 + len(free["alternatives"])
     assert page.locator("#hemisphere").get_attribute("data-frusta") == str(frusta)
 

@@ -18,14 +18,18 @@ function frustum(camera, film, role) {
 
 /**
  * The 3D view's track of a free search shown at iteration `current`: the cameras of the views
- * rendered so far (the current one brighter) and, once it ended and the last is shown, the
- * answer, its alternatives and the grid pose nearest it.
+ * rendered so far (the current one brighter; a view rendered at a candidate's dense fit with
+ * the candidate's own render before it) and, once it ended and the last is shown, the answer,
+ * its alternatives and the grid pose nearest it.
  */
 export function freeTrack(search, iterations, current) {
   const frusta = iterations
     .slice(0, current + 1)
     .filter((it) => it?.camera)
-    .map((it) => frustum(it.camera, it.image_size, it.index === current ? "current" : "view"));
+    .flatMap((it) => [
+      ...(it.candidate_camera ? [frustum(it.candidate_camera, it.image_size, "view")] : []),
+      frustum(it.camera, it.image_size, it.index === current ? "current" : "view"),
+    ]);
   const free = search?.result?.free;
   if (!free || current !== iterations.length - 1) return { frusta };
   const film = search.target_size;
