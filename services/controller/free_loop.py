@@ -124,6 +124,15 @@ def _spent(shown: Seen, other: Seen) -> Seen:
     )
 
 
+def _with_candidate(answer: FreePoseResponse, k: int, pose: FreePose) -> FreePoseResponse:
+    """``answer`` with its ``k``-th candidate (its pose, then its alternatives) ``pose``."""
+    if k == 0:
+        return answer.model_copy(update={"pose": pose})
+    alternatives = list(answer.alternatives)
+    alternatives[k - 1] = pose
+    return answer.model_copy(update={"alternatives": tuple(alternatives)})
+
+
 class FreeSearchLoop:
     """Runs one free search to its end over the stages (through the outage policy), recording
     it in the store and waking its followers."""
@@ -238,6 +247,8 @@ class FreeSearchLoop:
                 pose, seen_view, outcome, follows = await self._follow(
                     search, scene, (target, size), image, (pose, seen_view, outcome)
                 )
+                # the render that stands for the candidate was made at its fit: so is its pose
+                answer = _with_candidate(answer, k, pose)
             edges[k], by_box[k] = outcome, seen_view.check.agree
             # Its rivals are worth rendering only if this render's fit could be confirmed.
             goes_on = rivals and edges_pin_pose(outcome, search.intrinsics) is not None

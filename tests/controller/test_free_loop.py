@@ -696,12 +696,40 @@ def test_a_disagreeing_render_whose_fit_is_accepted_is_rendered_again_at_the_fit
     assert iteration.candidate_camera.position == (0.0, -4.0, 5.0)
     assert iteration.reason.startswith("pose 1 of 1 at its dense fit (its own render disagreed)")
     assert "agrees with the target box by box" in iteration.reason
-    # the answer is refined by the second render's fit; the box pose stays beside it
+    # the answer is refined by the second render's fit; beside it the pose that render checked
     assert result.free.pose.position == pytest.approx((5.0, -3.8, 5.0))
     assert result.free.box_pose is not None
-    assert result.free.box_pose.position == (0.0, -4.0, 5.0)
+    assert result.free.box_pose.position == pytest.approx((5.0, -3.9, 5.0))
     assert "1 render(s) at a candidate's dense fit" in result.reason
     assert iteration.timings.render_ms > 0.0
+
+
+class RefusesTheSecondFit(FakeStages):
+    """As :class:`FakeStages`, but the second dense fit is not accepted (it moved too far)."""
+
+    async def refine_pose(self, request, target, render, request_id="") -> RefinePoseResponse:
+        out = await super().refine_pose(request, target, render, request_id)
+        if len(self.refinements) != 2:
+            return out
+        fit = out.fit.model_copy(
+            update={"accepted": False, "reason": "the dense fit moved the pose implausibly far"}
+        )
+        return out.model_copy(update={"fit": fit})
+
+
+def test_a_followed_candidate_is_answered_at_the_pose_its_render_checked(tmp_path, detail):
+    """The render at the candidate's fit agrees box by box, but the fit from that render is not
+    accepted: the answer is the pose that render was made at, not the candidate's box pose
+    (whose own render disagreed)."""
+    stages = RefusesTheSecondFit(detail, right=5, edges=(0, 5), inliers=600, meet=True)
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert result.confirmed
+    assert result.renders == 2
+    assert result.free.pose.position == pytest.approx((5.0, -3.9, 5.0))
+    assert "the box pose is kept: the dense fit moved the pose implausibly far" in result.reason
 
 
 def test_the_render_budget_bounds_the_alternatives_tried(tmp_path, detail):
