@@ -11,8 +11,9 @@ and per detector (``own``: a built-in scene's or an onboarded scene's model; ``g
 shipped shape model on a generated scene), it prints over the clean, JPEG and noise variants
 the share within 5 % of the radius and 2° (the goal's measure) with the fov given and not,
 the share of box estimates within 10 % / 5°, and per elevation band with the fov given and not;
-then over every variant the confirmed answers (``found``), how many of them are wrong, and the
-renders a search.
+the share within 5 % / 2° of the ``photo`` and ``changed`` variants (fov given or not, the
+goal's measure for them); then over every variant the confirmed answers (``found``), how many
+of them are wrong, and the renders a search.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from cosmos.bench.free_targets.draw import BANDS
 from cosmos.bench.free_targets.metrics import THRESHOLDS
 
 FITTING = ("clean", "jpeg", "noise")
+ALTERED = ("photo", "changed")
 
 
 def _share(records: Sequence[FreeRecord], method: str, limit: tuple[float, float]) -> str:
@@ -45,10 +47,12 @@ def _row(label: str, records: Sequence[FreeRecord]) -> str:
     fitting = [r for r in records if r.variant in FITTING]
     given = [r for r in fitting if r.intrinsics_given]
     unknown = [r for r in fitting if not r.intrinsics_given]
+    altered = [r for r in records if r.variant in ALTERED]
     return (
         f"{label:<40} given {_share(given, ANSWER, THRESHOLDS[1]):>7}  "
         f"boxes {_share(given, BOXES, THRESHOLDS[2]):>7}  "
         f"not given {_share(unknown, ANSWER, THRESHOLDS[1]):>7}  "
+        f"photo/changed {_share(altered, ANSWER, THRESHOLDS[1]):>7}  "
         f"confirmed {sum(r.outcome == 'found' for r in records):>3}, wrong "
         f"{len(confirmed_wrong(records))}  renders {_mean_renders(records)}  "
         f"| given by band: {_bands(given)} | not given by band: {_bands(unknown)}"
