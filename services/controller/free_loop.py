@@ -44,6 +44,7 @@ with the candidate after its last recorded iteration.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from dataclasses import replace
 from typing import NoReturn
@@ -63,7 +64,11 @@ from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Iteration, Search, SearchResult
 from services.common.depth_archive import DepthImage
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    rotation_of_quaternion,
+    yaw_pitch_roll_of_rotation,
+)
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
@@ -131,6 +136,38 @@ def _with_candidate(answer: FreePoseResponse, k: int, pose: FreePose) -> FreePos
     alternatives = list(answer.alternatives)
     alternatives[k - 1] = pose
     return answer.model_copy(update={"alternatives": tuple(alternatives)})
+
+
+def _as_rendered(
+    answer: FreePoseResponse, history: list[Iteration], size: tuple[int, int]
+) -> FreePoseResponse:
+    """``answer`` with each candidate that a recorded iteration shows rendered at its dense fit
+    (``candidate_camera``: a resumed search) at the pose that render was made at: its camera's
+    position and orientation, its focal length back in the target's pixels (``size``)."""
+    candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+    for it in history:
+        camera = it.camera
+        if it.candidate_camera is None or camera is None or camera.quaternion_wxyz is None:
+            continue
+        if camera.fx_px is None or camera.fy_px is None or it.index >= len(candidates):
+            continue
+        pose = candidates[it.index]
+        scale = it.image_size[0] / size[0]
+        fx, fy = camera.fx_px / scale, camera.fy_px / scale
+        fov = math.degrees(2.0 * math.atan(size[0] / (2.0 * fx)))
+        ypr = yaw_pitch_roll_of_rotation(rotation_of_quaternion(camera.quaternion_wxyz))
+        rendered = pose.model_copy(
+            update={
+                "position": camera.position,
+                "quaternion_wxyz": camera.quaternion_wxyz,
+                "yaw_pitch_roll_deg": ypr,
+                "intrinsics": pose.intrinsics.model_copy(
+                    update={"fx_px": fx, "fy_px": fy, "fov_deg": fov}
+                ),
+            }
+        )
+        answer = _with_candidate(answer, it.index, rendered)
+    return answer
 
 
 class FreeSearchLoop:
@@ -219,8 +256,9 @@ class FreeSearchLoop:
         answer, optimize_ms = await self._ask(search, (target, size), model)
         if answer.pose is None:
             await self._fail_without_pose(writes, seen, answer.reason, "no-free-pose")
-        candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
         history = list(search.iterations)
+        answer = _as_rendered(answer, history, size)
+        candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
         if history and history[-1].done:  # finished by an older run, no result recorded
             chosen, agreed = choice(history, {})
             result = free_result(answer, history, grid, chosen, Verdict(agreed))

@@ -7,6 +7,7 @@ submission."""
 from __future__ import annotations
 
 import asyncio
+import math
 from collections import Counter
 
 import cv2
@@ -915,6 +916,36 @@ def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, de
     assert done.result.free is not None
     assert final.result.free.pose == done.result.free.box_pose
     assert "no dense refinement (resumed after its render)" in final.result.reason
+
+
+def test_a_resumed_search_answers_a_followed_candidate_at_the_pose_its_render_checked(
+    tmp_path, detail
+):
+    """Resumed after recording an iteration rendered at its candidate's dense fit: the answer is
+    the pose that render was made at (no fit to refine it by), not the candidate's box pose,
+    whose own render disagreed."""
+    first = RefusesTheSecondFit(detail, right=5, edges=(0, 5), inliers=600, meet=True)
+    store = stored(tmp_path, first)
+    run_stored(store, first)
+    with store.database.write() as session:
+        session.execute("UPDATE searches SET status = 'failed' WHERE id = ?", ("s1",))
+    store.reopen("s1")
+    again = RefusesTheSecondFit(detail, right=5, edges=(0, 5), inliers=600, meet=True)
+    final = run_stored(store, again)
+    assert final.status == "succeeded", final.error
+    assert again.calls == {"scene": 1, "free-pose": 1}  # answered from its iterations
+    (iteration,) = final.iterations
+    assert iteration.candidate_camera is not None
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert result.confirmed
+    assert result.free.pose.position == pytest.approx((5.0, -3.9, 5.0))
+    # the focal length the render was made with: the first fit's (no intrinsics given)
+    assert result.free.pose.intrinsics.fx_px == pytest.approx(390.0)
+    assert result.free.pose.intrinsics.fov_deg == pytest.approx(
+        2 * math.degrees(math.atan(160 / 390))
+    )
 
 
 class Overlapping(FakeStages):
