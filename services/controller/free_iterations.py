@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Awaitable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypeVar
 
 from services.common.contracts.detect import DetectResponse
@@ -23,6 +23,7 @@ __all__ = [
     "Step",
     "iteration_of",
     "render_agrees",
+    "spent",
     "timed",
     "timings_of",
     "worth_following",
@@ -79,6 +80,17 @@ def timings_of(seen: Seen, optimize_ms: float = 0.0) -> StageTimings:
         optimize_ms=optimize_ms,
         refine_ms=seen.refine_ms,
         total_ms=optimize_ms + seen.render_ms + slower,
+    )
+
+
+def spent(shown: Seen, other: Seen) -> Seen:
+    """``shown`` with ``other``'s render, detection and fit milliseconds added: the time of
+    both renders of a followed candidate is its iteration's."""
+    return replace(
+        shown,
+        render_ms=shown.render_ms + other.render_ms,
+        detect_ms=shown.detect_ms + other.detect_ms,
+        refine_ms=shown.refine_ms + other.refine_ms,
     )
 
 

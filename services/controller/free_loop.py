@@ -44,9 +44,7 @@ with the candidate after its last recorded iteration.
 from __future__ import annotations
 
 import asyncio
-import math
 import time
-from dataclasses import replace
 from typing import NoReturn
 
 import numpy as np
@@ -66,17 +64,17 @@ from services.common.contracts.search import Iteration, Search, SearchResult
 from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import (
     FreeCamera,
-    rotation_of_quaternion,
-    yaw_pitch_roll_of_rotation,
 )
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
+from services.controller.free_candidates import as_rendered, with_candidate
 from services.controller.free_iterations import (
     Seen,
     Step,
     iteration_of,
     render_agrees,
+    spent,
     timed,
     timings_of,
     worth_following,
@@ -116,58 +114,6 @@ def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
             "cy_px": k.cy_px * scale,
         }
     )
-
-
-def _spent(shown: Seen, other: Seen) -> Seen:
-    """``shown`` with ``other``'s render, detection and fit milliseconds added: the time of
-    both renders of a followed candidate is its iteration's."""
-    return replace(
-        shown,
-        render_ms=shown.render_ms + other.render_ms,
-        detect_ms=shown.detect_ms + other.detect_ms,
-        refine_ms=shown.refine_ms + other.refine_ms,
-    )
-
-
-def _with_candidate(answer: FreePoseResponse, k: int, pose: FreePose) -> FreePoseResponse:
-    """``answer`` with its ``k``-th candidate (its pose, then its alternatives) ``pose``."""
-    if k == 0:
-        return answer.model_copy(update={"pose": pose})
-    alternatives = list(answer.alternatives)
-    alternatives[k - 1] = pose
-    return answer.model_copy(update={"alternatives": tuple(alternatives)})
-
-
-def _as_rendered(
-    answer: FreePoseResponse, history: list[Iteration], size: tuple[int, int]
-) -> FreePoseResponse:
-    """``answer`` with each candidate that a recorded iteration shows rendered at its dense fit
-    (``candidate_camera``: a resumed search) at the pose that render was made at: its camera's
-    position and orientation, its focal length back in the target's pixels (``size``)."""
-    candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
-    for it in history:
-        camera = it.camera
-        if it.candidate_camera is None or camera is None or camera.quaternion_wxyz is None:
-            continue
-        if camera.fx_px is None or camera.fy_px is None or it.index >= len(candidates):
-            continue
-        pose = candidates[it.index]
-        scale = it.image_size[0] / size[0]
-        fx, fy = camera.fx_px / scale, camera.fy_px / scale
-        fov = math.degrees(2.0 * math.atan(size[0] / (2.0 * fx)))
-        ypr = yaw_pitch_roll_of_rotation(rotation_of_quaternion(camera.quaternion_wxyz))
-        rendered = pose.model_copy(
-            update={
-                "position": camera.position,
-                "quaternion_wxyz": camera.quaternion_wxyz,
-                "yaw_pitch_roll_deg": ypr,
-                "intrinsics": pose.intrinsics.model_copy(
-                    update={"fx_px": fx, "fy_px": fy, "fov_deg": fov}
-                ),
-            }
-        )
-        answer = _with_candidate(answer, it.index, rendered)
-    return answer
 
 
 class FreeSearchLoop:
@@ -257,7 +203,7 @@ class FreeSearchLoop:
         if answer.pose is None:
             await self._fail_without_pose(writes, seen, answer.reason, "no-free-pose")
         history = list(search.iterations)
-        answer = _as_rendered(answer, history, size)
+        answer = as_rendered(answer, history, size)
         candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
         if history and history[-1].done:  # finished by an older run, no result recorded
             chosen, agreed = choice(history, {})
@@ -286,7 +232,7 @@ class FreeSearchLoop:
                     search, scene, (target, size), image, (pose, seen_view, outcome)
                 )
                 # the render that stands for the candidate was made at its fit: so is its pose
-                answer = _with_candidate(answer, k, pose)
+                answer = with_candidate(answer, k, pose)
             edges[k], by_box[k] = outcome, seen_view.check.agree
             # Its rivals are worth rendering only if this render's fit could be confirmed.
             goes_on = rivals and edges_pin_pose(outcome, search.intrinsics) is not None
@@ -322,8 +268,8 @@ class FreeSearchLoop:
         pose, seen, outcome = first
         again, refit = await self._render_and_check(search, scene, target, image, outcome.pose)
         if render_agrees(again.check, refit):
-            return outcome.pose, _spent(again, seen), refit, seen.camera
-        return pose, _spent(seen, again), outcome, None
+            return outcome.pose, spent(again, seen), refit, seen.camera
+        return pose, spent(seen, again), outcome, None
 
     async def _answer(
         self,
