@@ -62,9 +62,7 @@ from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Iteration, Search, SearchResult
 from services.common.depth_archive import DepthImage
-from services.common.geometry.free_camera import (
-    FreeCamera,
-)
+from services.common.geometry.free_camera import FreeCamera
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import failure, unreadable_answer
