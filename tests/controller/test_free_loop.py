@@ -41,7 +41,7 @@ from services.controller.events import Notifier
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
 from services.controller.free_refine import edges_agree, edges_contradict, edges_pin
-from services.controller.free_verdict import others_standing
+from services.controller.free_verdict import choice, others_standing
 from services.controller.runner import SearchRunner
 from services.controller.stages import StageError
 from services.controller.store import SearchStore, open_store, utcnow
@@ -731,6 +731,38 @@ def test_a_followed_candidate_is_answered_at_the_pose_its_render_checked(tmp_pat
     assert result.renders == 2
     assert result.free.pose.position == pytest.approx((5.0, -3.9, 5.0))
     assert "the box pose is kept: the dense fit moved the pose implausibly far" in result.reason
+
+
+def test_with_no_fit_accepted_the_pose_whose_render_the_image_explains_best_is_chosen(
+    tmp_path, detail
+):
+    """Neither render agrees and neither fit is accepted: the candidate whose own render left
+    more of its edge points on the target's answers, though the other's boxes match better."""
+    stages = FakeStages(detail, status="ambiguous", count=2, right=9)
+    final = run(tmp_path, stages)
+    first, second = final.iterations
+    assert first.match is not None
+
+    def fit(start_inliers: int) -> RefinePoseResponse:
+        report = DenseReport(
+            converged=False, accepted=False, reason="the dense fit did not converge",
+            edge_points=900, inliers=start_inliers, start_inliers=start_inliers,
+            residual_px=0.6, focal_fitted=False, moved=0.0, moved_rotation_deg=0.0,
+        )  # fmt: skip
+        return RefinePoseResponse(pose=candidate(0.0), fit=report)
+
+    better_boxes = second.model_copy(
+        update={"match": first.match.model_copy(update={"score": 0.9})}
+    )
+    worse_boxes = first.model_copy(update={"match": first.match.model_copy(update={"score": 0.2})})
+    history = [worse_boxes, better_boxes]
+    chosen, agreed = choice(history, {0: fit(450), 1: fit(270)})
+    assert not agreed
+    assert chosen.index == 0  # 0.5 of its edges on the target's against 0.3
+    chosen, _ = choice(history, {0: fit(270), 1: fit(270)})
+    assert chosen.index == 1  # as many: the boxes decide
+    chosen, _ = choice(history, {})  # no fit at all (resumed): the boxes decide
+    assert chosen.index == 1
 
 
 def test_the_render_budget_bounds_the_alternatives_tried(tmp_path, detail):
