@@ -65,7 +65,10 @@ def _explains(iteration: Iteration, edges: RefinePoseResponse | str | None) -> t
     --scene demo --random-scenes 2 --n 8``, a demo view under another light had neither render's
     fit accepted; the box pose 1.6 % off matched the target's boxes at 5.8 px, a pose 89 % off
     at 0.7 px, which was answered, though its render left fewer of its edge points on the
-    target's edges (290 of 842 after its fit, 458 of 900 for the other)."""
+    target's edges (290 of 842 after its fit, 458 of 900 for the other); it is now the box
+    pose. Over seeds 1–5 (600 searches, one run each way) that was the one answer this brought
+    within 5 %/2°; 82 others, all wrong and ``ambiguous`` either way, became other wrong
+    poses (40 of them nearer the truth, median 1.12 → 1.00 radii); nothing else changed."""
     share = start = 0.0
     if isinstance(edges, RefinePoseResponse) and edges.fit.edge_points > 0:
         fit = edges.fit
