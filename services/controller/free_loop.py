@@ -290,7 +290,8 @@ class FreeSearchLoop:
         outcome: RefinePoseResponse | str | None = edges.get(chosen.index)
         refit = None
         if agreed and outcome is not None:
-            outcome, extra = await self._refit(search, scene, target, image, outcome, len(history))
+            rendered = len(history) + followed
+            outcome, extra = await self._refit(search, scene, target, image, outcome, rendered)
             refit = timings_of(extra) if extra is not None else None
         elif agreed:
             outcome = "no dense refinement (resumed after its render)"

@@ -705,6 +705,21 @@ def test_a_disagreeing_render_whose_fit_is_accepted_is_rendered_again_at_the_fit
     assert iteration.timings.render_ms > 0.0
 
 
+@pytest.mark.parametrize(("max_iterations", "renders"), [(2, 2), (3, 3)])
+def test_renders_at_a_fit_count_in_the_budget_of_the_refit(
+    tmp_path, detail, max_iterations, renders
+):
+    """Every fit asks for one more render at its pose: a followed candidate's refit is made
+    only while the search's renders allow it, the render at the fit counted."""
+    stages = FakeStages(detail, right=5, edges=(0, 5), inliers=600, meet=True, refits=5)
+    final = run(tmp_path, stages, max_iterations=max_iterations)
+    result = final.result
+    assert result is not None
+    assert result.confirmed
+    assert result.renders == stages.calls["render"] == renders
+    assert (result.refit_timings is not None) is (renders == 3)
+
+
 class RefusesTheSecondFit(FakeStages):
     """As :class:`FakeStages`, but the second dense fit is not accepted (it moved too far)."""
 
