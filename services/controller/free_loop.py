@@ -33,7 +33,8 @@ Never with the focal length of the photo's EXIF, which no render can check: with
 of the radius off. Any other ambiguous pose whose render agrees is answered ``ambiguous`` with
 its alternatives (the other agreeing ones first), never confirmed; when no render agrees, the
 rendered pose that best explains the target (the most edges on the target's after an accepted
-fit, then the box match) is answered, ``ambiguous`` and unconfirmed, saying so.
+fit, then at its own render's pose, then the box match) is answered, ``ambiguous`` and
+unconfirmed, saying so.
 
 Every render is an iteration (its ``camera`` the free camera rendered, its ``pose`` the grid
 pose nearest it), recorded as the hemisphere loop records its own (:class:`Writes`); the

@@ -3,11 +3,12 @@ the renders confirm it (:mod:`~services.controller.free_loop`'s docstring says w
 
 A candidate *agrees* when its render does (box by box, its edges not contradicting, or by its
 edges). The answer is the agreeing candidate that explains the target best (the most edges on
-the target's after an accepted fit, then the box match), else the candidate that explains it
-best. It is ``found`` and confirmed only when the optimizer found a unique pose, or its edges
-pin a pose the boxes pinned loosely, or it is the only one of a ``rivals`` answer's candidates
-whose render agrees (every candidate rendered, the intrinsics given; agreeing candidates whose
-fits end at one pose count once: :data:`SAME_POSE_SHARE`) and its edges pin it.
+the target's after an accepted fit, then at its own render's pose, then the box match), else
+the candidate that explains it best. It is ``found`` and confirmed only when the optimizer
+found a unique pose, or its edges pin a pose the boxes pinned loosely, or it is the only one
+of a ``rivals`` answer's candidates whose render agrees (every candidate rendered, the
+intrinsics given; agreeing candidates whose fits end at one pose count once:
+:data:`SAME_POSE_SHARE`) and its edges pin it.
 """
 
 from __future__ import annotations
