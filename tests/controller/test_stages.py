@@ -30,7 +30,7 @@ from services.controller.transport import StageAnswer, StageRequest, WithService
 from services.detector.app import create_app as create_detector
 from services.detector.settings import DetectorSettings
 from services.renderer.app import create_app as create_renderer
-from tests.controller.test_free_loop import candidate
+from tests.controller.free_stages import candidate
 from tests.scene_model_support import BALLS, add_scene, onboard
 
 pytestmark = pytest.mark.anyio
