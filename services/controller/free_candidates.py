@@ -31,7 +31,7 @@ def as_rendered(
     """``answer`` with each candidate that a recorded iteration shows rendered at its dense fit
     (``candidate_camera``: a resumed search) at the pose that render was made at: its camera's
     position and orientation, its focal length back in the target's pixels (``size``)."""
-    candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+    candidates = answer.candidates
     for it in history:
         camera = it.camera
         if it.candidate_camera is None or camera is None or camera.quaternion_wxyz is None:

@@ -203,7 +203,7 @@ class FreeSearchLoop:
             await self._fail_without_pose(writes, seen, answer.reason, "no-free-pose")
         history = list(search.iterations)
         answer = as_rendered(answer, history, size)
-        candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+        candidates = answer.candidates
         if history and history[-1].done:  # finished by an older run, no result recorded
             chosen, agreed = choice(history, {})
             result = free_result(answer, history, grid, chosen, Verdict(agreed))
@@ -296,7 +296,7 @@ class FreeSearchLoop:
             refit = timings_of(extra) if extra is not None else None
         elif agreed:
             outcome = "no dense refinement (resumed after its render)"
-        candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+        candidates = answer.candidates
         radius = scene.spec.camera.radius
         standing = others_standing(history, chosen, candidates, edges, radius) if agreed else ()
         ruled_out = (

@@ -189,7 +189,7 @@ def free_result(
 ) -> SearchResult:
     """The search's answer from its rendered candidates (module docstring): ``chosen`` and
     what its render said (``verdict``)."""
-    candidates = [p for p in (answer.pose, *answer.alternatives) if p is not None]
+    candidates = answer.candidates
     agreed, pinned = verdict.agreed, verdict.pinned
     pose = candidates[chosen.index]
     score = chosen.match.score if chosen.match is not None else 0.0

@@ -188,6 +188,11 @@ class FreePoseResponse(FrozenModel):
         "pin it). Null unless ambiguous.",
     )
 
+    @property
+    def candidates(self) -> list[FreePose]:
+        """The poses to render, best first: the pose, then its alternatives."""
+        return [p for p in (self.pose, *self.alternatives) if p is not None]
+
 
 def above_chance(count: float, total: int, chance: float) -> float:
     """The share of ``total`` edge points that ``count`` of them on the target's edges is above
