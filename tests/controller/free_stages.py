@@ -5,7 +5,6 @@ loop's tests."""
 from __future__ import annotations
 
 import asyncio
-from collections import Counter
 
 import cv2
 import numpy as np
@@ -31,6 +30,7 @@ from services.common.geometry.free_camera import FreeCamera
 from services.controller.events import Notifier
 from services.controller.runner import SearchRunner
 from services.controller.store import SearchStore, open_store, utcnow
+from tests.controller.scripted_calls import ScriptedCalls
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"target"
 MODEL = ModelInfo(name="demo", classes=("red",), input_size=(640, 640), sha256="d", scene="demo")
@@ -58,7 +58,7 @@ def candidate(x: float, source: str = "given") -> FreePose:
     )
 
 
-class FakeStages:
+class FakeStages(ScriptedCalls):
     """The target shows :data:`BOXES`; the optimizer answers ``status`` with the candidates at
     x = 0, 1, 2, ... (the first is the pose, the rest alternatives); a render at candidate
     ``right`` shows the target's boxes, any other shows them 30 px to the right; the dense fit
@@ -90,8 +90,7 @@ class FakeStages:
         self.right = right
         self.target_size = target_size
         self.boxes = boxes
-        self.faults = faults or {}
-        self.calls: Counter[str] = Counter()
+        super().__init__(faults)
         self.rendered: list[tuple[FreeCamera, tuple[int, int]]] = []
         self.requests: list[FreePoseRequest] = []
         self.refine = refine
@@ -103,13 +102,6 @@ class FakeStages:
         self.turn = turn  # degrees an accepted fit turns the pose
         self.meet = meet  # every fit ends at the right candidate (x = right)
         self.source = "given"  # where the optimizer says its intrinsics came from
-
-    def _call(self, name: str) -> None:
-        self.calls[name] += 1
-        if name in self.faults:
-            answers, error = self.faults[name]
-            if self.calls[name] > answers:
-                raise error
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         return False

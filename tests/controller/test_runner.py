@@ -10,7 +10,6 @@ import json
 import logging
 import re
 import time
-from collections import Counter
 
 import pytest
 from pydantic import ValidationError
@@ -38,13 +37,14 @@ from services.controller.events import Notifier
 from services.controller.runner import NotRetryable, SearchRunner, StillStopping
 from services.controller.stages import StageError
 from services.controller.store import SearchStore, open_store, utcnow
+from tests.controller.scripted_calls import ScriptedCalls
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"target"
 GENERAL = ModelInfo(name="general", classes=("sphere",), input_size=(640, 640), sha256="g")
 OWN = ModelInfo(name="demo", classes=("red",), input_size=(640, 640), sha256="d", scene="demo")
 
 
-class FakeStages:
+class FakeStages(ScriptedCalls):
     """Renders a pose's lat/lon as bytes; the optimizer scores lon 2 best and says done only
     after ``done_after`` views.
 
@@ -73,19 +73,11 @@ class FakeStages:
         self.stuck_after = stuck_after
         self.done_after = done_after
         self.boxes = boxes
-        self.faults = faults or {}
+        super().__init__(faults)
         self.back_after = back_after
         self.waits: list[tuple[str, float]] = []
-        self.calls: Counter[str] = Counter()
         self.requests: list[NextPoseRequest] = []
         self.rendered_with: list[ViewSettings | None] = []
-
-    def _call(self, name: str) -> None:
-        self.calls[name] += 1
-        if name in self.faults:
-            answers, error = self.faults[name]
-            if self.calls[name] > answers:
-                raise error
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         self.waits.append((stage, timeout_s))
