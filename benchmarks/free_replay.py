@@ -36,9 +36,8 @@ from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.metrics import PoseError, pose_error
 from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
-from services.common.contracts.free import FreePose, FreePoseRequest, PhotoIntrinsics
+from services.common.contracts.free import FreePoseRequest, PhotoIntrinsics
 from services.common.contracts.optimize import ImageDetections
-from services.common.geometry.free_camera import rotation_of_quaternion
 from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.renderer.settings import RendererSettings
 
@@ -46,18 +45,6 @@ GOAL_VARIANTS: Final = ("clean", "jpeg", "noise")
 DETECTOR_INPUT: Final = (320, 256)
 """The shipped detector's network input (``model.input_size``), as the controller passes it."""
 LIMITS: Final = ((0.10, 5.0), (0.05, 2.0))
-
-
-def _estimate(pose: FreePose) -> Estimate:
-    return Estimate(
-        rotation_of_quaternion(pose.quaternion_wxyz),
-        np.asarray(pose.position, dtype=np.float64),
-        pose.intrinsics.fov_deg,
-    )
-
-
-def _within(error: PoseError, limit: tuple[float, float]) -> bool:
-    return error.position <= limit[0] and error.rotation_deg <= limit[1]
 
 
 def replayed(
@@ -73,7 +60,10 @@ def replayed(
         detector_input=DETECTOR_INPUT,
     )
     answer = free_pose(request, catalog, cache)
-    estimate = _estimate(answer.pose) if answer.pose is not None else None
+    pose = answer.pose
+    estimate = None
+    if pose is not None:
+        estimate = Estimate.of_camera(pose.camera(), pose.intrinsics.fov_deg, record.target_size[0])
     return pose_error(estimate, record.truth.estimate(), record.radius), answer.status
 
 
@@ -118,8 +108,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 statuses[status] += 1
                 was = record.error("boxes")
                 hits = (
-                    *(_within(was, lim) for lim in LIMITS),
-                    *(_within(error, lim) for lim in LIMITS),
+                    *(was.within(*lim) for lim in LIMITS),
+                    *(error.within(*lim) for lim in LIMITS),
                 )
                 for band in (record.band, "all"):
                     rows[(record.detector, band, record.given)].append(hits)
