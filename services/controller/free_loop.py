@@ -84,7 +84,7 @@ from services.controller.free_refine import (
     edges_pin_pose,
     refine_by_render,
     refined_result,
-    with_refit_renders,
+    with_extra_renders,
 )
 from services.controller.free_verdict import (
     Verdict,
@@ -316,7 +316,7 @@ class FreeSearchLoop:
         result = free_result(answer, history, grid, chosen, verdict)
         if outcome is not None:
             result = refined_result(result, outcome, grid)
-        return with_refit_renders(result, refit, followed)
+        return with_extra_renders(result, refit, followed)
 
     async def _refit(
         self,

@@ -62,7 +62,7 @@ __all__ = [
     "edges_unvouched",
     "refine_by_render",
     "refined_result",
-    "with_refit_renders",
+    "with_extra_renders",
 ]
 
 _log = logging.getLogger("cosmos.controller")
@@ -248,7 +248,7 @@ def refined_result(
     )
 
 
-def with_refit_renders(
+def with_extra_renders(
     result: SearchResult, timings: StageTimings | None, followed: int = 0
 ) -> SearchResult:
     """``result`` with the renders that are no iteration of their own, said in its reason:
