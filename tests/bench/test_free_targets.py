@@ -33,6 +33,7 @@ from cosmos.bench.free_targets import (
 from cosmos.bench.free_targets.dense import dense_method
 from cosmos.bench.free_targets.draw import (
     DISTANCE_RANGE,
+    ELEVATION_RANGE_DEG,
     FOV_SPREAD,
     FREE_VARIANTS,
     MIN_OBJECTS,
@@ -40,6 +41,7 @@ from cosmos.bench.free_targets.draw import (
     NADIR_SHARE,
     ROLL_LIMIT_DEG,
     band_of,
+    elevation_strata,
 )
 from cosmos.bench.free_targets.estimate import intrinsics_matrix
 from cosmos.bench.free_targets.metrics import MISSED
@@ -125,11 +127,47 @@ def test_drawn_cameras_keep_every_constraint(targets: list[FreeTarget], garden: 
 
 def test_drawing_is_seeded(renderer: LocalRenderer, garden: LoadedScene, targets):
     shapes = scene_shapes(garden)
-    again = draw_targets(renderer, garden, shapes, 2, SEED, width=FILM[0], spp=1)
-    for first, second in zip(targets[:2], again, strict=True):
-        assert first.camera == second.camera
-    other = draw_targets(renderer, garden, shapes, 2, SEED + 1, width=FILM[0], spp=1)
-    assert other[0].camera != targets[0].camera
+    width, height = FILM
+    picked = [1, 4]
+    again = draw_targets(
+        renderer, garden, shapes, COUNT, SEED, width=width, height=height, spp=1, only=picked
+    )
+    assert [t.index for t in again] == picked
+    for target in again:
+        assert target.camera == targets[target.index].camera
+    other = draw_targets(
+        renderer, garden, shapes, COUNT, SEED + 1, width=width, height=height, spp=1, only=[1]
+    )
+    assert other[0].camera != targets[1].camera
+
+
+def test_elevations_are_stratified_per_intrinsics_group(targets: list[FreeTarget]) -> None:
+    """The targets that give their intrinsics take one slice of the elevation range each, and so
+    do those that do not: a draw of a few targets spans the range, whatever the seed."""
+    nadir = np.array([True, False, False, False, False, False, False, False])
+    not_given = np.array([False, True, False, True, False, False, True, False])
+    for seed in range(5):
+        strata = elevation_strata(nadir, not_given, np.random.default_rng(seed))
+        assert strata[0] is None
+        for group, size in ((False, 4), (True, 3)):
+            members = [
+                s for s, n, g in zip(strata, nadir, not_given, strict=True) if not n and g == group
+            ]
+            assert sorted(j for j, _ in members) == list(range(size))
+            assert {m for _, m in members} == {size}
+    # the drawn targets: each group's elevations lie in distinct slices of equal width
+    lo, hi = ELEVATION_RANGE_DEG
+    for group in (True, False):
+        elevations = [
+            t.drawn.elevation_deg
+            for t in targets
+            if t.intrinsics_given == group and t.band != "nadir"
+        ]
+        slices = [int((e - lo) / (hi - lo) * len(elevations)) for e in elevations]
+        assert sorted(slices) == list(range(len(elevations)))
+    given = [t for t in targets if t.intrinsics_given and t.band != "nadir"]
+    assert len(given) >= 3  # the top one of three or more slices starts above 62.7°
+    assert "60-89" in {t.band for t in given}
 
 
 def test_a_scene_that_cannot_be_satisfied_says_so(renderer: LocalRenderer, garden: LoadedScene):

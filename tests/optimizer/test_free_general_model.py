@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cosmos.bench.free_targets.draw import draw_targets
 from cosmos.bench.free_targets.rendering import LocalRenderer
-from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
+from services.common.contracts.render import RenderRequest
+from services.common.geometry.free_camera import FreeCamera
 from services.detector.detect import DetectOptions, detections_from_output
 from services.detector.letterbox import letterbox
 from services.detector.model import DetectorModel
@@ -29,9 +29,18 @@ from services.detector.settings import DetectorSettings
 from services.optimizer.free import Intrinsics, scene_objects, solve_free_pose
 from services.optimizer.free.hypotheses import compatibility
 
-SEED, SCENE, COUNT, TARGET = 3, 1, 6, 0
-"""``cosmos bench --free --random-scenes 2 --n 6 --seed 3``: scene rand3-1 (nine meshes), its
-first target (intrinsics given)."""
+SEED, SCENE = 3, 1
+"""Scene rand3-1 of ``cosmos bench --free --random-scenes 2 --seed 3``: nine meshes."""
+CAMERA = FreeCamera(
+    position=(-4.9106168222926385, 3.587977782430425, 1.2453178115698222),
+    yaw_deg=320.84214857843835,
+    pitch_deg=16.766284204346324,
+    roll_deg=0.8370091310681822,
+    fov_deg=38.04545921280707,
+)
+"""The first target that scene's bench run with ``--n 6`` drew before its elevations were
+stratified, on the scene's 304 x 190 film."""
+FILM = (304, 190)
 
 
 @pytest.fixture(scope="module")
@@ -41,26 +50,28 @@ def general_target(engine, tmp_path_factory):
     generate_scene(np.random.default_rng([SEED, SCENE]), folder, scene_id)
     catalog = SceneCatalog([folder])
     scene = catalog.get(scene_id)
+    request = RenderRequest(
+        scene=scene_id, camera=CAMERA, width=FILM[0], height=FILM[1], spp=16, seed=0
+    )
     with LocalRenderer(catalog, engine=engine) as renderer:
-        (target,) = draw_targets(renderer, scene, scene_shapes(scene), COUNT, SEED, only=[TARGET])
+        png, annotations = renderer.render_png(request), renderer.annotations(request)
     settings = DetectorSettings()
     model = DetectorModel(settings.detector_model, threads=1)
-    rgb = np.asarray(Image.open(io.BytesIO(target.png)).convert("RGB"))
+    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
     tensor, box = letterbox(rgb, model.layout.input_size)
     output = model.run(tensor[np.newaxis])[0]
     options = DetectOptions.from_settings(settings)
     detections = detections_from_output(output, box, model.classes, rgb, options)
-    return scene_objects(scene.spec, scene.assets), target, detections, rgb.shape[1::-1]
+    return scene_objects(scene.spec, scene.assets), annotations, detections, rgb.shape[1::-1]
 
 
 def test_general_model_labels_pair_the_visible_objects(general_target):
-    objects, target, detections, (width, height) = general_target
-    assert target.intrinsics_given
+    objects, annotations, detections, (width, height) = general_target
     # the cause: most labels name no object's shape, so fewer than three detections had an
     # object to pair with when a label had to be the object's shape
     fits = compatibility(objects, tuple(d.label for d in detections))
     assert int(fits.any(axis=1).sum()) < 3 <= len(detections)
-    truth = target.annotations.camera
+    truth = annotations.camera
     k = Intrinsics(truth.fx, truth.fy, truth.cx, truth.cy)
     answer = solve_free_pose(objects, detections, width, height, k)
     assert answer.status == "found", answer.reason
@@ -71,7 +82,7 @@ def test_general_model_labels_pair_the_visible_objects(general_target):
     assert moved < 0.05 * objects.radius
     assert turned < 2.0
     # every pair is the object the detection's box shows (the renderer's own boxes)
-    shown = {o.name: np.asarray(o.box) for o in target.annotations.objects if o.box is not None}
+    shown = {o.name: np.asarray(o.box) for o in annotations.objects if o.box is not None}
     for pair in answer.pose.correspondences:
         box = np.asarray(detections[pair.detection].box)
         assert np.sqrt(np.mean((box - shown[pair.object]) ** 2)) < 6.0

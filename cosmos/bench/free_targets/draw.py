@@ -2,14 +2,21 @@
 ground truth.
 
 A camera of target ``i`` is drawn from a :class:`numpy.random.Generator` seeded with the bench's
-seed and ``i``, so each target is reproducible on its own:
+seed and ``i``, after a plan seeded with the seed and the count (which targets are nadir, which
+give no intrinsics, the elevation slices), so each target of a draw is reproducible on its own:
 
 * the point it looks at: uniform on the objects' footprint's bounding rectangle, grown by
   :data:`AREA_MARGIN` of the scene radius r on each side, on the ground (z = 0);
 * its distance from that point: uniform in [0.4 r, 1.6 r];
 * its elevation ε above the ground plane, seen from that point: a :data:`NADIR_SHARE` of the
   targets (chosen by a seeded permutation) look straight down (ε = 90°, pitch 90°), the others
-  take ε uniform in [10°, 89°]; the camera looks at the point, so its pitch is ε;
+  take ε in [10°, 89°], stratified (:func:`elevation_strata`): the ``m`` of them that give their
+  intrinsics take one of ``m`` equal slices of the range each, in a seeded order, and ε uniform
+  within it, and so do those that do not. Each ε is still uniform over the range, and a draw
+  of 8 targets spans it: drawn independently, seed 1's 24 targets of ``cosmos bench --free
+  --random-scenes 2 --n 8`` held no camera between 60° and 89°, and the 9 without intrinsics
+  none above 60°, where distance trades against focal length. The camera looks at the point,
+  so its pitch is ε;
 * its azimuth uniform in [0°, 360°), its roll uniform in ±25°;
 * its horizontal fov uniform within ±30 % of the scene camera's; a third of the targets (again a
   seeded permutation) are flagged as not giving their intrinsics.
@@ -63,6 +70,7 @@ __all__ = [
     "draw_camera",
     "draw_elevation_fov",
     "draw_targets",
+    "elevation_strata",
     "usable_objects",
     "visible_shares",
 ]
@@ -186,12 +194,34 @@ def _object_area(scene: LoadedScene, shapes: SceneShapes) -> tuple[float, float,
     return float(x0), float(y0), float(x1), float(y1)
 
 
+def elevation_strata(
+    nadir: NDArray[np.bool_], not_given: NDArray[np.bool_], rng: np.random.Generator
+) -> list[tuple[int, int] | None]:
+    """Each target's elevation slice ``(j, m)``: slice ``j`` of ``m`` equal ones of
+    :data:`ELEVATION_RANGE_DEG`, where ``m`` counts the targets that are not nadir and give their
+    intrinsics as this one does (or do not), and their ``j`` are a seeded permutation; None for
+    a nadir target."""
+    strata: list[tuple[int, int] | None] = [None] * len(nadir)
+    for group in (False, True):
+        members = np.flatnonzero(~nadir & (not_given == group))
+        for j, index in zip(rng.permutation(len(members)), members, strict=True):
+            strata[int(index)] = (int(j), len(members))
+    return strata
+
+
 def draw_elevation_fov(
-    scene: LoadedScene, nadir: bool, rng: np.random.Generator
+    scene: LoadedScene, stratum: tuple[int, int] | None, rng: np.random.Generator
 ) -> tuple[float, float]:
-    """A target's elevation and fov in degrees (module docstring): drawn once per target, so
-    that the cameras redrawn for visibility keep their distribution."""
-    elevation = 90.0 if nadir else float(rng.uniform(*ELEVATION_RANGE_DEG))
+    """A target's elevation and fov in degrees (module docstring): the elevation uniform within
+    slice ``j`` of ``m`` of :data:`ELEVATION_RANGE_DEG` for ``stratum`` ``(j, m)``, 90° for
+    None (nadir). Drawn once per target, so that the cameras redrawn for visibility keep their
+    distribution."""
+    if stratum is None:
+        elevation = 90.0
+    else:
+        j, m = stratum
+        lo, hi = ELEVATION_RANGE_DEG
+        elevation = lo + (j + float(rng.uniform())) * (hi - lo) / m
     fov = scene.spec.camera.fov_deg * float(rng.uniform(1.0 - FOV_SPREAD, 1.0 + FOV_SPREAD))
     return elevation, fov
 
@@ -279,12 +309,13 @@ def draw_targets(
     plan = np.random.default_rng([seed, count])
     nadir = _shares(count, NADIR_SHARE, plan)
     not_given = _shares(count, NOT_GIVEN_SHARE, plan)
+    strata = elevation_strata(nadir, not_given, plan)
     targets = []
     for index in range(count):
         if only is not None and index not in only:
             continue
         rng = np.random.default_rng([seed, index])
-        elevation, fov = draw_elevation_fov(scene, bool(nadir[index]), rng)
+        elevation, fov = draw_elevation_fov(scene, strata[index], rng)
         for _ in range(max_tries):
             drawn = draw_camera(scene, shapes, elevation, fov, rng)
             if not _placeable(drawn, shapes):
