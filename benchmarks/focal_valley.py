@@ -8,7 +8,7 @@ kept in place). How steep its walls are decides whether any fit can find the foc
 
 Targets: free targets (``cosmos.bench.free_targets``' draw) of the demo scene and of
 ``--random-scenes`` generated scenes per seed, their clean images. Each is rendered at its true
-camera as a search renders a view (8 samples a pixel, another sampling seed than the target's),
+camera as a search renders a view (8 samples a pixel; the target had 16),
 and its outline edge points (:func:`~services.optimizer.free.edges.edge_points_by_outline`) are
 fitted to the target's edges with the focal length held at ``s`` times the truth, for each ``s``
 of :data:`ZOOMS`, the pose fitted coarse to fine from the true pose dolly-zoomed by ``s`` (the
@@ -36,14 +36,14 @@ from typing import Final
 import cv2
 import numpy as np
 
+from cosmos.bench.free_targets.dense import render_at
 from cosmos.bench.free_targets.draw import BANDS, Band, FreeTarget, draw_targets
 from cosmos.bench.free_targets.rendering import LocalRenderer
 from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
-from services.common.contracts.render import RenderRequest
 from services.common.geometry.camera import PinholeCamera
-from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
+from services.common.geometry.free_camera import FreeCamera
 from services.optimizer.free import dense
 from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.edges import (
@@ -73,24 +73,16 @@ def _targets(
 def _render(
     renderer: LocalRenderer, target: FreeTarget, camera: FreeCamera
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, PinholeCamera]:
-    """The render at ``camera`` on the target's film: RGB, depth, outline, pinhole."""
-    film = target.annotations.camera
-    request = RenderRequest(
-        scene=target.scene,
-        camera=camera,
-        width=film.width,
-        height=film.height,
-        spp=VIEW_SPP,
-        seed=target.index + 1000,
-    )
-    depth = renderer.depth(request)
-    bgr = _decoded(renderer.render_png(request))
+    """The render at ``camera`` on the target's film (as a search's view): RGB, depth, outline,
+    pinhole."""
+    rendered = render_at(renderer, target, camera, VIEW_SPP)
+    if rendered is None:
+        raise ValueError(f"the renderer refused a camera of {target.scene} #{target.index}")
+    rgb, depth, pinhole = rendered
     shading = depth.shading
     if shading is None:
         shading = np.zeros(depth.objects.shape, np.uint8)
-    near = outline(depth.depth, depth.objects, shading)
-    pinhole = free_pinhole_camera(camera, film.width, film.height, film.fov_deg)
-    return np.ascontiguousarray(bgr[..., ::-1]), depth.depth, near, pinhole
+    return rgb, depth.depth, outline(depth.depth, depth.objects, shading), pinhole
 
 
 def _decoded(png: bytes) -> np.ndarray:
