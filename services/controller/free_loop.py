@@ -20,14 +20,15 @@
    agrees, it stands for the candidate and the search ends; if not, the next alternative is
    rendered, while renders remain (``max_iterations``, which these renders count too). A
    ``rivals`` answer (distinct poses explain the boxes almost as well), the intrinsics given,
-   goes on after an agreeing render whose edges pin its pose: its rivals are rendered too, for
-   one render can tell its own pose from the target but not from a rival.
+   goes on after an agreeing render whose edges hold (:func:`~.free_refine.edges_hold`): its
+   rivals are rendered too, for one render can tell its own pose from the target but not from
+   a rival.
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`, composed by
 :mod:`~services.controller.free_verdict`) is ``found`` and ``confirmed`` only when the optimizer
 found a unique pose and its render agreed; when the boxes pinned their one pose only loosely and
 the render's edges pin it (the intrinsics given: :func:`~.free_refine.edges_pin`); or when, of a
-``rivals`` answer's candidates, every one was rendered and only one agreed, and its edges pin it.
+``rivals`` answer's candidates, every one was rendered and only one agreed, and its edges hold.
 Never with the focal length of the photo's EXIF, which no render can check: with one 15 % off,
 14 of 16 answers of ``python -m benchmarks.exif_focal`` agreed with their render while 12-14 %
 of the radius off. Any other ambiguous pose whose render agrees is answered ``ambiguous`` with
@@ -80,8 +81,8 @@ from services.controller.free_iterations import (
 )
 from services.controller.free_match import FreeMatch, compare_view, view_film
 from services.controller.free_refine import (
+    edges_hold,
     edges_pin,
-    edges_pin_pose,
     refine_by_render,
     refined_result,
     with_extra_renders,
@@ -234,7 +235,7 @@ class FreeSearchLoop:
                 answer = with_candidate(answer, k, pose)
             edges[k], by_box[k] = outcome, seen_view.check.agree
             # Its rivals are worth rendering only if this render's fit could be confirmed.
-            goes_on = rivals and edges_pin_pose(outcome, search.intrinsics) is not None
+            goes_on = rivals and edges_hold(outcome, search.intrinsics) is not None
             ambiguous = answer.status != "found"
             step = Step(k, len(candidates), ambiguous, optimize_ms, goes_on, follows)
             following = candidates[k + 1] if k + 1 < budget else None
@@ -307,9 +308,7 @@ class FreeSearchLoop:
         )
         known = search.intrinsics
         pinned = (
-            edges_pin_pose(outcome, known)
-            if ruled_out
-            else edges_pin(outcome, known, answer.ambiguity)
+            edges_hold(outcome, known) if ruled_out else edges_pin(outcome, known, answer.ambiguity)
         )
         by_edges = agreed and not by_box.get(chosen.index, True)
         verdict = Verdict(agreed, by_edges, pinned if agreed else None, ruled_out, standing)

@@ -8,7 +8,7 @@ the candidate that explains it best. It is ``found`` and confirmed only when the
 found a unique pose, or its edges pin a pose the boxes pinned loosely, or it is the only one
 of a ``rivals`` answer's candidates whose render agrees (every candidate rendered, the
 intrinsics given; agreeing candidates whose fits end at one pose count once:
-:data:`SAME_POSE_SHARE`) and its edges pin it.
+:data:`SAME_POSE_SHARE`) and its edges hold (:func:`~.free_refine.edges_hold`).
 """
 
 from __future__ import annotations
@@ -141,7 +141,7 @@ def others_standing(
 class Verdict:
     """What the renders said of the chosen candidate: ``agreed``, ``by_edges`` (its boxes
     disagreed), ``pinned`` (its fit, when that pins a pose the boxes did not: a loose one, or
-    the one rival left standing), ``ruled_out`` (every other rival's render disagreed, or its
+    holds the one rival left standing), ``ruled_out`` (every other rival's render disagreed, or its
     fit ended at the chosen pose) and ``standing`` (the other agreeing candidates that did
     not)."""
 
@@ -205,7 +205,7 @@ def free_result(
             f"found: {len(pose.correspondences)} objects paired, and {rivals} rival pose(s) "
             "explained the boxes almost as well, but their renders disagree with the target or "
             "their fits end at this pose; "
-            f"the render at pose {chosen.index + 1} agrees {how}, and its edges pin it: "
+            f"the render at pose {chosen.index + 1} agrees {how}, and its edges hold: "
             f"{fit.inliers} of {fit.edge_points} on the target's after the dense fit, the "
             "intrinsics given"
         )

@@ -87,7 +87,7 @@ def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_
 def test_rivals_are_rendered_and_only_the_one_left_standing_is_confirmed(
     tmp_path, detail, edges, max_iterations, meet, confirmed
 ):
-    """Three rival candidates, the first one right and pinned by its edges, the intrinsics
+    """Three rival candidates, the first one right and agreeing by its edges, the intrinsics
     given."""
     stages = FakeStages(
         detail,
@@ -115,7 +115,7 @@ def test_rivals_are_rendered_and_only_the_one_left_standing_is_confirmed(
     if confirmed:
         assert result.free.alternatives == ()
         assert "2 rival pose(s) explained the boxes almost as well" in result.reason
-        assert "its edges pin it: 900 of 900" in result.reason
+        assert "its edges hold: 900 of 900" in result.reason
     else:
         assert "not confirmed" in result.reason
         assert [p.position[0] for p in result.free.alternatives][0] == (2.0 if 2 in edges else 1.0)
@@ -152,18 +152,29 @@ def test_an_agreeing_rival_stands_unless_its_fit_ends_at_the_chosen_pose(
     assert found == ((1,) if standing else ())
 
 
-def test_rivals_are_not_rendered_when_the_agreeing_pose_could_not_be_confirmed(tmp_path, detail):
-    """0.89 of the render's edges on the target's: its rivals' renders could not confirm it."""
-    stages = FakeStages(detail, status="ambiguous", count=3, ambiguity="rivals", inliers=800)
+@pytest.mark.parametrize(
+    ("inliers", "renders", "confirmed"),
+    [(700, 1, False), (800, 3, True)],
+    ids=["edges-short", "edges-hold"],
+)
+def test_rivals_are_rendered_when_the_agreeing_renders_edges_hold(
+    tmp_path, detail, inliers, renders, confirmed
+):
+    """0.78 of the render's edges on the target's (short of agreeing by them): its rivals'
+    renders could not confirm it, and they are not made. 0.89 (short of pinning a loose pose,
+    which rivals are not): they are, they disagree, and it is confirmed."""
+    stages = FakeStages(detail, status="ambiguous", count=3, ambiguity="rivals", inliers=inliers)
     final = run(tmp_path, stages, intrinsics=PhotoIntrinsics(fov_deg=45.0))
     result = final.result
     assert result is not None
-    assert result.renders == 1
-    assert not result.confirmed
-    (only,) = final.iterations
-    assert only.done
-    assert only.agrees
-    assert "rivals" not in only.reason
+    assert result.renders == renders
+    assert result.confirmed is confirmed
+    first = final.iterations[0]
+    assert first.agrees
+    assert first.done is not confirmed
+    assert ("its rivals are rendered next" in first.reason) is confirmed
+    if confirmed:
+        assert f"its edges hold: {inliers} of 900" in result.reason
 
 
 @pytest.mark.parametrize(
