@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 
+from services.common.contracts.detect import Detection
 from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.optimizer.free import SceneObjects, scene_objects, solve_free_pose
 from tests.optimizer.test_free_pose import H, W, errors, exact_detections, intrinsics_of
@@ -53,3 +54,36 @@ def test_a_moved_object_does_not_pull_the_pose_away(catalog):
     assert targets >= 40
     assert found_wrong == []
     assert len(wrong) <= 2, wrong  # the nadir view of demo's five equal balls stays ambiguous
+
+
+def test_a_fit_that_pairs_a_moved_box_is_refitted_without_each_loose_pair(catalog):
+    """The detector's boxes of a demo view whose magenta ball had moved 0.96 units (``cosmos
+    bench --free --scene demo --random-scenes 2 --n 8 --seed 3``, target 0, ``changed``). Every
+    hypothesis that pairs all five boxes fits them at 6.3 px, the red ball's pair the loosest
+    (9.2 px) and the moved one's next (9.0 px); the minimal sets without the magenta ball all
+    landed in the far basin of a flip. The pose was answered 18 % of the radius and 7° off;
+    refitted without each loose pair, the four unmoved balls give the true pose."""
+    boxes = {
+        "red": (91.5748, 101.3189, 139.7737, 149.4944),
+        "green": (155.2031, 58.4444, 192.279, 95.4165),
+        "magenta": (172.6885, 152.6661, 228.1832, 207.7678),
+        "yellow": (36.1407, 56.1451, 77.2608, 96.8202),
+        "blue": (204.8633, 91.0771, 245.8174, 132.011),
+    }
+    detections = [
+        Detection(label=label, class_id=i, confidence=0.95, box=box)
+        for i, (label, box) in enumerate(boxes.items())
+    ]
+    truth = FreeCamera(
+        position=(8.839, -1.9225, 4.693),
+        quaternion_wxyz=(0.4434, -0.6289, -0.5768, 0.2742),
+        fov_deg=37.8939,
+    )
+    objects = scene_objects(catalog.get("demo").spec, catalog.get("demo").assets)
+    pinhole = free_pinhole_camera(truth, W, H, objects.fov_deg)
+    answer = solve_free_pose(objects, detections, W, H, intrinsics_of(pinhole))
+    assert answer.pose is not None
+    moved, turned = errors(answer.pose, pinhole)
+    assert moved < 0.01 * objects.radius
+    assert turned < 0.5
+    assert {c.object for c in answer.pose.correspondences} == {"red", "green", "yellow", "blue"}

@@ -8,8 +8,10 @@ The steps (each in its module):
 2. for each distinct hypothesis, its edge fits (:mod:`.hypothesis_fits`): PnP on the paired
    centres corrected for the box-centre bias, then least squares on the box edges
    (:mod:`.refine`); the pairs are then re-drawn at the refined pose with a box-edge gate
-   (:func:`inlier_gate`) and the edges refitted on them; the fits are ranked by
-   :func:`truncated_cost` over all detections, not by pairs first;
+   (:func:`inlier_gate`) and the edges refitted on them; the best fit is also refitted
+   without each of its loose pairs in turn (:func:`~.hypothesis_fits.left_out`: a moved
+   object's box); the fits are ranked by :func:`truncated_cost` over all detections, not by
+   pairs first;
 3. without given intrinsics and with at least :data:`~.hypothesis_fits.MIN_FOCAL_PAIRS` pairs,
    the focal length joins every hypothesis' edge fit (:mod:`.hypothesis_fits`). With fewer
    pairs the scene camera's field of view is used and the answer says so;
@@ -77,7 +79,7 @@ from services.optimizer.free.hypotheses import (
     hypotheses,
     label_costs,
 )
-from services.optimizer.free.hypothesis_fits import EdgeFits, Fit, focal_fits, refined
+from services.optimizer.free.hypothesis_fits import EdgeFits, Fit, focal_fits, left_out, refined
 from services.optimizer.free.objects import SceneObjects
 from services.optimizer.free.refine import Intrinsics, pose_uncertainty
 from services.optimizer.free.tolerances import (
@@ -260,6 +262,14 @@ def _solve(
         fit = refined(edge_fits, compatible, first, (dets, objs), k0, (width, height))
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from))
+    if fits:
+        gates = inlier_gate(boxes)
+        leading = min(fits, key=lambda f: truncated_cost(f.fit, f.detections, gates))
+        for fit in left_out(edge_fits, compatible, leading, k0, (width, height)):
+            if fit.fit.position()[2] > 0.0:
+                fits.append(
+                    fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from)
+                )
     if not fits:
         few = few_detections(compatible, np.argsort(-scores, kind="stable"))
         source: IntrinsicsSource = known_from if given else "scene"
