@@ -263,10 +263,16 @@ def _solve(
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from))
     if fits:
+        # A refit without a loose pair joins only when it explains the boxes better than the
+        # fit it left the pair out of: else it would crowd out the alternatives.
         gates = inlier_gate(boxes)
-        leading = min(fits, key=lambda f: truncated_cost(f.fit, f.detections, gates))
+
+        def cost(f: Fit) -> float:
+            return truncated_cost(f.fit, f.detections, gates)
+
+        leading = min(fits, key=cost)
         for fit in left_out(edge_fits, compatible, leading, k0, (width, height)):
-            if fit.fit.position()[2] > 0.0:
+            if fit.fit.position()[2] > 0.0 and cost(fit) < cost(leading):
                 fits.append(
                     fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from)
                 )
