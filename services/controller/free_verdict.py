@@ -140,10 +140,9 @@ def others_standing(
 @dataclass(frozen=True)
 class Verdict:
     """What the renders said of the chosen candidate: ``agreed``, ``by_edges`` (its boxes
-    disagreed), ``pinned`` (its fit, when that pins a pose the boxes did not: a loose one, or
-    holds the one rival left standing), ``ruled_out`` (every other rival's render disagreed, or its
-    fit ended at the chosen pose) and ``standing`` (the other agreeing candidates that did
-    not)."""
+    disagreed), ``pinned`` (its fit, when that pins a loose pose or holds the one rival left
+    standing), ``ruled_out`` (every other rival's render disagreed, or its fit ended at the
+    chosen pose) and ``standing`` (the other agreeing candidates that did not)."""
 
     agreed: bool
     by_edges: bool = False
