@@ -37,6 +37,7 @@ from services.common.geometry.grid import HemisphereGrid
 __all__ = [
     "SAME_POSE_DEG",
     "SAME_POSE_SHARE",
+    "STEEP_PITCH_DEG",
     "Verdict",
     "agrees",
     "checks_rivals",
@@ -45,6 +46,11 @@ __all__ = [
     "others_standing",
 ]
 
+STEEP_PITCH_DEG: Final = 60.0
+"""From this pitch down (90°: nadir) a target's edges hardly tell distance from focal length:
+``python -m benchmarks.focal_valley`` (seeds 1 and 2, 48 targets) found that a focal length 5 %
+off raises the best pose's edge cost by 3–6 % at 60–89° and at the nadir, by 24–83 % at
+10–60°."""
 SAME_POSE_SHARE: Final = 0.02
 """Two rendered candidates whose poses, each refined by its own render (the box pose when its
 fit was not accepted), end within this share of the scene's radius…"""
@@ -165,9 +171,16 @@ def _unconfirmed(ambiguity: FreeAmbiguity | None, pose: FreePose) -> str:
             "the boxes pinned loosely follows"
         )
     if ambiguity == "loose":
+        pitch = pose.yaw_pitch_roll_deg[1]
+        steep = (
+            f", and looking {pitch:.0f}° down the image itself hardly tells them apart: give "
+            "the photo's intrinsics"
+            if pitch >= STEEP_PITCH_DEG
+            else ""
+        )
         return (
             "without the photo's intrinsics a render cannot pin the pose the boxes pinned "
-            "loosely (distance trades against focal length)"
+            f"loosely (distance trades against focal length{steep})"
         )
     if ambiguity == "focal":
         return (

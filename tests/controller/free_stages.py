@@ -38,12 +38,12 @@ BOXES = ((20.0, 30.0, 60.0, 70.0), (100.0, 40.0, 150.0, 90.0), (200.0, 120.0, 26
 LABELS = ("red", "green", "blue")
 
 
-def candidate(x: float, source: str = "given") -> FreePose:
-    """A pose at (x, -4, 5) that pairs the three target boxes."""
+def candidate(x: float, source: str = "given", pitch: float = 90.0) -> FreePose:
+    """A pose at (x, -4, 5) that pairs the three target boxes (its ``pitch`` said, not used)."""
     return FreePose(
         position=(x, -4.0, 5.0),
         quaternion_wxyz=(1.0, 0.0, 0.0, 0.0),
-        yaw_pitch_roll_deg=(0.0, 90.0, 0.0),
+        yaw_pitch_roll_deg=(0.0, pitch, 0.0),
         intrinsics=IntrinsicsUsed(
             fx_px=386.0, fy_px=386.0, cx_px=160.0, cy_px=120.0, fov_deg=45.0, source=source
         ),
@@ -102,6 +102,7 @@ class FakeStages(ScriptedCalls):
         self.turn = turn  # degrees an accepted fit turns the pose
         self.meet = meet  # every fit ends at the right candidate (x = right)
         self.source = "given"  # where the optimizer says its intrinsics came from
+        self.pitch = 90.0  # the candidates' pitch, as the optimizer says it
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         return False
@@ -193,7 +194,7 @@ class FakeStages(ScriptedCalls):
         self.requests.append(request)
         if self.status == "failed":
             return FreePoseResponse(status="failed", reason="failed: no detection names", pose=None)
-        poses = [candidate(float(x), self.source) for x in range(self.count)]
+        poses = [candidate(float(x), self.source, self.pitch) for x in range(self.count)]
         grid = self.detail.spec.search.grid()
         return FreePoseResponse(
             status=self.status,  # type: ignore[arg-type]

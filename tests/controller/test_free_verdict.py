@@ -74,6 +74,22 @@ def test_a_loose_pose_is_confirmed_only_when_known_intrinsics_and_its_edges_pin_
         assert result.reason.count("not confirmed") == 1
 
 
+@pytest.mark.parametrize("pitch", [30.0, 75.0])
+def test_without_intrinsics_a_steep_view_says_the_image_cannot_tell_distance_from_focal(
+    tmp_path, detail, pitch
+):
+    """Looking 60° down or more, a target's edges hardly tell distance from focal length
+    (``benchmarks.focal_valley``): the answer says so, and what would decide."""
+    stages = FakeStages(detail, status="ambiguous", count=2, ambiguity="loose", inliers=850)
+    stages.source, stages.pitch = "estimated", pitch
+    result = run(tmp_path, stages).result
+    assert result is not None
+    assert not result.confirmed
+    assert "distance trades against focal length" in result.reason
+    steep = "looking 75° down the image itself hardly tells them apart: give the photo's"
+    assert (steep in result.reason) is (pitch == 75.0)
+
+
 @pytest.mark.parametrize(
     ("edges", "max_iterations", "meet", "confirmed"),
     [
