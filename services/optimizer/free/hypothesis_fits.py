@@ -234,7 +234,8 @@ def left_out(
 ) -> list[Fit]:
     """``best`` refitted from its own pose without each of its loose pairs in turn (edge RMS
     at least :data:`LOOSE_PAIR_RATIO` of its :func:`inlier_gate`), the pairs then re-drawn
-    (:func:`refined`); none with fewer than four pairs (three must stay).
+    (:func:`refined`): those refits that explain the boxes better than ``best`` (less
+    :func:`truncated_cost`); none with fewer than four pairs (three must stay).
 
     A box that no longer lies where the scene file puts its object (an object moved since the
     scene was modelled) pulls a fit that pairs it, and the other boxes' residuals grow with
@@ -243,14 +244,14 @@ def left_out(
     Replayed on the detections of ten ``cosmos bench --free`` runs (seeds 1–5, 1,200 targets,
     ``benchmarks.free_replay``): 3 more box estimates within 5 %/2° (a demo view whose moved
     ball had pulled the pose 18 % off, now 0.3 %), none fewer; 2 more and 1 fewer within
-    10 %/5°; the solves 3 % slower in all. A refit joins the fits only when it explains the
-    boxes better than the one it left a pair out of (:func:`.solve.solve_free_pose`): joining
-    all, one through the stack crowded out the alternative that its search had answered
-    0.1 % off (seed 5, the general model), which then answered 218 % off."""
+    10 %/5°; the solves 3 % slower in all. Only the better refits are kept: keeping all, one
+    through the stack crowded out the alternative that its search had answered 0.1 % off
+    (seed 5, the general model), which then answered 218 % off."""
     if len(best.detections) < 4:
         return []
     gates = inlier_gate(fits.boxes)
     ratio = best.fit.pair_rms_px / gates[best.detections]
+    bar = truncated_cost(best.fit, best.detections, gates)
     focal = best.source == "estimated"
     out = []
     for drop in np.flatnonzero(ratio >= LOOSE_PAIR_RATIO):
@@ -260,6 +261,6 @@ def left_out(
         k = best.fit.intrinsics if focal else intrinsics
         first = fits.fit(dets, objs, best.fit.rvec, best.fit.tvec, k, estimate)
         fit = refined(fits, compatible, (first, estimate), (dets, objs), intrinsics, size)
-        if fit is not None:
+        if fit is not None and truncated_cost(fit.fit, fit.detections, gates) < bar:
             out.append(fit)
     return out

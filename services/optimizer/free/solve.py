@@ -255,34 +255,29 @@ def _solve(
         seed=seed,
     )
     starts = [(h.rvec, h.tvec, h.detections, h.objects) for h in hyps[:REFINED_HYPOTHESES]]
-    fits = []
+    fits: list[Fit] = []
+
+    def keep(fit: Fit | None) -> None:
+        """``fit`` among the fits, when it stands above the ground; its intrinsics' source."""
+        if fit is not None and fit.fit.position()[2] > 0.0:
+            fits.append(fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from))
+
     edge_fits = EdgeFits(objects, boxes, masks)
     firsts = focal_fits(edge_fits, starts, k0, not given)
     for first, (_, _, dets, objs) in zip(firsts, starts, strict=True):
-        fit = refined(edge_fits, compatible, first, (dets, objs), k0, (width, height))
-        if fit is not None and fit.fit.position()[2] > 0.0:
-            fits.append(fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from))
+        keep(refined(edge_fits, compatible, first, (dets, objs), k0, (width, height)))
+    gates = inlier_gate(boxes)
     if fits:
-        # A refit without a loose pair joins only when it explains the boxes better than the
-        # fit it left the pair out of: else it would crowd out the alternatives.
-        gates = inlier_gate(boxes)
-
-        def cost(f: Fit) -> float:
-            return truncated_cost(f.fit, f.detections, gates)
-
-        leading = min(fits, key=cost)
+        leading = min(fits, key=lambda f: truncated_cost(f.fit, f.detections, gates))
         for fit in left_out(edge_fits, compatible, leading, k0, (width, height)):
-            if fit.fit.position()[2] > 0.0 and cost(fit) < cost(leading):
-                fits.append(
-                    fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from)
-                )
+            keep(fit)
     if not fits:
         few = few_detections(compatible, np.argsort(-scores, kind="stable"))
         source: IntrinsicsSource = known_from if given else "scene"
         fits = [
             Fit(f, d, o, source) for f, d, o in few_fits(objects, boxes, masks, compatible, few, k0)
         ]
-    ranked = _distinct_best(fits, objects.radius, inlier_gate(boxes))
+    ranked = _distinct_best(fits, objects.radius, gates)
     if not ranked:
         nothing = "no camera pose above the ground explains the detections"
         return FreePoseAnswer("failed", nothing, None, (), len(index))
