@@ -13,6 +13,7 @@ from services.optimizer.free.edges import (
     edge_points,
     edge_points_by_outline,
     exact_distance,
+    image_edges,
     outline,
     target_level,
 )
@@ -114,3 +115,28 @@ def test_target_levels_hold_exact_distances():
     squared = level.distance[below].astype(np.float64) ** 2
     assert below.sum() > W * H  # edges in several orientation bins
     assert np.array_equal(level.distance[below], np.sqrt(np.rint(squared)).astype(np.float32))
+
+
+def test_target_levels_are_numpys_gradients_of_the_exact_maps_bit_for_bit():
+    """The level's in-place float32 arithmetic gives exactly what ``exact_distance`` and
+    ``np.gradient`` give (a fit's basin can hang on a map's last bit), at every scale."""
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur(rng.integers(0, 255, (H, W), dtype=np.uint8), (0, 0), 3.0)
+    cv2.circle(image, (40, 40), 22, 200, -1)
+    cv2.rectangle(image, (70, 15), (105, 60), 30, -1)
+    for scale, cap in ((1, 5.0), (2, 6.0), (4, 8.0), (1, 2.5)):
+        level = target_level(image, scale, 1.0, cap)
+        small = (
+            image
+            if scale == 1
+            else cv2.resize(image, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+        )
+        edges, bins = image_edges(small)
+        for b, got in enumerate(level.distance):
+            near = (bins == b) | (bins == (b + 1) % 8) | (bins == (b - 1) % 8)
+            free = np.where(edges & near, 0, 255).astype(np.uint8)
+            raw = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            assert np.array_equal(got, np.minimum(exact_distance(raw), cap))
+        grad_y, grad_x = np.gradient(level.distance, axis=(1, 2))
+        assert level.grad_x.tobytes() == grad_x.astype(np.float32).tobytes()
+        assert level.grad_y.tobytes() == grad_y.astype(np.float32).tobytes()

@@ -212,10 +212,20 @@ class Level:
     grad_x: NDArray[np.float32]
     grad_y: NDArray[np.float32]
 
+    def arrays(self) -> tuple[NDArray[np.float32], ...]:
+        """The maps and their gradients."""
+        return self.distance, self.grad_x, self.grad_y
+
 
 def target_level(gray: NDArray[np.uint8], scale: int, sigma: float, cap: float) -> Level:
     """The target ``gray`` downsampled ``scale`` times: its truncated oriented distance maps
-    (truncation ``cap``) and their gradients, with the level's soft-L1 scale ``sigma``."""
+    (truncation ``cap``) and their gradients, with the level's soft-L1 scale ``sigma``.
+
+    The maps are :func:`exact_distance`'s, truncated, and the gradients ``np.gradient``'s
+    (central differences, one-sided on the border), bit for bit; both are computed in float32
+    in place, on distances first clipped just above ``cap`` (so every ``d²`` is a small
+    integer, exact in float32): a quarter faster (``python -m benchmarks.target_maps``, one
+    run: 10.3 → 7.9 ms a full-resolution level at 320 x 240, 53 → 40 ms at 640 x 480)."""
     height, width = gray.shape
     size = (max(width // scale, 8), max(height // scale, 8))
     small = gray
@@ -223,15 +233,40 @@ def target_level(gray: NDArray[np.uint8], scale: int, sigma: float, cap: float) 
         small = np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
     edges, bins = image_edges(small)
     distance = np.empty((ORIENTATION_BINS, *small.shape), dtype=np.float32)
+    above = np.float32(cap + 1.0)
     for b in range(ORIENTATION_BINS):
         near = (bins == b) | (bins == (b + 1) % ORIENTATION_BINS)
         near |= bins == (b - 1) % ORIENTATION_BINS
         free = np.where(edges & near, 0, 255).astype(np.uint8)
-        distance[b] = np.minimum(
-            exact_distance(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)), cap
-        )
-    grad_y, grad_x = np.gradient(distance, axis=(1, 2))
-    return Level(scale, sigma, cap, distance, grad_x.astype(np.float32), grad_y.astype(np.float32))
+        d = distance[b]
+        cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE, dst=d)
+        # √rint(d²) as exact_distance takes it, on d ≤ cap + 1 (beyond, √ stays above cap)
+        np.minimum(d, above, out=d)
+        np.multiply(d, d, out=d)
+        np.rint(d, out=d)
+        np.sqrt(d, out=d)
+        np.minimum(d, np.float32(cap), out=d)
+    grad_x, grad_y = _gradients(distance)
+    return Level(scale, sigma, cap, distance, grad_x, grad_y)
+
+
+def _gradients(maps: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """``np.gradient(maps, axis=(2, 1))`` of ``(B, h, w)`` float32 maps (h, w ≥ 2), bit for
+    bit, without its temporaries: ``(f[i+1] - f[i-1]) / 2`` inside, ``f[1] - f[0]`` and
+    ``f[-1] - f[-2]`` on the border."""
+    gx = np.empty_like(maps)
+    gy = np.empty_like(maps)
+    for out, axis in ((gx, 2), (gy, 1)):
+        n = maps.shape[axis]
+
+        def cut(start: int | None, stop: int | None, axis: int = axis) -> tuple[slice, ...]:
+            return (slice(None),) * axis + (slice(start, stop),)
+
+        np.subtract(maps[cut(2, None)], maps[cut(None, -2)], out=out[cut(1, -1)])
+        np.divide(out[cut(1, -1)], np.float32(2.0), out=out[cut(1, -1)])
+        np.subtract(maps[cut(1, 2)], maps[cut(0, 1)], out=out[cut(0, 1)])
+        np.subtract(maps[cut(n - 1, n)], maps[cut(n - 2, n - 1)], out=out[cut(n - 1, n)])
+    return gx, gy
 
 
 def edge_chance(level: Level, bins: NDArray[np.intp], radius: float) -> float:
