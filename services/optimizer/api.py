@@ -26,6 +26,7 @@ from services.common.contracts.refine import REFINE_PARTS, RefinePoseRequest, Re
 from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
 from services.common.errors import BadRequestError, UnprocessableError, UnsupportedMediaTypeError
 from services.common.http import app_state, problem_responses
+from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.optimizer.json_body import json_request_body, read_json
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
@@ -45,6 +46,7 @@ class OptimizerState:
     context: OptimizerContext
     free_objects: SceneObjectCache = field(default_factory=SceneObjectCache)
     image_limits: ImageLimits = field(default_factory=lambda: ImageLimits(4096 * 4096, 16_384))
+    target_maps: TargetMapCache = field(default_factory=TargetMapCache)
 
 
 State = Annotated[OptimizerState, Depends(app_state("optimizer"))]
@@ -217,5 +219,6 @@ async def refine(request: Request, state: State) -> Response:
         state.context.catalog,
         state.free_objects,
         state.image_limits,
+        state.target_maps,
     )
     return Response(answer.model_dump_json(), media_type="application/json")

@@ -14,6 +14,7 @@ from fastapi import FastAPI
 from services.common.http import service_app
 from services.common.settings import from_environment
 from services.optimizer.api import OptimizerState, router
+from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.refine_pose import ImageLimits
 from services.optimizer.settings import OptimizerSettings
 from services.optimizer.wiring import build_optimizer
@@ -33,6 +34,7 @@ def create_app(settings: OptimizerSettings | None = None) -> FastAPI:
             image_limits=ImageLimits(
                 settings.optimizer_max_image_pixels, settings.optimizer_max_image_side
             ),
+            target_maps=TargetMapCache(settings.optimizer_target_cache_bytes),
         )
         yield
 

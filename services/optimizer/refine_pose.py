@@ -77,6 +77,7 @@ from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
 from services.optimizer.free.dense import MIN_POINTS, worth_another_render
 from services.optimizer.free.edges import outline
+from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 
 __all__ = [
@@ -309,16 +310,19 @@ def refine_pose(
     catalog: SceneCatalog | None,
     cache: SceneObjectCache,
     limits: ImageLimits,
+    targets: TargetMapCache | None = None,
 ) -> RefinePoseResponse:
     """The request's pose refined against ``target`` (the image's bytes) by ``render`` (the
-    archive of the render at the pose) (module docstring)."""
+    archive of the render at the pose) (module docstring); ``targets`` keeps the target's maps
+    for the search's next render (:mod:`~services.optimizer.free.target_maps`)."""
     if catalog is None:
         raise _invalid("this optimizer has no scene catalog", "request.scene")
     scene = catalog.get(request.scene)  # NotFoundError (404) names the field
     width, height = _target_size(target, limits)
     view, rgb, scale = _render(render, (width, height))
     h, w = view.depth.shape
-    gray = _target_gray(target, limits, (w, h))
+    targets = targets or TargetMapCache(0)
+    maps = targets.maps(target, (w, h), lambda: _target_gray(target, limits, (w, h)))
     start = request.pose
     k = start.intrinsics
     names = [c.object for c in start.correspondences]
@@ -342,7 +346,7 @@ def refine_pose(
     )
     pinhole = free_pinhole_camera(camera, w, h, k.fov_deg)
     fit = refine_dense(
-        gray,
+        maps,
         rgb,
         view.depth,
         pinhole,

@@ -13,6 +13,7 @@ from services.common.catalog import BUILTIN_SCENES_DIR
 from services.common.contracts.optimize import StrategyName
 from services.common.settings import split_paths
 from services.optimizer.calibration import DEFAULT_CALIBRATION_FILE
+from services.optimizer.free.target_maps import DEFAULT_TARGET_CACHE_BYTES
 
 __all__ = ["OptimizerSettings"]
 
@@ -42,6 +43,9 @@ class OptimizerSettings(ServiceTokenSettings):
     """The largest target image ``/refine-pose`` decodes (width x height, from its header)."""
     optimizer_max_image_side: Annotated[int, Field(ge=8, le=65_535)] = 16_384
     """The longest side of a target image ``/refine-pose`` decodes, in pixels."""
+    optimizer_target_cache_bytes: Annotated[int, Field(ge=0)] = DEFAULT_TARGET_CACHE_BYTES
+    """Memory for the free searches' targets as ``/refine-pose`` makes them (grey images and
+    distance maps, kept between a search's renders; 0 keeps none), in bytes."""
 
     def body_limits(self) -> BodyLimits:
         """How request bodies are bounded: the size limit, four maximal bodies in flight."""

@@ -68,6 +68,7 @@ SAMPLES: dict[str, tuple[str, Any]] = {
     "COSMOS_OPTIMIZER_MAX_BODY_BYTES": ("4096", 4096),
     "COSMOS_OPTIMIZER_MAX_IMAGE_PIXELS": ("10000", 10_000),
     "COSMOS_OPTIMIZER_MAX_IMAGE_SIDE": ("100", 100),
+    "COSMOS_OPTIMIZER_TARGET_CACHE_BYTES": ("0", 0),
     "COSMOS_CONTROLLER_RENDERER_URLS": ("http://r:1", "http://r:1"),
     "COSMOS_CONTROLLER_DETECTOR_URLS": ("http://d:1", "http://d:1"),
     "COSMOS_CONTROLLER_OPTIMIZER_URLS": ("http://o:1", "http://o:1"),

@@ -126,20 +126,28 @@ def test_on_an_edge_rich_target_a_render_of_another_view_is_no_fit(engine, catal
     assert refine_dense(plain, rgb, depth, camera, fit_focal=False).chance < 0.05
 
 
+def levels_made(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The scales of the target's distance-map levels made from now on."""
+    import services.optimizer.free.target_maps as target_maps
+
+    made: list[int] = []
+    level = target_maps.target_level
+
+    def counted(*args, **kwargs):
+        made.append(args[1])
+        return level(*args, **kwargs)
+
+    monkeypatch.setattr(target_maps, "target_level", counted)
+    return made
+
+
 def test_a_start_already_on_the_targets_edges_skips_the_coarse_levels(engine, catalog, monkeypatch):
     """A start 0.1 % and 0.1° off leaves nearly every edge point on the target's: its pose is
     fitted at full resolution only (one level's distance maps), and still lands on the truth;
     with the focal length fitted every level runs."""
     import services.optimizer.free.dense as dense
 
-    made: list[int] = []
-    level = dense.target_level
-
-    def counted(*args, **kwargs):
-        made.append(args[1])
-        return level(*args, **kwargs)
-
-    monkeypatch.setattr(dense, "target_level", counted)
+    made = levels_made(monkeypatch)
     scene = catalog.get("demo")
     truth = VIEWS[0][1]
     target, _, _ = rendered(engine, scene, truth)

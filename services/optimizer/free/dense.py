@@ -106,10 +106,9 @@ from services.optimizer.free.edges import (
     edge_chance,
     edge_points,
     edge_points_by_outline,
-    gray,
-    target_level,
 )
 from services.optimizer.free.refine import Intrinsics
+from services.optimizer.free.target_maps import TargetMaps
 from services.optimizer.geometry import FloatArray
 
 __all__ = [
@@ -358,7 +357,7 @@ def _zoom_sigma(problem: ChamferProblem, x: FloatArray) -> float:
 
 
 def refine_dense(
-    target_gray: NDArray[np.uint8],
+    target_gray: NDArray[np.uint8] | TargetMaps,
     render_rgb: NDArray[np.uint8],
     render_depth: NDArray[np.float32],
     camera: PinholeCamera,
@@ -370,14 +369,15 @@ def refine_dense(
     """Refine ``camera`` (the estimate the render was made at, on the target's film) so that the
     render's edges fall on the target's (module docstring).
 
-    ``target_gray`` is the target ``(H, W)`` 8-bit grey (or RGB), ``render_rgb`` ``(H, W, 3)``
+    ``target_gray`` is the target ``(H, W)`` 8-bit grey (or RGB), or its maps kept between
+    renders (:class:`~.target_maps.TargetMaps`), ``render_rgb`` ``(H, W, 3)``
     and ``render_depth`` ``(H, W)`` (``Z_c``, 0 where no surface) the render at ``camera``;
     ``fit_focal`` fits the focal length too (the target did not give its intrinsics);
     ``near`` ``(H, W)``, the pixels near the render's outline (:func:`~.edges.outline`), keeps
     only the edges no light moves, and the others join a last fit when the target shows them
     (:data:`LIGHT_SHARE`).
     """
-    target = gray(np.asarray(target_gray, dtype=np.uint8))
+    target = target_gray if isinstance(target_gray, TargetMaps) else TargetMaps(target_gray)
     shape = (camera.height, camera.width)
     shapes = (render_rgb.shape[:2], render_depth.shape, shape if near is None else near.shape)
     if target.shape != shape or any(s != shape for s in shapes):
@@ -390,7 +390,7 @@ def refine_dense(
         points = edge_points(render_rgb, render_depth, camera, distortion)
     else:
         points, lit = edge_points_by_outline(render_rgb, render_depth, camera, distortion, near)
-    fine = target_level(target, *LEVELS[-1])
+    fine = target.level(*LEVELS[-1])
     chance = edge_chance(fine, points.bins, INLIER_PX)
     pose_only = ChamferProblem(points, fine, k, distortion, fit_focal=False)
     start = pose_only.residuals(x0[:6])
@@ -398,8 +398,7 @@ def refine_dense(
     start_share = above_chance(int((start <= INLIER_PX).sum()), len(start), chance)
     if fit_focal or start_share < FINE_START_SHARE:
         levels = [
-            fine if scale == 1 else target_level(target, scale, sigma, cap)
-            for scale, sigma, cap in LEVELS
+            fine if scale == 1 else target.level(scale, sigma, cap) for scale, sigma, cap in LEVELS
         ]
     x, focal_fitted, focal_sigma = x0, False, math.nan
     rotation0 = np.asarray(camera.rotation, dtype=np.float64)
