@@ -81,8 +81,10 @@ from services.controller.free_iterations import (
 )
 from services.controller.free_match import FreeMatch, compare_view, view_film
 from services.controller.free_refine import (
+    alongside,
     edges_hold,
     edges_pin,
+    prepare_target,
     refine_by_render,
     refined_result,
     with_extra_renders,
@@ -190,7 +192,6 @@ class FreeSearchLoop:
     async def _solve(self, search: Search, image: bytes, writes: Writes) -> SearchResult:
         sid = search.id
         scene = await self.outages.call(sid, lambda: self.stages.scene(search.scene, sid))
-        grid = scene.spec.search.grid()
         target, size, seen = await self._target(search, image)
         if not target:
             detail = (
@@ -202,6 +203,31 @@ class FreeSearchLoop:
         answer, optimize_ms = await self._ask(search, (target, size), model)
         if answer.pose is None:
             await self._fail_without_pose(writes, seen, answer.reason, "no-free-pose")
+        # The optimizer makes the target ready for the refinements while the first view is
+        # rendered (unless an older run finished the renders).
+        done = bool(search.iterations) and search.iterations[-1].done
+        film, _ = self._film(search, scene, size)
+        ready = None if done else prepare_target(self.stages, search, image, film)
+        async with alongside(ready):
+            return await self._search(
+                search, image, writes, scene, (target, size, seen), answer, optimize_ms
+            )
+
+    async def _search(
+        self,
+        search: Search,
+        image: bytes,
+        writes: Writes,
+        scene: SceneDetail,
+        detected: tuple[tuple[Detection, ...], tuple[int, int], DetectResponse | None],
+        answer: FreePoseResponse,
+        optimize_ms: float,
+    ) -> SearchResult:
+        """The search from the target's ``detected`` objects (its detections, its size and the
+        detector's answer when it was detected now) and the optimizer's ``answer`` from their
+        boxes (in ``optimize_ms``): the renders and the answer."""
+        target, size, seen = detected
+        grid = scene.spec.search.grid()
         history = list(search.iterations)
         answer = as_rendered(answer, history, size)
         candidates = answer.candidates
@@ -361,6 +387,14 @@ class FreeSearchLoop:
         outcome, refine_ms = await refined
         return Seen(camera, archive, found, check, render_ms, detect_ms, refine_ms), outcome
 
+    def _film(
+        self, search: Search, scene: SceneDetail, size: tuple[int, int]
+    ) -> tuple[tuple[int, int], float]:
+        """The renders' film for a target of ``size`` (:func:`~.free_match.view_film`, at most
+        the search's view width) and the scale from target to film."""
+        settings = self.stages.settings_for(search.view_settings)
+        return view_film(size, settings.width or scene.spec.camera.width)
+
     async def _render(
         self, search: Search, scene: SceneDetail, size: tuple[int, int], pose: FreePose
     ) -> tuple[FreeCamera, bytes, NDArray[np.uint8], float]:
@@ -368,7 +402,7 @@ class FreeSearchLoop:
         its depth: the camera rendered, the archive, its colours and the milliseconds."""
         sid = search.id
         settings = self.stages.settings_for(search.view_settings)
-        film, scale = view_film(size, settings.width or scene.spec.camera.width)
+        film, scale = self._film(search, scene, size)
         camera = scaled_camera(pose, scale)
         started = time.perf_counter()
         archive = await self.outages.call(

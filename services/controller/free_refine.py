@@ -31,8 +31,11 @@ without given intrinsics went from 76 % to 97 % within 5 %/2° (measured in-proc
 
 from __future__ import annotations
 
+import asyncio
 import logging
-from typing import Final
+from collections.abc import AsyncIterator, Coroutine
+from contextlib import asynccontextmanager
+from typing import Any, Final
 
 from pydantic import ValidationError
 
@@ -43,7 +46,11 @@ from services.common.contracts.free import (
     PhotoIntrinsics,
     nearest_grid_pose,
 )
-from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
+from services.common.contracts.refine import (
+    RefinePoseRequest,
+    RefinePoseResponse,
+    TargetRequest,
+)
 from services.common.contracts.search import Search, SearchResult, StageTimings
 from services.common.geometry.free_camera import direction_pose
 from services.common.geometry.grid import HemisphereGrid
@@ -61,6 +68,8 @@ __all__ = [
     "edges_pin",
     "edges_pin_pose",
     "edges_unvouched",
+    "alongside",
+    "prepare_target",
     "refine_by_render",
     "refined_result",
     "with_extra_renders",
@@ -200,6 +209,32 @@ def edges_agree(outcome: RefinePoseResponse | str | None) -> bool:
     if not isinstance(outcome, RefinePoseResponse) or not outcome.fit.accepted:
         return False
     return outcome.fit.share() >= EDGE_SHARE
+
+
+@asynccontextmanager
+async def alongside(work: Coroutine[Any, Any, None] | None) -> AsyncIterator[None]:
+    """``work`` (if any) run as a task while the block runs, cancelled if the block ends
+    first."""
+    task = asyncio.create_task(work) if work is not None else None
+    try:
+        yield
+    finally:
+        if task is not None:
+            task.cancel()
+
+
+async def prepare_target(
+    stages: Stages, search: Search, image: bytes, film: tuple[int, int]
+) -> None:
+    """Ask the optimizer to make the target ``image`` ready for the refinements on the renders'
+    ``film`` (``POST /refine-pose/target``), so that the first one, after the box solve and the
+    render, finds its grey image and distance maps made. Best effort: a refinement makes them
+    itself otherwise, so a failure is only logged; no outage is waited out for it."""
+    request = TargetRequest(film=film, fit_focal=search.intrinsics is None)
+    try:
+        await stages.prepare_target(request, image, search.id)
+    except Exception as exc:  # the search goes on whatever this says
+        _log.info("search %s: the target was not made ready ahead: %s", search.id, exc)
 
 
 async def refine_by_render(

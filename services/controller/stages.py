@@ -23,7 +23,12 @@ from urllib.parse import urlencode
 from services.common.contracts.detect import DetectResponse
 from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import NextPoseRequest, NextPoseResponse
-from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
+from services.common.contracts.refine import (
+    RefinePoseRequest,
+    RefinePoseResponse,
+    TargetRequest,
+    TargetResponse,
+)
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import ViewSettings
 from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
@@ -239,6 +244,20 @@ class Stages:
         call = StageRequest.form("/refine-pose", parts, {"X-Request-ID": request_id})
         response = await self._call("optimizer", "refine", call)
         return RefinePoseResponse.model_validate_json(response.content)
+
+    async def prepare_target(
+        self, request: TargetRequest, target: bytes, request_id: str = ""
+    ) -> TargetResponse:
+        """The optimizer's answer to ``POST /refine-pose/target``: the ``target`` image made
+        ready for the refinements on ``request``'s film (a ValidationError if the answer is
+        malformed)."""
+        parts = [
+            ("request", "text/plain", request.model_dump_json().encode()),
+            ("target", media_type_of(target), target),
+        ]
+        call = StageRequest.form("/refine-pose/target", parts, {"X-Request-ID": request_id})
+        response = await self._call("optimizer", "target", call)
+        return TargetResponse.model_validate_json(response.content)
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         """Wait until a replica of ``stage`` answers again (see

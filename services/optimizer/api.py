@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import asyncio
 from dataclasses import dataclass, field
-from typing import Annotated, get_args
+from typing import Annotated, TypeVar, get_args
 
 from fastapi import APIRouter, Depends, Request, Response
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
@@ -22,7 +22,14 @@ from services.common.contracts.optimize import (
     StrategyInfo,
     StrategyName,
 )
-from services.common.contracts.refine import REFINE_PARTS, RefinePoseRequest, RefinePoseResponse
+from services.common.contracts.refine import (
+    REFINE_PARTS,
+    TARGET_PARTS,
+    RefinePoseRequest,
+    RefinePoseResponse,
+    TargetRequest,
+    TargetResponse,
+)
 from services.common.contracts.start_pose import StartPoseRequest, StartPoseResponse
 from services.common.errors import BadRequestError, UnprocessableError, UnsupportedMediaTypeError
 from services.common.http import app_state, problem_responses
@@ -30,13 +37,14 @@ from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.optimizer.json_body import json_request_body, read_json
 from services.optimizer.planning import OptimizerContext, map_detections, next_pose
-from services.optimizer.refine_pose import ImageLimits, refine_pose
+from services.optimizer.refine_pose import ImageLimits, prepare_target, refine_pose
 from services.optimizer.start_planning import start_pose
 from services.optimizer.strategies import STRATEGIES
 
 __all__ = ["OptimizerState", "router"]
 
 router = APIRouter()
+M = TypeVar("M", bound=BaseModel)
 
 
 @dataclass(frozen=True)
@@ -138,24 +146,26 @@ def solve_free(body: FreePoseRequest, state: State) -> FreePoseResponse:
 _BINARY = {"type": "string", "format": "binary"}
 
 
-async def _refine_parts(request: Request) -> tuple[RefinePoseRequest, bytes, bytes]:
-    """The ``/refine-pose`` form's parts (:mod:`services.common.contracts.refine`), each refused
-    with a problem naming it: not a form (415), a malformed form (400), a part missing or not
-    valid (422)."""
+async def _form_parts(
+    request: Request, path: str, names: tuple[str, ...], model: type[M]
+) -> tuple[M, dict[str, bytes]]:
+    """A form's parts (:mod:`services.common.contracts.refine`): the ``request`` part as
+    ``model`` and the files ``names[1:]``, each refused with a problem naming it: not a form
+    (415), a malformed form (400), a part missing or not valid (422)."""
     media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
     if media_type != "multipart/form-data":
         raise UnsupportedMediaTypeError(
-            "POST /refine-pose takes multipart/form-data with the parts "
-            f"{', '.join(REFINE_PARTS)}; not {media_type or 'a body without a content type'}",
+            f"POST {path} takes multipart/form-data with the parts "
+            f"{', '.join(names)}; not {media_type or 'a body without a content type'}",
             field="content-type",
         )
     try:
-        async with request.form(max_files=2, max_fields=1) as form:
+        async with request.form(max_files=len(names) - 1, max_fields=1) as form:
             text = form.get("request")
             if isinstance(text, UploadFile):
                 text = (await text.read()).decode("utf-8", errors="replace")
             files: dict[str, bytes] = {}
-            for name in REFINE_PARTS[1:]:
+            for name in names[1:]:
                 part = form.get(name)
                 if not isinstance(part, UploadFile):
                     raise UnprocessableError(f"the form has no file '{name}'", field=name)
@@ -167,58 +177,79 @@ async def _refine_parts(request: Request) -> tuple[RefinePoseRequest, bytes, byt
     if text is None:
         raise UnprocessableError("the form has no part 'request'", field="request")
     try:
-        body = RefinePoseRequest.model_validate_json(text)
+        body = model.model_validate_json(text)
     except ValidationError as exc:
         error = exc.errors(include_url=False)[0]
         where = ".".join(str(part) for part in ("request", *error["loc"]))
         raise UnprocessableError(f"{where}: {error['msg']}", field=where) from exc
-    return body, files["target"], files["render"]
+    return body, files
+
+
+def _form_schema(
+    names: tuple[str, ...], model: type[BaseModel], files: dict[str, str]
+) -> dict[str, object]:
+    """The OpenAPI request body of a form: the ``request`` part as ``model``'s JSON text and
+    the binary ``files`` (by name, described)."""
+    properties: dict[str, object] = {
+        "request": {
+            **model.model_json_schema(),
+            "description": f"A {model.__name__} as JSON text.",
+        },
+        **{name: {**_BINARY, "description": files[name]} for name in names[1:]},
+    }
+    schema = {"type": "object", "required": list(names), "properties": properties}
+    return {
+        "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": schema}}}
+    }
 
 
 @router.post(
     "/refine-pose",
     response_model=RefinePoseResponse,
     responses=problem_responses(400, 404, 413, 415, 422),
-    openapi_extra={
-        "requestBody": {
-            "required": True,
-            "content": {
-                "multipart/form-data": {
-                    "schema": {
-                        "type": "object",
-                        "required": list(REFINE_PARTS),
-                        "properties": {
-                            "request": {
-                                **RefinePoseRequest.model_json_schema(),
-                                "description": "A RefinePoseRequest as JSON text.",
-                            },
-                            "target": {**_BINARY, "description": "The target: PNG, JPEG, PPM."},
-                            "render": {
-                                **_BINARY,
-                                "description": "The render at the pose: the renderer's .npz "
-                                "(rgb, depth, objects).",
-                            },
-                        },
-                    }
-                }
-            },
-        }
-    },
+    openapi_extra=_form_schema(
+        REFINE_PARTS,
+        RefinePoseRequest,
+        {
+            "target": "The target: PNG, JPEG, PPM.",
+            "render": "The render at the pose: the renderer's .npz (rgb, depth, objects).",
+        },
+    ),
 )
 async def refine(request: Request, state: State) -> Response:
     """A free pose refined densely against the target image by one render at it: the render's
     edges, back-projected through its depth, fitted onto the target's (and the focal length,
     when asked). Answers the refined pose and how the fit went (``fit.accepted``: use it). Run on
     a worker thread: a fit is a few hundred milliseconds of OpenCV and scipy."""
-    body, target, render = await _refine_parts(request)
+    body, files = await _form_parts(request, "/refine-pose", REFINE_PARTS, RefinePoseRequest)
     answer = await asyncio.to_thread(
         refine_pose,
         body,
-        target,
-        render,
+        files["target"],
+        files["render"],
         state.context.catalog,
         state.free_objects,
         state.image_limits,
         state.target_maps,
+    )
+    return Response(answer.model_dump_json(), media_type="application/json")
+
+
+@router.post(
+    "/refine-pose/target",
+    response_model=TargetResponse,
+    responses=problem_responses(400, 413, 415, 422),
+    openapi_extra=_form_schema(
+        TARGET_PARTS, TargetRequest, {"target": "The target: PNG, JPEG, PPM."}
+    ),
+)
+async def prepare(request: Request, state: State) -> Response:
+    """Make ready what a search's refinements will need of its target (its grey image on the
+    renders' film, its distance maps) while its first render is made, so that the first
+    ``/refine-pose`` finds them. Optional: a refinement makes them itself when they are not
+    kept. Run on a worker thread: tens of milliseconds, a large photo's decoding included."""
+    body, files = await _form_parts(request, "/refine-pose/target", TARGET_PARTS, TargetRequest)
+    answer = await asyncio.to_thread(
+        prepare_target, body, files["target"], state.image_limits, state.target_maps
     )
     return Response(answer.model_dump_json(), media_type="application/json")

@@ -64,7 +64,12 @@ from pydantic import ValidationError
 
 from services.common.catalog import SceneCatalog
 from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed
-from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
+from services.common.contracts.refine import (
+    RefinePoseRequest,
+    RefinePoseResponse,
+    TargetRequest,
+    TargetResponse,
+)
 from services.common.depth_archive import DepthImage
 from services.common.errors import ServiceError, UnprocessableError
 from services.common.geometry.free_camera import (
@@ -75,7 +80,7 @@ from services.common.geometry.free_camera import (
 )
 from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
-from services.optimizer.free.dense import MIN_POINTS, worth_another_render
+from services.optimizer.free.dense import LEVELS, MIN_POINTS, worth_another_render
 from services.optimizer.free.edges import outline
 from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
@@ -90,6 +95,7 @@ __all__ = [
     "ImageLimits",
     "converges",
     "dense_report",
+    "prepare_target",
     "refine_pose",
 ]
 
@@ -170,15 +176,20 @@ def _render(data: bytes, target: tuple[int, int]) -> tuple[DepthImage, NDArray[n
         raise _invalid(str(exc), "render") from exc
     if render.rgb is None:
         raise _invalid("the render's archive has no rgb (ask the renderer for it)", "render")
-    width, height = target
     h, w = render.depth.shape
+    return render, render.rgb, _film_scale((w, h), target, "the render", "render")
+
+
+def _film_scale(film: tuple[int, int], target: tuple[int, int], what: str, field: str) -> float:
+    """``s``, the ``film``'s width over the ``target``'s, when the film has the target's shape
+    and is at most its size (else a 422 naming ``field``)."""
+    (w, h), (width, height) = film, target
     scale = w / width
     if not (8 <= w <= width and abs(h - height * scale) <= _SIDE_SLACK_PX):
         raise _invalid(
-            f"the render is {w}x{h}: not the target's {width}x{height} shape at most its size",
-            "render",
+            f"{what} is {w}x{h}: not the target's {width}x{height} shape at most its size", field
         )
-    return render, render.rgb, scale
+    return scale
 
 
 def box_shift_px(
@@ -367,3 +378,19 @@ def refine_pose(
         c.model_copy(update={"predicted_box": boxes[c.object]}) for c in start.correspondences
     )
     return RefinePoseResponse(pose=pose.model_copy(update={"correspondences": pairs}), fit=report)
+
+
+def prepare_target(
+    request: TargetRequest, target: bytes, limits: ImageLimits, targets: TargetMapCache
+) -> TargetResponse:
+    """The ``target`` image's grey image on the request's film and its distance maps (every
+    level when the focal length will be fitted, else the finest), made and kept in ``targets``
+    for the refinements of the search to come (``POST /refine-pose/target``)."""
+    film = request.film
+    _film_scale(film, _target_size(target, limits), "the film", "request.film")
+    maps = targets.maps(target, film, lambda: _target_gray(target, limits, film))
+    levels = LEVELS if request.fit_focal else LEVELS[-1:]
+    for level in levels:
+        maps.level(*level)
+    kept = all(maps.kept(*level) for level in levels)
+    return TargetResponse(film=film, levels=len(levels), kept=kept)

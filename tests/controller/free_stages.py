@@ -19,7 +19,12 @@ from services.common.contracts.free import (
     IntrinsicsUsed,
     nearest_grid_pose,
 )
-from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
+from services.common.contracts.refine import (
+    RefinePoseRequest,
+    RefinePoseResponse,
+    TargetRequest,
+    TargetResponse,
+)
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import (
     Search,
@@ -103,6 +108,7 @@ class FakeStages(ScriptedCalls):
         self.meet = meet  # every fit ends at the right candidate (x = right)
         self.source = "given"  # where the optimizer says its intrinsics came from
         self.pitch = 90.0  # the candidates' pitch, as the optimizer says it
+        self.prepared: list[tuple[TargetRequest, int]] = []  # and the refinements made by then
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
         return False
@@ -128,6 +134,13 @@ class FakeStages(ScriptedCalls):
         rgb[0, 0, 0] = round(camera.position[0])
         depth = np.full(rgb.shape[:2], 5.0, np.float32)
         return DepthImage(depth=depth, objects=np.full(depth.shape, -1, np.int16), rgb=rgb).npz()
+
+    async def prepare_target(self, request, target, request_id="") -> TargetResponse:
+        """Records the request and how many refinements were made before it."""
+        self._call("target")
+        self.prepared.append((request, self.calls["refine"]))
+        assert target == PNG
+        return TargetResponse(film=request.film, levels=3 if request.fit_focal else 1, kept=True)
 
     async def refine_pose(self, request, target, render, request_id="") -> RefinePoseResponse:
         """Moves the pose 0.1 along y (and fits the focal when asked); answers as ``refine``

@@ -76,7 +76,7 @@ def test_a_found_pose_whose_render_agrees_is_confirmed_after_one_render(tmp_path
     assert iteration.camera is not None
     assert iteration.camera.position == (0.0, -4.0, 5.0)
     assert stages.calls == {"scene": 1, "detect target": 1, "free-pose": 1, "render": 1,
-                            "detect view": 1, "refine": 1}  # fmt: skip
+                            "detect view": 1, "refine": 1, "target": 1}  # fmt: skip
     assert final.target_detections is not None
     assert final.target_model == MODEL
 
@@ -314,6 +314,40 @@ def test_a_large_photo_is_rendered_at_the_view_width_with_its_intrinsics_scaled(
     assert size == (160, 120)
     assert camera.fx_px == pytest.approx(386.0 / 4)
     assert camera.cx_px == pytest.approx(40.0)
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_the_target_is_made_ready_for_the_refinements_on_the_renders_film(tmp_path, detail, given):
+    """Before any refinement, the optimizer is asked to make the target ready on the film the
+    renders are made on, every level of its maps when the focal length will be fitted."""
+    stages = FakeStages(detail, target_size=(640, 480))
+    intrinsics = PhotoIntrinsics(fov_deg=45.0) if given else None
+    final = run(tmp_path, stages, view_settings=ViewSettings(width=160), intrinsics=intrinsics)
+    assert final.status == "succeeded", final.error
+    ((request, refinements_before),) = stages.prepared
+    assert request.film == stages.rendered[0][1] == (160, 120)
+    assert request.fit_focal is not given
+    assert refinements_before == 0
+
+
+def test_a_target_the_optimizer_could_not_make_ready_changes_nothing(tmp_path, detail):
+    """Making the target ready is best effort: refused, or with the optimizer away, the
+    search runs as it would have, each refinement making the target's maps itself."""
+    problem = ProblemDetails(title="No", status=422, detail="bad film")
+    answers = []
+    for faults in (
+        {},
+        {"target": (0, StageError("optimizer", problem))},
+        {"target": (0, OSError())},
+    ):
+        stages = FakeStages(detail, faults=faults)
+        final = run(tmp_path / str(len(answers)), stages, intrinsics=PhotoIntrinsics(fov_deg=45.0))
+        assert final.status == "succeeded", final.error
+        assert final.result is not None
+        answers.append(final.result.model_dump(exclude={"timings"}))
+        assert stages.calls["target"] == 1
+    assert answers[1] == answers[0]
+    assert answers[2] == answers[0]
 
 
 def test_compare_view_pairs_by_label_within_the_gate():

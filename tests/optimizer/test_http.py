@@ -79,7 +79,7 @@ def test_every_route_answers_within_its_schema(optimizer_process):
         f"{optimizer_process.url}/openapi.json", headers=optimizer_process.headers
     )
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 9
+    assert len(operations) == 10
     for operation in operations:
 
         @given(case=operation.as_strategy())

@@ -13,6 +13,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from fastapi import FastAPI
 
 from services.common.contracts.free import FreePose
 from services.common.depth_archive import DepthImage
@@ -32,9 +33,14 @@ TRUTH = FreeCamera(position=(5.0, -4.0, 5.0), look_at=(0.3, 0.2, 0.0), roll_deg=
 
 
 @pytest.fixture(scope="module")
-async def client() -> AsyncIterator[httpx.AsyncClient]:
-    settings = OptimizerSettings()
-    async with in_process(create_app(settings), "http://optimizer", settings.token()) as running:
+def app() -> FastAPI:
+    return create_app(OptimizerSettings())
+
+
+@pytest.fixture(scope="module")
+async def client(app) -> AsyncIterator[httpx.AsyncClient]:
+    token = OptimizerSettings().token()
+    async with in_process(app, "http://optimizer", token) as running:
         yield running
 
 
@@ -178,3 +184,53 @@ async def test_bad_parts_are_refused_naming_them(client, case):
         "/refine-pose", data={"request": json.dumps(request)}, files=good["files"]
     )
     assert missing.status_code == 404
+
+
+def target_form(target: bytes, film: object, *, fit_focal: bool = False) -> dict:
+    request = json.dumps({"film": film, "fit_focal": fit_focal})
+    return {"data": {"request": request}, "files": {"target": ("target.png", target)}}
+
+
+async def test_a_target_made_ready_is_found_by_the_refinement(app, client, case):
+    """``POST /refine-pose/target`` makes the target's maps on the renders' film; the
+    refinement that follows finds them, and answers as one that made its own."""
+    target, pose, archive = case
+    other = png(cv2.flip(cv2.imdecode(np.frombuffer(target, np.uint8), cv2.IMREAD_COLOR), 1))
+    kept = app.state.optimizer.target_maps
+    response = await client.post(
+        "/refine-pose/target", **target_form(other, [W, H], fit_focal=True)
+    )
+    assert response.status_code == 200, response.text
+    assert response.json() == {"film": [W, H], "levels": 3, "kept": True}
+    made, hits = len(kept.levels), kept.levels.hits
+    first = await client.post("/refine-pose", **form(pose, other, archive.npz(), fit_focal=True))
+    assert first.status_code == 200, first.text
+    assert len(kept.levels) == made  # every level it used was made ahead
+    assert kept.levels.hits >= hits + 3
+    kept.levels.clear()
+    kept.grays.clear()
+    unready = await client.post("/refine-pose", **form(pose, other, archive.npz(), fit_focal=True))
+    assert unready.json() == first.json()
+
+
+async def test_a_target_to_make_ready_is_checked_naming_the_part(client, case):
+    target, _, _ = case
+    cases = [
+        (target_form(target, [W + 2, H]), 422, "request.film"),
+        (target_form(target, [W // 2, H]), 422, "request.film"),
+        (target_form(target, [4, 3]), 422, "request.film.0"),
+        (target_form(target, "wide"), 422, "request.film"),
+        (target_form(b"not an image", [W, H]), 415, "target"),
+        (
+            {"data": {"request": json.dumps({"film": [W, H]})}, "files": {"x": ("x", b"x")}},
+            422,
+            "target",
+        ),
+        ({"files": {"target": ("t.png", target)}}, 422, "request"),
+        ({"json": {"film": [W, H]}}, 415, "content-type"),
+    ]
+    for kwargs, status, field in cases:
+        response = await client.post("/refine-pose/target", **kwargs)
+        assert response.status_code == status, (field, response.text)
+        assert response.headers["content-type"] == "application/problem+json"
+        assert response.json()["field"] == field

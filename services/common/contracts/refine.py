@@ -11,6 +11,12 @@ The body is ``multipart/form-data`` of three parts:
   camera is the pose's with its pixel intrinsics scaled by ``s = render width / target width``.
 
 The answer is a :class:`RefinePoseResponse`.
+
+``POST /refine-pose/target`` makes ready, ahead of the render, what the refinements of a search
+will need of its target (its grey image on the render's film and its distance maps), so that
+the first refinement finds them: a form of a :class:`TargetRequest` (``request``) and the
+``target``, answered by a :class:`TargetResponse`. An optimizer answers the refinements alike
+with or without it.
 """
 
 from __future__ import annotations
@@ -23,10 +29,19 @@ from services.common.base import FrozenModel
 from services.common.contracts.free import DenseReport, FreePose
 from services.common.geometry.scene import SCENE_ID_PATTERN
 
-__all__ = ["REFINE_PARTS", "RefinePoseRequest", "RefinePoseResponse"]
+__all__ = [
+    "REFINE_PARTS",
+    "TARGET_PARTS",
+    "RefinePoseRequest",
+    "RefinePoseResponse",
+    "TargetRequest",
+    "TargetResponse",
+]
 
 REFINE_PARTS: Final = ("request", "target", "render")
 """The form's parts: the JSON request, the target image, the render's archive."""
+TARGET_PARTS: Final = ("request", "target")
+"""``POST /refine-pose/target``'s parts: the JSON request and the target image."""
 
 
 class RefinePoseRequest(FrozenModel):
@@ -46,3 +61,23 @@ class RefinePoseResponse(FrozenModel):
 
     pose: FreePose
     fit: DenseReport
+
+
+class TargetRequest(FrozenModel):
+    """The ``request`` part of ``POST /refine-pose/target``: the ``film`` ``(width, height)``,
+    in pixels, that the search's renders (and so its refinements) will be made on, and whether
+    they will fit the focal length (``fit_focal``: every level of the distance maps is then
+    needed, else the finest)."""
+
+    film: tuple[Annotated[int, Field(ge=8, le=16_384)], Annotated[int, Field(ge=8, le=16_384)]]
+    fit_focal: bool = False
+
+
+class TargetResponse(FrozenModel):
+    """What was made ready: the ``film`` and how many distance-map ``levels``; ``kept`` is false
+    when the optimizer keeps no targets (its cache bound is 0, or the maps exceed it), and the
+    refinements will make their own."""
+
+    film: tuple[int, int]
+    levels: int
+    kept: bool

@@ -55,6 +55,10 @@ class TargetMaps:
         h, w = self.gray.shape
         return h, w
 
+    def kept(self, scale: int, sigma: float, cap: float) -> bool:
+        """Whether that level of this target is kept now."""
+        return self._levels is not None and (self._key, scale, sigma, cap) in self._levels
+
     def level(self, scale: int, sigma: float, cap: float) -> Level:
         """:func:`~.edges.target_level` of the grey image, kept when this target is."""
         if self._levels is None or self._key is None:
