@@ -229,7 +229,14 @@ async def prepare_target(
     """Ask the optimizer to make the target ``image`` ready for the refinements on the renders'
     ``film`` (``POST /refine-pose/target``), so that the first one, after the box solve and the
     render, finds its grey image and distance maps made. Best effort: a refinement makes them
-    itself otherwise, so a failure is only logged; no outage is waited out for it."""
+    itself otherwise, so a failure is only logged; no outage is waited out for it.
+
+    It runs beside the first render: beside the box solve, in the optimizer's own process, it
+    moved 12 ms from the refinement to the solve (``cosmos bench --free --scene demo
+    --random-scenes 2 --n 8 --seed 1``). Beside the render, the first refinement took 63 → 51 ms
+    and the median one-render search 205 → 195 ms on that bench; with 4000 x 3000 JPEG photos of
+    the demo (through ``cosmos up``, 18 searches a run) the first refinement took 38 ms against
+    77 ms before the maps were kept and made ahead, the median search 279 ms against 294-333."""
     request = TargetRequest(film=film, fit_focal=search.intrinsics is None)
     try:
         await stages.prepare_target(request, image, search.id)

@@ -8,6 +8,8 @@ brought to, so those are the key (a BLAKE2b digest of the bytes: about 1 ms a me
 Measured by ``python -m benchmarks.target_maps`` (one run, the intrinsics given): a later
 render's refinement took 27 → 17 ms with a 320 x 240 PNG target, and 100 → 36 ms with a
 4000 x 3000 JPEG (a drone's photo) refined on a 640 x 480 render, its decoding kept too.
+``POST /refine-pose/target`` makes them before the first refinement (the controller asks while
+the search's first view is rendered), so that one finds them too.
 
 A :class:`TargetMapCache` bounds the maps by bytes (:class:`~services.common.caches.SharedLru`:
 a level weighs 96 bytes a pixel of its own, the full-resolution one 7.4 MB at 320 x 240), least
