@@ -36,14 +36,14 @@ from typing import Final
 import cv2
 import numpy as np
 
-from cosmos.bench.free_targets.dense import render_at
 from cosmos.bench.free_targets.draw import BANDS, Band, FreeTarget, draw_targets
 from cosmos.bench.free_targets.rendering import LocalRenderer
 from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
+from services.common.contracts.render import RenderRequest
 from services.common.geometry.camera import PinholeCamera
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.optimizer.free import dense
 from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.edges import (
@@ -60,6 +60,7 @@ SHOWN: Final = (0.9, 0.95, 1.05, 1.1)
 OFF: Final = (0.97, 1.03)
 """The renders the free fits start from: this far along the valley from the truth."""
 VIEW_SPP: Final = 8
+TARGET_SPP: Final = 16
 
 
 def _targets(
@@ -70,19 +71,47 @@ def _targets(
         yield from draw_targets(renderer, scene, scene_shapes(scene), n, seed)
 
 
+def _request(target: FreeTarget, camera: FreeCamera, spp: int, scale: int) -> RenderRequest:
+    """A render of ``camera`` on the target's film ``scale`` times as wide and high."""
+    film = target.annotations.camera
+    return RenderRequest(
+        scene=target.scene,
+        camera=camera,
+        width=film.width * scale,
+        height=film.height * scale,
+        spp=spp,
+        seed=target.index,
+    )
+
+
 def _render(
-    renderer: LocalRenderer, target: FreeTarget, camera: FreeCamera
+    renderer: LocalRenderer, target: FreeTarget, camera: FreeCamera, scale: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, PinholeCamera]:
-    """The render at ``camera`` on the target's film (as a search's view): RGB, depth, outline,
-    pinhole."""
-    rendered = render_at(renderer, target, camera, VIEW_SPP)
-    if rendered is None:
-        raise ValueError(f"the renderer refused a camera of {target.scene} #{target.index}")
-    rgb, depth, pinhole = rendered
+    """The render at ``camera`` on the target's film ``scale`` times over (as a search's view):
+    RGB, depth, outline, pinhole."""
+    request = _request(target, camera, VIEW_SPP, scale)
+    depth = renderer.depth(request)
+    rgb = _decoded(renderer.render_png(request))[..., ::-1]
     shading = depth.shading
     if shading is None:
         shading = np.zeros(depth.objects.shape, np.uint8)
-    return rgb, depth.depth, outline(depth.depth, depth.objects, shading), pinhole
+    film = target.annotations.camera
+    width, height = film.width * scale, film.height * scale
+    pinhole = free_pinhole_camera(camera, width, height, film.fov_deg)
+    return (
+        np.ascontiguousarray(rgb),
+        depth.depth,
+        outline(depth.depth, depth.objects, shading),
+        pinhole,
+    )
+
+
+def _target_image(renderer: LocalRenderer, target: FreeTarget, scale: int) -> bytes:
+    """The target's clean image, drawn again on a film ``scale`` times over (16 samples a
+    pixel, as drawn) when ``scale`` > 1."""
+    if scale == 1:
+        return target.png
+    return renderer.render_png(_request(target, target.camera, TARGET_SPP, scale))
 
 
 def _decoded(png: bytes) -> np.ndarray:
@@ -123,7 +152,7 @@ def _rise(points: EdgePoints, target_gray: np.ndarray, truth: PinholeCamera) -> 
     return [c / least for c in costs]
 
 
-def measure(n: int, seeds: list[int], random_scenes: int) -> None:
+def measure(n: int, seeds: list[int], random_scenes: int, scale: int = 1) -> None:
     """Measure and print (module docstring)."""
     rises: dict[Band, list[list[float]]] = defaultdict(list)
     errors: dict[Band, list[float]] = defaultdict(list)
@@ -140,16 +169,17 @@ def measure(n: int, seeds: list[int], random_scenes: int) -> None:
         with LocalRenderer(catalog) as renderer:
             for seed in seeds:
                 for target in _targets(renderer, catalog, ids_per_seed[seed], n, seed):
-                    bgr = _decoded(target.png)
+                    bgr = _decoded(_target_image(renderer, target, scale))
                     gray = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
-                    rgb, depth, near, truth = _render(renderer, target, target.camera)
+                    rgb, depth, near, truth = _render(renderer, target, target.camera, scale)
                     points, _ = edge_points_by_outline(rgb, depth, truth, None, near)
                     if len(points.world) < dense.MIN_POINTS:
                         continue
                     rises[target.band].append(_rise(points, gray, truth))
                     assert target.camera.fov_deg is not None
                     for zoom in OFF:
-                        rgb, depth, near, start = _render(renderer, target, _dolly(target, zoom))
+                        view = _dolly(target, zoom)
+                        rgb, depth, near, start = _render(renderer, target, view, scale)
                         fit = dense.refine_dense(gray, rgb, depth, start, fit_focal=True, near=near)
                         fov = fit.intrinsics.fov_deg(truth.width)
                         errors[target.band].append(abs(fov / target.camera.fov_deg - 1.0))
@@ -173,8 +203,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--n", type=int, default=8, help="targets per scene")
     parser.add_argument("--seeds", default="1,2")
     parser.add_argument("--random-scenes", type=int, default=2)
+    parser.add_argument(
+        "--scale", type=int, default=1, help="the target and views on a film this many times over"
+    )
     args = parser.parse_args(argv)
-    measure(args.n, [int(s) for s in args.seeds.split(",")], args.random_scenes)
+    measure(args.n, [int(s) for s in args.seeds.split(",")], args.random_scenes, args.scale)
 
 
 if __name__ == "__main__":
