@@ -307,13 +307,30 @@ def test_an_interrupted_free_search_resumes_with_the_next_alternative(tmp_path, 
 
 def test_a_large_photo_is_rendered_at_the_view_width_with_its_intrinsics_scaled(tmp_path, detail):
     stages = FakeStages(detail, target_size=(640, 480))
-    final = run(tmp_path, stages, view_settings=ViewSettings(width=160))
+    intrinsics = PhotoIntrinsics(fov_deg=45.0)
+    final = run(tmp_path, stages, view_settings=ViewSettings(width=160), intrinsics=intrinsics)
     assert final.result is not None
     assert final.result.confirmed
     camera, size = stages.rendered[0]
     assert size == (160, 120)
     assert camera.fx_px == pytest.approx(386.0 / 4)
     assert camera.cx_px == pytest.approx(40.0)
+
+
+@pytest.mark.parametrize(("width", "film"), [(160, (320, 240)), (480, (640, 480))])
+def test_without_intrinsics_the_views_are_twice_the_view_width_as_the_photo_allows(
+    tmp_path, detail, width, film
+):
+    """The focal length is fitted on the renders' edges: a search not given it renders them
+    twice the view width wide, never wider than the photo."""
+    stages = FakeStages(detail, target_size=(640, 480))
+    final = run(tmp_path, stages, view_settings=ViewSettings(width=width))
+    assert final.status == "succeeded", final.error
+    camera, size = stages.rendered[0]
+    assert size == film
+    assert camera.fx_px == pytest.approx(386.0 * film[0] / 640)
+    ((prepared, _),) = stages.prepared
+    assert prepared.film == film
 
 
 @pytest.mark.parametrize("given", [True, False])
@@ -325,7 +342,7 @@ def test_the_target_is_made_ready_for_the_refinements_on_the_renders_film(tmp_pa
     final = run(tmp_path, stages, view_settings=ViewSettings(width=160), intrinsics=intrinsics)
     assert final.status == "succeeded", final.error
     ((request, refinements_before),) = stages.prepared
-    assert request.film == stages.rendered[0][1] == (160, 120)
+    assert request.film == stages.rendered[0][1] == ((160, 120) if given else (320, 240))
     assert request.fit_focal is not given
     assert refinements_before == 0
 
