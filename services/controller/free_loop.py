@@ -102,7 +102,7 @@ from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
 from services.controller.writes import Writes
 
-__all__ = ["FOCAL_VIEW_SCALE", "FreeSearchLoop", "scaled_camera"]
+__all__ = ["FOCAL_VIEW_MAX_WIDTH", "FOCAL_VIEW_SCALE", "FreeSearchLoop", "scaled_camera"]
 
 FOCAL_VIEW_SCALE: Final = 2
 """A search without the photo's intrinsics renders its views, and fits its focal length, on a
@@ -114,6 +114,10 @@ drone-sized photos (4000 x 3000) of the demo without intrinsics (``python -m
 benchmarks.drone_photos``, one run, views at 320 against 640): within 5 %/2° 16 → 23, median fov
 error 2.2 % → 0.6 %, median search 616 → 1022 ms. A photo given with its intrinsics keeps the
 view width."""
+FOCAL_VIEW_MAX_WIDTH: Final = 1280
+"""…but never wider than this (unless the view width itself is): the renderer's default limits
+(2048 a side, 4.2 megapixels) take it on any shape up to 5:3 and 4:3 alike, and a fit of the
+focal length there takes about four times one at 640."""
 
 
 def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
@@ -404,11 +408,11 @@ class FreeSearchLoop:
     ) -> tuple[tuple[int, int], float]:
         """The renders' film for a target of ``size`` (:func:`~.free_match.view_film`, at most
         the search's view width, :data:`FOCAL_VIEW_SCALE` times that without the photo's
-        intrinsics) and the scale from target to film."""
+        intrinsics, up to :data:`FOCAL_VIEW_MAX_WIDTH`) and the scale from target to film."""
         settings = self.stages.settings_for(search.view_settings)
         width = settings.width or scene.spec.camera.width
         if search.intrinsics is None:
-            width *= FOCAL_VIEW_SCALE
+            width = max(width, min(FOCAL_VIEW_SCALE * width, FOCAL_VIEW_MAX_WIDTH))
         return view_film(size, width)
 
     async def _render(

@@ -317,18 +317,26 @@ def test_a_large_photo_is_rendered_at_the_view_width_with_its_intrinsics_scaled(
     assert camera.cx_px == pytest.approx(40.0)
 
 
-@pytest.mark.parametrize(("width", "film"), [(160, (320, 240)), (480, (640, 480))])
+@pytest.mark.parametrize(
+    ("width", "photo", "film"),
+    [
+        (160, (640, 480), (320, 240)),
+        (480, (640, 480), (640, 480)),  # no wider than the photo
+        (800, (4000, 3000), (1280, 960)),  # nor than FOCAL_VIEW_MAX_WIDTH
+        (1600, (4000, 3000), (1600, 1200)),  # unless the view width is
+    ],
+)
 def test_without_intrinsics_the_views_are_twice_the_view_width_as_the_photo_allows(
-    tmp_path, detail, width, film
+    tmp_path, detail, width, photo, film
 ):
     """The focal length is fitted on the renders' edges: a search not given it renders them
-    twice the view width wide, never wider than the photo."""
-    stages = FakeStages(detail, target_size=(640, 480))
+    twice the view width wide, never wider than the photo nor 1280 pixels."""
+    stages = FakeStages(detail, target_size=photo)
     final = run(tmp_path, stages, view_settings=ViewSettings(width=width))
     assert final.status == "succeeded", final.error
     camera, size = stages.rendered[0]
     assert size == film
-    assert camera.fx_px == pytest.approx(386.0 * film[0] / 640)
+    assert camera.fx_px == pytest.approx(386.0 * film[0] / photo[0])
     ((prepared, _),) = stages.prepared
     assert prepared.film == film
 
