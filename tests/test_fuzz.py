@@ -104,10 +104,10 @@ def test_the_cli_on_the_optimizer_finds_no_undocumented_failure(tmp_path):
     )
     assert done.returncode == 0, done.stdout + done.stderr
     run = read_report(tmp_path / "optimizer.ndjson")
-    assert run.operations == 9
+    assert run.operations == 10
     assert run.requests > 100
     rows = [line.split() for line in done.stdout.splitlines() if line.startswith("optimizer ")]
-    assert [row[:3] for row in rows] == [["optimizer", "9", str(run.requests)]]
+    assert [row[:3] for row in rows] == [["optimizer", "10", str(run.requests)]]
     assert run.failures, "the coverage phase always sends boxes outside their image"
     assert run.undocumented("optimizer", load_intended()) == []
     assert run.undocumented("optimizer", []) == list(run.failures)
