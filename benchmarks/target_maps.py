@@ -58,11 +58,15 @@ FILMS: Final = (((320, 240), (320, 240), ".png"), ((4000, 3000), (640, 480), ".j
 
 
 def reference_level(image: NDArray[np.uint8], scale: int, sigma: float, cap: float) -> Level:
-    """A full-resolution level (``scale`` 1) as it was made before: ``exact_distance`` over the
-    whole map in float64, then ``np.gradient`` and a copy to float32."""
-    assert scale == 1
-    edges, bins = image_edges(image)
-    distance = np.empty((ORIENTATION_BINS, *image.shape), dtype=np.float32)
+    """A level as ``target_level`` made it before: ``exact_distance`` over the whole map in
+    float64, then ``np.gradient`` and a copy to float32 (the same downsampling)."""
+    height, width = image.shape
+    small = image
+    if scale > 1:
+        size = (max(width // scale, 8), max(height // scale, 8))
+        small = np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    edges, bins = image_edges(small)
+    distance = np.empty((ORIENTATION_BINS, *small.shape), dtype=np.float32)
     for b in range(ORIENTATION_BINS):
         near = (bins == b) | (bins == (b + 1) % ORIENTATION_BINS)
         near |= bins == (b - 1) % ORIENTATION_BINS
