@@ -19,6 +19,11 @@ the replica's answer may have sat unread) is retried without counting against th
 never by itself makes the stage unavailable. A task fails, with the reasons, only when
 no replica could serve it. 4xx answers are the caller's problem and are returned as they are.
 
+A task may carry an ``affinity`` key (the free search's id, for the optimizer's target and
+refinement tasks): the broker remembers, for :data:`AFFINITY_TTL_S`, the replica that last served
+that key, and the next task of the key prefers it when it has no more tasks ahead than the
+heuristic's choice (:func:`~services.controller.placement.choose`): there its data is kept.
+
 A stage is *unavailable* (:meth:`Broker.unavailable`, and why: :meth:`Broker.outages`) while it
 has no replica, while every replica is out, or from a task that no replica could serve until a
 replica serves a task or answers ``/health`` again. Who wants to wait for it to come back calls
@@ -39,7 +44,9 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Final
+
+from cachetools import TTLCache
 
 from services.common.contracts.search import ReplicaHealth
 from services.controller.placement import Heuristic, Replica, choose
@@ -55,6 +62,10 @@ __all__ = ["Broker", "BrokerError", "Heuristic", "Replica"]
 
 _log = logging.getLogger("cosmos.broker")
 HEALTH_TIMEOUT_S = 2.0
+AFFINITY_TTL_S: Final = 600.0
+"""How long the replica that served an affinity key is remembered: longer than a search."""
+AFFINITY_KEYS: Final = 4096
+"""At most this many keys are remembered (the least recently used go first)."""
 
 
 class BrokerError(RuntimeError):
@@ -107,6 +118,8 @@ class Broker:
         self._back: dict[str, asyncio.Event] = {}  # set when a replica of the stage answers
         self._recoveries: dict[str, asyncio.Task[None]] = {}
         self._waiting: Counter[str] = Counter()  # callers in wait_for_replica, per stage
+        # (stage, affinity key) -> the url of the replica that last served it
+        self._held: TTLCache[tuple[str, str], str] = TTLCache(AFFINITY_KEYS, AFFINITY_TTL_S)
 
     def _replica(self, stage: str, url: str) -> Replica:
         number = next(self._numbers.setdefault(stage, itertools.count(1)))
@@ -188,22 +201,36 @@ class Broker:
 
     # -- placement ----------------------------------------------------------------------------
 
-    def choose(self, stage: str, kind: str, exclude: set[str] | None = None) -> Replica:
+    def choose(
+        self, stage: str, kind: str, exclude: set[str] | None = None, affinity: str | None = None
+    ) -> Replica:
         """The replica for the next ``kind`` task of ``stage`` (never one in ``exclude`` or out
-        for cooldown, unless every replica is): :func:`~services.controller.placement.choose`."""
+        for cooldown, unless every replica is), the one that served ``affinity`` last if it is
+        no busier: :func:`~services.controller.placement.choose`."""
         pool = self._replicas.get(stage, [])
         if not pool:
             self._outages.setdefault(stage, time.monotonic())
             raise BrokerError(stage, kind, [])
         turn = next(self._turns[stage])
+        prefer = None if affinity is None else self._held.get((stage, affinity))
         return choose(
-            self.heuristic, pool, kind, turn=turn, now=time.monotonic(), exclude=exclude or ()
+            self.heuristic,
+            pool,
+            kind,
+            turn=turn,
+            now=time.monotonic(),
+            exclude=exclude or (),
+            prefer=prefer,
         )
 
     # -- calls --------------------------------------------------------------------------------
 
-    async def call(self, stage: str, kind: str, request: StageRequest) -> StageAnswer:
-        """Send ``request`` to a replica of ``stage``, retrying elsewhere on failure.
+    async def call(
+        self, stage: str, kind: str, request: StageRequest, affinity: str | None = None
+    ) -> StageAnswer:
+        """Send ``request`` to a replica of ``stage``, retrying elsewhere on failure; with an
+        ``affinity`` key, to the replica that served it last when that one is no busier, and
+        the replica that answers is remembered for it (module docstring).
 
         Returns the first answer below 500; raises :class:`BrokerError` when every attempt met
         a connect error, a timeout or a 5xx.
@@ -216,7 +243,7 @@ class Broker:
                 await asyncio.sleep(self.backoff_s * 2 ** (attempt - 1))
             if len(tried) == len(self._replicas.get(stage, [])):
                 tried.clear()  # every replica failed once: try them again after the backoff
-            replica = self.choose(stage, kind, tried)
+            replica = self.choose(stage, kind, tried, affinity)
             replica.in_flight += 1
             started = time.perf_counter()
             try:
@@ -235,6 +262,8 @@ class Broker:
                 elapsed_ms = (time.perf_counter() - started) * 1000.0
                 if response.status_code < 500:
                     self._succeeded(replica, kind, elapsed_ms)
+                    if affinity is not None:
+                        self._held[(stage, affinity)] = replica.url
                     return response
                 reason = f"{replica.url}: HTTP {response.status_code}"
             finally:

@@ -242,7 +242,7 @@ class Stages:
             ("render", DEPTH_MEDIA_TYPE, render),
         ]
         call = StageRequest.form("/refine-pose", parts, {"X-Request-ID": request_id})
-        response = await self._call("optimizer", "refine", call)
+        response = await self._call("optimizer", "refine", call, affinity=request_id or None)
         return RefinePoseResponse.model_validate_json(response.content)
 
     async def prepare_target(
@@ -256,7 +256,7 @@ class Stages:
             ("target", media_type_of(target), target),
         ]
         call = StageRequest.form("/refine-pose/target", parts, {"X-Request-ID": request_id})
-        response = await self._call("optimizer", "target", call)
+        response = await self._call("optimizer", "target", call, affinity=request_id or None)
         return TargetResponse.model_validate_json(response.content)
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
@@ -264,9 +264,12 @@ class Stages:
         :meth:`Broker.wait_for_replica`); False if none did within ``timeout_s``."""
         return await self.broker.wait_for_replica(stage, timeout_s)
 
-    async def _call(self, stage: str, kind: str, request: StageRequest) -> StageAnswer:
-        """``request`` through the broker; any answer but 200 is the stage's :class:`StageError`."""
-        response = await self.broker.call(stage, kind, request)
+    async def _call(
+        self, stage: str, kind: str, request: StageRequest, *, affinity: str | None = None
+    ) -> StageAnswer:
+        """``request`` through the broker (to the replica that served ``affinity`` last, when
+        it is no busier); any answer but 200 is the stage's :class:`StageError`."""
+        response = await self.broker.call(stage, kind, request, affinity)
         if response.status_code != 200:
             raise _problem(stage, response)
         return response

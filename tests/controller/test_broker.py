@@ -77,6 +77,37 @@ async def test_shortest_expected_completion_prefers_the_fast_replica():
     await broker.close()
 
 
+async def test_a_keyed_task_returns_to_the_replica_that_served_its_key():
+    """A search's optimizer tasks go back to the replica that holds its target, while it is no
+    busier; when that replica fails the task goes elsewhere, and the key follows it."""
+    down: set[str] = set()
+
+    def behaviour(host: str, _: StageRequest) -> StageAnswer:
+        return answer(503) if host in down else answer(200, {"host": host})
+
+    broker = mock_broker(behaviour, Heuristic.ROUND_ROBIN)
+
+    async def host_of(kind: str, key: str | None = "s1") -> str:
+        return str((await broker.call("renderer", kind, work, key)).json()["host"])
+
+    first = await host_of("target")
+    assert [await host_of("refine") for _ in range(4)] == [first] * 4
+    unkeyed = [await host_of("refine", None) for _ in range(3)]
+    assert Counter(unkeyed) == {"a": 1, "b": 1, "c": 1}  # tasks without a key take turns
+    holder = next(r for r in broker.replicas("renderer") if r.url == f"http://{first}")
+    holder.in_flight += 1  # busier than the others: the task goes to one of them
+    elsewhere = await host_of("refine")
+    assert elsewhere != first
+    holder.in_flight -= 1
+    assert await host_of("refine") == elsewhere  # the key follows the replica that answered
+    down.add(elsewhere)
+    moved = await host_of("refine")
+    assert moved != elsewhere
+    down.clear()
+    assert await host_of("refine") == moved
+    await broker.close()
+
+
 async def test_connect_errors_and_5xx_go_to_another_replica():
     def behaviour(host, request):
         if host == "a":

@@ -89,6 +89,31 @@ def test_out_and_excluded_replicas_are_skipped_unless_nothing_else_is_left():
         choose(Heuristic.LEAST_LOADED, [], "render", turn=0, now=0)
 
 
+@pytest.mark.parametrize("heuristic", list(Heuristic))
+def test_a_preferred_replica_takes_the_task_unless_it_is_busier(heuristic):
+    """The replica that holds the task's data takes it while it has no more tasks ahead than
+    the heuristic's choice; busier, out or excluded, it does not."""
+    replicas = pool(0, 0, 0, a=50.0, b=50.0, c=50.0)
+    for turn in range(3):
+        held = choose(heuristic, replicas, "render", turn=turn, now=0, prefer="http://c")
+        assert held.name == "c"
+    replicas[2].in_flight = 1
+    picks = {
+        choose(heuristic, replicas, "render", turn=t, now=0, prefer="http://c").name
+        for t in range(3)
+    }
+    # round-robin still gives c its own turn; the others keep the task from the busier c
+    assert picks == ({"a", "b", "c"} if heuristic is Heuristic.ROUND_ROBIN else {"a", "b"})
+    replicas[2].in_flight = 0
+    excluded = choose(
+        heuristic, replicas, "render", turn=0, now=0, exclude={"http://c"}, prefer="http://c"
+    )
+    assert excluded.name != "c"
+    replicas[2].down_until = 10.0
+    assert choose(heuristic, replicas, "render", turn=0, now=0, prefer="http://c").name != "c"
+    assert choose(heuristic, replicas, "render", turn=0, now=0, prefer="http://z").name == "a"
+
+
 def test_success_failure_and_health_update_what_is_known():
     replica = pool(0)[0]
     replica.succeeded("render", 100.0)
