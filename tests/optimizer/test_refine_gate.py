@@ -130,8 +130,8 @@ def test_the_box_shift_is_the_rms_move_of_the_paired_boxes_edges():
         (0.5, 700, False, False),  # a near move: the render's silhouettes still hold
         (1.5, 700, False, True),  # beyond a tenth of the depth, edges left over: render again
         (1.5, 900, False, False),  # as far, but the edges all match: nothing to gain
-        (0.5, 900, True, True),  # the focal length fitted: a thirtieth of the depth is far
-        (0.2, 900, True, False),
+        (0.7, 900, True, True),  # the focal length fitted: past REFIT_ZOOM of the depth
+        (0.5, 900, True, False),
     ],
 )
 def test_a_fit_that_moved_the_camera_far_from_its_render_asks_for_another(
@@ -146,6 +146,18 @@ def test_a_fit_that_moved_the_camera_far_from_its_render_asks_for_another(
     camera = free_pinhole_camera(START.model_copy(update={"fov_deg": 43.6}), 320, 240, 43.6)
     assert worth_another_render(moved, camera) is again
     assert not worth_another_render(turned, camera)
+
+
+@pytest.mark.parametrize(
+    ("zoom", "again"), [(1.04, False), (0.95, False), (1.07, True), (0.93, True)]
+)
+def test_a_focal_length_fitted_far_from_the_renders_asks_for_another(zoom, again):
+    """With the focal length fitted, the camera where it was: another render once the focal
+    length moved more than ``REFIT_ZOOM`` from the render's."""
+    k = Intrinsics(400.0 * zoom, 400.0 * zoom, 160.0, 120.0)
+    zoomed = replace(fit(0.0, 0.0, 900, 680), depth=DEPTH, focal_fitted=True, intrinsics=k)
+    camera = free_pinhole_camera(START.model_copy(update={"fov_deg": 43.6}), 320, 240, 43.6)
+    assert worth_another_render(zoomed, camera) is again
 
 
 def test_the_box_slack_is_in_the_renders_pixels():
