@@ -10,8 +10,10 @@
    general arm done already, but a new run there would search them with their own.
 2. Per scene, ``--n`` free targets are drawn (:func:`cosmos.bench.free_targets.draw_targets`:
    distance, elevation with nadir views, roll, fov ±30 %, a third without their intrinsics, at
-   least three objects 60 % visible) and rendered by the stack's renderer; each gets its image of
-   every variant (:mod:`.free_bench.targets`) and its box-only bound.
+   least three objects 60 % visible) and rendered by the stack's renderer, on the scene
+   camera's film or ``--target-width`` pixels wide at its aspect (a drone's photo is larger than
+   the search's views); each gets its image of every variant (:mod:`.free_bench.targets`) and its
+   box-only bound.
 3. Each image is searched with ``POST /searches?mode=free`` (``fov_deg`` when given), one at a
    time, then its floor is timed and the baseline run on the search's detections
    (:mod:`.free_bench.searching`); the record is appended to the checkpoint
@@ -81,6 +83,7 @@ def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
         "variants": list(config.variants),
         "spp": config.spp,
         "width": config.width,
+        "target_width": config.target_width,
         "max_iterations": config.max_iterations,
     }
 
@@ -108,8 +111,9 @@ def _jobs(
     with RendererClient(ep.renderer, token=ep.service_token) as renderer:
         try:
             targets = draw_targets(
-                renderer, scene, shapes, config.n, config.seed, spp=TARGET_SPP, only=pending
-            )
+                renderer, scene, shapes, config.n, config.seed,
+                width=config.target_width, spp=TARGET_SPP, only=pending,
+            )  # fmt: skip
         except DrawError as exc:
             notes.append(f"skipped {scene_id}: {exc}")
             say(notes[-1])
@@ -246,6 +250,7 @@ def _run(config: BenchConfig, root: Path) -> int:
     complete = True
     with open_endpoints(config, spp=config.spp, width=config.width, scene_dirs=(scene_dir,)) as ep:
         machine = machine_info(services_info(ep, config.spp, config.width))
+        machine["target_width"] = config.target_width or "scene's own (its camera's film)"
         ep.warm(scenes)
         calls = StackCalls(
             ep.controller, ep.renderer, ep.detectors[0], ep.api_key, ep.service_token,

@@ -93,6 +93,8 @@ class BenchConfig:
     scenes_out: Path | None = None
     free: bool = False
     """Free-camera targets (``cosmos bench --free``, :mod:`cosmos.bench.free_bench`)."""
+    target_width: int | None = None
+    """With ``free``: the targets' film width (the scene camera's aspect); None: its film."""
     chunk_minutes: float | None = None
     """With ``free``: stop starting searches after this long; the same command resumes."""
     regenerate: bool = False

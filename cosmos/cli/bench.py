@@ -32,6 +32,8 @@ def run(args: argparse.Namespace) -> int:
     variants = _csv(args.variants or default_variants)
     allowed_variants = FREE_BENCH_VARIANTS if args.free else VARIANTS
     starts = _csv(args.starts)
+    if args.target_width is not None and not args.free:
+        raise ValueError("--target-width draws free targets: add --free")
     for name, given, allowed in (
         ("strategy", strategies, ("simple", "paper", "reprojection")),
         ("variant", variants, allowed_variants),
@@ -70,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         onboard=args.onboard,  # argparse checked the choice
         scenes_out=Path(args.scenes_out) if args.scenes_out else None,
         free=args.free,
+        target_width=args.target_width,
         chunk_minutes=args.chunk_minutes,
         regenerate=args.regenerate,
         verbose=args.verbose,
@@ -160,6 +163,13 @@ def register(commands: Commands) -> None:
         help="free-camera targets (any position, orientation, fov) searched with mode=free, "
         "beside a plain solvePnPRansac baseline and the box-only bound; with --random-scenes N "
         "also on N generated scenes",
+    )
+    bench.add_argument(
+        "--target-width",
+        type=int,
+        metavar="PX",
+        help="with --free: draw the targets this wide, at the scene camera's aspect (a drone's "
+        "photo is larger than the views; default the scene camera's film)",
     )
     bench.add_argument(
         "--chunk-minutes",

@@ -110,6 +110,13 @@ def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
     assert not path.exists()
 
 
+def test_a_target_width_needs_free_targets(tmp_path, capsys):
+    status = main(["bench", "--target-width", "400", "--out", str(tmp_path), "--results-md", ""])
+    assert status == 1
+    assert "--target-width draws free targets: add --free" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # refused before anything ran
+
+
 # -- through the real stack ------------------------------------------------------------------
 
 
@@ -147,6 +154,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
             "--n", "2",
             "--variants", "clean",
             "--seed", "1",
+            "--target-width", "400",
             "--out", str(out),
             "--results-md", str(results_md),
         ]
@@ -156,6 +164,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
     report = json.loads((out / "free.json").read_text())
     assert report["complete"]
     assert report["planned"] == 2
+    assert report["config"]["target_width"] == report["machine"]["target_width"] == 400
     assert not (out / "free.checkpoint.jsonl").exists()  # removed once complete
     records = [FreeRecord.model_validate(r) for r in report["records"]]
     catalog, objects = SceneCatalog(RendererSettings().scene_directories()), SceneObjectCache()
@@ -202,7 +211,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         assert [d.box for d in r.target_detections] == [
             pytest.approx(d["box"], abs=1e-3) for d in raw["target_detections"]
         ]
-        assert r.target_size == tuple(raw["target_size"])
+        assert r.target_size == tuple(raw["target_size"]) == (400, 300)  # --target-width
         again, _ = replayed(r, catalog, objects)
         first = r.error(BOXES)
         assert again.position == pytest.approx(first.position, abs=1e-3)
