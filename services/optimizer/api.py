@@ -62,13 +62,15 @@ State = Annotated[OptimizerState, Depends(app_state("optimizer"))]
 
 @router.get("/health", response_model=OptimizerHealth)
 async def health(state: State) -> OptimizerHealth:
-    """Liveness, the strategies on offer and the stored paper calibrations."""
+    """Liveness, the strategies on offer, the stored paper calibrations and what is kept of
+    free searches' targets (:meth:`~.free.target_maps.TargetMapCache.stats`)."""
     return OptimizerHealth(
         status="ok",
         service="optimizer",
         strategies=get_args(StrategyName),
         default_strategy=state.context.default_strategy,
         paper_calibrations=len(state.context.calibrations),
+        target_cache=state.target_maps.stats(),
     )
 
 

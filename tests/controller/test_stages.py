@@ -1,6 +1,7 @@
 """The controller's stage calls against the real renderer and detector apps (in process): views
 are fetched as binary PPM and detected as such, a renderer that only answers PNG still works, and
-a submission's start view is rendered early and taken by its search once (or dropped)."""
+a submission's start view is rendered early and taken by its search once (or dropped); a free
+search's refinements go back to the optimizer replica that keeps its target."""
 
 from __future__ import annotations
 
@@ -16,9 +17,12 @@ from asgi_lifespan import LifespanManager
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from services.common.auth import token_from_environment
-from services.common.contracts.refine import RefinePoseRequest
+from services.common.contracts.free import FreePoseRequest
+from services.common.contracts.optimize import ImageDetections
+from services.common.contracts.refine import RefinePoseRequest, TargetRequest
 from services.common.contracts.search import Search, SearchOptions, ViewSettings
 from services.common.errors import UnprocessableError
+from services.common.geometry.free_camera import FreeCamera
 from services.common.geometry.pose import GridIndex
 from services.common.images import PPM_MEDIA_TYPE, decode_image, media_type_of
 from services.controller.broker import Broker
@@ -29,6 +33,7 @@ from services.controller.submit import create_search
 from services.controller.transport import StageAnswer, StageRequest, WithServiceToken
 from services.detector.app import create_app as create_detector
 from services.detector.settings import DetectorSettings
+from services.optimizer.app import create_app as create_optimizer
 from services.renderer.app import create_app as create_renderer
 from tests.controller.free_stages import candidate
 from tests.scene_model_support import BALLS, add_scene, onboard
@@ -279,3 +284,51 @@ def test_a_refinement_of_an_alternative_pose_is_sent_whole():
     pose = candidate(1.0).model_copy(update={"position_sigma": None, "rotation_sigma_deg": None})
     request = RefinePoseRequest(scene="demo", pose=pose, fit_focal=True)
     assert RefinePoseRequest.model_validate_json(request_json(request)) == request
+
+
+async def test_a_search_s_refinements_return_to_the_optimizer_that_keeps_its_target(apps):
+    """Two optimizer replicas: the target made ready on one, every refinement of the search
+    goes back to it (its maps found kept there), though the broker would take turns; the
+    other replica keeps nothing."""
+    renderer, detector = apps
+    async with (
+        LifespanManager(create_optimizer()) as first,
+        LifespanManager(create_optimizer()) as second,
+    ):
+        optimizers = {"optimizer-a": first.app, "optimizer-b": second.app}
+        transport = InProcessApps({"renderer": renderer, "detector": detector, **optimizers})
+        broker = Broker(
+            {
+                "renderer": ["http://renderer"],
+                "detector": ["http://detector"],
+                "optimizer": [f"http://{host}" for host in optimizers],
+            },
+            transport=WithServiceToken(transport, token_from_environment()),
+            health_interval_s=0,
+        )
+        stages = Stages(broker, render_spp=4)
+        try:
+            truth = FreeCamera(position=(4.0, 5.0, 6.0), look_at=(-0.2, 0.4, 0.0), fov_deg=50.0)
+            photo = await stages.render_camera("demo", truth, (320, 240))
+            found = await stages.detect(photo, media_type_of(photo))
+            target = ImageDetections(image_size=found.image_size, detections=found.detections)
+            answer = await stages.free_pose(FreePoseRequest(scene="demo", target=target))
+            assert answer.pose is not None
+            archive = await stages.render_camera(
+                "demo", answer.pose.camera(), (320, 240), with_depth=True
+            )
+            await stages.prepare_target(TargetRequest(film=(320, 240)), photo, "s1")
+            request = RefinePoseRequest(scene="demo", pose=answer.pose)
+            for _ in range(3):
+                refined = await stages.refine_pose(request, photo, archive, "s1")
+                assert refined.fit.converged
+            kept = [
+                (await transport.clients[host].get("/health")).json()["target_cache"]
+                for host in optimizers
+            ]
+            assert sorted((c["misses"], c["hits"], c["targets"]) for c in kept) == [
+                (0, 0, 0),
+                (1, 3, 1),
+            ]
+        finally:
+            await broker.close()

@@ -63,6 +63,13 @@ async def test_health_lists_the_strategies(client):
         "strategies": ["simple", "paper", "reprojection"],
         "default_strategy": "reprojection",
         "paper_calibrations": 1,
+        "target_cache": {  # nothing kept yet
+            "targets": 0,
+            "bytes": 0,
+            "max_bytes": body["target_cache"]["max_bytes"],
+            "hits": 0,
+            "misses": 0,
+        },
     }
     strategies = {s["name"]: s for s in (await client.get("/strategies")).json()}
     assert strategies["reprojection"]["default"]

@@ -68,6 +68,9 @@ def test_a_second_render_of_the_search_finds_the_targets_maps(case, catalog, mon
     assert made == []
     assert cache.grays.hits == 1
     assert cache.levels.hits == 3
+    stats = cache.stats()  # what the optimizer's /health says of it
+    assert (stats.targets, stats.hits, stats.misses) == (1, 1, 1)
+    assert 0 < stats.bytes <= stats.max_bytes == cache.grays.maxsize + cache.levels.maxsize
     assert _fit(again) == _fit(first)
     fresh = refine_pose(request, target, render, catalog, objects, LIMITS, TargetMapCache(0))
     assert sorted(made) == [1, 2, 4]

@@ -328,6 +328,20 @@ class StrategyInfo(FrozenModel):
     needs_calibration: bool
 
 
+class TargetCacheStats(FrozenModel):
+    """What the optimizer keeps of free searches' targets between their renders: the
+    ``targets`` kept, their ``bytes`` (grey images and distance maps) within ``max_bytes``, and
+    since it started the lookups of a target that found it kept (``hits``) or made it
+    (``misses``). With several replicas, a search's tasks going to the one that keeps its
+    target show as hits there."""
+
+    targets: Annotated[Integer, Field(ge=0)]
+    bytes: Annotated[Integer, Field(ge=0)]
+    max_bytes: Annotated[Integer, Field(ge=0)]
+    hits: Annotated[Integer, Field(ge=0)]
+    misses: Annotated[Integer, Field(ge=0)]
+
+
 class OptimizerHealth(FrozenModel):
     """``GET /health`` of the optimizer."""
 
@@ -336,3 +350,5 @@ class OptimizerHealth(FrozenModel):
     strategies: tuple[StrategyName, ...]
     default_strategy: StrategyName
     paper_calibrations: Annotated[Integer, Field(ge=0)]
+    target_cache: TargetCacheStats | None = None
+    """Null from an optimizer that does not say."""

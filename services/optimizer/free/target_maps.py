@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.caches import SharedLru, array_nbytes
+from services.common.contracts.optimize import TargetCacheStats
 from services.optimizer.free.edges import Level, gray, target_level
 
 __all__ = ["DEFAULT_TARGET_CACHE_BYTES", "TargetMapCache", "TargetMaps"]
@@ -78,6 +79,16 @@ class TargetMapCache:
     def __init__(self, max_bytes: int = DEFAULT_TARGET_CACHE_BYTES) -> None:
         self.grays = SharedLru[NDArray[np.uint8]](max_bytes // 16, weigh=array_nbytes)
         self.levels = SharedLru[Level](max_bytes - max_bytes // 16, weigh=array_nbytes)
+
+    def stats(self) -> TargetCacheStats:
+        """What is kept, and the target lookups that found it or made it."""
+        return TargetCacheStats(
+            targets=len(self.grays),
+            bytes=self.grays.currsize + self.levels.currsize,
+            max_bytes=self.grays.maxsize + self.levels.maxsize,
+            hits=self.grays.hits,
+            misses=self.grays.misses,
+        )
 
     def maps(
         self, data: bytes, film: tuple[int, int], decode: Callable[[], NDArray[np.uint8]]
