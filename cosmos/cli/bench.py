@@ -18,6 +18,7 @@ def run(args: argparse.Namespace) -> int:
     from cosmos.bench import VARIANTS, BenchConfig, run
     from cosmos.bench.free_bench.targets import FREE_BENCH_VARIANTS
     from cosmos.bench.session import START_MODES
+    from services.renderer.settings import RendererSettings
 
     # Random scenes: the project's strategy on every variant; otherwise the paper's comparison.
     random = args.random_scenes > 0
@@ -32,8 +33,15 @@ def run(args: argparse.Namespace) -> int:
     variants = _csv(args.variants or default_variants)
     allowed_variants = FREE_BENCH_VARIANTS if args.free else VARIANTS
     starts = _csv(args.starts)
-    if args.target_width is not None and not args.free:
-        raise ValueError("--target-width draws free targets: add --free")
+    if args.target_width is not None:
+        if not args.free:
+            raise ValueError("--target-width draws free targets: add --free")
+        most = RendererSettings().renderer_max_side
+        if not 16 <= args.target_width <= most:
+            raise ValueError(
+                f"--target-width must be 16 to {most} pixels (the renderer's longest side, "
+                "COSMOS_RENDERER_MAX_SIDE)"
+            )
     for name, given, allowed in (
         ("strategy", strategies, ("simple", "paper", "reprojection")),
         ("variant", variants, allowed_variants),

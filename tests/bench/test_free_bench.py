@@ -110,11 +110,19 @@ def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
     assert not path.exists()
 
 
-def test_a_target_width_needs_free_targets(tmp_path, capsys):
-    status = main(["bench", "--target-width", "400", "--out", str(tmp_path), "--results-md", ""])
+@pytest.mark.parametrize(
+    ("flags", "said"),
+    [
+        (["--target-width", "400"], "--target-width draws free targets: add --free"),
+        (["--free", "--target-width", "4096"], "--target-width must be 16 to 2048 pixels"),
+        (["--free", "--target-width", "0"], "--target-width must be 16 to 2048 pixels"),
+    ],
+)
+def test_a_target_width_is_refused_before_anything_runs(tmp_path, capsys, flags, said):
+    status = main(["bench", *flags, "--out", str(tmp_path), "--results-md", ""])
     assert status == 1
-    assert "--target-width draws free targets: add --free" in capsys.readouterr().err
-    assert not any(tmp_path.iterdir())  # refused before anything ran
+    assert said in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
 
 
 # -- through the real stack ------------------------------------------------------------------
