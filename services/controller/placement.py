@@ -16,9 +16,10 @@ Ties go to the first in the pool rotated by the turn, so equal replicas take tur
 
 A task may name a replica it would ``prefer`` (one that holds its data: the optimizer that keeps
 a search's target maps, :mod:`services.optimizer.free.target_maps`). It goes there when that
-replica has no more tasks ahead of it than the heuristic's choice: the data saves a decode and
-its maps (10-40 ms on a 320 px film, more on a drone photo), a task ahead costs a refinement
-(about 50 ms), so the preference never queues a task behind more work.
+replica has no more tasks ahead of it than the heuristic's choice: the data saves the target's
+decoding and maps (measured with ``benchmarks/target_maps.py``: 10 ms on a 320 px film, 64 ms
+on a 4000 x 3000 JPEG), while a task ahead costs a whole refinement (30-90 ms), so the
+preference never queues a task behind more work.
 """
 
 from __future__ import annotations
