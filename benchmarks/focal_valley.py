@@ -36,6 +36,7 @@ from typing import Final
 import cv2
 import numpy as np
 
+from cosmos.bench.free_targets.dense import render_at
 from cosmos.bench.free_targets.draw import BANDS, Band, FreeTarget, draw_targets
 from cosmos.bench.free_targets.rendering import LocalRenderer
 from cosmos.bench.free_targets.shapes import scene_shapes
@@ -43,7 +44,7 @@ from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.camera import PinholeCamera
-from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
+from services.common.geometry.free_camera import FreeCamera
 from services.optimizer.free import dense
 from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.edges import (
@@ -71,39 +72,19 @@ def _targets(
         yield from draw_targets(renderer, scene, scene_shapes(scene), n, seed)
 
 
-def _request(target: FreeTarget, camera: FreeCamera, spp: int, scale: int) -> RenderRequest:
-    """A render of ``camera`` on the target's film ``scale`` times as wide and high."""
-    film = target.annotations.camera
-    return RenderRequest(
-        scene=target.scene,
-        camera=camera,
-        width=film.width * scale,
-        height=film.height * scale,
-        spp=spp,
-        seed=target.index,
-    )
-
-
 def _render(
     renderer: LocalRenderer, target: FreeTarget, camera: FreeCamera, scale: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, PinholeCamera]:
     """The render at ``camera`` on the target's film ``scale`` times over (as a search's view):
     RGB, depth, outline, pinhole."""
-    request = _request(target, camera, VIEW_SPP, scale)
-    depth = renderer.depth(request)
-    rgb = _decoded(renderer.render_png(request))[..., ::-1]
+    rendered = render_at(renderer, target, camera, VIEW_SPP, scale=scale)
+    if rendered is None:
+        raise ValueError(f"the renderer refused a camera of {target.scene} #{target.index}")
+    rgb, depth, pinhole = rendered
     shading = depth.shading
     if shading is None:
         shading = np.zeros(depth.objects.shape, np.uint8)
-    film = target.annotations.camera
-    width, height = film.width * scale, film.height * scale
-    pinhole = free_pinhole_camera(camera, width, height, film.fov_deg)
-    return (
-        np.ascontiguousarray(rgb),
-        depth.depth,
-        outline(depth.depth, depth.objects, shading),
-        pinhole,
-    )
+    return rgb, depth.depth, outline(depth.depth, depth.objects, shading), pinhole
 
 
 def _target_image(renderer: LocalRenderer, target: FreeTarget, scale: int) -> bytes:
@@ -111,7 +92,16 @@ def _target_image(renderer: LocalRenderer, target: FreeTarget, scale: int) -> by
     pixel, as drawn) when ``scale`` > 1."""
     if scale == 1:
         return target.png
-    return renderer.render_png(_request(target, target.camera, TARGET_SPP, scale))
+    film = target.annotations.camera
+    request = RenderRequest(
+        scene=target.scene,
+        camera=target.camera,
+        width=film.width * scale,
+        height=film.height * scale,
+        spp=TARGET_SPP,
+        seed=target.index,
+    )
+    return renderer.render_png(request)
 
 
 def _decoded(png: bytes) -> np.ndarray:

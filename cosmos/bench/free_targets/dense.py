@@ -88,18 +88,14 @@ def _near(geometry: DepthImage) -> NDArray[np.bool_] | None:
 
 
 def render_at(
-    renderer: Renderer, target: FreeTarget, camera: FreeCamera, spp: int
+    renderer: Renderer, target: FreeTarget, camera: FreeCamera, spp: int, *, scale: int = 1
 ) -> tuple[NDArray[np.uint8], DepthImage, PinholeCamera] | None:
-    """The render and its geometry (depth, outline shading) at ``camera`` on the target's film;
-    None when refused (422)."""
+    """The render and its geometry (depth, outline shading) at ``camera`` on the target's film
+    (``scale`` times as wide and high); None when refused (422)."""
     film = target.annotations.camera
+    width, height = film.width * scale, film.height * scale
     request = RenderRequest(
-        scene=target.scene,
-        camera=camera,
-        width=film.width,
-        height=film.height,
-        spp=spp,
-        seed=target.index,
+        scene=target.scene, camera=camera, width=width, height=height, spp=spp, seed=target.index
     )
     try:
         depth = renderer.depth(request)
@@ -111,7 +107,7 @@ def render_at(
     bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ValueError("the renderer's PNG does not decode")
-    pinhole = free_pinhole_camera(camera, film.width, film.height, film.fov_deg)
+    pinhole = free_pinhole_camera(camera, width, height, film.fov_deg)
     return np.asarray(bgr[..., ::-1], dtype=np.uint8), depth, pinhole
 
 
