@@ -287,12 +287,19 @@ def score_poses(
 @dataclass(frozen=True)
 class Refinement:
     """A continuous pose fitted by least-squares reprojection (angles in degrees, residual in
-    pixels over ``matched`` pairs)."""
+    pixels over ``matched`` pairs). ``fit_deg`` is the robust fit's own ``(θ, φ)``: the pose
+    unless its RMS came out above the start's, which is then kept."""
 
     theta_deg: float
     phi_deg: float
     residual_px: float
     matched: int
+    fit_deg: tuple[float, float] | None = None
+
+    @property
+    def kept_start(self) -> bool:
+        """Whether the start was kept over the robust fit (see ``fit_deg``)."""
+        return self.fit_deg is not None and self.fit_deg != (self.theta_deg, self.phi_deg)
 
 
 def _forward_steps(x: FloatArray, lower: FloatArray, upper: FloatArray) -> FloatArray:
@@ -364,6 +371,7 @@ def refine_pose(
     )
     rms = float(np.sqrt(np.mean(linearise(result.x)[0] ** 2)))
     start_rms = float(np.sqrt(np.mean(linearise(start)[0] ** 2)))
+    fit = (float(result.x[0]), float(result.x[1]) % 360.0)
     if rms > start_rms:
-        return Refinement(float(start[0]), phi_deg % 360.0, start_rms, len(pairs))
-    return Refinement(float(result.x[0]), float(result.x[1]) % 360.0, rms, len(pairs))
+        return Refinement(float(start[0]), phi_deg % 360.0, start_rms, len(pairs), fit)
+    return Refinement(*fit, rms, len(pairs), fit)

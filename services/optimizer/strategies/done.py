@@ -24,6 +24,12 @@ between its grid pose and another (:data:`EDGE_MARGIN_STEPS`) is ambiguous: whic
 nearest the target is then within the estimate's own error (a target between grid poses), and
 a confirmed answer must not hang on it. So is one whose views share fewer than
 :data:`MIN_ESTIMATE_PAIRS` pairs: two boxes leave that error too large to tell neighbours apart.
+So is one whose estimate cannot rule out another grid pose (:class:`Rival`): an estimate that
+is only its grid pose's score, not refined between grid poses (no view anchors the map's
+prediction there), has no say on whether a neighbour lies nearer the target; nor has one whose
+robust refinement lies nearer another grid pose, this one kept only for its smaller RMS (an
+outlier pair, such as one object boxed twice, pulls the two apart). A neighbour's view passes
+the loose test too where neighbouring views differ by less than ``T``.
 
 The strict test alone needs a tolerance below the smallest difference between adjacent grid
 views, which can be tiny: near the zenith one 7.5° step in θ moves the demo balls by only
@@ -65,7 +71,7 @@ from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import ViewComparison, without_worst_pair
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 
-__all__ = ["LOOSE_FACTOR", "NOISE_SIGMAS", "Refined", "done_plan", "matched_text"]
+__all__ = ["LOOSE_FACTOR", "NOISE_SIGMAS", "Refined", "Rival", "done_plan", "matched_text"]
 
 LOOSE_FACTOR: Final = 3.0
 """The loose done test's tolerance before noise, in strict tolerances (module docstring)."""
@@ -98,6 +104,16 @@ class Refined:
     unpaired_target: float = 0.0
 
 
+@dataclass(frozen=True)
+class Rival:
+    """A grid pose (``flat``) that the estimate cannot rule out, ``score`` being the map's score
+    there (lower is better), and ``why`` it cannot."""
+
+    flat: int
+    score: float
+    why: str
+
+
 def matched_text(comparison: ViewComparison) -> str:
     if math.isinf(comparison.rms_px):
         return "no detection pairs with the target"
@@ -120,11 +136,14 @@ def done_plan(
     refined: Refined | None = None,
     ambiguous: bool = False,
     alternatives: tuple[tuple[int, float], ...] = (),
+    rival: Rival | None = None,
 ) -> Plan | None:
     """The done test shared by every strategy (module docstring), or None to keep searching.
 
     ``refined`` is a map-based strategy's refined continuous estimate nearest the current
-    pose: its residual compares the target with the map's prediction at the off-grid pose."""
+    pose: its residual compares the target with the map's prediction at the off-grid pose.
+    ``rival`` is a grid pose the estimate cannot rule out: an answer done on the estimate is
+    then ambiguous."""
     tol = problem.tolerance_px
     trimmed = without_worst_pair(
         current.observation, problem.target, comparison, problem.max_unmatched
@@ -153,11 +172,12 @@ def done_plan(
             continue
         loose = agreeing.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
         if _within(agreeing, loose, problem):
-            return _ambiguous_if_undecided(problem, Plan(
+            plan = Plan(
                 True, current.flat, "stay", est, ambiguous, alternatives,
                 f"the estimate puts the target at this grid pose and the views agree within "
                 f"{loose:.2f} px ({matched_text(agreeing)})",
-            ), len(agreeing.pairs))  # fmt: skip
+            )  # fmt: skip
+            return _ambiguous_if_undecided(problem, plan, len(agreeing.pairs), rival)
     loose = comparison.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
     if refined is None or refined.residual_px > loose:
         return None
@@ -175,7 +195,7 @@ def done_plan(
             f"the target lies between grid poses, nearest this one: at the refined pose "
             f"θ = {est.theta_deg:.2f}°, φ = {est.phi_deg:.2f}° the predicted view matches it "
             f"within {refined_px:.2f} px (the grid view differs by {comparison.rms_px:.2f} px)",
-        ), len(comparison.pairs))  # fmt: skip
+        ), len(comparison.pairs), rival)  # fmt: skip
     return None
 
 
@@ -189,14 +209,25 @@ def _units(grid: HemisphereGrid) -> FloatArray:
     return pose_to_cartesian(grid.theta_deg, grid.phi_deg).reshape(-1, 3)
 
 
-def _ambiguous_if_undecided(problem: SearchProblem, plan: Plan, pairs: int) -> Plan:
+def _ambiguous_if_undecided(
+    problem: SearchProblem, plan: Plan, pairs: int, rival: Rival | None = None
+) -> Plan:
     """``plan``, done on the strength of its estimate over ``pairs`` pairs, made ambiguous when
-    the estimate lies almost as near another grid pose: within :data:`EDGE_MARGIN_STEPS` grid
-    steps of angle (``d₂ − d₁``, the angles to the second nearest and the nearest grid pose) of
-    the boundary between the two, where the estimate's own error (a few tenths of a degree, more
-    from a single view) decides which is nearest; or when fewer than
-    :data:`MIN_ESTIMATE_PAIRS` pairs leave that error larger. The other pose becomes an
-    alternative."""
+    the estimate cannot rule out a ``rival``; or when it lies almost as near another grid pose:
+    within :data:`EDGE_MARGIN_STEPS` grid steps of angle (``d₂ − d₁``, the angles to the second
+    nearest and the nearest grid pose) of the boundary between the two, where the estimate's own
+    error (a few tenths of a degree, more from a single view) decides which is nearest; or when
+    fewer than :data:`MIN_ESTIMATE_PAIRS` pairs leave that error larger. The other pose becomes
+    an alternative."""
+    if rival is not None and rival.flat != plan.next_flat:
+        other = problem.grid.unflat(rival.flat)
+        return replace(
+            plan,
+            ambiguous=True,
+            alternatives=(*plan.alternatives, (rival.flat, rival.score)),
+            reason=f"{plan.reason}; ambiguous: {rival.why}: it cannot tell this grid pose from "
+            f"lat {other.lat} lon {other.lon}",
+        )
     est = plan.estimate
     if est is None or not math.isfinite(est.theta_deg + est.phi_deg):
         return plan

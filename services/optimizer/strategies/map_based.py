@@ -33,11 +33,12 @@ from services.optimizer.reprojection import (
     Anchoring,
     PoseScores,
     Prediction,
+    Refinement,
     predict,
     refine_pose,
     score_poses,
 )
-from services.optimizer.strategies.done import Refined, done_plan
+from services.optimizer.strategies.done import Refined, Rival, done_plan
 from services.optimizer.view_cache import ViewMappings
 from services.optimizer.world_map import MappedView, WorldMap, build_map
 
@@ -199,9 +200,11 @@ def _anchored_visit(problem: SearchProblem, found: MapEstimate, flat: int) -> Vi
 
 def plan_estimate(
     problem: SearchProblem, current: Visit, found: MapEstimate
-) -> tuple[Estimate, Refined | None]:
-    """The estimate of a map-based strategy and, when its refined continuous pose lies nearest
-    the current grid pose, that refinement (else None).
+) -> tuple[Estimate, Refined | None, Rival | None]:
+    """The estimate of a map-based strategy; when its refined continuous pose lies nearest the
+    current grid pose, that refinement (else None); and the grid pose the estimate cannot rule
+    out (:class:`~.done.Rival`), if any: the best-scoring neighbour of an estimate that was not
+    refined, or the grid pose nearest a robust fit that lost to its start by RMS.
 
     The pose is refined at the best grid pose when a view of it anchors the map's prediction
     there: the current pose, or another visited pose. The latter is a target between grid
@@ -225,7 +228,8 @@ def plan_estimate(
     if start is None or (found.best == current.flat and start is not current):
         residual = SCALE_PX * math.sqrt(float(found.scores.exact[0]) / max(len(found.pairs), 1))
         best = found.best
-        return estimate(float(grid.theta_deg[best]), float(grid.phi_deg[best]), residual), None
+        est = estimate(float(grid.theta_deg[best]), float(grid.phi_deg[best]), residual)
+        return est, None, _best_neighbour(grid, best, found.scores.coarse)
     refined = refine_pose(
         found.world,
         problem.target,
@@ -239,12 +243,45 @@ def plan_estimate(
     )
     est = estimate(refined.theta_deg, refined.phi_deg, refined.residual_px)
     if est.flat != current.flat or not math.isfinite(refined.residual_px):
-        return est, None
+        return est, None, None
+    rival = _fit_elsewhere(grid, est.flat, refined, found.scores.coarse)
     if start is current:
-        return est, Refined(refined.residual_px)
+        return est, Refined(refined.residual_px), rival
     target = problem.target.confidence
     unpaired = float(target.sum() - target[found.pairs.rows].sum())
-    return est, Refined(refined.residual_px, elsewhere=True, unpaired_target=unpaired)
+    return est, Refined(refined.residual_px, elsewhere=True, unpaired_target=unpaired), rival
+
+
+def _best_neighbour(grid: HemisphereGrid, flat: int, scores: NDArray[np.float64]) -> Rival | None:
+    """The grid neighbour of ``flat`` with the least map ``scores`` (every pose's cheap score,
+    never above its exact one), or None on a grid of one pose."""
+    neighbours = [grid.flat(n) for n in grid.neighbours(grid.unflat(flat)).values()]
+    if not neighbours:
+        return None
+    best = min(neighbours, key=lambda f: float(scores[f]))
+    why = (
+        "the estimate is this grid pose's score, not refined between grid poses (no view "
+        "anchors the map's prediction here)"
+    )
+    return Rival(int(best), float(scores[best]), why)
+
+
+def _fit_elsewhere(
+    grid: HemisphereGrid, flat: int, refined: Refinement, scores: NDArray[np.float64]
+) -> Rival | None:
+    """The grid pose nearest ``refined``'s robust fit when the start (grid pose ``flat``) was
+    kept over it by RMS and the fit lies nearer another grid pose, else None."""
+    if not refined.kept_start or refined.fit_deg is None:
+        return None
+    theta, phi = refined.fit_deg
+    other = int(grid.nearest_flat(theta, phi))
+    if other == flat:
+        return None
+    why = (
+        f"the robust refinement puts the target at θ = {theta:.2f}°, φ = {phi:.2f}°, nearer "
+        f"another grid pose; this one is kept only for its smaller RMS"
+    )
+    return Rival(other, float(scores[other]), why)
 
 
 def estimate_or_done(
@@ -252,9 +289,17 @@ def estimate_or_done(
 ) -> tuple[Estimate, bool, Plan | None]:
     """A map-based strategy's estimate, whether it names the current grid pose, and the done
     plan when the done test passes (else None)."""
-    est, refined = plan_estimate(problem, current, found)
+    est, refined, rival = plan_estimate(problem, current, found)
     here = est.flat == current.flat
     done = done_plan(
-        problem, current, comparison, est, here, refined, found.ambiguous, found.alternatives
+        problem,
+        current,
+        comparison,
+        est,
+        here,
+        refined,
+        found.ambiguous,
+        found.alternatives,
+        rival,
     )
     return est, here, None if done is None else replace(done, reason=done.reason + found.note)
