@@ -78,6 +78,8 @@ class Estimate:
     phi_deg: float
     residual_px: float | None
     confidence: float
+    sigma_deg: float | None = None
+    """The 1-σ angle of the view direction ``(θ, φ)``, when the estimate has one."""
 
 
 @dataclass(frozen=True)

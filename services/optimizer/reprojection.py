@@ -288,13 +288,15 @@ def score_poses(
 class Refinement:
     """A continuous pose fitted by least-squares reprojection (angles in degrees, residual in
     pixels over ``matched`` pairs). ``fit_deg`` is the robust fit's own ``(θ, φ)``: the pose
-    unless its RMS came out above the start's, which is then kept."""
+    unless its RMS came out above the start's, which is then kept. ``sigma_deg`` is the pose's
+    1-σ angle on the sphere (:func:`_sigma_deg`)."""
 
     theta_deg: float
     phi_deg: float
     residual_px: float
     matched: int
     fit_deg: tuple[float, float] | None = None
+    sigma_deg: float | None = None
 
     @property
     def kept_start(self) -> bool:
@@ -373,5 +375,21 @@ def refine_pose(
     start_rms = float(np.sqrt(np.mean(linearise(start)[0] ** 2)))
     fit = (float(result.x[0]), float(result.x[1]) % 360.0)
     if rms > start_rms:
-        return Refinement(float(start[0]), phi_deg % 360.0, start_rms, len(pairs), fit)
-    return Refinement(*fit, rms, len(pairs), fit)
+        sigma = _sigma_deg(*linearise(start), float(start[0]))
+        return Refinement(float(start[0]), phi_deg % 360.0, start_rms, len(pairs), fit, sigma)
+    return Refinement(*fit, rms, len(pairs), fit, _sigma_deg(*linearise(result.x), fit[0]))
+
+
+def _sigma_deg(residuals: FloatArray, jacobian: FloatArray, theta_deg: float) -> float:
+    """The 1-σ angle (degrees) of the view direction fitted at residuals ``r`` with Jacobian ``J``
+    (pixels per degree of θ and φ): ``Σ = s² (JᵀJ)⁻¹`` with ``s² = Σr² / (n − 2)``, and the
+    angle ``√(Σ_θθ + sin²θ Σ_φφ)`` (a step of φ turns the direction by ``sin θ`` of it)."""
+    n = len(residuals)
+    if n <= 2:
+        return math.inf
+    normal = jacobian.T @ jacobian
+    if np.linalg.cond(normal) > 1e12:
+        return math.inf
+    cov = float(residuals @ residuals) / (n - 2) * np.linalg.inv(normal)
+    sin = math.sin(math.radians(theta_deg))
+    return math.sqrt(max(float(cov[0, 0]) + sin * sin * float(cov[1, 1]), 0.0))

@@ -306,3 +306,55 @@ def test_an_answer_kept_over_a_robust_fit_nearer_another_grid_pose_is_ambiguous(
     assert far.ambiguous, far.reason
     assert [f for f, _ in far.alternatives] == [south]
     assert "the robust refinement puts the target at" in far.reason
+
+
+@pytest.mark.parametrize(("sigma", "undecided"), [(None, False), (1.5, False), (2.0, True)])
+def test_an_estimate_whose_sigma_reaches_the_boundary_makes_the_answer_ambiguous(
+    demo, sigma, undecided
+):
+    """Done by the loose test at lat 1 lon 0 (θ = 15°) on an estimate at θ = 17°, 1.75° short
+    of the boundary with lat 2 (θ = 22.5°): with a σ of 2° that boundary lies within one σ, so
+    the estimate cannot tell the two apart; with 1.5°, or no σ, it can."""
+    from services.optimizer.problem import Estimate
+    from services.optimizer.strategies.done import done_plan
+
+    _, grid, _ = demo
+    flat = grid.flat(GridIndex(lat=1, lon=0))
+    view = Observation.from_arrays(["sphere"] * 3, row(3))
+    target = Observation.from_arrays(["sphere"] * 3, row(3) + 1.5)  # loose, not strict
+    current = Visit(flat, 15.0, 0.0, view)
+    problem = SearchProblem(grid, demo[0].camera, target, (current,))
+    est = Estimate(flat, 17.0, 0.0, 0.4, 0.9, sigma)
+    plan = done_plan(problem, current, compare_views(view, target), est, True)
+    assert plan is not None
+    assert plan.done
+    assert plan.ambiguous == undecided, plan.reason
+    if undecided:
+        assert [grid.unflat(f) for f, _ in plan.alternatives] == [GridIndex(lat=2, lon=0)]
+        assert "lies within 1 σ of the boundary with lat 2 lon 0" in plan.reason
+
+
+def test_the_refined_estimate_is_less_certain_near_the_zenith(demo):
+    """The same box noise pins θ less near the zenith, where a step of θ moves the objects
+    little: the refinement's σ at lat 1 (θ = 15°) is larger than at lat 5 (θ = 45°)."""
+    from services.optimizer.strategies.map_based import map_estimate, map_views, plan_estimate
+
+    simulator, grid, views = demo
+    sigmas = {}
+    for lat in (1, 5):
+        flat = grid.flat(GridIndex(lat=lat, lon=2))
+        clean = simulator.clean_observation(views, flat)
+        rng = np.random.default_rng(3)
+        values = []
+        for _ in range(6):
+            target = photo(simulator, views, flat, rng)
+            current = Visit(flat, float(grid.theta_deg[flat]), float(grid.phi_deg[flat]), clean)
+            problem = SearchProblem(grid, simulator.camera, target, (current,))
+            found = map_estimate(problem, map_views(problem.history, grid, problem.camera, None))
+            assert found is not None
+            est, _, _ = plan_estimate(problem, current, found)
+            assert est.sigma_deg is not None
+            assert 0.0 < est.sigma_deg < 5.0
+            values.append(est.sigma_deg)
+        sigmas[lat] = float(np.median(values))
+    assert sigmas[1] > 1.5 * sigmas[5], sigmas

@@ -214,12 +214,12 @@ def plan_estimate(
     grid = problem.grid
     coverage = len(found.pairs) / max(len(problem.target), 1)
 
-    def estimate(theta: float, phi: float, residual: float) -> Estimate:
+    def estimate(theta: float, phi: float, residual: float, sigma: float | None = None) -> Estimate:
         tol = max(problem.tolerance_px, 2.0)
         confidence = coverage * math.exp(-0.5 * (residual / tol) ** 2)
         confidence /= 1 + len(found.alternatives)
         flat = int(grid.nearest_flat(theta, phi))
-        return Estimate(flat, theta, phi, residual, float(np.clip(confidence, 0.0, 1.0)))
+        return Estimate(flat, theta, phi, residual, float(np.clip(confidence, 0.0, 1.0)), sigma)
 
     # The refined pose speaks for a grid pose only where the prediction there is anchored to
     # that pose's own view; a map seen from elsewhere is not accurate enough to say that the
@@ -241,7 +241,7 @@ def plan_estimate(
         grid,
         _theta_bounds(grid),
     )
-    est = estimate(refined.theta_deg, refined.phi_deg, refined.residual_px)
+    est = estimate(refined.theta_deg, refined.phi_deg, refined.residual_px, refined.sigma_deg)
     if est.flat != current.flat or not math.isfinite(refined.residual_px):
         return est, None, None
     rival = _fit_elsewhere(grid, est.flat, refined, found.scores.coarse)
