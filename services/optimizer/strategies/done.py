@@ -230,8 +230,9 @@ def _ambiguous_if_undecided(
     within :data:`EDGE_MARGIN_STEPS` grid steps of angle (``d₂ − d₁``, the angles to the second
     nearest and the nearest grid pose) of the boundary between the two, where the estimate's own
     error (a few tenths of a degree, more from a single view) decides which is nearest; or when
-    fewer than :data:`MIN_ESTIMATE_PAIRS` pairs leave that error larger. The other pose becomes
-    an alternative."""
+    that boundary lies within :data:`SIGMA_MARGIN` of the estimate's σ; or when fewer than
+    :data:`MIN_ESTIMATE_PAIRS` pairs leave that error larger. The other pose becomes an
+    alternative."""
     if rival is not None and rival.flat != plan.next_flat:
         other = problem.grid.unflat(rival.flat)
         return replace(
