@@ -93,3 +93,7 @@ class Plan:
     ambiguous: bool
     alternatives: tuple[tuple[int, float], ...]
     reason: str
+    checks: tuple[int, ...] | None = None
+    """For an ambiguous done plan, the grid poses whose views can settle it: rendered, and none
+    matching the target, they leave this pose the answer (:mod:`~.strategies.settle`). None:
+    no view can settle it (too few detections pin the pose)."""

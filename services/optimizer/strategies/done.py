@@ -150,13 +150,15 @@ def done_plan(
     ambiguous: bool = False,
     alternatives: tuple[tuple[int, float], ...] = (),
     rival: Rival | None = None,
+    checks: tuple[int, ...] | None = None,
 ) -> Plan | None:
     """The done test shared by every strategy (module docstring), or None to keep searching.
 
     ``refined`` is a map-based strategy's refined continuous estimate nearest the current
     pose: its residual compares the target with the map's prediction at the off-grid pose.
     ``rival`` is a grid pose the estimate cannot rule out: an answer done on the estimate is
-    then ambiguous."""
+    then ambiguous. ``checks`` are the grid poses whose views settle an ``ambiguous`` answer
+    (:attr:`~services.optimizer.problem.Plan.checks`)."""
     tol = problem.tolerance_px
     trimmed = without_worst_pair(
         current.observation, problem.target, comparison, problem.max_unmatched
@@ -177,6 +179,7 @@ def done_plan(
         return Plan(
             True, current.flat, "stay", est, ambiguous, alternatives,
             f"the current view matches the target within {tol:g} px ({matched_text(comparison)})",
+            checks,
         )  # fmt: skip
     if not here:
         return None
@@ -188,7 +191,7 @@ def done_plan(
             plan = Plan(
                 True, current.flat, "stay", est, ambiguous, alternatives,
                 f"the estimate puts the target at this grid pose and the views agree within "
-                f"{loose:.2f} px ({matched_text(agreeing)})",
+                f"{loose:.2f} px ({matched_text(agreeing)})", checks,
             )  # fmt: skip
             return _ambiguous_if_undecided(problem, plan, len(agreeing.pairs), rival)
     loose = comparison.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
@@ -208,6 +211,7 @@ def done_plan(
             f"the target lies between grid poses, nearest this one: at the refined pose "
             f"θ = {est.theta_deg:.2f}°, φ = {est.phi_deg:.2f}° the predicted view matches it "
             f"within {refined_px:.2f} px (the grid view differs by {comparison.rms_px:.2f} px)",
+            checks,
         ), len(comparison.pairs), rival)  # fmt: skip
     return None
 
@@ -241,6 +245,7 @@ def _ambiguous_if_undecided(
             alternatives=(*plan.alternatives, (rival.flat, rival.score)),
             reason=f"{plan.reason}; ambiguous: {rival.why}: it cannot tell this grid pose from "
             f"lat {other.lat} lon {other.lon}",
+            checks=_more_checks(plan, (rival.flat,)),
         )
     est = plan.estimate
     if est is None or not math.isfinite(est.theta_deg + est.phi_deg):
@@ -260,6 +265,10 @@ def _ambiguous_if_undecided(
         return plan
     other = grid.unflat(second)
     residual = est.residual_px if est.residual_px is not None else 0.0
+    # The grid poses the estimate's error may reach: the nearer boundary's, and those within
+    # the σ band. Few pairs leave it wider than any band: no view settles that.
+    band = np.flatnonzero(angles - angles[nearest] < 2.0 * SIGMA_MARGIN * sigma)
+    reach = tuple(dict.fromkeys([second, *(int(f) for f in band if f != nearest)]))
     why = (
         f"only {pairs} pair(s) support the estimate θ = {est.theta_deg:.2f}°, "
         f"φ = {est.phi_deg:.2f}°: too few to tell this grid pose from lat {other.lat} "
@@ -277,4 +286,13 @@ def _ambiguous_if_undecided(
         ambiguous=True,
         alternatives=(*plan.alternatives, (second, float(residual))),
         reason=f"{plan.reason}; ambiguous: {why}",
+        checks=_more_checks(plan, None if few else reach),
     )
+
+
+def _more_checks(plan: Plan, flats: tuple[int, ...] | None) -> tuple[int, ...] | None:
+    """The checks of ``plan`` made ambiguous by one more cause, which the views of ``flats``
+    settle (None: no view does)."""
+    if flats is None or (plan.ambiguous and plan.checks is None):
+        return None
+    return tuple(dict.fromkeys((*(plan.checks or ()), *flats)))

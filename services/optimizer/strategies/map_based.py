@@ -93,6 +93,14 @@ class MapEstimate:
         return bool(self.reasons)
 
     @property
+    def checks(self) -> tuple[int, ...] | None:
+        """The grid poses whose views settle the map's ambiguity: its alternatives; None when
+        too few target detections match the map, which no view settles."""
+        if len(self.pairs) < 2:
+            return None
+        return tuple(flat for flat, _ in self.alternatives)
+
+    @property
     def note(self) -> str:
         return ("; ambiguous: " + "; ".join(self.reasons)) if self.reasons else ""
 
@@ -301,5 +309,6 @@ def estimate_or_done(
         found.ambiguous,
         found.alternatives,
         rival,
+        found.checks,
     )
     return est, here, None if done is None else replace(done, reason=done.reason + found.note)
