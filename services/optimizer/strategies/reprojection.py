@@ -8,16 +8,25 @@ pose is another visited one than the current: a target between grid poses may lo
 farther grid pose's view than its nearest one's (near the zenith a change of φ turns the whole
 image), and the refined pose then says the current pose is the nearest; the map's prediction
 there must then pair the target's detections (unpaired confidence within ``max_unmatched``), as
-the current view must otherwise.
+the current view must otherwise. An ambiguous answer is settled, while it can be, by rendering
+the poses its estimate could not rule out (:mod:`.settle`).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from services.optimizer.matching import compare_views
 from services.optimizer.problem import Plan, SearchProblem
 from services.optimizer.strategies.done import done_plan, matched_text
-from services.optimizer.strategies.map_based import estimate_or_done, map_estimate, map_views
+from services.optimizer.strategies.map_based import (
+    MapEstimate,
+    estimate_or_done,
+    map_estimate,
+    map_views,
+)
 from services.optimizer.strategies.moves import explore, move_between, start_plan
+from services.optimizer.strategies.settle import back_to_answer, settle, settling
 
 __all__ = ["plan_reprojection"]
 
@@ -28,16 +37,19 @@ def plan_reprojection(problem: SearchProblem) -> Plan:
     if current is None:
         return start_plan(problem)
     grid = problem.grid
-    found = map_estimate(
-        problem, map_views(problem.history, grid, problem.camera, problem.mappings)
-    )
+    pending = settling(problem, lambda history: _done_plan(replace(problem, history=history)))
+    if pending is not None and pending.answer.flat == current.flat:
+        return settle(problem, pending.plan)  # back at the answer: its own plan, settled
+    found = _found(problem)
     comparison = compare_views(current.observation, problem.target)
     if found is None:
         done = done_plan(problem, current, comparison, None, False)
         return done or explore(problem, current, "no object could be mapped from the views")
     est, here, done = estimate_or_done(problem, current, comparison, found)
     if done is not None:
-        return done
+        return settle(problem, done)
+    if pending is not None:
+        return back_to_answer(problem, pending)
     visited = {v.flat for v in problem.history}
     if found.best == current.flat and not here:
         nxt = est.flat
@@ -58,3 +70,18 @@ def plan_reprojection(problem: SearchProblem) -> Plan:
         False, nxt, move_between(grid, current.flat, nxt), est, found.ambiguous,
         found.alternatives, why + found.note,
     )  # fmt: skip
+
+
+def _found(problem: SearchProblem) -> MapEstimate | None:
+    return map_estimate(
+        problem, map_views(problem.history, problem.grid, problem.camera, problem.mappings)
+    )
+
+
+def _done_plan(problem: SearchProblem) -> Plan | None:
+    """The done plan at the current pose, before it is settled (None: not done there)."""
+    current, found = problem.current, _found(problem)
+    if current is None or found is None:
+        return None
+    comparison = compare_views(current.observation, problem.target)
+    return estimate_or_done(problem, current, comparison, found)[2]
