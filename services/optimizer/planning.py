@@ -50,12 +50,7 @@ from services.optimizer.observations import Observation, merge_duplicates
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 from services.optimizer.proxies import ProxyKind, kind_of
 from services.optimizer.start_pose import GridViewCache
-from services.optimizer.strategies import (
-    LOOSE_FACTOR,
-    NOISE_SIGMAS,
-    STRATEGIES,
-    CalibrationMissingError,
-)
+from services.optimizer.strategies import STRATEGIES, CalibrationMissingError, loose_tolerance
 from services.optimizer.view_cache import ViewMappings
 
 __all__ = ["STUCK_VISITS", "OptimizerContext", "check_box", "map_detections", "next_pose"]
@@ -273,7 +268,7 @@ def _match(comparison: ViewComparison | None, tolerance_px: float) -> ViewMatch 
     at its bound scores ``e^{-1/2}`` ≈ 0.61 of its paired share of confidence."""
     if comparison is None:
         return None
-    loose = comparison.tolerance(LOOSE_FACTOR * tolerance_px, NOISE_SIGMAS)
+    loose = loose_tolerance(comparison, tolerance_px)
     rms = comparison.rms_px if math.isfinite(comparison.rms_px) else None
     return ViewMatch(
         rms_px=rms,

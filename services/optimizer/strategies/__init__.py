@@ -17,7 +17,7 @@ from typing import Final
 from services.common.contracts.optimize import StrategyName
 from services.optimizer.problem import Plan, SearchProblem
 from services.optimizer.strategies import paper, simple
-from services.optimizer.strategies.done import LOOSE_FACTOR, NOISE_SIGMAS
+from services.optimizer.strategies.done import LOOSE_FACTOR, NOISE_SIGMAS, loose_tolerance
 from services.optimizer.strategies.paper import CalibrationMissingError
 from services.optimizer.strategies.reprojection import plan_reprojection
 
@@ -28,6 +28,7 @@ __all__ = [
     "STRATEGIES",
     "CalibrationMissingError",
     "StrategySpec",
+    "loose_tolerance",
     "plan_next",
 ]
 

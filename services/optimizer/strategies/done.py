@@ -75,7 +75,15 @@ from services.optimizer.geometry import FloatArray
 from services.optimizer.matching import ViewComparison, without_worst_pair
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 
-__all__ = ["LOOSE_FACTOR", "NOISE_SIGMAS", "Refined", "Rival", "done_plan", "matched_text"]
+__all__ = [
+    "LOOSE_FACTOR",
+    "NOISE_SIGMAS",
+    "Refined",
+    "Rival",
+    "done_plan",
+    "loose_tolerance",
+    "matched_text",
+]
 
 LOOSE_FACTOR: Final = 3.0
 """The loose done test's tolerance before noise, in strict tolerances (module docstring)."""
@@ -140,6 +148,11 @@ def matched_text(comparison: ViewComparison) -> str:
     return text
 
 
+def loose_tolerance(comparison: ViewComparison, tolerance_px: float) -> float:
+    """The loose done test's ``T = √((3 t)² + (z N)²)`` for ``comparison`` (module docstring)."""
+    return comparison.tolerance(LOOSE_FACTOR * tolerance_px, NOISE_SIGMAS)
+
+
 def done_plan(
     problem: SearchProblem,
     current: Visit,
@@ -186,7 +199,7 @@ def done_plan(
     for agreeing in (comparison, trimmed):
         if agreeing is None:
             continue
-        loose = agreeing.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
+        loose = loose_tolerance(agreeing, tol)
         if _within(agreeing, loose, problem):
             plan = Plan(
                 True, current.flat, "stay", est, ambiguous, alternatives,
@@ -194,7 +207,7 @@ def done_plan(
                 f"{loose:.2f} px ({matched_text(agreeing)})", checks,
             )  # fmt: skip
             return _ambiguous_if_undecided(problem, plan, len(agreeing.pairs), rival)
-    loose = comparison.tolerance(LOOSE_FACTOR * tol, NOISE_SIGMAS)
+    loose = loose_tolerance(comparison, tol)
     if refined is None or refined.residual_px > loose:
         return None
     # Refined at another view, the prediction pairs the target, not this view (which may look

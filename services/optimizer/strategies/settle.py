@@ -43,7 +43,7 @@ from typing import Final
 from services.optimizer.matching import compare_views, without_worst_pair
 from services.optimizer.observations import Observation
 from services.optimizer.problem import Plan, SearchProblem, Visit
-from services.optimizer.strategies.done import LOOSE_FACTOR, NOISE_SIGMAS
+from services.optimizer.strategies.done import loose_tolerance
 from services.optimizer.strategies.moves import move_between
 
 __all__ = ["MAX_CHECKS", "Settling", "back_to_answer", "settle", "settling"]
@@ -74,7 +74,7 @@ def _view_match(problem: SearchProblem, observation: Observation) -> tuple[float
         if match is None or not match.pairs:
             continue
         rms = min(rms, match.rms_px)
-        loose = match.tolerance(LOOSE_FACTOR * problem.tolerance_px, NOISE_SIGMAS)
+        loose = loose_tolerance(match, problem.tolerance_px)
         passes = passes or match.within(loose, problem.max_unmatched)
     return rms, passes, comparison.noise_px
 
