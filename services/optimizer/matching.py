@@ -11,7 +11,7 @@ then dropped.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Final
 
 import numpy as np
@@ -29,6 +29,7 @@ __all__ = [
     "assign",
     "box_rms",
     "compare_views",
+    "without_changed_object",
     "without_worst_pair",
 ]
 
@@ -111,6 +112,9 @@ class ViewComparison:
     unpaired_b: float = 0.0
     noise_px: float = 0.0
     paired_weight: float = 0.0
+    changed: str = ""
+    """The unpaired detections of one object left out of the comparison
+    (:func:`without_changed_object`), in words; empty when none was."""
 
     def tolerance(self, rms_px: float, sigmas: float) -> float:
         """``√(rms_px² + (sigmas · noise_px)²)``: a tolerance grown by the pairs' noise."""
@@ -199,3 +203,67 @@ def without_worst_pair(
     keep = np.arange(len(pairs)) != worst
     kept = Assignment(pairs.rows[keep], pairs.cols[keep], pairs.costs[keep])
     return _comparison(a, b, kept, distance)
+
+
+def without_changed_object(
+    a: Observation, b: Observation, comparison: ViewComparison
+) -> ViewComparison | None:
+    """``comparison`` with the unpaired detections of one object left out of its unpaired
+    confidence, when at least :data:`MIN_PAIRS_LEFT` pairs pin the pose; else None.
+
+    The site changed since its scene file: one object moved far (a detection without a partner
+    in each image, alike in class and colour), or left (one in ``a``, the rendered view, alone),
+    or came (one in ``b``, the photo, alone). Those detections then weigh as unpaired, often
+    beyond the done test's ``max_unmatched``, though the other objects agree to a pixel. The
+    one object left out is the choice of the three that leaves the larger of the two images'
+    unpaired confidence smallest; :func:`without_worst_pair` covers the object moved a little
+    (still paired, off)."""
+    pairs = comparison.pairs
+    if len(pairs) < MIN_PAIRS_LEFT:
+        return None
+    alone_a = np.setdiff1d(np.arange(len(a)), pairs.rows)
+    alone_b = np.setdiff1d(np.arange(len(b)), pairs.cols)
+    if len(alone_a) == 0 and len(alone_b) == 0:
+        return None
+    choices: list[tuple[int | None, int | None]] = []
+    if len(alone_a):
+        choices.append((int(alone_a[np.argmax(a.confidence[alone_a])]), None))
+    if len(alone_b):
+        choices.append((None, int(alone_b[np.argmax(b.confidence[alone_b])])))
+    if len(alone_a) and len(alone_b):
+        mismatch = max(a.mismatch_cost, b.mismatch_cost)
+        looks = appearance_cost(
+            [a.labels[i] for i in alone_a], a.colors[alone_a],
+            [b.labels[j] for j in alone_b], b.colors[alone_b], mismatch,
+        )  # fmt: skip
+        weight = a.confidence[alone_a][:, np.newaxis] + b.confidence[alone_b][np.newaxis, :]
+        weight = np.where(looks < COLOUR_GATE, weight, -np.inf)
+        if np.isfinite(weight).any():
+            row, col = np.unravel_index(int(np.argmax(weight)), weight.shape)
+            choices.append((int(alone_a[row]), int(alone_b[col])))
+
+    def left(choice: tuple[int | None, int | None]) -> tuple[float, float]:
+        i, j = choice
+        return (
+            comparison.unpaired_a - (float(a.confidence[i]) if i is not None else 0.0),
+            comparison.unpaired_b - (float(b.confidence[j]) if j is not None else 0.0),
+        )
+
+    chosen = min(choices, key=lambda c: max(left(c)))
+    unpaired_a, unpaired_b = left(chosen)
+    i, j = chosen
+    if i is not None and j is not None:
+        why = f"{a.labels[i]} ({a.confidence[i]:.2f}) moved since the scene file"
+    elif i is not None:
+        why = f"{a.labels[i]} ({a.confidence[i]:.2f}) not in the target: gone since the scene file"
+    else:
+        assert j is not None
+        why = f"{b.labels[j]} ({b.confidence[j]:.2f}) of the target not in the scene file"
+    return replace(
+        comparison,
+        unmatched_a=comparison.unmatched_a - (i is not None),
+        unmatched_b=comparison.unmatched_b - (j is not None),
+        unpaired_a=max(unpaired_a, 0.0),
+        unpaired_b=max(unpaired_b, 0.0),
+        changed=why,
+    )

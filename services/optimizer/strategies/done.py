@@ -13,11 +13,14 @@ weighs a third of a sure one. The search is done when
    the map's prediction at the refined continuous estimate matches the target that closely (a
    target between grid poses).
 
-Both tests are tried on the full match and, failing that, on the match with its worst pair
-left unpaired (:func:`~services.optimizer.matching.without_worst_pair`: at least three pairs
-stay and the two detections' confidence fits the ``max_unmatched`` allowance): one object moved
-since the scene file, or a doubtful box of the general detector put on another part of an
-object, must not hold up a view whose other objects agree to a pixel.
+Both tests are tried on the full match and, failing that, as if one object of the site changed
+since the scene file (:func:`one_object_changed`): with the worst pair left unpaired
+(:func:`~services.optimizer.matching.without_worst_pair`: at least three pairs stay and the two
+detections' confidence fits the ``max_unmatched`` allowance), or with one object's unpaired
+detections left out of the allowance
+(:func:`~services.optimizer.matching.without_changed_object`: moved far, gone, or come; at least
+three pairs). One object moved, removed or added, or a doubtful box of the general detector put
+on another part of an object, must not hold up a view whose other objects agree to a pixel.
 
 An answer done on the strength of the estimate (2.) whose estimate lies almost on the boundary
 between its grid pose and another (:data:`EDGE_MARGIN_STEPS`) is ambiguous: which of the two is
@@ -72,7 +75,12 @@ import numpy as np
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.sphere import pose_to_cartesian
 from services.optimizer.geometry import FloatArray
-from services.optimizer.matching import ViewComparison, without_worst_pair
+from services.optimizer.matching import (
+    ViewComparison,
+    without_changed_object,
+    without_worst_pair,
+)
+from services.optimizer.observations import Observation
 from services.optimizer.problem import Estimate, Plan, SearchProblem, Visit
 
 __all__ = [
@@ -83,6 +91,7 @@ __all__ = [
     "done_plan",
     "loose_tolerance",
     "matched_text",
+    "one_object_changed",
 ]
 
 LOOSE_FACTOR: Final = 3.0
@@ -145,6 +154,8 @@ def matched_text(comparison: ViewComparison) -> str:
     )
     if comparison.unmatched_a or comparison.unmatched_b:
         text += f" (confidence {comparison.unpaired_a:.2f} / {comparison.unpaired_b:.2f})"
+    if comparison.changed:
+        text += f", besides {comparison.changed}"
     return text
 
 
@@ -173,10 +184,8 @@ def done_plan(
     then ambiguous. ``checks`` are the grid poses whose views settle an ``ambiguous`` answer
     (:attr:`~services.optimizer.problem.Plan.checks`)."""
     tol = problem.tolerance_px
-    trimmed = without_worst_pair(
-        current.observation, problem.target, comparison, problem.max_unmatched
-    )
-    strict = next((c for c in (comparison, trimmed) if _within(c, tol, problem)), None)
+    matches = (comparison, *one_object_changed(problem, current.observation, comparison))
+    strict = next((c for c in matches if _within(c, tol, problem)), None)
     if strict is not None:
         comparison = strict
         if est is None or est.flat != current.flat:
@@ -196,9 +205,7 @@ def done_plan(
         )  # fmt: skip
     if not here:
         return None
-    for agreeing in (comparison, trimmed):
-        if agreeing is None:
-            continue
+    for agreeing in matches:
         loose = loose_tolerance(agreeing, tol)
         if _within(agreeing, loose, problem):
             plan = Plan(
@@ -227,6 +234,19 @@ def done_plan(
             checks,
         ), len(comparison.pairs), rival)  # fmt: skip
     return None
+
+
+def one_object_changed(
+    problem: SearchProblem, observation: Observation, comparison: ViewComparison
+) -> tuple[ViewComparison, ...]:
+    """The view's ``comparison`` with the target as it stands if one object of the site changed
+    since the scene file: without its worst pair, or without one object's unpaired detections
+    (:func:`~services.optimizer.matching.without_worst_pair`,
+    :func:`~services.optimizer.matching.without_changed_object`), those that exist."""
+    target = problem.target
+    trimmed = without_worst_pair(observation, target, comparison, problem.max_unmatched)
+    changed = without_changed_object(observation, target, comparison)
+    return tuple(c for c in (trimmed, changed) if c is not None)
 
 
 def _within(comparison: ViewComparison | None, rms_px: float, problem: SearchProblem) -> bool:

@@ -40,10 +40,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Final
 
-from services.optimizer.matching import compare_views, without_worst_pair
+from services.optimizer.matching import compare_views
 from services.optimizer.observations import Observation
 from services.optimizer.problem import Plan, SearchProblem, Visit
-from services.optimizer.strategies.done import loose_tolerance
+from services.optimizer.strategies.done import loose_tolerance, one_object_changed
 from services.optimizer.strategies.moves import move_between
 
 __all__ = ["MAX_CHECKS", "Settling", "back_to_answer", "settle", "settling"]
@@ -64,14 +64,13 @@ def _checks(plan: Plan) -> tuple[int, ...] | None:
 
 
 def _view_match(problem: SearchProblem, observation: Observation) -> tuple[float, bool, float]:
-    """A view's match with the target: its RMS (the smaller of the whole match's and the one
-    without its worst pair; ∞ with no pair), whether either passes the loose done test, and
-    the whole match's edge noise ``N``."""
+    """A view's match with the target: its RMS (the smallest of the whole match's and those as
+    if one object changed, :func:`~.done.one_object_changed`; ∞ with no pair), whether any
+    passes the loose done test, and the whole match's edge noise ``N``."""
     comparison = compare_views(observation, problem.target)
-    trimmed = without_worst_pair(observation, problem.target, comparison, problem.max_unmatched)
     rms, passes = math.inf, False
-    for match in (comparison, trimmed):
-        if match is None or not match.pairs:
+    for match in (comparison, *one_object_changed(problem, observation, comparison)):
+        if not match.pairs:
             continue
         rms = min(rms, match.rms_px)
         loose = loose_tolerance(match, problem.tolerance_px)
