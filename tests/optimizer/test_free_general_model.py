@@ -86,3 +86,27 @@ def test_general_model_labels_pair_the_visible_objects(general_target):
     for pair in answer.pose.correspondences:
         box = np.asarray(detections[pair.detection].box)
         assert np.sqrt(np.mean((box - shown[pair.object]) ** 2)) < 6.0
+
+
+def test_too_few_general_detections_point_to_a_detector_of_the_scene(general_target):
+    """Two boxes give no pose. With the general model, the likelier cause is its missing the
+    scene's unfamiliar shapes, not the photo: the advice names onboarding; the same two boxes
+    named by a scene's own detector (the objects' names) do not."""
+    objects, annotations, detections, (width, height) = general_target
+    truth = annotations.camera
+    k = Intrinsics(truth.fx, truth.fy, truth.cx, truth.cy)
+    two = sorted(detections, key=lambda d: -d.confidence)[:2]
+    answer = solve_free_pose(objects, two, width, height, k)
+    assert answer.status == "ambiguous", answer.reason
+    assert "cosmos scenes add" in answer.reason
+    shown = {o.name: np.asarray(o.box) for o in annotations.objects if o.box is not None}
+
+    def named(d):
+        box = np.asarray(d.box)
+        name = min(shown, key=lambda n: float(np.abs(shown[n] - box).max()))
+        return d.model_copy(update={"label": name})
+
+    own = solve_free_pose(objects, [named(d) for d in two], width, height, k)
+    assert own.status == "ambiguous", own.reason
+    assert "only 2 object(s) paired" in own.reason
+    assert "cosmos scenes add" not in own.reason
