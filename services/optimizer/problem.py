@@ -97,3 +97,8 @@ class Plan:
     """For an ambiguous done plan, the grid poses whose views can settle it: rendered, and none
     matching the target, they leave this pose the answer (:mod:`~.strategies.settle`). None:
     no view can settle it (too few detections pin the pose)."""
+    vindicated: bool = True
+    """Whether checks ruled out by their views confirm this pose. False when the estimate itself
+    prefers a check (:attr:`~.strategies.done.Rival.settled_by_views`): rendered, the check may
+    still pass its own done test and end the search there, but its worse view does not make
+    this pose right."""

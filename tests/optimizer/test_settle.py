@@ -203,3 +203,37 @@ def test_an_answer_whose_own_view_fails_the_loose_test_is_not_settled(demo):
     assert plan.ambiguous
     assert settle(problem, plan) is plan
     assert settle(_problem(demo, unsure), plan) is plan  # nor is its check rendered
+
+
+def test_a_rival_the_estimate_itself_prefers_is_rendered_but_its_worse_view_confirms_nothing(
+    demo,
+):
+    """A robust fit nearer another grid pose: that pose is rendered (its own done test may end
+    the search there), but its view being worse does not make this one right (near the zenith
+    a pose of the target's φ a ring farther off matched better than the rival), so the answer
+    stays ambiguous; a rival the estimate has no say on (an unrefined estimate's best
+    neighbour) is ruled out by the same view, and the answer confirmed."""
+    from services.optimizer.strategies.done import Rival
+
+    answer = _answer(demo)
+    far = _check(demo, Observation.from_arrays(["sphere"] * 3, row(3) + 12.0))
+    est = Estimate(answer.flat, 15.0, 0.0, 0.4, 0.9)
+    comparison = compare_views(answer.observation, TARGET)
+    for rival, vindicated in (
+        (Rival(far.flat, 0.1, "a robust fit nearer it", settled_by_views=False), False),
+        (Rival(far.flat, 0.1, "an unrefined estimate"), True),
+    ):
+        first = _problem(demo, answer)
+        plan = done_plan(first, answer, comparison, est, True, rival=rival)
+        assert plan is not None
+        assert plan.checks == (far.flat,)
+        assert plan.vindicated is vindicated
+        moved = settle(first, plan)
+        assert not moved.done
+        assert moved.next_flat == far.flat
+        back = _problem(demo, answer, far, answer)
+        settled = settle(back, plan)
+        assert settled.done
+        assert settled.ambiguous is not vindicated, settled.reason
+        if not vindicated:
+            assert "yet the estimate prefers it" in settled.reason

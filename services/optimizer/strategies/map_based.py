@@ -289,7 +289,7 @@ def _fit_elsewhere(
         f"the robust refinement puts the target at θ = {theta:.2f}°, φ = {phi:.2f}°, nearer "
         f"another grid pose; this one is kept only for its smaller RMS"
     )
-    return Rival(other, float(scores[other]), why)
+    return Rival(other, float(scores[other]), why, settled_by_views=False)
 
 
 def estimate_or_done(
