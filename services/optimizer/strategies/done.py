@@ -259,8 +259,8 @@ def one_object_changed(
     return tuple(c for c in (trimmed, changed) if c is not None)
 
 
-def _within(comparison: ViewComparison | None, rms_px: float, problem: SearchProblem) -> bool:
-    return comparison is not None and comparison.within(rms_px, problem.max_unmatched)
+def _within(comparison: ViewComparison, rms_px: float, problem: SearchProblem) -> bool:
+    return comparison.within(rms_px, problem.max_unmatched)
 
 
 @functools.lru_cache(maxsize=16)
