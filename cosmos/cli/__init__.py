@@ -24,12 +24,14 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+import httpx
+
 from cosmos.cli import bench, demo, keys, onboard, render, scenes, search, up
 from services.common.errors import ServiceError
 from services.controller.client import ControllerError
 from services.renderer.client import RendererError
 
-__all__ = ["main"]
+__all__ = ["main", "unreachable"]
 
 COMMANDS = (scenes, onboard, render, demo, up, keys, search, bench)
 """The command modules, in the order ``cosmos --help`` lists them."""
@@ -43,6 +45,24 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def unreachable(exc: httpx.TransportError) -> str:
+    """What to tell a person whose command could not reach a service: which address, what
+    went wrong, and how to get a stack there."""
+    try:
+        url = exc.request.url
+        where = f"{url.scheme}://{url.netloc.decode()}"
+    except RuntimeError:  # an error raised without its request
+        where = "the service"
+    if isinstance(exc, httpx.TimeoutException):
+        what = "did not answer in time"
+    else:
+        what = f"cannot be reached ({exc or type(exc).__name__})"
+    return (
+        f"{where} {what}: start the services with `cosmos up` (or `cosmos demo` for a whole "
+        "search in one command), or pass --url with the address of a running stack"
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``cosmos``; returns the exit status."""
     args = _parser().parse_args(argv)
@@ -53,5 +73,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except (RendererError, ControllerError, RuntimeError, ValueError, OSError) as exc:
         print(f"cosmos: {exc}", file=sys.stderr)
+        return 1
+    except httpx.TransportError as exc:
+        print(f"cosmos: {unreachable(exc)}", file=sys.stderr)
         return 1
     return status

@@ -3,11 +3,13 @@ search end to end: tests/test_e2e_free.py)."""
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 
+import httpx
 import pytest
 
-from cosmos.cli import main
+from cosmos.cli import main, unreachable
 
 
 @pytest.mark.parametrize(
@@ -77,3 +79,37 @@ def test_a_free_iteration_says_whether_its_render_agreed(
     )
     _print_free_iteration(it)
     assert capsys.readouterr().out.rstrip().endswith(f"  {said}")
+
+
+def _closed_port() -> int:
+    """A local port that nothing listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.parametrize("command", ["search", "scenes", "render"])
+def test_no_stack_at_the_url_is_one_line_that_says_what_to_do(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """A search before ``cosmos up`` printed httpx's traceback."""
+    photo = tmp_path / "photo.png"
+    photo.write_bytes(b"\x89PNG\r\n\x1a\n")
+    url = f"http://127.0.0.1:{_closed_port()}"
+    argv = {
+        "search": ["search", str(photo), "--scene", "demo", "--url", url, "--retry-for", "0"],
+        "scenes": ["scenes", "--url", url],
+        "render": ["render", "--scene", "demo", "--url", url, "-o", str(tmp_path / "v.png")],
+    }[command]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"cosmos: {url} cannot be reached (")
+    assert "cosmos up" in err
+    assert "Traceback" not in err
+    assert err.count("\n") == 1
+
+
+def test_a_service_that_does_not_answer_in_time_is_named() -> None:
+    request = httpx.Request("POST", "http://10.0.0.7:8000/searches")
+    said = unreachable(httpx.ReadTimeout("timed out", request=request))
+    assert said.startswith("http://10.0.0.7:8000 did not answer in time: ")
