@@ -105,6 +105,28 @@ def test_a_free_camera_is_found_through_the_services(stack):
     assert np.array_equal(pixels(view.content), pixels(direct))
 
 
+def test_a_48_megapixel_drone_jpeg_is_found(stack):
+    """A drone camera's photo, 8064 x 6048 (48 MP; stood in for by a 2048 x 1536 render
+    enlarged): the services' limits took nothing over 16.8 MP until stop 42."""
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, truth = renderer.render_camera("demo", DRONE, width=2048, height=1536, spp=16)
+    photo = cv2.resize(pixels(image), (8064, 6048), interpolation=cv2.INTER_LINEAR)
+    ok, jpeg = cv2.imencode(".jpg", photo, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
+    final = search_for(stack, jpeg.tobytes(), fov_deg=truth.camera.fov_deg)
+    assert final.status == "succeeded", final.error
+    assert final.result is not None
+    free = final.result.free
+    assert free is not None
+    assert free.status == "found", final.result.reason
+    assert final.result.renders == 1
+    assert math.dist(free.pose.position, DRONE.position) < 0.02 * RADIUS
+    assert rotation_error_deg(free.pose.quaternion_wxyz, DRONE) < 1.0
+    # the answer is in the photo's own pixels
+    assert free.pose.intrinsics.cx_px == pytest.approx(4032.0)
+    assert free.pose.intrinsics.cy_px == pytest.approx(3024.0)
+
+
 def test_without_intrinsics_the_focal_length_is_estimated_and_said_so(stack):
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, truth = renderer.render_camera("demo", DRONE)

@@ -29,7 +29,7 @@ Credentials are checked before any of this, from the request's head: the stages'
 refuse a stranger's request before its body is admitted or read.
 
 With the defaults (:meth:`BodyLimits.for_limit`), ``limit_bytes`` is four maximal bodies: for a
-20 MiB upload limit, 80 MiB of large bodies and a 20 MiB lane of bodies up to 1.25 MiB.
+48 MiB upload limit, 192 MiB of large bodies and a 48 MiB lane of bodies up to 3 MiB.
 """
 
 from __future__ import annotations

@@ -6,6 +6,7 @@ from typing import Annotated
 
 from pydantic import Field, field_validator, model_validator
 
+from services.common import DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_UPLOAD_BYTES
 from services.common.auth import ServiceTokenSettings
 from services.common.bodies import (
     DEFAULT_BODY_TIMEOUT_S,
@@ -79,13 +80,13 @@ class ControllerSettings(ServiceTokenSettings):
     controller_outage_budget_s: Annotated[float, Field(ge=0, le=3600)] = 60.0
     """How long a search waits for a stage that no replica serves to come back before it fails
     (0: it fails at once); a search failed so can be resumed (``POST /searches/{id}/retry``)."""
-    controller_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
+    controller_max_upload_bytes: Annotated[int, Field(ge=1024)] = DEFAULT_MAX_UPLOAD_BYTES
     """Request body limit of a submitted target, in bytes."""
     controller_body_budget_bytes: Annotated[int, Field(ge=1024)] | None = None
     """Request-body bytes held at once (:mod:`services.common.bodies`): a request waits for
     its declared length before its body is read. Bodies up to 1/16 of the upload limit count in
     a lane of their own, a quarter of this, so they never wait behind maximal uploads. None:
-    four maximal uploads (80 MiB), which keep the loop and the decoder busy."""
+    four maximal uploads (192 MiB), which keep the loop and the decoder busy."""
     controller_body_wait_s: Annotated[float, Field(ge=0, le=300, allow_inf_nan=False)] = (
         DEFAULT_BODY_WAIT_S
     )
@@ -99,7 +100,7 @@ class ControllerSettings(ServiceTokenSettings):
     )
     """A body must arrive within ``timeout_s + bytes / min_bytes_per_s`` of its admission, else
     408 and the connection is closed (a trickling client holds budget no longer)."""
-    controller_max_image_pixels: Annotated[int, Field(ge=64)] = 4096 * 4096
+    controller_max_image_pixels: Annotated[int, Field(ge=64)] = DEFAULT_MAX_IMAGE_PIXELS
     """Decoded width x height of a target, read from its header before decoding."""
     controller_max_image_side: Annotated[int, Field(ge=8)] = 8192
     """The longest side of a target image, in pixels."""

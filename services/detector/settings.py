@@ -7,6 +7,7 @@ from typing import Annotated
 
 from pydantic import Field, model_validator
 
+from services.common import DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_UPLOAD_BYTES
 from services.common.auth import ServiceTokenSettings
 from services.common.bodies import (
     DEFAULT_BODY_TIMEOUT_S,
@@ -63,7 +64,9 @@ class DetectorSettings(ServiceTokenSettings):
     answered); more wait, and an image that alone needs more gets 413."""
     detector_decode_wait_s: Annotated[float, Field(ge=0.0, le=60.0, allow_inf_nan=False)] = 5.0
     """How long a request waits for decode bytes before it gets 503; 0 refuses at once."""
-    detector_max_upload_bytes: Annotated[int, Field(ge=1024)] = 20 * 1024 * 1024
+    detector_max_upload_bytes: Annotated[int, Field(ge=1024)] = (
+        DEFAULT_MAX_UPLOAD_BYTES + 1024 * 1024
+    )
     """Request body limit (the multipart body, so a little over the image itself)."""
     detector_body_budget_bytes: Annotated[int, Field(ge=1024)] | None = None
     """Request-body bytes held at once, before the decode budget applies
@@ -83,7 +86,9 @@ class DetectorSettings(ServiceTokenSettings):
     )
     """A body must arrive within ``timeout_s + bytes / min_bytes_per_s`` of its admission, else
     408 and the connection is closed."""
-    detector_max_image_pixels: Annotated[int, Field(ge=64, le=HARD_MAX_IMAGE_PIXELS)] = 4096 * 4096
+    detector_max_image_pixels: Annotated[int, Field(ge=64, le=HARD_MAX_IMAGE_PIXELS)] = (
+        DEFAULT_MAX_IMAGE_PIXELS
+    )
     """Decoded width x height, checked from the file header before anything is decoded."""
     detector_max_image_side: Annotated[int, Field(ge=8, le=65_535)] = 16_384
     """The longest side of an uploaded image, in pixels, read from its header."""

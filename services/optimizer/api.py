@@ -12,6 +12,7 @@ from pydantic import BaseModel, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
+from services.common import DEFAULT_MAX_IMAGE_PIXELS
 from services.common.contracts.free import FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import (
     MapRequest,
@@ -53,7 +54,9 @@ class OptimizerState:
 
     context: OptimizerContext
     free_objects: SceneObjectCache = field(default_factory=SceneObjectCache)
-    image_limits: ImageLimits = field(default_factory=lambda: ImageLimits(4096 * 4096, 16_384))
+    image_limits: ImageLimits = field(
+        default_factory=lambda: ImageLimits(DEFAULT_MAX_IMAGE_PIXELS, 16_384)
+    )
     target_maps: TargetMapCache = field(default_factory=TargetMapCache)
 
 
