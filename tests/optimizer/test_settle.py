@@ -17,7 +17,7 @@ from services.optimizer.strategies.done import done_plan
 from services.optimizer.strategies.settle import (
     MAX_CHECKS,
     Settling,
-    back_to_answer,
+    next_check,
     settle,
     settling,
 )
@@ -160,13 +160,13 @@ def _settling(demo, *visits: Visit) -> Settling | None:
     return settling(problem, lambda history: _edge_plan(replace(problem, history=history)))
 
 
-def test_a_check_that_is_not_done_goes_back_to_the_answer(demo):
+def test_the_last_check_that_is_not_done_goes_back_to_the_answer(demo):
     far = Observation.from_arrays(["sphere"] * 3, row(3) + 12.0)
     answer, check = _answer(demo), _check(demo, far)
     pending = _settling(demo, answer, check)
     assert pending is not None
     assert pending.answer is answer
-    back = back_to_answer(_problem(demo, answer, check), pending)
+    back = next_check(_problem(demo, answer, check), pending)
     assert not back.done
     assert back.next_flat == answer.flat
     assert back.move == "N"
@@ -176,6 +176,44 @@ def test_a_check_that_is_not_done_goes_back_to_the_answer(demo):
     assert again is not None
     assert again.answer is answer
     assert again.plan == pending.plan
+
+
+def test_checks_are_rendered_in_a_row_and_the_answer_seen_twice(demo):
+    """Three checks: each view not done goes on to the next, the last back to the answer,
+    which their views then leave standing alone. The answer is seen twice: a return after each
+    check would have seen it four times, and the optimizer calls a pose seen three times
+    stuck."""
+    camera, grid = demo
+    far = Observation.from_arrays(["sphere"] * 3, row(3) + 12.0)
+    answer = _answer(demo)
+    flats = tuple(grid.flat(GridIndex(lat=2, lon=k)) for k in (0, 1, 2))
+    checks = [Visit(f, 22.5, 45.0 * k, far) for k, f in enumerate(flats)]
+    est = Estimate(answer.flat, 15.0, 0.0, 0.4, 0.9)
+    plan = Plan(True, answer.flat, "stay", est, True, (), "ambiguous", flats)
+
+    def plan_at(history: tuple[Visit, ...]) -> Plan | None:
+        return plan if history[-1] is answer else None
+
+    first = settle(_problem(demo, answer), plan)
+    assert not first.done
+    assert first.next_flat == flats[0]
+    for i in range(3):
+        problem = _problem(demo, answer, *checks[: i + 1])
+        pending = settling(problem, plan_at)
+        assert pending is not None
+        assert pending.answer is answer
+        step = next_check(problem, pending)
+        assert step.next_flat == (flats[i + 1] if i < 2 else answer.flat)
+        assert ("on to lat 2" if i < 2 else "back there") in step.reason
+    problem = _problem(demo, answer, *checks, answer)
+    pending = settling(problem, plan_at)
+    assert pending is not None
+    settled = settle(problem, pending.plan)
+    assert settled.done
+    assert not settled.ambiguous
+    assert "settled by rendering" in settled.reason
+    # a check seen twice is no settling of this kind
+    assert settling(_problem(demo, answer, checks[0], checks[0]), plan_at) is None
 
 
 def test_only_checks_of_an_answer_its_view_vouches_for_are_being_settled(demo):

@@ -26,7 +26,7 @@ from services.optimizer.strategies.map_based import (
     map_views,
 )
 from services.optimizer.strategies.moves import explore, move_between, start_plan
-from services.optimizer.strategies.settle import back_to_answer, settle, settling
+from services.optimizer.strategies.settle import next_check, settle, settling
 
 __all__ = ["plan_reprojection"]
 
@@ -49,7 +49,7 @@ def plan_reprojection(problem: SearchProblem) -> Plan:
     if done is not None:
         return settle(problem, done)
     if pending is not None:
-        return back_to_answer(problem, pending)
+        return next_check(problem, pending)
     visited = {v.flat for v in problem.history}
     if found.best == current.flat and not here:
         nxt = est.flat
