@@ -65,7 +65,8 @@ __all__ = ["MAX_CHECKS", "Settling", "next_check", "settle", "settling"]
 
 MAX_CHECKS: Final = 5
 """An answer with more checks than this is not settled; each check costs one render. The map
-flags at most five distant alternatives (``map_based``), so every map ambiguity is settled."""
+flags at most five distant alternatives (``map_based``): the map's ambiguity alone is always
+settled."""
 
 
 def _checks(plan: Plan) -> tuple[int, ...] | None:
