@@ -29,6 +29,7 @@ from services.common.geometry.pose import GridIndex, PoseQuery
 from services.common.images import encode_ppm
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
+from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
 from tests.support import e2e_stack, fuzz_service
 
@@ -367,7 +368,8 @@ def test_unknown_searches_and_oversized_uploads_and_no_key(stack):
             response = http.request(method, path)
             assert response.status_code == 404
             assert response.headers["content-type"] == "application/problem+json"
-        huge = {"image": ("t.png", b"\x89PNG" + b"\0" * (21 * 1024 * 1024), "image/png")}
+        limit = ControllerSettings.model_fields["controller_max_upload_bytes"].default
+        huge = {"image": ("t.png", b"\x89PNG" + b"\0" * (limit + 1024 * 1024), "image/png")}
         response = http.post("/searches", files=huge, data={"scene": "demo"})
         assert response.status_code == 413
 
