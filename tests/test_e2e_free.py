@@ -107,7 +107,7 @@ def test_a_free_camera_is_found_through_the_services(stack):
 
 def test_a_48_megapixel_drone_jpeg_is_found(stack):
     """A drone camera's photo, 8064 x 6048 (48 MP; stood in for by a 2048 x 1536 render
-    enlarged): the services' limits took nothing over 16.8 MP until stop 42."""
+    enlarged): the services' limits used to refuse anything over 16.8 MP."""
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, truth = renderer.render_camera("demo", DRONE, width=2048, height=1536, spp=16)
     photo = cv2.resize(pixels(image), (8064, 6048), interpolation=cv2.INTER_LINEAR)

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from services.common import DEFAULT_MAX_IMAGE_PIXELS
+from services.common import DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_UPLOAD_BYTES
 from services.common.auth import ServiceTokenSettings
 from services.common.bodies import BodyLimits
 from services.common.catalog import BUILTIN_SCENES_DIR
@@ -35,7 +35,9 @@ class OptimizerSettings(ServiceTokenSettings):
     """The largest grid one request may have scored, in poses."""
     optimizer_max_history_detections: Annotated[int, Field(ge=1, le=1_000_000)] = 4_000
     """Detections of the visited views one request may carry."""
-    optimizer_max_body_bytes: Annotated[int, Field(ge=1024)] = 64 * 1024 * 1024
+    optimizer_max_body_bytes: Annotated[int, Field(ge=1024)] = (
+        DEFAULT_MAX_UPLOAD_BYTES + 16 * 1024 * 1024
+    )
     """Request body limit, in bytes: a ``/refine-pose`` form carries the target (the controller
     takes uploads up to 48 MiB) and the render's archive (9 bytes a pixel: 2.8 MB at 640x480).
     Four maximal bodies may be held at once; bodies up to 1/16 of this (every JSON request)
