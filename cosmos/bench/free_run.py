@@ -48,7 +48,7 @@ from cosmos.bench.free_bench.report import (
 )
 from cosmos.bench.free_bench.searching import StackCalls, search_target
 from cosmos.bench.free_bench.targets import VariantImage, variant_image
-from cosmos.bench.free_targets.draw import DrawError, FreeTarget, draw_targets
+from cosmos.bench.free_targets.draw import FOV_RANGE, DrawError, FreeTarget, draw_targets
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.free_targets.solve import box_only_bound
@@ -84,6 +84,7 @@ def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
         "spp": config.spp,
         "width": config.width,
         "target_width": config.target_width,
+        "fov_range": list(config.fov_range or FOV_RANGE),
         "max_iterations": config.max_iterations,
     }
 
@@ -113,6 +114,7 @@ def _jobs(
             targets = draw_targets(
                 renderer, scene, shapes, config.n, config.seed,
                 width=config.target_width, spp=TARGET_SPP, only=pending,
+                fov_range=config.fov_range or FOV_RANGE,
             )  # fmt: skip
         except DrawError as exc:
             notes.append(f"skipped {scene_id}: {exc}")
@@ -251,6 +253,8 @@ def _run(config: BenchConfig, root: Path) -> int:
     with open_endpoints(config, spp=config.spp, width=config.width, scene_dirs=(scene_dir,)) as ep:
         machine = machine_info(services_info(ep, config.spp, config.width))
         machine["target_width"] = config.target_width or "scene's own (its camera's film)"
+        low, high = config.fov_range or FOV_RANGE
+        machine["target_fov"] = f"{low:g}-{high:g} times the scene camera's"
         ep.warm(scenes)
         calls = StackCalls(
             ep.controller, ep.renderer, ep.detectors[0], ep.api_key, ep.service_token,

@@ -95,6 +95,9 @@ class BenchConfig:
     """Free-camera targets (``cosmos bench --free``, :mod:`cosmos.bench.free_bench`)."""
     target_width: int | None = None
     """With ``free``: the targets' film width (the scene camera's aspect); None: its film."""
+    fov_range: tuple[float, float] | None = None
+    """With ``free``: the targets' fov as factors of the scene camera's; None: issue 23's
+    ±30 % (:data:`~cosmos.bench.free_targets.draw.FOV_RANGE`)."""
     chunk_minutes: float | None = None
     """With ``free``: stop starting searches after this long; the same command resumes."""
     regenerate: bool = False

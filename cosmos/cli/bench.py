@@ -14,6 +14,18 @@ def _csv(value: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in value.split(",") if part.strip())
 
 
+def _fov_range(value: str) -> tuple[float, float]:
+    """``LO,HI``: factors of the scene camera's fov, ``0 < LO <= HI``."""
+    parts = _csv(value)
+    try:
+        low, high = (float(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"--fov-range wants LO,HI (two numbers), not {value!r}") from None
+    if not 0.0 < low <= high < 10.0:
+        raise ValueError(f"--fov-range wants 0 < LO <= HI < 10, not {value!r}")
+    return low, high
+
+
 def run(args: argparse.Namespace) -> int:
     from cosmos.bench import VARIANTS, BenchConfig, run
     from cosmos.bench.free_bench.targets import FREE_BENCH_VARIANTS
@@ -42,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
                 f"--target-width must be 16 to {most} pixels (the renderer's longest side, "
                 "COSMOS_RENDERER_MAX_SIDE)"
             )
+    fov_range = _fov_range(args.fov_range) if args.fov_range is not None else None
+    if fov_range is not None and not args.free:
+        raise ValueError("--fov-range draws free targets: add --free")
     for name, given, allowed in (
         ("strategy", strategies, ("simple", "paper", "reprojection")),
         ("variant", variants, allowed_variants),
@@ -81,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         scenes_out=Path(args.scenes_out) if args.scenes_out else None,
         free=args.free,
         target_width=args.target_width,
+        fov_range=fov_range,
         chunk_minutes=args.chunk_minutes,
         regenerate=args.regenerate,
         verbose=args.verbose,
@@ -178,6 +194,12 @@ def register(commands: Commands) -> None:
         metavar="PX",
         help="with --free: draw the targets this wide, at the scene camera's aspect (a drone's "
         "photo is larger than the views; default the scene camera's film)",
+    )
+    bench.add_argument(
+        "--fov-range",
+        metavar="LO,HI",
+        help="with --free: draw the targets' fov within these factors of the scene camera's "
+        "(a drone's lens may be far wider; default 0.7,1.3, issue 23's ±30 %%)",
     )
     bench.add_argument(
         "--chunk-minutes",

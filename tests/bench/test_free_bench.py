@@ -116,9 +116,14 @@ def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
         (["--target-width", "400"], "--target-width draws free targets: add --free"),
         (["--free", "--target-width", "4096"], "--target-width must be 16 to 2048 pixels"),
         (["--free", "--target-width", "0"], "--target-width must be 16 to 2048 pixels"),
+        (["--fov-range", "1,2"], "--fov-range draws free targets: add --free"),
+        (["--free", "--fov-range", "2,1"], "--fov-range wants 0 < LO <= HI < 10"),
+        (["--free", "--fov-range", "0,1"], "--fov-range wants 0 < LO <= HI < 10"),
+        (["--free", "--fov-range", "nan,1"], "--fov-range wants 0 < LO <= HI < 10"),
+        (["--free", "--fov-range", "1"], "--fov-range wants LO,HI (two numbers)"),
     ],
 )
-def test_a_target_width_is_refused_before_anything_runs(tmp_path, capsys, flags, said):
+def test_a_target_width_or_fov_range_is_refused_before_anything_runs(tmp_path, capsys, flags, said):
     status = main(["bench", *flags, "--out", str(tmp_path), "--results-md", ""])
     assert status == 1
     assert said in capsys.readouterr().err
@@ -163,6 +168,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
             "--variants", "clean",
             "--seed", "1",
             "--target-width", "400",
+            "--fov-range", "1.1,1.2",
             "--out", str(out),
             "--results-md", str(results_md),
         ]
@@ -173,6 +179,8 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
     assert report["complete"]
     assert report["planned"] == 2
     assert report["config"]["target_width"] == report["machine"]["target_width"] == 400
+    assert report["config"]["fov_range"] == [1.1, 1.2]
+    assert report["machine"]["target_fov"] == "1.1-1.2 times the scene camera's"
     assert not (out / "free.checkpoint.jsonl").exists()  # removed once complete
     records = [FreeRecord.model_validate(r) for r in report["records"]]
     catalog, objects = SceneCatalog(RendererSettings().scene_directories()), SceneObjectCache()
@@ -194,6 +202,8 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         assert r.refine_ms > 0  # and the dense fit by it
         raw, query = answered[r.search_id]
         target = drawn[r.search_id]
+        assert target.camera.fov_deg is not None  # --fov-range: 1.1-1.2 times demo's 45°
+        assert 1.1 <= target.camera.fov_deg / 45.0 <= 1.2
         assert query["mode"] == "free"
         if r.intrinsics_given:  # the fov went to the controller only when the target gives it
             assert float(query["fov_deg"]) == pytest.approx(target.annotations.camera.fov_deg)

@@ -125,6 +125,21 @@ def test_drawn_cameras_keep_every_constraint(targets: list[FreeTarget], garden: 
     assert sum(not t.intrinsics_given for t in targets) == round(COUNT / 3)
 
 
+def test_a_fov_range_widens_the_lenses_drawn(renderer: LocalRenderer, garden: LoadedScene):
+    width, height = FILM
+    shapes, spec = scene_shapes(garden), garden.spec.camera
+    wide = draw_targets(
+        renderer, garden, shapes, 3, SEED, width=width, height=height, spp=1,
+        fov_range=(1.5, 1.6),
+    )  # fmt: skip
+    for target in wide:
+        assert target.camera.fov_deg is not None
+        assert 1.5 <= target.camera.fov_deg / spec.fov_deg <= 1.6
+        assert target.annotations.camera.fov_deg == pytest.approx(target.camera.fov_deg)
+    with pytest.raises(DrawError, match="leaves"):  # a pinhole's fov stays below 170°
+        draw_targets(renderer, garden, shapes, 1, SEED, fov_range=(1.0, 170.0 / spec.fov_deg))
+
+
 def test_drawing_is_seeded(renderer: LocalRenderer, garden: LoadedScene, targets):
     shapes = scene_shapes(garden)
     width, height = FILM

@@ -18,8 +18,9 @@ give no intrinsics, the elevation slices), so each target of a draw is reproduci
   none above 60°, where distance trades against focal length. The camera looks at the point,
   so its pitch is ε;
 * its azimuth uniform in [0°, 360°), its roll uniform in ±25°;
-* its horizontal fov uniform within ±30 % of the scene camera's; a third of the targets (again a
-  seeded permutation) are flagged as not giving their intrinsics.
+* its horizontal fov uniform within ±30 % of the scene camera's (:data:`FOV_RANGE`; a drone's
+  lens may lie farther from the scene file's camera: ``fov_range`` widens it); a third of the
+  targets (again a seeded permutation) are flagged as not giving their intrinsics.
 
 The elevation and the fov are drawn once per target. A camera that stands below the ground or
 inside an object's bounding box, or that does not see at least :data:`MIN_OBJECTS` objects at
@@ -55,8 +56,10 @@ __all__ = [
     "BANDS",
     "DISTANCE_RANGE",
     "ELEVATION_RANGE_DEG",
+    "FOV_RANGE",
     "FOV_SPREAD",
     "FREE_VARIANTS",
+    "MAX_FOV_DEG",
     "MIN_OBJECTS",
     "MIN_VISIBLE",
     "NADIR_SHARE",
@@ -83,6 +86,10 @@ NADIR_SHARE: Final = 0.15
 ROLL_LIMIT_DEG: Final = 25.0
 FOV_SPREAD: Final = 0.30
 """The fov lies within ±this fraction of the scene camera's."""
+FOV_RANGE: Final = (1.0 - FOV_SPREAD, 1.0 + FOV_SPREAD)
+"""The fov's range as factors of the scene camera's (issue 23's ±30 %)."""
+MAX_FOV_DEG: Final = 170.0
+"""No target's fov reaches this (a pinhole's fov stays below 180°)."""
 NOT_GIVEN_SHARE: Final = 1.0 / 3.0
 """The share of targets that do not give their intrinsics."""
 AREA_MARGIN: Final = 0.05
@@ -210,19 +217,22 @@ def elevation_strata(
 
 
 def draw_elevation_fov(
-    scene: LoadedScene, stratum: tuple[int, int] | None, rng: np.random.Generator
+    scene: LoadedScene,
+    stratum: tuple[int, int] | None,
+    rng: np.random.Generator,
+    fov_range: tuple[float, float] = FOV_RANGE,
 ) -> tuple[float, float]:
     """A target's elevation and fov in degrees (module docstring): the elevation uniform within
     slice ``j`` of ``m`` of :data:`ELEVATION_RANGE_DEG` for ``stratum`` ``(j, m)``, 90° for
-    None (nadir). Drawn once per target, so that the cameras redrawn for visibility keep their
-    distribution."""
+    None (nadir); the fov uniform within ``fov_range`` times the scene camera's. Drawn once per
+    target, so that the cameras redrawn for visibility keep their distribution."""
     if stratum is None:
         elevation = 90.0
     else:
         j, m = stratum
         lo, hi = ELEVATION_RANGE_DEG
         elevation = lo + (j + float(rng.uniform())) * (hi - lo) / m
-    fov = scene.spec.camera.fov_deg * float(rng.uniform(1.0 - FOV_SPREAD, 1.0 + FOV_SPREAD))
+    fov = scene.spec.camera.fov_deg * float(rng.uniform(*fov_range))
     return elevation, fov
 
 
@@ -292,18 +302,26 @@ def draw_targets(
     spp: int = 16,
     max_tries: int = MAX_TRIES,
     only: Collection[int] | None = None,
+    fov_range: tuple[float, float] = FOV_RANGE,
 ) -> list[FreeTarget]:
     """``count`` free targets of ``scene`` (module docstring), rendered by ``renderer`` on a
-    ``width`` x ``height`` film (the scene camera's by default) at ``spp`` samples; with
-    ``only``, just the targets of those indices (each is the same as in the whole draw).
+    ``width`` x ``height`` film (the scene camera's by default) at ``spp`` samples, their fov
+    within ``fov_range`` times the scene camera's; with ``only``, just the targets of those
+    indices (each is the same as in the whole draw).
 
     Raises
     ------
     DrawError
         No camera of ``max_tries`` drawn for one target saw :data:`MIN_OBJECTS` objects at least
-        :data:`MIN_VISIBLE` visible.
+        :data:`MIN_VISIBLE` visible; or ``fov_range`` reaches :data:`MAX_FOV_DEG` on this scene.
     """
     spec = scene.spec.camera
+    low, high = fov_range
+    if not 0.0 < low <= high or spec.fov_deg * high >= MAX_FOV_DEG:
+        raise DrawError(
+            f"a fov range of {low:g}-{high:g} times {scene.id}'s {spec.fov_deg:g}° leaves "
+            f"(0°, {MAX_FOV_DEG:g}°)"
+        )
     width = width or spec.width
     height = height or round(width * spec.height / spec.width)
     plan = np.random.default_rng([seed, count])
@@ -315,7 +333,7 @@ def draw_targets(
         if only is not None and index not in only:
             continue
         rng = np.random.default_rng([seed, index])
-        elevation, fov = draw_elevation_fov(scene, strata[index], rng)
+        elevation, fov = draw_elevation_fov(scene, strata[index], rng, fov_range)
         for _ in range(max_tries):
             drawn = draw_camera(scene, shapes, elevation, fov, rng)
             if not _placeable(drawn, shapes):
