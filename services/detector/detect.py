@@ -26,18 +26,22 @@ from services.common.images import (
     read_header,
 )
 from services.detector.admission import Admission, DecodeBudget
-from services.detector.batching import MicroBatcher
+from services.detector.batching import Finish, MicroBatcher
 from services.detector.colour import measure_colour
 from services.detector.letterbox import Letterbox, letterbox
 from services.detector.model import DetectorModel
 from services.detector.postprocess import Candidates, decode_output, nms
 from services.detector.settings import DetectorSettings
+from services.detector.tiles import Tile, merged, tile_grid, tiles_for
 
 __all__ = [
     "SCENE_CROSS_CLASS_IOU",
     "DetectOptions",
     "Detector",
     "detections_from_output",
+    "detections_of",
+    "image_candidates",
+    "tile_inputs",
 ]
 
 
@@ -77,32 +81,32 @@ class DetectOptions:
         )
 
 
-def detections_from_output(
-    output: NDArray[np.floating],
-    box: Letterbox,
-    classes: Sequence[str],
-    rgb: NDArray[np.uint8] | None,
-    options: DetectOptions,
-) -> tuple[Detection, ...]:
-    """The detections in one image from the model's output ``(4 + C, N)`` for it.
-
-    Candidates at or over ``options.conf`` are mapped back to image pixels and clipped to the
-    image (boxes left empty, i.e. lying in the padding, are dropped), then NMS (per class, and
-    across classes with ``options.cross_class_iou``) keeps at most ``options.max_detections``,
-    best first. ``rgb`` (the image, or the image decoded shrunk: ``box`` maps to the whole
-    one) is needed for colours.
-    """
+def image_candidates(
+    output: NDArray[np.floating], box: Letterbox, options: DetectOptions
+) -> Candidates:
+    """The candidates at or over ``options.conf`` in the model's output ``(4 + C, N)`` for one
+    input, best first, their boxes mapped back to image pixels through ``box`` and clipped to
+    the image (boxes left empty, i.e. lying in the padding, dropped)."""
     candidates = decode_output(output, options.conf, options.max_candidates)
     boxes = box.to_image(candidates.boxes)
     valid = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
-    kept = nms(
-        Candidates(boxes[valid], candidates.scores[valid], candidates.class_ids[valid]),
-        options.iou,
-        options.max_detections,
-        options.cross_class_iou,
-    )
+    return Candidates(boxes[valid], candidates.scores[valid], candidates.class_ids[valid])
+
+
+def detections_of(
+    candidates: Candidates,
+    classes: Sequence[str],
+    rgb: NDArray[np.uint8] | None,
+    image_size: tuple[int, int],
+    options: DetectOptions,
+) -> tuple[Detection, ...]:
+    """NMS (per class, and across classes with ``options.cross_class_iou``) of one image's
+    ``candidates`` (best first), keeping at most ``options.max_detections``, with each box's
+    mean colour measured in ``rgb`` (the image of ``image_size`` pixels, or the image decoded
+    shrunk) unless ``rgb`` is None or colours are off."""
+    kept = nms(candidates, options.iou, options.max_detections, options.cross_class_iou)
     detections = []
-    shrunk = 1.0 if rgb is None else rgb.shape[1] / box.image_size[0]  # a shrunk decode's
+    shrunk = 1.0 if rgb is None else rgb.shape[1] / image_size[0]  # a shrunk decode's
     for xyxy, score, class_id in zip(kept.boxes, kept.scores, kept.class_ids, strict=True):
         corners = (float(xyxy[0]), float(xyxy[1]), float(xyxy[2]), float(xyxy[3]))
         colour = None
@@ -119,6 +123,36 @@ def detections_from_output(
             )
         )
     return tuple(detections)
+
+
+def detections_from_output(
+    output: NDArray[np.floating],
+    box: Letterbox,
+    classes: Sequence[str],
+    rgb: NDArray[np.uint8] | None,
+    options: DetectOptions,
+) -> tuple[Detection, ...]:
+    """The detections in one image from the model's output ``(4 + C, N)`` for it:
+    :func:`image_candidates`, then :func:`detections_of`. ``rgb`` (the image, or the image
+    decoded shrunk: ``box`` maps to the whole one) is needed for colours."""
+    candidates = image_candidates(output, box, options)
+    return detections_of(candidates, classes, rgb, box.image_size, options)
+
+
+def tile_inputs(
+    rgb: NDArray[np.uint8], box: Letterbox, n: int
+) -> list[tuple[NDArray[np.float32], Letterbox, Tile]]:
+    """The network inputs of the ``n x n`` tiles of ``rgb`` (the image ``box`` maps, or the
+    image decoded shrunk), each with the letterbox that maps its boxes to the tile in the
+    image's pixels and that tile."""
+    shrink = box.image_size[0] // rgb.shape[1]  # exact: a shrunk decode divides the sides
+    inputs = []
+    for x0, y0, x1, y1 in tile_grid((rgb.shape[1], rgb.shape[0]), n):  # decoded pixels
+        tensor, tile_box = letterbox(rgb[y0:y1, x0:x1], box.input_size)
+        size = ((x1 - x0) * shrink, (y1 - y0) * shrink)
+        tile = (x0 * shrink, y0 * shrink, x1 * shrink, y1 * shrink)
+        inputs.append((tensor, replace(tile_box, image_size=size), tile))
+    return inputs
 
 
 class Detector:
@@ -172,19 +206,23 @@ class Detector:
 
     def _prepare(self, data: bytes) -> tuple[NDArray[np.uint8], NDArray[np.float32], Letterbox]:
         """The decoded image, the network input and the letterbox that maps boxes back to the
-        image's pixels. A JPEG at least twice the input's size is decoded already shrunk by
-        libjpeg (:func:`~services.common.images.decode_image`: 2, 4 or 8 times, exactly): the
-        letterbox of the shrunk image is the whole one's, its boxes scaled to the whole image;
-        the array returned is the shrunk one. A 4000 x 3000 photo decoded in 21 ms instead of
-        93 ms, and its input is less aliased (``INTER_LINEAR`` from 1000 x 750, not 4000 x
-        3000)."""
+        image's pixels. A JPEG at least twice the input's size (or as many times as the tiles
+        across, when the image is tiled: :mod:`~services.detector.tiles`) is decoded already
+        shrunk by libjpeg (:func:`~services.common.images.decode_image`: 2, 4 or 8 times,
+        exactly): the letterbox of the shrunk image is the whole one's, its boxes scaled to the
+        whole image; the array returned is the shrunk one. A 4000 x 3000 photo decoded in 21 ms
+        instead of 93 ms, and its input is less aliased (``INTER_LINEAR`` from 1000 x 750, not
+        4000 x 3000)."""
         in_w, in_h = self.model.layout.input_size
         header = read_header(data)
+        across = 2
+        if tiles_for((header.width, header.height), (in_w, in_h), self.settings.detector_tiles):
+            across = max(across, self.settings.detector_tiles)
         rgb = decode_image(
             data,
             max_pixels=self.settings.detector_max_image_pixels,
             max_side=self.settings.detector_max_image_side,
-            at_least=(2 * in_w, 2 * in_h),
+            at_least=(across * in_w, across * in_h),
         )
         tensor, box = letterbox(rgb, (in_w, in_h))
         return rgb, tensor, replace(box, image_size=(header.width, header.height))
@@ -222,7 +260,9 @@ class Detector:
     async def _detect(
         self, data: bytes, options: DetectOptions
     ) -> tuple[tuple[Detection, ...], Letterbox, float]:
-        """Decode, infer, post-process; the decoded pixels are gone when this returns."""
+        """Decode, infer, post-process; the decoded pixels are gone when this returns. A large
+        image is also detected tile by tile (:mod:`~services.detector.tiles`); its run time is
+        then the longest of its inputs' runs (they share a batch when the model's is dynamic)."""
         # A binary PPM needs no codec: decoding and letterboxing it here costs less than the
         # thread hop that keeps a PNG or JPEG decode off the event loop.
         rgb, tensor, box = (
@@ -231,7 +271,28 @@ class Detector:
             else await asyncio.to_thread(self._prepare, data)
         )
         classes = self.model.classes
-        detections, run_ms = await self.batcher.submit(
-            tensor, lambda output: detections_from_output(output, box, classes, rgb, options)
+        tiles = tiles_for(box.image_size, box.input_size, self.settings.detector_tiles)
+        if not tiles:
+            detections, run_ms = await self.batcher.submit(
+                tensor, lambda output: detections_from_output(output, box, classes, rgb, options)
+            )
+            return detections, box, run_ms
+        tiled = await asyncio.to_thread(tile_inputs, rgb, box, self.settings.detector_tiles)
+        inputs = [(tensor, box, (0, 0, *box.image_size)), *tiled]
+
+        def placed(box_: Letterbox, tile: Tile) -> Finish:
+            def finish(output: NDArray[np.floating]) -> Candidates:
+                found = image_candidates(output, box_, options)
+                offset = np.array([tile[0], tile[1], tile[0], tile[1]], dtype=np.float64)
+                return Candidates(found.boxes + offset, found.scores, found.class_ids)
+
+            return finish
+
+        runs = await asyncio.gather(*(self.batcher.submit(t, placed(b, at)) for t, b, at in inputs))
+        whole, *parts = (candidates for candidates, _ in runs)
+        by_tile = [(tile, part) for (_, _, tile), part in zip(inputs[1:], parts, strict=True)]
+        candidates = merged(whole, by_tile, box.image_size, box.scale[0])
+        detections = await asyncio.to_thread(
+            detections_of, candidates, classes, rgb, box.image_size, options
         )
-        return detections, box, run_ms
+        return detections, box, max(ms for _, ms in runs)
