@@ -24,7 +24,13 @@ from cosmos.bench.free_bench.records import (
     CameraRecord,
     FreeRecord,
 )
-from cosmos.bench.free_bench.report import confirmed_wrong, goal_checks, within, wrong_line
+from cosmos.bench.free_bench.report import (
+    confirmed_wrong,
+    free_tables,
+    goal_checks,
+    within,
+    wrong_line,
+)
 from cosmos.bench.free_targets.draw import BANDS
 from cosmos.bench.free_targets.metrics import THRESHOLDS
 from cosmos.cli import main
@@ -90,6 +96,24 @@ def test_a_found_answer_outside_five_percent_and_two_degrees_is_confirmed_wrong(
         line.startswith("MISSED: fov given: answer 25% within 5 %/2°")
         for line in goal_checks(records)
     )
+
+
+def test_lenses_beyond_thirty_percent_get_their_own_table():
+    far = camera((0.5, 0.0, 5.0))
+    issue = [record(0, fov_factor=0.95), record(1, fov_factor=1.3), record(2)]
+    assert [r.lens for r in issue] == ["±30 %", "±30 %", "unknown"]  # the last: an older report
+    assert "lens" not in free_tables(issue)
+    drone = [*issue, record(3, fov_factor=1.31, answer=far), record(4, fov_factor=0.69)]
+    assert [r.lens for r in drone[3:]] == ["wider", "narrower"]
+    rows = {
+        cells[1].strip(): cells
+        for line in free_tables(drone, markdown=True).split("\n\n")[-1].splitlines()
+        if (cells := line.split("|")[1:-1])[0].strip() == "clean"
+    }
+    assert list(rows) == ["narrower", "±30 %", "wider", "unknown", "all"]
+    assert rows["wider"][2].strip() == "1"
+    assert rows["wider"][3].strip().startswith("0% · 0%")  # the one wider lens, 6.25 % off
+    assert rows["±30 %"][3].strip().startswith("100% · 100%")
 
 
 def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
@@ -204,6 +228,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         target = drawn[r.search_id]
         assert target.camera.fov_deg is not None  # --fov-range: 1.1-1.2 times demo's 45°
         assert 1.1 <= target.camera.fov_deg / 45.0 <= 1.2
+        assert r.fov_factor == pytest.approx(target.camera.fov_deg / 45.0, abs=1e-3)
         assert query["mode"] == "free"
         if r.intrinsics_given:  # the fov went to the controller only when the target gives it
             assert float(query["fov_deg"]) == pytest.approx(target.annotations.camera.fov_deg)

@@ -13,6 +13,7 @@ from typing import Final, Literal
 
 import numpy as np
 
+from cosmos.bench.free_targets.draw import FOV_RANGE
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.metrics import PoseError, pose_error
 from services.common.base import FrozenModel
@@ -25,6 +26,8 @@ __all__ = [
     "BASELINE",
     "BOUND",
     "BOXES",
+    "LENSES",
+    "LENS_RANGE",
     "METHODS",
     "CameraRecord",
     "FreeRecord",
@@ -42,6 +45,9 @@ BASELINE: Final = "baseline"
 BOUND: Final = "box-only bound"
 """The ideal box-only fit (:func:`cosmos.bench.free_targets.solve.box_only_bound`)."""
 METHODS: Final = (ANSWER, BOXES, BASELINE, BOUND)
+LENS_RANGE: Final = FOV_RANGE
+"""Issue 23's lenses: within ±30 % of the scene camera's fov."""
+LENSES: Final = ("narrower", "±30 %", "wider", "unknown")
 
 Outcome = Literal["found", "ambiguous", "failed", "error"]
 """``found``: the search succeeded with a confirmed ``found`` free answer; ``ambiguous``: it
@@ -99,6 +105,9 @@ class FreeRecord(FrozenModel):
     radius: float
     change: str = ""
     truth: CameraRecord
+    fov_factor: float | None = None
+    """The target lens' horizontal fov over the scene camera's (``cosmos bench --free
+    --fov-range``; None in reports made before it was recorded)."""
     search_id: str | None = None
     status: str
     """The search's status (``error`` when the bench could not run it)."""
@@ -142,6 +151,17 @@ class FreeRecord(FrozenModel):
     def detector(self) -> str:
         """``own`` (the scene's own model) or ``general`` (the shipped shape model)."""
         return "general" if self.random and not self.onboarded else "own"
+
+    @property
+    def lens(self) -> str:
+        """The lens against the scene camera's: within issue 23's ±30 % of its fov, narrower or
+        wider (``unknown`` in older reports)."""
+        low, high = LENS_RANGE
+        if self.fov_factor is None:
+            return "unknown"
+        if self.fov_factor < low:
+            return "narrower"
+        return "wider" if self.fov_factor > high else "±30 %"
 
     @property
     def given(self) -> str:

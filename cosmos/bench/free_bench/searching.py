@@ -190,6 +190,7 @@ async def search_target(
         "radius": objects.radius,
         "change": image.change,
         "truth": camera_of(truth),
+        "fov_factor": film.fov_deg / objects.fov_deg,
     }
     started = time.perf_counter()
     try:
