@@ -335,5 +335,10 @@ def test_edges_agree_and_pin_only_above_the_chance_of_an_edge_rich_target(chance
     given = PhotoIntrinsics(fov_deg=40.0)
     assert edges_agree(outcome) is said
     assert (edges_pin(outcome, given, "loose") is not None) is said
+    # a fit of too few edge points pins nothing, however many lie on the target's edges
+    few = RefinePoseResponse(
+        pose=candidate(0.0), fit=fit.model_copy(update={"edge_points": 100, "inliers": 97})
+    )
+    assert edges_pin(few, given, "loose") is None
     # a fit at the target's chance says nothing, and one below it contradicts
     assert fit.share(600) == pytest.approx(0.0 if chance else 0.6)
