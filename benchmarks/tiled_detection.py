@@ -13,7 +13,9 @@ letterbox, batcher, merge) with ``COSMOS_DETECTOR_TILES`` at each ``--tiles``. A
 least 60 % visible is *named right* when a detection covers its visible box (IoU ≥ 0.5) under
 its name (its shape for the general model); a detection that covers no object's box
 (IoU < 0.3 with every one) is *spurious*. It prints, per model and band of the lens' factor,
-the objects named right and the spurious detections, and the median detection time.
+the objects named right and the spurious detections, and the median detection time; then what
+each tiling added to the whole image's detections (right, wrongly named, part of an object, on
+nothing) with their confidence quartiles.
 """
 
 from __future__ import annotations
@@ -81,6 +83,27 @@ async def _detect_all(
         await detector.close()
 
 
+def added_kinds(
+    base: DetectResponse, tiled: DetectResponse, truth: RenderAnnotations, own: bool
+) -> list[tuple[str, float]]:
+    """What a tiling added to the whole image's detections (none of the same name with IoU >
+    0.5 there): each as ``right`` (an object's box, IoU ≥ 0.5, under its name), ``wrong name``
+    (its box under another), ``on nothing`` (IoU < 0.3 with every object's box) or ``part``,
+    with its confidence."""
+    boxes = [o for o in truth.objects if o.box is not None]
+    out = []
+    for d in tiled.detections:
+        if any(e.label == d.label and _iou(e.box, d.box) > 0.5 for e in base.detections):
+            continue
+        best = max(boxes, key=lambda o: _iou(d.box, o.box or d.box), default=None)
+        overlap = 0.0 if best is None or best.box is None else _iou(d.box, best.box)
+        kind = "on nothing" if overlap < 0.3 else "part"
+        if best is not None and overlap >= 0.5:
+            kind = "right" if d.label == (best.name if own else best.shape) else "wrong name"
+        out.append((kind, d.confidence))
+    return out
+
+
 def _band(factor: float) -> str:
     return "< 0.7" if factor < 0.7 else ("0.7-1.3" if factor <= 1.3 else "> 1.3")
 
@@ -101,6 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # (model kind, band, tiles) -> [objects, named right, spurious, views]; and times per tiles
     table: dict[tuple[str, str, int], list[int]] = defaultdict(lambda: [0, 0, 0, 0])
     times: dict[int, list[float]] = defaultdict(list)
+    added: dict[tuple[str, int], list[tuple[str, float]]] = defaultdict(list)
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
             for i in range(args.random_scenes):
@@ -127,8 +151,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                         views.append(
                             (renderer.render_png(request), renderer.annotations(request), factor)
                         )
+                    base = None
                     for tiles in tilings:
                         found = asyncio.run(_detect_all(model, tiles, [png for png, _, _ in views]))
+                        if tiles == 0:
+                            base = found
+                        elif base is not None:
+                            for (b, _), (t, _), (_, truth, _) in zip(
+                                base, found, views, strict=True
+                            ):
+                                kind = "own" if own else "general"
+                                added[(kind, tiles)] += added_kinds(b, t, truth, own)
                         for (response, ms), (_, truth, factor) in zip(found, views, strict=True):
                             row = table[("own" if own else "general", _band(factor), tiles)]
                             usable, right, spurious = scored(response, truth, own)
@@ -156,6 +189,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"tiles {tiles}: named right {right}/{usable} ({right / max(usable, 1):.1%}), "
             f"spurious {spurious}, median detection {statistics.median(times[tiles]):.0f} ms"
         )
+    for (kind, tiles), items in sorted(added.items()):
+        parts = []
+        for what in ("right", "wrong name", "part", "on nothing"):
+            conf = sorted(c for k, c in items if k == what)
+            quartiles = "/".join(f"{conf[int(q * (len(conf) - 1))]:.2f}" for q in (0.25, 0.5, 0.75))
+            parts.append(f"{what} {len(conf)}" + (f" (confidence {quartiles})" if conf else ""))
+        print(f"{kind} model, tiles {tiles} added to the whole image's: " + ", ".join(parts))
     return 0
 
 

@@ -57,14 +57,15 @@ __all__ = [
 
 MIN_SHRINK: Final = 2.0
 """Tiles are cut only from an image at least this many times the network's input along both
-axes: a tile of an ``n x n`` grid is then still at least its input's size, never enlarged."""
+axes: a tile of the 2 x 2 grid, ``(1 + OVERLAP) / 2`` of it, is then still 1.25 times the input
+or more, never enlarged (finer grids enlarge the tiles of the smallest such images)."""
 OVERLAP: Final = 0.25
 """Each tile is ``(1 + OVERLAP) / n`` of the image along each axis."""
 SMALL_PX: Final = 32.0
 """Input pixels (the box's longer side in the whole image's input) under which an object is
 small: a tenth of the shipped 320-pixel input, about the smallest object of the models'
 training views (a demo ball at 1.6 scene radii through a lens 30 % wider than the scene
-camera's is ~25)."""
+camera's is ~22)."""
 TILE_LARGE: Final = 1.25
 """A tile's box at least this times :data:`SMALL_PX` (in the whole image's input) is left to
 the whole image's pass; between the two, both passes may keep it and NMS decides."""
