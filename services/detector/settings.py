@@ -59,7 +59,7 @@ class DetectorSettings(ServiceTokenSettings):
     detector_tiles: Annotated[int, Field(ge=0, le=4)] = 2
     """An image at least twice the network's input along both axes (a camera's photo, not a
     search's view) is also detected in an ``n x n`` grid of overlapping tiles, so that its small
-    objects are seen ``n`` times larger (:mod:`~services.detector.tiles`); 0 or 1: never."""
+    objects are seen ``n / 1.25`` times larger (:mod:`~services.detector.tiles`); 0 or 1: never."""
     detector_max_in_flight: Annotated[int, Field(ge=1, le=10_000)] = 64
     """Requests being decoded, queued or run at once; more get 503."""
     detector_max_decode_bytes: Annotated[int, Field(ge=1 << 20)] = 256 << 20

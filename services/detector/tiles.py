@@ -5,8 +5,8 @@ drone's photo of several thousand pixels, taken high or through a wide lens, the
 objects a dozen input pixels across, smaller than any the models were trained on: they are
 missed, or named wrongly. When the image is at least :data:`MIN_SHRINK` times the input along
 both axes, it is also cut into an ``n x n`` grid of overlapping tiles (:func:`tile_grid`), each
-letterboxed into the input on its own, so each object is seen ``n`` times larger (as in SAHI,
-slicing-aided hyper inference).
+letterboxed into the input on its own, so each object is seen ``n / (1 + OVERLAP)`` times
+larger (1.6 times in the 2 x 2 grid), as SAHI (slicing-aided hyper inference) does.
 
 Merging (:func:`merged`), by the size ``s`` of a box in the whole image's input (its longer side
 times the whole image's letterbox gain) against :data:`SMALL_PX`, the smallest objects the
