@@ -40,15 +40,14 @@ from services.common.contracts.detect import DetectResponse
 from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.detector.detect import Detector
 from services.detector.model import DetectorModel
+from services.detector.postprocess import box_iou
 from services.detector.registry import load_scene_model
 from services.detector.settings import DetectorSettings
 
 
 def _iou(a: Sequence[float], b: Sequence[float]) -> float:
-    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - w * h
-    return w * h / union if union > 0 else 0.0
+    """The detector's IoU (:func:`services.detector.postprocess.box_iou`) of two boxes."""
+    return float(box_iou(np.asarray(a, dtype=np.float64), np.asarray([b], dtype=np.float64))[0])
 
 
 def scored(response: DetectResponse, truth: RenderAnnotations, own: bool) -> tuple[int, int, int]:

@@ -32,7 +32,7 @@ from services.detector.letterbox import Letterbox, letterbox
 from services.detector.model import DetectorModel
 from services.detector.postprocess import Candidates, decode_output, nms
 from services.detector.settings import DetectorSettings
-from services.detector.tiles import Tile, merged, tile_grid, tiles_for
+from services.detector.tiles import Tile, merged, tile_grid, wants_tiles
 
 __all__ = [
     "SCENE_CROSS_CLASS_IOU",
@@ -216,7 +216,7 @@ class Detector:
         in_w, in_h = self.model.layout.input_size
         header = read_header(data)
         across = 2
-        if tiles_for((header.width, header.height), (in_w, in_h), self.settings.detector_tiles):
+        if wants_tiles((header.width, header.height), (in_w, in_h), self.settings.detector_tiles):
             across = max(across, self.settings.detector_tiles)
         rgb = decode_image(
             data,
@@ -271,8 +271,7 @@ class Detector:
             else await asyncio.to_thread(self._prepare, data)
         )
         classes = self.model.classes
-        tiles = tiles_for(box.image_size, box.input_size, self.settings.detector_tiles)
-        if not tiles:
+        if not wants_tiles(box.image_size, box.input_size, self.settings.detector_tiles):
             detections, run_ms = await self.batcher.submit(
                 tensor, lambda output: detections_from_output(output, box, classes, rgb, options)
             )

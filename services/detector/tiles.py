@@ -52,7 +52,7 @@ __all__ = [
     "Tile",
     "merged",
     "tile_grid",
-    "tiles_for",
+    "wants_tiles",
 ]
 
 MIN_SHRINK: Final = 2.0
@@ -76,14 +76,12 @@ Tile = tuple[int, int, int, int]
 """``x0, y0, x1, y1`` in image pixels (pixel edges)."""
 
 
-def tiles_for(image_size: tuple[int, int], input_size: tuple[int, int], n: int) -> list[Tile]:
-    """The ``n x n`` tiles of an image of ``image_size`` (w, h) for a network input of
-    ``input_size``, or none when ``n < 2`` or the image is less than :data:`MIN_SHRINK` times
-    the input along an axis."""
+def wants_tiles(image_size: tuple[int, int], input_size: tuple[int, int], n: int) -> bool:
+    """Whether an image of ``image_size`` (w, h) is also detected in ``n x n`` tiles for a
+    network input of ``input_size``: ``n ≥ 2`` and the image at least :data:`MIN_SHRINK` times
+    the input along both axes."""
     (w, h), (in_w, in_h) = image_size, input_size
-    if n < 2 or w < MIN_SHRINK * in_w or h < MIN_SHRINK * in_h:
-        return []
-    return tile_grid(image_size, n)
+    return n >= 2 and w >= MIN_SHRINK * in_w and h >= MIN_SHRINK * in_h
 
 
 def tile_grid(image_size: tuple[int, int], n: int) -> list[Tile]:

@@ -16,10 +16,10 @@ from services.common.contracts.detect import DetectResponse
 from services.common.contracts.render import RenderAnnotations, RenderRequest
 from services.common.geometry.free_camera import FreeCamera
 from services.detector.detect import Detector
-from services.detector.postprocess import Candidates
+from services.detector.postprocess import Candidates, box_iou
 from services.detector.registry import load_scene_model
 from services.detector.settings import DetectorSettings
-from services.detector.tiles import MIN_SHRINK, OVERLAP, merged, tile_grid, tiles_for
+from services.detector.tiles import MIN_SHRINK, OVERLAP, merged, tile_grid, wants_tiles
 from services.renderer.engine import RenderEngine
 from services.renderer.imaging import encode_png
 
@@ -45,11 +45,11 @@ def test_tiles_cover_the_image_and_overlap():
 
 
 def test_only_an_image_twice_the_input_is_tiled():
-    assert tiles_for((1280, 960), (320, 256), 2)
-    assert not tiles_for((320, 240), (320, 256), 2)  # a search's view: the input's own size
-    assert not tiles_for((1280, 500), (320, 256), 2)  # under twice the input's height
-    assert not tiles_for((1280, 960), (320, 256), 1)
-    assert not tiles_for((1280, 960), (320, 256), 0)
+    assert wants_tiles((1280, 960), (320, 256), 2)
+    assert not wants_tiles((320, 240), (320, 256), 2)  # a search's view: the input's own size
+    assert not wants_tiles((1280, 500), (320, 256), 2)  # under twice the input's height
+    assert not wants_tiles((1280, 960), (320, 256), 1)
+    assert not wants_tiles((1280, 960), (320, 256), 0)
     assert MIN_SHRINK == 2.0
 
 
@@ -131,10 +131,7 @@ def _detect(catalog: SceneCatalog, data: bytes, tiles: int) -> DetectResponse:
 
 
 def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - w * h
-    return w * h / union
+    return float(box_iou(np.asarray(a, dtype=np.float64), np.asarray([b], dtype=np.float64))[0])
 
 
 def _named_right(response: DetectResponse, truth: RenderAnnotations) -> set[str]:

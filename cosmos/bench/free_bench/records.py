@@ -27,7 +27,6 @@ __all__ = [
     "BOUND",
     "BOXES",
     "LENSES",
-    "LENS_RANGE",
     "METHODS",
     "CameraRecord",
     "FreeRecord",
@@ -45,8 +44,6 @@ BASELINE: Final = "baseline"
 BOUND: Final = "box-only bound"
 """The ideal box-only fit (:func:`cosmos.bench.free_targets.solve.box_only_bound`)."""
 METHODS: Final = (ANSWER, BOXES, BASELINE, BOUND)
-LENS_RANGE: Final = FOV_RANGE
-"""Issue 23's lenses: within ±30 % of the scene camera's fov."""
 LENSES: Final = ("narrower", "±30 %", "wider", "unknown")
 
 Outcome = Literal["found", "ambiguous", "failed", "error"]
@@ -156,7 +153,7 @@ class FreeRecord(FrozenModel):
     def lens(self) -> str:
         """The lens against the scene camera's: within issue 23's ±30 % of its fov, narrower or
         wider (``unknown`` in older reports)."""
-        low, high = LENS_RANGE
+        low, high = FOV_RANGE  # issue 23's lenses
         if self.fov_factor is None:
             return "unknown"
         if self.fov_factor < low:
