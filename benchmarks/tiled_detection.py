@@ -192,8 +192,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         parts = []
         for what in ("right", "wrong name", "part", "on nothing"):
             conf = sorted(c for k, c in items if k == what)
+            if not conf:
+                parts.append(f"{what} 0")
+                continue
             quartiles = "/".join(f"{conf[int(q * (len(conf) - 1))]:.2f}" for q in (0.25, 0.5, 0.75))
-            parts.append(f"{what} {len(conf)}" + (f" (confidence {quartiles})" if conf else ""))
+            parts.append(f"{what} {len(conf)} (confidence {quartiles})")
         print(f"{kind} model, tiles {tiles} added to the whole image's: " + ", ".join(parts))
     return 0
 
