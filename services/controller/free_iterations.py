@@ -110,10 +110,14 @@ def worth_following(check: FreeMatch, edges: RefinePoseResponse | str | None) ->
     whose box pose, 12 % of the radius and 6° off, left one object where the target does not
     show it; its fit took it to 0.2 % and 0.1°, but left 0.67 of its edge points on the
     target's, short of agreeing by its edges (0.8): the search rendered 3 more alternatives, none
-    agreeing, and answered the fitted pose unconfirmed."""
+    agreeing, and answered the fitted pose unconfirmed.
+
+    A fit the optimizer calls a ``lead`` (it moved too far to be accepted, but most of its
+    edges ended on the target's) is rendered the same way: the render there, not the fit,
+    says whether it found the pose."""
     if render_agrees(check, edges) or not isinstance(edges, RefinePoseResponse):
         return False
-    return edges.fit.accepted
+    return edges.fit.accepted or edges.fit.lead
 
 
 def iteration_of(

@@ -15,11 +15,12 @@
    (``edges_agree``: the fit was accepted and leaves most of the render's edges on the
    target's): a detector that names the render's objects unlike the target's (the general
    model on a scene it was not trained on) then still confirms a pose the image vouches for.
-   If the render agrees, the search ends. If not, but the fit from it was accepted, the
-   pose it ended at is rendered and checked the same way (``worth_following``): the render
-   says the candidate is not the target's pose, the fit found one near it. If that render
-   agrees, it stands for the candidate and the search ends; if not, the next alternative is
-   rendered, while renders remain (``max_iterations``, which these renders count too). A
+   If the render agrees, the search ends. If not, but the fit from it was accepted (or, too
+   far to accept, is a ``lead``: the image vouches for where it ended), the pose it ended at
+   is rendered and checked the same way (``worth_following``): the render says the candidate
+   is not the target's pose, the fit found one near it. If that render agrees, it stands for
+   the candidate and the search ends; if not, the next alternative is rendered, while renders
+   remain (``max_iterations``, which these renders count too). A
    ``rivals`` answer (distinct poses explain the boxes almost as well), the intrinsics given,
    goes on after an agreeing render whose edges hold (:func:`~.free_refine.edges_hold`): its
    rivals are rendered too, for one render can tell its own pose from the target but not from
@@ -302,11 +303,11 @@ class FreeSearchLoop:
         image: bytes,
         first: tuple[FreePose, Seen, RefinePoseResponse],
     ) -> tuple[FreePose, Seen, RefinePoseResponse | str, FreeCamera | None]:
-        """A candidate whose ``first`` render (its pose, what it showed, its accepted fit)
-        disagreed, rendered again at its fit (:func:`~.free_iterations.worth_following`): the
-        pose, render and fit the candidate's iteration shows (the fit's when its render
-        agrees, else the first's, the time of both in it), and the first render's camera when
-        they are the fit's."""
+        """A candidate whose ``first`` render (its pose, what it showed, its accepted or
+        leading fit) disagreed, rendered again at its fit
+        (:func:`~.free_iterations.worth_following`): the pose, render and fit the candidate's
+        iteration shows (the fit's when its render agrees, else the first's, the time of both
+        in it), and the first render's camera when they are the fit's."""
         pose, seen, outcome = first
         again, refit = await self._render_and_check(search, scene, target, image, outcome.pose)
         if render_agrees(again.check, refit):

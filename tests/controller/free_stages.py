@@ -5,6 +5,7 @@ loop's tests."""
 from __future__ import annotations
 
 import asyncio
+from typing import Any
 
 import cv2
 import numpy as np
@@ -265,4 +266,21 @@ class RefusesTheSecondFit(FakeStages):
         fit = out.fit.model_copy(
             update={"accepted": False, "reason": "the dense fit moved the pose implausibly far"}
         )
+        return out.model_copy(update={"fit": fit})
+
+
+class FirstFitLeads(FakeStages):
+    """As :class:`FakeStages`, but the first dense fit moved too far to be accepted: a ``lead``
+    when ``lead`` (the image vouches for where it ended), else merely rejected."""
+
+    def __init__(self, scene: SceneDetail, *, lead: bool, **kwargs: Any):
+        super().__init__(scene, **kwargs)
+        self.lead = lead
+
+    async def refine_pose(self, request, target, render, request_id="") -> RefinePoseResponse:
+        out = await super().refine_pose(request, target, render, request_id)
+        if len(self.refinements) != 1:
+            return out
+        said = "the dense fit moved the pose implausibly far"
+        fit = out.fit.model_copy(update={"accepted": False, "lead": self.lead, "reason": said})
         return out.model_copy(update={"fit": fit})

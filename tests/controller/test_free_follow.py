@@ -10,6 +10,7 @@ import pytest
 
 from tests.controller.free_stages import (
     FakeStages,
+    FirstFitLeads,
     RefusesTheSecondFit,
     run,
     run_stored,
@@ -66,6 +67,27 @@ def test_renders_at_a_fit_count_in_the_budget_of_the_refit(
     assert result.confirmed
     assert result.renders == stages.calls["render"] == renders
     assert (result.refit_timings is not None) is (renders == 3)
+
+
+@pytest.mark.parametrize("lead", [True, False])
+def test_a_fit_too_far_to_take_is_rendered_when_it_is_a_lead(tmp_path, detail, lead):
+    """The box pose's render disagrees and its fit moved too far to be accepted: a ``lead``
+    (the image vouches for where it ended) is rendered, and that render, agreeing box by box,
+    confirms the pose; a fit that is merely rejected leaves the box pose unconfirmed after its
+    one render."""
+    stages = FirstFitLeads(detail, lead=lead, right=5, edges=(0, 5), inliers=600, meet=True)
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert result.renders == stages.calls["render"] == (2 if lead else 1)
+    assert result.confirmed is lead
+    if lead:
+        assert result.free.status == "found"
+        assert result.free.pose.position == pytest.approx((5.0, -3.8, 5.0))
+        assert final.iterations[0].reason.startswith("pose 1 of 1 at its dense fit")
+    else:
+        assert result.free.pose.position == pytest.approx((0.0, -4.0, 5.0))
 
 
 def test_a_followed_candidate_is_answered_at_the_pose_its_render_checked(tmp_path, detail):

@@ -87,6 +87,27 @@ def test_a_fit_is_taken_when_it_converged_and_moved_plausibly(
 
 
 @pytest.mark.parametrize(
+    ("shift", "turn", "inliers", "start", "lead"),
+    [
+        (3.3, 38.0, 850, 150, True),  # far, most edges on the target's, many times the start's
+        (9.5, 20.0, 850, 150, True),  # as far as the points' depth
+        (12.0, 20.0, 850, 150, False),  # further than the points' depth: a slip
+        (3.3, 38.0, 700, 150, False),  # 70 %: the image only partly behind it
+        (3.3, 38.0, 850, 500, False),  # less than twice the start's
+        (0.5, 2.0, 900, 150, False),  # a near move is accepted, not a lead
+        (0.5, 2.0, 400, 100, False),  # did not converge
+    ],
+)
+def test_a_fit_too_far_to_take_is_a_lead_when_the_image_vouches_for_where_it_ended(
+    shift, turn, inliers, start, lead
+):
+    report = dense_report(fit(shift, turn, inliers, start), start_pose(), DEPTH, 1.0)
+    assert report.lead is lead, report.reason
+    assert not (report.lead and report.accepted)
+    assert ("worth a render where it ended" in report.reason) is lead
+
+
+@pytest.mark.parametrize(
     ("box_shift", "inliers", "accepted"),
     [
         (1.5, 650, True),  # within the boxes' own error (2 px here: 3 x 0.5 px is less)

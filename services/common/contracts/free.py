@@ -251,6 +251,12 @@ class DenseReport(FrozenModel):
         "shares that decide are taken above it (``above_chance``); 0 from an optimizer that "
         "does not say.",
     )
+    lead: bool = Field(
+        default=False,
+        description="The fit moved too far to be accepted, yet the image vouches for where it "
+        "ended (most of its edge points on the target's, several times the start's): not an "
+        "answer, but a pose worth rendering to check. False from an optimizer that does not say.",
+    )
 
     def share(self, count: int | None = None) -> float:
         """The share of the edge points that ``count`` (the fit's ``inliers`` by default) is
