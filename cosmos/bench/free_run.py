@@ -65,6 +65,7 @@ from cosmos.bench.session import (
     services_info,
     write_report,
 )
+from services.common.geometry.scene import LoadedScene
 from services.optimizer.free import SceneObjects, scene_objects
 from services.renderer.client import RendererClient
 
@@ -84,9 +85,20 @@ def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
         "spp": config.spp,
         "width": config.width,
         "target_width": config.target_width,
+        "target_aspect": list(config.target_aspect) if config.target_aspect else None,
         "fov_range": list(config.fov_range or FOV_RANGE),
         "max_iterations": config.max_iterations,
     }
+
+
+def _film(config: BenchConfig, scene: LoadedScene) -> tuple[int | None, int | None]:
+    """The targets' film ``(width, height)``: ``--target-width`` (else the scene camera's) on
+    ``--target-aspect``; None where the scene camera's own is meant."""
+    if config.target_aspect is None:
+        return config.target_width, None
+    width = config.target_width or scene.spec.camera.width
+    w, h = config.target_aspect
+    return width, max(1, round(width * h / w))
 
 
 def _jobs(
@@ -108,12 +120,13 @@ def _jobs(
         return []
     scene = ep.scene_of(scene_id)
     shapes = scene_shapes(scene)
+    width, height = _film(config, scene)
     jobs: list[Job] = []
     with RendererClient(ep.renderer, token=ep.service_token) as renderer:
         try:
             targets = draw_targets(
                 renderer, scene, shapes, config.n, config.seed,
-                width=config.target_width, spp=TARGET_SPP, only=pending,
+                width=width, height=height, spp=TARGET_SPP, only=pending,
                 fov_range=config.fov_range or FOV_RANGE,
             )  # fmt: skip
         except DrawError as exc:
@@ -253,6 +266,8 @@ def _run(config: BenchConfig, root: Path) -> int:
     with open_endpoints(config, spp=config.spp, width=config.width, scene_dirs=(scene_dir,)) as ep:
         machine = machine_info(services_info(ep, config.spp, config.width))
         machine["target_width"] = config.target_width or "scene's own (its camera's film)"
+        if config.target_aspect is not None:
+            machine["target_aspect"] = "{}:{}".format(*config.target_aspect)
         low, high = config.fov_range or FOV_RANGE
         machine["target_fov"] = f"{low:g}-{high:g} times the scene camera's"
         ep.warm(scenes)

@@ -94,7 +94,9 @@ class BenchConfig:
     free: bool = False
     """Free-camera targets (``cosmos bench --free``, :mod:`cosmos.bench.free_bench`)."""
     target_width: int | None = None
-    """With ``free``: the targets' film width (the scene camera's aspect); None: its film."""
+    """With ``free``: the targets' film width; None: the scene camera's."""
+    target_aspect: tuple[int, int] | None = None
+    """With ``free``: the targets' film shape ``(w, h)``; None: the scene camera's."""
     fov_range: tuple[float, float] | None = None
     """With ``free``: the targets' fov as factors of the scene camera's; None: issue 23's
     ±30 % (:data:`~cosmos.bench.free_targets.draw.FOV_RANGE`)."""

@@ -14,6 +14,17 @@ def _csv(value: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in value.split(",") if part.strip())
 
 
+def _aspect(value: str) -> tuple[int, int]:
+    """``W:H``: whole numbers, the ratio within 1:4 to 4:1."""
+    try:
+        w, h = (int(p) for p in value.split(":"))
+    except ValueError:
+        raise ValueError(f"--target-aspect wants W:H (two whole numbers), not {value!r}") from None
+    if w <= 0 or h <= 0 or not 0.25 <= w / h <= 4.0:
+        raise ValueError(f"--target-aspect wants W:H between 1:4 and 4:1, not {value!r}")
+    return w, h
+
+
 def _fov_range(value: str) -> tuple[float, float]:
     """``LO,HI``: factors of the scene camera's fov, ``0 < LO <= HI``."""
     parts = _csv(value)
@@ -54,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
                 f"--target-width must be 16 to {most} pixels (the renderer's longest side, "
                 "COSMOS_RENDERER_MAX_SIDE)"
             )
+    aspect = _aspect(args.target_aspect) if args.target_aspect is not None else None
+    if aspect is not None and not args.free:
+        raise ValueError("--target-aspect draws free targets: add --free")
     fov_range = _fov_range(args.fov_range) if args.fov_range is not None else None
     if fov_range is not None and not args.free:
         raise ValueError("--fov-range draws free targets: add --free")
@@ -96,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
         scenes_out=Path(args.scenes_out) if args.scenes_out else None,
         free=args.free,
         target_width=args.target_width,
+        target_aspect=aspect,
         fov_range=fov_range,
         chunk_minutes=args.chunk_minutes,
         regenerate=args.regenerate,
@@ -194,6 +209,12 @@ def register(commands: Commands) -> None:
         metavar="PX",
         help="with --free: draw the targets this wide, at the scene camera's aspect (a drone's "
         "photo is larger than the views; default the scene camera's film)",
+    )
+    bench.add_argument(
+        "--target-aspect",
+        metavar="W:H",
+        help="with --free: draw the targets on a film of this shape, the fov still across its "
+        "width (a drone's photo need not have the scene camera's; default the scene camera's)",
     )
     bench.add_argument(
         "--fov-range",

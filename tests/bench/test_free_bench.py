@@ -145,6 +145,10 @@ def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
         (["--free", "--fov-range", "0,1"], "--fov-range wants 0 < LO <= HI < 10"),
         (["--free", "--fov-range", "nan,1"], "--fov-range wants 0 < LO <= HI < 10"),
         (["--free", "--fov-range", "1"], "--fov-range wants LO,HI (two numbers)"),
+        (["--target-aspect", "16:9"], "--target-aspect draws free targets: add --free"),
+        (["--free", "--target-aspect", "16x9"], "--target-aspect wants W:H (two whole numbers)"),
+        (["--free", "--target-aspect", "5:1"], "--target-aspect wants W:H between 1:4 and 4:1"),
+        (["--free", "--target-aspect", "0:1"], "--target-aspect wants W:H between 1:4 and 4:1"),
     ],
 )
 def test_a_target_width_or_fov_range_is_refused_before_anything_runs(tmp_path, capsys, flags, said):
@@ -192,6 +196,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
             "--variants", "clean",
             "--seed", "1",
             "--target-width", "400",
+            "--target-aspect", "16:9",
             "--fov-range", "1.1,1.2",
             "--out", str(out),
             "--results-md", str(results_md),
@@ -204,6 +209,8 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
     assert report["planned"] == 2
     assert report["config"]["target_width"] == report["machine"]["target_width"] == 400
     assert report["config"]["fov_range"] == [1.1, 1.2]
+    assert report["config"]["target_aspect"] == [16, 9]
+    assert report["machine"]["target_aspect"] == "16:9"
     assert report["machine"]["target_fov"] == "1.1-1.2 times the scene camera's"
     assert not (out / "free.checkpoint.jsonl").exists()  # removed once complete
     records = [FreeRecord.model_validate(r) for r in report["records"]]
@@ -254,7 +261,8 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         assert [d.box for d in r.target_detections] == [
             pytest.approx(d["box"], abs=1e-3) for d in raw["target_detections"]
         ]
-        assert r.target_size == tuple(raw["target_size"]) == (400, 300)  # --target-width
+        # --target-width 400 on --target-aspect 16:9, not the demo camera's 4:3
+        assert r.target_size == tuple(raw["target_size"]) == (400, 225)
         again, _ = replayed(r, catalog, objects)
         first = r.error(BOXES)
         assert again.position == pytest.approx(first.position, abs=1e-3)
