@@ -48,7 +48,13 @@ from cosmos.bench.free_bench.report import (
 )
 from cosmos.bench.free_bench.searching import StackCalls, search_target
 from cosmos.bench.free_bench.targets import VariantImage, variant_image
-from cosmos.bench.free_targets.draw import FOV_RANGE, DrawError, FreeTarget, draw_targets
+from cosmos.bench.free_targets.draw import (
+    FOV_RANGE,
+    ROLL_LIMIT_DEG,
+    DrawError,
+    FreeTarget,
+    draw_targets,
+)
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.free_targets.solve import box_only_bound
@@ -86,9 +92,14 @@ def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
         "width": config.width,
         "target_width": config.target_width,
         "target_aspect": list(config.target_aspect) if config.target_aspect else None,
+        "roll_limit": _roll_limit(config),
         "fov_range": list(config.fov_range or FOV_RANGE),
         "max_iterations": config.max_iterations,
     }
+
+
+def _roll_limit(config: BenchConfig) -> float:
+    return ROLL_LIMIT_DEG if config.roll_limit is None else config.roll_limit
 
 
 def _film(config: BenchConfig, scene: LoadedScene) -> tuple[int | None, int | None]:
@@ -127,7 +138,7 @@ def _jobs(
             targets = draw_targets(
                 renderer, scene, shapes, config.n, config.seed,
                 width=width, height=height, spp=TARGET_SPP, only=pending,
-                fov_range=config.fov_range or FOV_RANGE,
+                fov_range=config.fov_range or FOV_RANGE, roll_limit=_roll_limit(config),
             )  # fmt: skip
         except DrawError as exc:
             notes.append(f"skipped {scene_id}: {exc}")
@@ -270,6 +281,7 @@ def _run(config: BenchConfig, root: Path) -> int:
             machine["target_aspect"] = "{}:{}".format(*config.target_aspect)
         low, high = config.fov_range or FOV_RANGE
         machine["target_fov"] = f"{low:g}-{high:g} times the scene camera's"
+        machine["target_roll"] = f"within ±{_roll_limit(config):g}°"
         ep.warm(scenes)
         calls = StackCalls(
             ep.controller, ep.renderer, ep.detectors[0], ep.api_key, ep.service_token,

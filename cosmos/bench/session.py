@@ -97,6 +97,9 @@ class BenchConfig:
     """With ``free``: the targets' film width; None: the scene camera's."""
     target_aspect: tuple[int, int] | None = None
     """With ``free``: the targets' film shape ``(w, h)``; None: the scene camera's."""
+    roll_limit: float | None = None
+    """With ``free``: the targets' roll within ± this (degrees); None: issue 23's ±25°
+    (:data:`~cosmos.bench.free_targets.draw.ROLL_LIMIT_DEG`)."""
     fov_range: tuple[float, float] | None = None
     """With ``free``: the targets' fov as factors of the scene camera's; None: issue 23's
     ±30 % (:data:`~cosmos.bench.free_targets.draw.FOV_RANGE`)."""

@@ -68,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
     aspect = _aspect(args.target_aspect) if args.target_aspect is not None else None
     if aspect is not None and not args.free:
         raise ValueError("--target-aspect draws free targets: add --free")
+    if args.roll_limit is not None:
+        if not args.free:
+            raise ValueError("--roll-limit draws free targets: add --free")
+        if not 0.0 <= args.roll_limit <= 180.0:  # also refuses nan
+            raise ValueError(f"--roll-limit wants 0 to 180 degrees, not {args.roll_limit}")
     fov_range = _fov_range(args.fov_range) if args.fov_range is not None else None
     if fov_range is not None and not args.free:
         raise ValueError("--fov-range draws free targets: add --free")
@@ -111,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
         free=args.free,
         target_width=args.target_width,
         target_aspect=aspect,
+        roll_limit=args.roll_limit,
         fov_range=fov_range,
         chunk_minutes=args.chunk_minutes,
         regenerate=args.regenerate,
@@ -215,6 +221,13 @@ def register(commands: Commands) -> None:
         metavar="W:H",
         help="with --free: draw the targets on a film of this shape, the fov still across its "
         "width (a drone's photo need not have the scene camera's; default the scene camera's)",
+    )
+    bench.add_argument(
+        "--roll-limit",
+        type=float,
+        metavar="DEG",
+        help="with --free: draw the targets' roll within ±DEG (default 25, issue 23's; 90 "
+        "takes in photos held upright)",
     )
     bench.add_argument(
         "--fov-range",

@@ -146,6 +146,9 @@ def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
         (["--free", "--fov-range", "nan,1"], "--fov-range wants 0 < LO <= HI < 10"),
         (["--free", "--fov-range", "1"], "--fov-range wants LO,HI (two numbers)"),
         (["--target-aspect", "16:9"], "--target-aspect draws free targets: add --free"),
+        (["--roll-limit", "90"], "--roll-limit draws free targets: add --free"),
+        (["--free", "--roll-limit", "-1"], "--roll-limit wants 0 to 180 degrees"),
+        (["--free", "--roll-limit", "nan"], "--roll-limit wants 0 to 180 degrees"),
         (["--free", "--target-aspect", "16x9"], "--target-aspect wants W:H (two whole numbers)"),
         (["--free", "--target-aspect", "5:1"], "--target-aspect wants W:H between 1:4 and 4:1"),
         (["--free", "--target-aspect", "0:1"], "--target-aspect wants W:H between 1:4 and 4:1"),
@@ -197,6 +200,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
             "--seed", "1",
             "--target-width", "400",
             "--target-aspect", "16:9",
+            "--roll-limit", "40",
             "--fov-range", "1.1,1.2",
             "--out", str(out),
             "--results-md", str(results_md),
@@ -211,6 +215,8 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
     assert report["config"]["fov_range"] == [1.1, 1.2]
     assert report["config"]["target_aspect"] == [16, 9]
     assert report["machine"]["target_aspect"] == "16:9"
+    assert report["config"]["roll_limit"] == 40.0
+    assert report["machine"]["target_roll"] == "within ±40°"
     assert report["machine"]["target_fov"] == "1.1-1.2 times the scene camera's"
     assert not (out / "free.checkpoint.jsonl").exists()  # removed once complete
     records = [FreeRecord.model_validate(r) for r in report["records"]]
@@ -235,6 +241,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         target = drawn[r.search_id]
         assert target.camera.fov_deg is not None  # --fov-range: 1.1-1.2 times demo's 45°
         assert 1.1 <= target.camera.fov_deg / 45.0 <= 1.2
+        assert abs(target.camera.roll_deg) <= 40.0
         assert r.fov_factor == pytest.approx(target.camera.fov_deg / 45.0, abs=1e-3)
         assert query["mode"] == "free"
         if r.intrinsics_given:  # the fov went to the controller only when the target gives it

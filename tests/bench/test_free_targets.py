@@ -140,6 +140,28 @@ def test_a_fov_range_widens_the_lenses_drawn(renderer: LocalRenderer, garden: Lo
         draw_targets(renderer, garden, shapes, 1, SEED, fov_range=(1.0, 170.0 / spec.fov_deg))
 
 
+def test_a_roll_limit_rolls_the_same_cameras_further(
+    renderer: LocalRenderer, garden: LoadedScene, targets: list[FreeTarget]
+):
+    width, height = FILM
+    shapes = scene_shapes(garden)
+    upright = draw_targets(
+        renderer, garden, shapes, COUNT, SEED, width=width, height=height, spp=1,
+        roll_limit=90.0,
+    )  # fmt: skip
+    same = 0
+    for target in upright:
+        assert abs(target.camera.roll_deg) <= 90.0
+        drawn = targets[target.index].camera
+        if target.camera.position == drawn.position:  # not drawn again: the same camera
+            same += 1
+            assert target.camera.roll_deg == pytest.approx(drawn.roll_deg * 90.0 / 25.0)
+            assert target.camera.yaw_deg == drawn.yaw_deg
+            assert target.camera.pitch_deg == drawn.pitch_deg
+    assert same >= COUNT // 2
+    assert max(abs(t.camera.roll_deg) for t in upright) > 25.0
+
+
 def test_drawing_is_seeded(renderer: LocalRenderer, garden: LoadedScene, targets):
     shapes = scene_shapes(garden)
     width, height = FILM

@@ -17,7 +17,8 @@ give no intrinsics, the elevation slices), so each target of a draw is reproduci
   --random-scenes 2 --n 8`` held no camera between 60° and 89°, and the 9 without intrinsics
   none above 60°, where distance trades against focal length. The camera looks at the point,
   so its pitch is ε;
-* its azimuth uniform in [0°, 360°), its roll uniform in ±25°;
+* its azimuth uniform in [0°, 360°), its roll uniform in ±25° (``roll_limit`` widens it: a
+  photo held upright is rolled 90°);
 * its horizontal fov uniform within ±30 % of the scene camera's (:data:`FOV_RANGE`; a drone's
   lens may lie farther from the scene file's camera: ``fov_range`` widens it); a third of the
   targets (again a seeded permutation) are flagged as not giving their intrinsics.
@@ -242,14 +243,16 @@ def draw_camera(
     elevation: float,
     fov: float,
     rng: np.random.Generator,
+    roll_limit: float = ROLL_LIMIT_DEG,
 ) -> DrawnCamera:
     """One camera at ``elevation`` with ``fov`` (degrees), the rest drawn as the module
-    docstring says: the looked-at point, the distance, the azimuth and the roll."""
+    docstring says: the looked-at point, the distance, the azimuth and the roll (within
+    ``±roll_limit``)."""
     x0, y0, x1, y1 = _object_area(scene, shapes)
     look = (float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1)), 0.0)
     distance = float(rng.uniform(*DISTANCE_RANGE)) * scene.spec.camera.radius
     azimuth = float(rng.uniform(0.0, 360.0))
-    roll = float(rng.uniform(-ROLL_LIMIT_DEG, ROLL_LIMIT_DEG))
+    roll = float(rng.uniform(-roll_limit, roll_limit))
     position = orbit_position(look, distance, elevation, azimuth)
     camera = FreeCamera(
         position=position,
@@ -303,11 +306,14 @@ def draw_targets(
     max_tries: int = MAX_TRIES,
     only: Collection[int] | None = None,
     fov_range: tuple[float, float] = FOV_RANGE,
+    roll_limit: float = ROLL_LIMIT_DEG,
 ) -> list[FreeTarget]:
     """``count`` free targets of ``scene`` (module docstring), rendered by ``renderer`` on a
     ``width`` x ``height`` film (the scene camera's by default) at ``spp`` samples, their fov
-    within ``fov_range`` times the scene camera's; with ``only``, just the targets of those
-    indices (each is the same as in the whole draw).
+    within ``fov_range`` times the scene camera's, their roll within ``±roll_limit`` degrees;
+    with ``only``, just the targets of those indices (each is the same as in the whole draw).
+    Another ``roll_limit`` draws the same cameras rolled more or less, unless one then sees too
+    little and is drawn again.
 
     Raises
     ------
@@ -335,7 +341,7 @@ def draw_targets(
         rng = np.random.default_rng([seed, index])
         elevation, fov = draw_elevation_fov(scene, strata[index], rng, fov_range)
         for _ in range(max_tries):
-            drawn = draw_camera(scene, shapes, elevation, fov, rng)
+            drawn = draw_camera(scene, shapes, elevation, fov, rng, roll_limit)
             if not _placeable(drawn, shapes):
                 continue
             if not _may_see_enough(drawn, shapes, width, height, spec.fov_deg):
