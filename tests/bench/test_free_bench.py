@@ -98,6 +98,15 @@ def test_a_found_answer_outside_five_percent_and_two_degrees_is_confirmed_wrong(
     )
 
 
+def last_table_rows(records: list[FreeRecord]) -> dict[str, list[str]]:
+    """The last of the tables' clean rows, by their second column, as markdown cells."""
+    return {
+        cells[1].strip(): cells
+        for line in free_tables(records, markdown=True).split("\n\n")[-1].splitlines()
+        if (cells := line.split("|")[1:-1])[0].strip() == "clean"
+    }
+
+
 def test_lenses_beyond_thirty_percent_get_their_own_table():
     far = camera((0.5, 0.0, 5.0))
     issue = [record(0, fov_factor=0.95), record(1, fov_factor=1.3), record(2)]
@@ -105,15 +114,25 @@ def test_lenses_beyond_thirty_percent_get_their_own_table():
     assert "lens" not in free_tables(issue)
     drone = [*issue, record(3, fov_factor=1.31, answer=far), record(4, fov_factor=0.69)]
     assert [r.lens for r in drone[3:]] == ["wider", "narrower"]
-    rows = {
-        cells[1].strip(): cells
-        for line in free_tables(drone, markdown=True).split("\n\n")[-1].splitlines()
-        if (cells := line.split("|")[1:-1])[0].strip() == "clean"
-    }
+    rows = last_table_rows(drone)
     assert list(rows) == ["narrower", "±30 %", "wider", "unknown", "all"]
     assert rows["wider"][2].strip() == "1"
     assert rows["wider"][3].strip().startswith("0% · 0%")  # the one wider lens, 6.25 % off
     assert rows["±30 %"][3].strip().startswith("100% · 100%")
+
+
+def test_rolls_beyond_twenty_five_degrees_get_their_own_table():
+    far = camera((0.5, 0.0, 5.0))
+    issue = [record(0, roll_deg=-25.0), record(1, roll_deg=3.0), record(2)]
+    assert [r.roll for r in issue] == ["±25°", "±25°", "unknown"]  # the last: an older report
+    assert "roll" not in free_tables(issue)
+    upright = [*issue, record(3, roll_deg=-88.0, answer=far), record(4, roll_deg=40.0)]
+    assert [r.roll for r in upright[3:]] == ["60-90°", "25-60°"]
+    rows = last_table_rows(upright)
+    assert list(rows) == ["±25°", "25-60°", "60-90°", "unknown", "all"]
+    assert rows["60-90°"][2].strip() == "1"
+    assert rows["60-90°"][3].strip().startswith("0% · 0%")  # the one rolled 88°, 6.25 % off
+    assert rows["25-60°"][3].strip().startswith("100% · 100%")
 
 
 def test_the_checkpoint_resumes_and_sets_another_run_aside(tmp_path):
@@ -242,6 +261,7 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         assert target.camera.fov_deg is not None  # --fov-range: 1.1-1.2 times demo's 45°
         assert 1.1 <= target.camera.fov_deg / 45.0 <= 1.2
         assert abs(target.camera.roll_deg) <= 40.0
+        assert r.roll_deg == pytest.approx(target.camera.roll_deg, abs=1e-3)
         assert r.fov_factor == pytest.approx(target.camera.fov_deg / 45.0, abs=1e-3)
         assert query["mode"] == "free"
         if r.intrinsics_given:  # the fov went to the controller only when the target gives it

@@ -27,6 +27,7 @@ __all__ = [
     "BOUND",
     "BOXES",
     "LENSES",
+    "ROLLS",
     "METHODS",
     "CameraRecord",
     "FreeRecord",
@@ -45,6 +46,8 @@ BOUND: Final = "box-only bound"
 """The ideal box-only fit (:func:`cosmos.bench.free_targets.solve.box_only_bound`)."""
 METHODS: Final = (ANSWER, BOXES, BASELINE, BOUND)
 LENSES: Final = ("narrower", "±30 %", "wider", "unknown")
+ROLLS: Final = ("±25°", "25-60°", "60-90°", "beyond 90°", "unknown")
+"""The targets' roll bands (issue 23's ±25°, then ``cosmos bench --free --roll-limit``'s)."""
 
 Outcome = Literal["found", "ambiguous", "failed", "error"]
 """``found``: the search succeeded with a confirmed ``found`` free answer; ``ambiguous``: it
@@ -105,6 +108,9 @@ class FreeRecord(FrozenModel):
     fov_factor: float | None = None
     """The target lens' horizontal fov over the scene camera's (``cosmos bench --free
     --fov-range``; None in reports made before it was recorded)."""
+    roll_deg: float | None = None
+    """The target camera's roll about its optical axis (``--roll-limit``; None in reports made
+    before it was recorded)."""
     search_id: str | None = None
     status: str
     """The search's status (``error`` when the bench could not run it)."""
@@ -159,6 +165,22 @@ class FreeRecord(FrozenModel):
         if self.fov_factor < low:
             return "narrower"
         return "wider" if self.fov_factor > high else "±30 %"
+
+    @property
+    def roll(self) -> str:
+        """The target's roll band (:data:`ROLLS`)."""
+        if self.roll_deg is None:
+            return "unknown"
+        r = abs(self.roll_deg)
+        return (
+            "±25°"
+            if r <= 25.0
+            else "25-60°"
+            if r <= 60.0
+            else "60-90°"
+            if r <= 90.0
+            else "beyond 90°"
+        )
 
     @property
     def given(self) -> str:

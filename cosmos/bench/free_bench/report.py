@@ -16,7 +16,15 @@ import statistics
 from collections.abc import Callable, Sequence
 from typing import Final
 
-from cosmos.bench.free_bench.records import ANSWER, BASELINE, BOUND, BOXES, LENSES, FreeRecord
+from cosmos.bench.free_bench.records import (
+    ANSWER,
+    BASELINE,
+    BOUND,
+    BOXES,
+    LENSES,
+    ROLLS,
+    FreeRecord,
+)
 from cosmos.bench.free_targets.draw import BANDS
 from cosmos.bench.free_targets.metrics import THRESHOLDS, summarize
 from cosmos.bench.free_targets.report import number_cell as _num
@@ -127,7 +135,8 @@ def _rows(
 def free_tables(records: Sequence[FreeRecord], *, markdown: bool = False) -> str:
     """The table per variant and elevation band, then per variant and whether the fov was
     given, then per variant and scene, each with the totals; per detector when both searched,
-    and per lens against the scene camera's when some lay beyond issue 23's ±30 %."""
+    per lens against the scene camera's when some lay beyond issue 23's ±30 %, and per roll when
+    some target was rolled beyond its ±25°."""
     table = md_table if markdown else plain_table
     bands = table(("variant", "elevation", *HEADER), _rows(records, lambda r: r.band, BANDS))
     given = table(
@@ -143,6 +152,9 @@ def free_tables(records: Sequence[FreeRecord], *, markdown: bool = False) -> str
     if any(r.lens in ("narrower", "wider") for r in records):  # --fov-range beyond ±30 %
         lenses = _rows(records, lambda r: r.lens, LENSES)
         out += "\n\n" + table(("variant", "lens", *HEADER), lenses)
+    if any(r.roll not in ("±25°", "unknown") for r in records):  # --roll-limit beyond 25°
+        rolls = _rows(records, lambda r: r.roll, ROLLS)
+        out += "\n\n" + table(("variant", "roll", *HEADER), rolls)
     return out
 
 

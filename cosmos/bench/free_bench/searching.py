@@ -191,6 +191,7 @@ async def search_target(
         "change": image.change,
         "truth": camera_of(truth),
         "fov_factor": film.fov_deg / objects.fov_deg,
+        "roll_deg": target.camera.roll_deg,
     }
     started = time.perf_counter()
     try:
