@@ -20,11 +20,10 @@
    is rendered and checked the same way (``worth_following``): the render says the candidate
    is not the target's pose, the fit found one near it. If that render agrees, it stands for
    the candidate and the search ends; if not, the next alternative is rendered, while renders
-   remain (``max_iterations``, which these renders count too). A
-   ``rivals`` answer (distinct poses explain the boxes almost as well), the intrinsics given,
-   goes on after an agreeing render whose edges hold (:func:`~.free_refine.edges_hold`): its
-   rivals are rendered too, for one render can tell its own pose from the target but not from
-   a rival.
+   remain (``max_iterations``, which these renders count too). A ``rivals`` answer (distinct
+   poses explain the boxes almost as well), the intrinsics given, goes on after an agreeing
+   render whose edges hold (:func:`~.free_refine.edges_hold`): its rivals are rendered too,
+   for one render can tell its own pose from the target but not from a rival.
 
 The answer (:class:`~services.common.contracts.free.FreeAnswer`, composed by
 :mod:`~services.controller.free_verdict`) is ``found`` and ``confirmed`` only when the optimizer
