@@ -93,12 +93,18 @@ def _fingerprint(config: BenchConfig, scenes: Sequence[str]) -> dict[str, Any]:
         "target_width": config.target_width,
         "target_aspect": list(config.target_aspect) if config.target_aspect else None,
         "roll_limit": _roll_limit(config),
-        "fov_range": list(config.fov_range or FOV_RANGE),
+        "fov_range": list(_fov_range(config)),
         "max_iterations": config.max_iterations,
     }
 
 
+def _fov_range(config: BenchConfig) -> tuple[float, float]:
+    """The targets' fov range: ``--fov-range``, else the draw's own."""
+    return config.fov_range or FOV_RANGE
+
+
 def _roll_limit(config: BenchConfig) -> float:
+    """The targets' roll limit: ``--roll-limit``, else the draw's own."""
     return ROLL_LIMIT_DEG if config.roll_limit is None else config.roll_limit
 
 
@@ -138,7 +144,7 @@ def _jobs(
             targets = draw_targets(
                 renderer, scene, shapes, config.n, config.seed,
                 width=width, height=height, spp=TARGET_SPP, only=pending,
-                fov_range=config.fov_range or FOV_RANGE, roll_limit=_roll_limit(config),
+                fov_range=_fov_range(config), roll_limit=_roll_limit(config),
             )  # fmt: skip
         except DrawError as exc:
             notes.append(f"skipped {scene_id}: {exc}")
@@ -279,7 +285,7 @@ def _run(config: BenchConfig, root: Path) -> int:
         machine["target_width"] = config.target_width or "scene's own (its camera's film)"
         if config.target_aspect is not None:
             machine["target_aspect"] = "{}:{}".format(*config.target_aspect)
-        low, high = config.fov_range or FOV_RANGE
+        low, high = _fov_range(config)
         machine["target_fov"] = f"{low:g}-{high:g} times the scene camera's"
         machine["target_roll"] = f"within ±{_roll_limit(config):g}°"
         ep.warm(scenes)

@@ -128,13 +128,14 @@ def merged(
     for tile, _ in tiled:
         held |= _inside(whole.boxes, tile, image_size)
     keep = ~held | (_size(whole.boxes, gain) >= SMALL_PX)
-    parts = [Candidates(whole.boxes[keep], whole.scores[keep], whole.class_ids[keep])]
+    parts = [whole.take(np.flatnonzero(keep))]
     for tile, found in tiled:
         keep = _inside(found.boxes, tile, image_size)
         keep &= _size(found.boxes, gain) < TILE_LARGE * SMALL_PX
-        parts.append(Candidates(found.boxes[keep], found.scores[keep], found.class_ids[keep]))
-    boxes = np.concatenate([p.boxes for p in parts]).reshape(-1, 4)
-    scores = np.concatenate([p.scores for p in parts])
-    class_ids = np.concatenate([p.class_ids for p in parts])
-    order = np.argsort(-scores, kind="stable")
-    return Candidates(boxes[order], scores[order], class_ids[order])
+        parts.append(found.take(np.flatnonzero(keep)))
+    joined = Candidates(
+        np.concatenate([p.boxes for p in parts]).reshape(-1, 4),
+        np.concatenate([p.scores for p in parts]),
+        np.concatenate([p.class_ids for p in parts]),
+    )
+    return joined.take(np.argsort(-joined.scores, kind="stable"))
