@@ -9,6 +9,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from training.dataset import dataset_command
+
 __all__ = ["model_rows", "scene_model_card", "write_general_card"]
 
 
@@ -113,8 +115,10 @@ def _fine_tune_recipe(provenance: Mapping[str, Any]) -> list[str]:
     validation set was recorded names the base recipe's)."""
     data = " ".join(f"--data {d}" for d in provenance.get("datasets") or [])
     val = provenance.get("val_dataset") or "data/val"
+    recipes: Mapping[str, Any] = provenance.get("dataset_recipes") or {}
     return [
         "# then the fine-tune from the model just exported",
+        *(dataset_command(root, recipe) for root, recipe in recipes.items() if recipe),
         f".venv/bin/python -m training.train {data} --val {val} --run data/runs/tuned "
         f"--epochs {provenance.get('epochs')} --init models/detector.onnx",
         ".venv/bin/python -m training.export --checkpoint data/runs/tuned/best.pt --out "

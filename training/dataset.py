@@ -16,7 +16,8 @@ so occlusion and image edges are exact.
 Sample ``i`` of seed ``s`` depends only on ``(s, i)`` (and the drone share): datasets are
 reproducible, and a held-out set is one rendered with a seed never used for training. Whether a
 view is a drone's is drawn from a stream of its own, so a dataset rendered without drone views is
-the one it always was.
+the one it always was. The folder keeps its arguments in ``dataset.json`` (:data:`RECIPE_FILE`);
+a model's provenance and card carry them on, so its card can say how to render its data again.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import argparse
 import json
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,10 +46,13 @@ from training.drone_views import drone_camera, engine_view
 __all__ = [
     "View",
     "asset_folder",
+    "dataset_command",
+    "dataset_recipe",
     "labelled_objects",
     "views",
     "CLASSES",
     "IMAGE_SIZES",
+    "RECIPE_FILE",
     "LabelledObject",
     "Sample",
     "main",
@@ -340,6 +344,26 @@ def views(
             yield View(i, scene, pose, width, height, spp, int(rng.integers(2**31)))
 
 
+RECIPE_FILE = "dataset.json"
+"""Written into a dataset's folder: the arguments that render it again."""
+
+
+def dataset_recipe(root: Path) -> dict[str, Any] | None:
+    """The arguments ``root`` was rendered with (``None`` for a dataset older than its
+    recipe file)."""
+    path = root / RECIPE_FILE
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def dataset_command(root: str, recipe: Mapping[str, Any]) -> str:
+    """The command that renders the dataset ``root`` of ``recipe`` again."""
+    return (
+        f".venv/bin/python -m training.dataset --out {root} --count {recipe['count']} "
+        f"--seed {recipe['seed']} --views-per-scene {recipe['views_per_scene']} "
+        f"--builtin-share {recipe['builtin_share']} --drone-share {recipe['drone_share']}"
+    )
+
+
 def render_dataset(
     out: Path,
     count: int,
@@ -354,6 +378,14 @@ def render_dataset(
     """
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "labels").mkdir(parents=True, exist_ok=True)
+    recipe = {
+        "count": count,
+        "seed": seed,
+        "views_per_scene": views_per_scene,
+        "builtin_share": builtin_share,
+        "drone_share": drone_share,
+    }
+    (out / RECIPE_FILE).write_text(json.dumps(recipe, indent=2) + "\n")
 
     def finished(group: range) -> bool:
         return all((out / "labels" / f"{i:06d}.json").exists() for i in group)

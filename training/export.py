@@ -126,6 +126,7 @@ def export(checkpoint: Path, out: Path, extra: dict[str, Any] | None = None) -> 
             "train_images": state.get("train_images"),
             "datasets": state.get("data"),
             "val_dataset": state.get("val"),
+            "dataset_recipes": state.get("recipes"),
             "training_minutes": round(sum(h["epoch_s"] for h in history) / 60, 1),
             "validation": history[-1] if history else None,
             **({"fine_tuned_from": state["init"]} if state.get("init") else {}),

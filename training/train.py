@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from services.detector.detect import DetectOptions, detections_from_output
 from services.detector.letterbox import letterbox
 from training.data import LabelledImage, augment, load_dataset
-from training.dataset import CLASSES
+from training.dataset import CLASSES, dataset_recipe
 from training.loss import detection_loss
 from training.metrics import Evaluation
 from training.model import Detector, anchor_points
@@ -313,6 +313,7 @@ def _main(args: argparse.Namespace) -> int:
             },
             "data": [str(d) for d in args.data],
             "val": str(args.val),
+            "recipes": {str(d): dataset_recipe(d) for d in [*args.data, args.val]},
             "train_images": len(train),
             "init": init,
         }

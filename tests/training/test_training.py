@@ -16,6 +16,8 @@ from training.data import LabelledImage, augment, load_dataset
 from training.dataset import (
     CLASSES,
     TEXTURES,
+    dataset_command,
+    dataset_recipe,
     labelled_objects,
     random_scene,
     render_dataset,
@@ -66,6 +68,18 @@ def test_drone_views_leave_the_other_views_as_they_were(tmp_path):
 def test_rendered_dataset_matches_the_renderer_ground_truth(tmp_path):
     assert render_dataset(tmp_path, count=4, seed=11) == 4
     assert render_dataset(tmp_path, count=4, seed=11) == 0  # resumes: nothing left to do
+    recipe = dataset_recipe(tmp_path)
+    assert recipe == {
+        "count": 4,
+        "seed": 11,
+        "views_per_scene": 4,
+        "builtin_share": 0.15,
+        "drone_share": 0.0,
+    }
+    assert dataset_command("data/x", recipe).endswith(
+        "--count 4 --seed 11 --views-per-scene 4 --builtin-share 0.15 --drone-share 0.0"
+    )
+    assert dataset_recipe(tmp_path / "elsewhere") is None
     samples = load_dataset(tmp_path)
     assert len(samples) == 4
     for label in sorted((tmp_path / "labels").glob("*.json")):
@@ -231,6 +245,16 @@ def test_the_general_card_names_the_base_model_of_a_fine_tune(tmp_path, tuned):
             **base,
             "epochs": 12,
             "val_dataset": "data/drone/val",
+            "dataset_recipes": {
+                "data/drone/train": {
+                    "count": 6000,
+                    "seed": 11,
+                    "views_per_scene": 4,
+                    "builtin_share": 0.15,
+                    "drone_share": 0.5,
+                },
+                "data/drone/old": None,
+            },
             "fine_tuned_from": {
                 "model": "detector.onnx",
                 "sha256": "ab" * 32,
@@ -261,5 +285,11 @@ def test_the_general_card_names_the_base_model_of_a_fine_tune(tmp_path, tuned):
     assert ("| base model | `abababababababab…`" in card) is tuned
     assert ("--init models/detector.onnx" in card) is tuned
     assert ("--val data/drone/val --run data/runs/tuned" in card) is tuned
+    rendered = (
+        "training.dataset --out data/drone/train --count 6000 --seed 11 --views-per-scene 4 "
+        "--builtin-share 0.15 --drone-share 0.5"
+    )
+    assert (rendered in card) is tuned
+    assert "--out data/drone/old" not in card  # rendered before datasets kept their recipe
     assert "--val VAL" not in card
     assert "--epochs 24 --width 16" in card
