@@ -170,15 +170,16 @@ def test_an_agreeing_rival_stands_unless_its_fit_ends_at_the_chosen_pose(
 
 @pytest.mark.parametrize(
     ("inliers", "renders", "confirmed"),
-    [(700, 1, False), (800, 3, True)],
-    ids=["edges-short", "edges-hold"],
+    [(700, 1, False), (800, 1, False), (810, 3, True)],
+    ids=["edges-short", "edges-agree-only", "edges-hold"],
 )
 def test_rivals_are_rendered_when_the_agreeing_renders_edges_hold(
     tmp_path, detail, inliers, renders, confirmed
 ):
-    """0.78 of the render's edges on the target's (short of agreeing by them): its rivals'
-    renders could not confirm it, and they are not made. 0.89 (short of pinning a loose pose,
-    which rivals are not): they are, they disagree, and it is confirmed."""
+    """0.78 of the render's edges on the target's (short of agreeing by them), or 0.89 (they
+    agree, but wrong poses were confirmed so): its rivals' renders could not confirm it, and
+    they are not made; it is answered, not confirmed. 0.9: they are, they disagree, and it is
+    confirmed."""
     stages = FakeStages(detail, status="ambiguous", count=3, ambiguity="rivals", inliers=inliers)
     final = run(tmp_path, stages, intrinsics=PhotoIntrinsics(fov_deg=45.0))
     result = final.result
