@@ -157,11 +157,11 @@ def edges_hold(
     It took :data:`EDGE_SHARE` (a render that agrees by its edges) for a while, set on seeds
     1–5 of ``cosmos bench --free --scene demo --random-scenes 2 --n 8``, where the answers so
     confirmed at 0.78–0.89 were all within 5 %/2°. On runs that did not set it (seeds 21–23
-    with ``--random-scenes 3``, seeds 1–4 with a general detector fine-tuned on drone views,
-    the onboarded seed 8, other film shapes and rolls: 213 answers confirmed this way), the
-    answers at 0.80–0.90 were 60 right and 4 wrong, 6–24 % of the radius and 4–9° off (two
-    scenes with a moved object, two with pixel noise); at 0.9 and above, 149 right and none
-    wrong. Those below are answered all the same, as ``ambiguous``."""
+    with ``--random-scenes 3``, both general detectors; seeds 1–4 with one fine-tuned on drone
+    views: 119 answers confirmed this way), the answers at 0.80–0.90 were 33 right and 4 wrong,
+    6–24 % of the radius and 4–9° off (two scenes with a moved object, two with pixel noise);
+    at 0.9 and above, 82 right and none wrong. Those below are answered all the same, as
+    ``ambiguous``."""
     if known is None or known.source != "given" or not isinstance(outcome, RefinePoseResponse):
         return None
     fit = outcome.fit
