@@ -253,6 +253,7 @@ def _main(args: argparse.Namespace) -> int:
         progress = (step - warmup) / max(1, total_steps - warmup)
         return float(args.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * progress))))
 
+    recipes = {str(d): dataset_recipe(d) for d in [*args.data, args.val]}
     start_epoch, step, best, history = 0, 0, -1.0, []
     last = args.run / "last.pt"
     if last.exists():
@@ -313,7 +314,7 @@ def _main(args: argparse.Namespace) -> int:
             },
             "data": [str(d) for d in args.data],
             "val": str(args.val),
-            "recipes": {str(d): dataset_recipe(d) for d in [*args.data, args.val]},
+            "recipes": recipes,
             "train_images": len(train),
             "init": init,
         }

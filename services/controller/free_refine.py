@@ -139,10 +139,18 @@ def edges_pin_pose(
     :data:`PIN_SHARE` of the render's edge points, at least :data:`MIN_PIN_POINTS` of them, on
     the target's, and the photo's intrinsics were ``known``: given (an EXIF focal length no
     render can check)."""
+    return _pinned(outcome, known, MIN_PIN_POINTS)
+
+
+def _pinned(
+    outcome: RefinePoseResponse | str | None, known: PhotoIntrinsics | None, min_points: int
+) -> RefinePoseResponse | None:
+    """``outcome`` when its fit was accepted and leaves at least :data:`PIN_SHARE` of its
+    ``min_points`` or more edge points on the target's, the intrinsics given (else None)."""
     if known is None or known.source != "given" or not isinstance(outcome, RefinePoseResponse):
         return None
     fit = outcome.fit
-    pinned = fit.accepted and fit.share() >= PIN_SHARE and fit.edge_points >= MIN_PIN_POINTS
+    pinned = fit.accepted and fit.share() >= PIN_SHARE and fit.edge_points >= min_points
     return outcome if pinned else None
 
 
@@ -162,10 +170,7 @@ def edges_hold(
     6–24 % of the radius and 4–9° off (two scenes with a moved object, two with pixel noise);
     at 0.9 and above, 82 right and none wrong. Those below are answered all the same, as
     ``ambiguous``."""
-    if known is None or known.source != "given" or not isinstance(outcome, RefinePoseResponse):
-        return None
-    fit = outcome.fit
-    return outcome if fit.accepted and fit.share() >= PIN_SHARE else None
+    return _pinned(outcome, known, 0)
 
 
 def edges_unvouched(fit: DenseReport) -> bool:
