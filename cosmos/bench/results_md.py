@@ -130,7 +130,8 @@ def section_of_free(data: Mapping[str, Any]) -> str:
         "their pose, failed searches as misses); *boxes* = the pose it rendered first, its "
         "estimate from the target's boxes alone; *baseline* = plain `cv2.solvePnPRansac` on the "
         "detector's box centres (objects paired by unique label); *box-only bound* = the ideal "
-        "box-only fit (exact boxes plus the detector's edge noise, from the truth). Errors are "
+        "box-only fit (exact boxes plus the detector's edge noise, from the truth; the focal "
+        "length fitted too where the target does not give it). Errors are "
         "recomputed from the poses in `free.json`; definitions in `cosmos/bench/free_bench/`."
         "\n\n"
     )

@@ -321,6 +321,37 @@ def test_box_fit_returns_the_truth_without_noise(garden: LoadedScene) -> None:
     assert error.rotation_deg < 1e-3
 
 
+def test_box_fit_with_the_focal_free(garden: LoadedScene) -> None:
+    """Fitted too, the focal length comes back from exact boxes; noise costs it more than a known
+    focal length, for distance trades against focal length (a dolly zoom)."""
+    truth = _truth()
+    shapes = scene_shapes(garden)
+    camera = free_pinhole_camera(CAMERA, 320, 240, 45.0)
+    K = intrinsics_matrix(camera)
+    boxes = project_boxes(shapes, *truth.world_to_camera, K, (320, 240))
+    # from the truth but told a focal length 10 % long, the fit finds the true one
+    long = K.copy()
+    long[0, 0] *= 1.1
+    long[1, 1] *= 1.1
+    wrong = box_fit(shapes, boxes, long, (320, 240), truth)
+    assert pose_error(wrong, truth, 8.0).position > 0.01
+    fitted = box_fit(shapes, boxes, long, (320, 240), truth, fit_focal=True)
+    assert abs(fitted.fov_deg - truth.fov_deg) < 1e-6
+    assert pose_error(fitted, truth, 8.0).position < 1e-6
+    # under the same edge noise, the focal left free moves the fit farther, on average
+    rng = np.random.default_rng(5)
+    known, free = [], []
+    for _ in range(12):
+        noisy = boxes + rng.normal(0.0, 0.7, boxes.shape)
+        known.append(pose_error(box_fit(shapes, noisy, K, (320, 240), truth), truth, 8.0))
+        free.append(
+            pose_error(box_fit(shapes, noisy, K, (320, 240), truth, fit_focal=True), truth, 8.0)
+        )
+    assert np.mean([e.position for e in free]) > np.mean([e.position for e in known])
+    assert all(e.fov_pct == 0.0 for e in known)
+    assert all(e.fov_pct > 0.0 for e in free)
+
+
 def test_references_on_drawn_targets(targets: list[FreeTarget], garden: LoadedScene) -> None:
     shapes = scene_shapes(garden)
     radius = garden.spec.camera.radius
@@ -330,6 +361,8 @@ def test_references_on_drawn_targets(targets: list[FreeTarget], garden: LoadedSc
         assert pose_error(exact, truth, radius).position < 1e-6
         noisy = box_only_bound(target, shapes, np.random.default_rng(0))
         assert pose_error(noisy, truth, radius).position < 0.2
+        # the bound fits the focal length exactly when the target does not give it
+        assert (pose_error(noisy, truth, radius).fov_pct > 0.0) != target.intrinsics_given
     assert any(baseline(t) is not None for t in targets)
     results = evaluate(targets, shapes, radius, SEED)
     table = text_table(results)

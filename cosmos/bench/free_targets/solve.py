@@ -9,21 +9,26 @@
     The ideal box-only fit: each object's exact projected bounding box
     (:func:`~cosmos.bench.free_targets.shapes.project_boxes`) with Gaussian noise of σ per edge
     (0.7 px at 320x240, the detector's measured box error, scaled with the film's width), fitted
-    by least squares on the four edges of every box over the 6-DoF pose, starting from the truth
-    and with the intrinsics known. Starting from the truth takes the search for a start out: it
-    is the best any method that only sees boxes can reach.
+    by least squares on the four edges of every box over the 6-DoF pose, starting from the truth.
+    Starting from the truth takes the search for a start out: it is the best any method that
+    only sees boxes can reach. The intrinsics are known when the target gives them; when it does
+    not, the focal length is fitted too (from the truth's), as any method must: the bound then
+    says what the boxes alone tell of the focal length, which a dolly zoom trades against
+    distance.
 
-The fit minimises, over the rotation vector ω (world to camera, R = exp([ω]ₓ)) and the camera
-centre c (scene units),
+The fit minimises, over the rotation vector ω (world to camera, R = exp([ω]ₓ)), the camera
+centre c (scene units) and, without the intrinsics, the log of a zoom s of the focal lengths,
 
-    Σᵢ Σₑ (b̂ᵢₑ(ω, c) − bᵢₑ)²,
+    Σᵢ Σₑ (b̂ᵢₑ(ω, c, s) − bᵢₑ)²,
 
-b̂ᵢ = [min u, min v, max u, max v] over object i's hull points X projected as K (R X − R c), clipped
-to the film (a clipped edge carries no information and has no gradient), bᵢ the observed box.
+b̂ᵢ = [min u, min v, max u, max v] over object i's hull points X projected as K_s (R X − R c)
+(K_s: K with f_x, f_y times s), clipped to the film (a clipped edge carries no information and
+has no gradient), bᵢ the observed box.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Final
 
@@ -34,7 +39,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from cosmos.bench.free_targets.draw import FreeTarget
-from cosmos.bench.free_targets.estimate import Estimate, intrinsics_matrix
+from cosmos.bench.free_targets.estimate import Estimate, fov_of_focal, intrinsics_matrix
 from cosmos.bench.free_targets.shapes import SceneShapes, project_boxes
 
 __all__ = [
@@ -96,11 +101,21 @@ def _pose_vector(estimate: Estimate) -> FloatArray:
     return np.concatenate([Rotation.from_matrix(rotation).as_rotvec(), estimate.position])
 
 
+def _zoomed(intrinsics: FloatArray, log_zoom: float) -> FloatArray:
+    """``K`` with its focal lengths times ``exp(log_zoom)``, the principal point kept."""
+    k = np.array(intrinsics, dtype=np.float64)
+    k[0, 0] *= math.exp(log_zoom)
+    k[1, 1] *= math.exp(log_zoom)
+    return k
+
+
 def _boxes_at(
     x: FloatArray, shapes: SceneShapes, intrinsics: FloatArray, film: tuple[int, int]
 ) -> FloatArray:
+    """The boxes at pose ``x`` (ω, c and, when it has seven entries, the log zoom)."""
     rotation = Rotation.from_rotvec(x[:3]).as_matrix()
-    return project_boxes(shapes, rotation, -rotation @ x[3:], intrinsics, film)
+    k = _zoomed(intrinsics, float(x[6])) if x.size == 7 else intrinsics
+    return project_boxes(shapes, rotation, -rotation @ x[3:6], k, film)
 
 
 def box_fit(
@@ -109,17 +124,27 @@ def box_fit(
     intrinsics: FloatArray,
     film: tuple[int, int],
     start: Estimate,
+    *,
+    fit_focal: bool = False,
 ) -> Estimate:
     """The least-squares pose on the box edges (module docstring) of ``shapes``' objects, whose
-    observed boxes are ``boxes`` ``(N, 4)``, from ``start``; the fov stays ``start``'s."""
+    observed boxes are ``boxes`` ``(N, 4)``, from ``start`` with the focal lengths of
+    ``intrinsics``; with ``fit_focal`` the focal length is fitted too, else the fov stays
+    ``start``'s."""
     observed = np.asarray(boxes, dtype=np.float64).ravel()
 
     def residuals(x: FloatArray) -> FloatArray:
         return _boxes_at(x, shapes, intrinsics, film).ravel() - observed
 
-    fit = least_squares(residuals, _pose_vector(start), x_scale="jac", xtol=1e-12, ftol=1e-12)
+    x0 = _pose_vector(start)
+    if fit_focal:
+        x0 = np.append(x0, 0.0)
+    fit = least_squares(residuals, x0, x_scale="jac", xtol=1e-12, ftol=1e-12)
     rotation = Rotation.from_rotvec(fit.x[:3]).as_matrix()
-    return Estimate(rotation.T, np.asarray(fit.x[3:], dtype=np.float64), start.fov_deg)
+    fov = start.fov_deg
+    if fit_focal:
+        fov = fov_of_focal(intrinsics[0, 0] * math.exp(float(fit.x[6])), film[0])
+    return Estimate(rotation.T, np.asarray(fit.x[3:6], dtype=np.float64), fov)
 
 
 def box_only_bound(
@@ -131,7 +156,7 @@ def box_only_bound(
 ) -> Estimate:
     """The ideal box-only fit of ``target`` (module docstring): the exact boxes of its usable
     objects (or ``names``) plus N(0, σ²) per edge (σ = :func:`box_sigma_px` unless given),
-    fitted from the truth."""
+    fitted from the truth, the focal length too when the target does not give it."""
     camera = target.annotations.camera
     film = (camera.width, camera.height)
     used = shapes.subset(tuple(names) if names is not None else target.usable)
@@ -142,4 +167,5 @@ def box_only_bound(
     sigma = box_sigma_px(camera.width) if sigma_px is None else sigma_px
     noisy = exact + rng.normal(0.0, sigma, size=exact.shape) if sigma > 0 else exact
     limits = np.array([film[0], film[1], film[0], film[1]], dtype=np.float64)
-    return box_fit(used, np.clip(noisy, 0.0, limits), intrinsics, film, truth)
+    observed = np.clip(noisy, 0.0, limits)
+    return box_fit(used, observed, intrinsics, film, truth, fit_focal=not target.intrinsics_given)
