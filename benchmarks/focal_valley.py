@@ -1,6 +1,7 @@
 """How much a target's edges say about its focal length, per elevation band.
 
-Run: ``.venv/bin/python -m benchmarks.focal_valley [--n 8] [--seeds 1,2] [--random-scenes 2]``
+Run: ``.venv/bin/python -m benchmarks.focal_valley [--n 8] [--seeds 1,2] [--random-scenes 2]
+[--scale 2 [--enlarge]]``
 
 Without the photo's intrinsics, distance and focal length trade along a valley (a dolly zoom:
 focal ``s f``, the camera moved back by ``(s - 1) z̃``, the edge points' median depth ``z̃``
@@ -21,6 +22,12 @@ length from that render; the fov errors of those fits are tallied.
 
 It prints per elevation band the median rise at ``s`` = 0.9, 0.95, 1.05 and 1.1, and the share of
 the free fits within 1 % and 2 % of the true fov.
+
+``--scale S`` draws the target and the views on a film ``S`` times over: a photo that large.
+With ``--enlarge`` the target keeps its own film and its grey is enlarged to the views'
+(``cv2.INTER_CUBIC``), as the optimizer does for a small photo without its intrinsics
+(``services.optimizer.refine_pose``), and the fits take their tolerances in its pixels
+(:func:`~services.optimizer.free.dense.pyramid`).
 """
 
 from __future__ import annotations
@@ -122,9 +129,12 @@ def _dolly(target: FreeTarget, zoom: float) -> FreeCamera:
     return camera.model_copy(update={"position": tuple(position), "fov_deg": fov})
 
 
-def _rise(points: EdgePoints, target_gray: np.ndarray, truth: PinholeCamera) -> list[float]:
-    """The valley's cost at each of :data:`ZOOMS` over its least (module docstring)."""
-    levels = [target_level(target_gray, *level) for level in dense.LEVELS]
+def _rise(
+    points: EdgePoints, target_gray: np.ndarray, truth: PinholeCamera, pixel: float = 1.0
+) -> list[float]:
+    """The valley's cost at each of :data:`ZOOMS` over its least (module docstring), on a film
+    ``pixel`` times the target's pixels."""
+    levels = [target_level(target_gray, *level) for level in dense.pyramid(pixel)]
     fine = levels[-1]
     k = Intrinsics(truth.fx, truth.fy, truth.cx, truth.cy)
     rotation = np.asarray(truth.rotation)
@@ -142,8 +152,11 @@ def _rise(points: EdgePoints, target_gray: np.ndarray, truth: PinholeCamera) -> 
     return [c / least for c in costs]
 
 
-def measure(n: int, seeds: list[int], random_scenes: int, scale: int = 1) -> None:
+def measure(
+    n: int, seeds: list[int], random_scenes: int, scale: int = 1, enlarge: bool = False
+) -> None:
     """Measure and print (module docstring)."""
+    pixel = float(scale) if enlarge else 1.0
     rises: dict[Band, list[list[float]]] = defaultdict(list)
     errors: dict[Band, list[float]] = defaultdict(list)
     with tempfile.TemporaryDirectory() as tmp:
@@ -159,18 +172,25 @@ def measure(n: int, seeds: list[int], random_scenes: int, scale: int = 1) -> Non
         with LocalRenderer(catalog) as renderer:
             for seed in seeds:
                 for target in _targets(renderer, catalog, ids_per_seed[seed], n, seed):
-                    bgr = _decoded(_target_image(renderer, target, scale))
+                    bgr = _decoded(_target_image(renderer, target, 1 if enlarge else scale))
                     gray = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+                    if enlarge:
+                        film = (gray.shape[1] * scale, gray.shape[0] * scale)
+                        gray = np.asarray(
+                            cv2.resize(gray, film, interpolation=cv2.INTER_CUBIC), dtype=np.uint8
+                        )
                     rgb, depth, near, truth = _render(renderer, target, target.camera, scale)
                     points, _ = edge_points_by_outline(rgb, depth, truth, None, near)
                     if len(points.world) < dense.MIN_POINTS:
                         continue
-                    rises[target.band].append(_rise(points, gray, truth))
+                    rises[target.band].append(_rise(points, gray, truth, pixel))
                     assert target.camera.fov_deg is not None
                     for zoom in OFF:
                         view = _dolly(target, zoom)
                         rgb, depth, near, start = _render(renderer, target, view, scale)
-                        fit = dense.refine_dense(gray, rgb, depth, start, fit_focal=True, near=near)
+                        fit = dense.refine_dense(
+                            gray, rgb, depth, start, fit_focal=True, near=near, pixel=pixel
+                        )
                         fov = fit.intrinsics.fov_deg(truth.width)
                         errors[target.band].append(abs(fov / target.camera.fov_deg - 1.0))
                     print(f"  {target.scene} #{target.index} {target.band}", flush=True)
@@ -196,8 +216,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--scale", type=int, default=1, help="the target and views on a film this many times over"
     )
+    parser.add_argument(
+        "--enlarge",
+        action="store_true",
+        help="with --scale: the target at its own film, its grey enlarged to the views'",
+    )
     args = parser.parse_args(argv)
-    measure(args.n, [int(s) for s in args.seeds.split(",")], args.random_scenes, args.scale)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    measure(args.n, seeds, args.random_scenes, args.scale, args.enlarge)
 
 
 if __name__ == "__main__":

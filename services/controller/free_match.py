@@ -6,9 +6,10 @@ The render is made at the pose with the intrinsics used, on a film the target's 
 pose paired with an object must be seen again in the render: a detection of the same label,
 or named as the object the pose paired it with (the optimizer pairs a detection whose colour
 contradicts its label with the object its colour names: the render's may name it right), whose
-box-edge RMS from the target's is within the gate ``g_i = max(GATE_MIN_PX / s,
+box-edge RMS from the target's is within the gate ``g_i = max(GATE_MIN_PX / min(s, 1),
 GATE_FRACTION · diag_i)`` (``diag_i`` the target box's diagonal, ``GATE_MIN_PX / s`` one
-render pixel's quantisation at the scale, doubled). Pairs are drawn by the Hungarian method
+render pixel's quantisation at the scale, doubled; never below two of the target's own pixels,
+which a render larger than the target does not make finer). Pairs are drawn by the Hungarian method
 (scipy's ``linear_sum_assignment``) on the edge RMS over the sides that touch neither image's
 border (a clipped side says only that the object goes on).
 
@@ -54,11 +55,14 @@ class FreeMatch:
     missing: tuple[int, ...]
 
 
-def view_film(target_size: tuple[int, int], max_width: int) -> tuple[tuple[int, int], float]:
+def view_film(
+    target_size: tuple[int, int], max_width: int, max_scale: float = 1.0
+) -> tuple[tuple[int, int], float]:
     """The render's film for a target of ``target_size``: its shape, at most ``max_width``
-    pixels wide (never larger than the target), and the scale ``s`` from target to film."""
+    pixels wide and ``max_scale`` times the target's width, and the scale ``s`` from target to
+    film."""
     width, height = target_size
-    scale = min(1.0, max_width / width)
+    scale = min(max_scale, max_width / width)
     film = (max(8, round(width * scale)), max(8, round(height * scale)))
     return film, film[0] / width
 
@@ -92,7 +96,8 @@ def compare_view(
     t = _boxes([target[i] for i in want], 1.0)
     v = _boxes(view, 1.0 / scale)
     gates = np.maximum(
-        GATE_MIN_PX / scale, GATE_FRACTION * np.hypot(t[:, 2] - t[:, 0], t[:, 3] - t[:, 1])
+        GATE_MIN_PX / min(scale, 1.0),
+        GATE_FRACTION * np.hypot(t[:, 2] - t[:, 0], t[:, 3] - t[:, 1]),
     )
     masked = _border(t, width, height)[:, None, :] | _border(v, width, height)[None, :, :]
     diff = (t[:, None, :] - v[None, :, :]) ** 2

@@ -3,9 +3,11 @@ image by the render at it (:func:`~services.optimizer.free.refine_dense`), answe
 contract's terms (:mod:`services.common.contracts.refine`).
 
 Resolution
-    The render is made on the target's shape scaled by ``s ≤ 1`` (a search renders at most its
-    view width). The target is brought to the render's film (a large JPEG decoded already
-    shrunk towards it by libjpeg, then ``cv2.INTER_AREA``) and the fit
+    The render is made on the target's shape scaled by ``s`` (a search renders at most its
+    view width; a small target without its intrinsics up to twice its own size,
+    :data:`~services.common.contracts.refine.MAX_FILM_SCALE`). The target is brought to the
+    render's film (a large JPEG decoded already shrunk towards it by libjpeg, then
+    ``cv2.INTER_AREA``; a smaller one enlarged by ``cv2.INTER_CUBIC``) and the fit
     runs there, on the render's camera: the pose's pixel intrinsics times ``s``; the fitted
     intrinsics are scaled back by ``1 / s`` (the principal point stays the pose's).
 
@@ -41,8 +43,9 @@ Accepted
 
     The fit must also keep to the boxes it started from, unless the image vouches for leaving
     them: when it moves the paired objects' predicted box edges by more than the box fit can
-    err (RMS shift over ``max(BOX_SLACK_PX / s, BOX_SLACK_RATIO · r)`` target pixels, ``r`` the
-    start's box-edge RMS, ``s`` the render's film over the target's), it is accepted only when
+    err (RMS shift over ``max(BOX_SLACK_PX / min(s, 1), BOX_SLACK_RATIO · r)`` target pixels,
+    ``r`` the start's box-edge RMS, ``s`` the render's film over the target's: a film larger
+    than the target makes the detector's boxes no finer), it is accepted only when
     it leaves at least :data:`FAR_SHARE` of its edge points on the target's. Measured through
     the real stack (``cosmos bench --free --scene demo --random-scenes 2 --n 8 --seed 5``, the
     targets and renders 320 pixels wide): fits that moved the boxes 2-6 px and left 0.52-0.72
@@ -75,6 +78,7 @@ from pydantic import ValidationError
 from services.common.catalog import SceneCatalog
 from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed
 from services.common.contracts.refine import (
+    MAX_FILM_SCALE,
     RefinePoseRequest,
     RefinePoseResponse,
     TargetRequest,
@@ -90,7 +94,7 @@ from services.common.geometry.free_camera import (
 )
 from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
-from services.optimizer.free.dense import LEVELS, MIN_POINTS, worth_another_render
+from services.optimizer.free.dense import MIN_POINTS, pyramid, worth_another_render
 from services.optimizer.free.edges import outline
 from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
@@ -170,7 +174,9 @@ def _target_gray(data: bytes, limits: ImageLimits, film: tuple[int, int]) -> NDA
     brought to it by ``cv2.INTER_AREA``. Shrunk to the film itself (libjpeg keeping only each
     8 x 8 block's mean), a 4000 x 3000 photo's fit left 601 of 631 edge points on its edges
     against 622 from the whole decode; at twice the film, as many as whole, the grey 0.25
-    levels from it on average, in 22-26 ms against 81-98 ms."""
+    levels from it on average, in 22-26 ms against 81-98 ms. A target smaller than the film is
+    enlarged by ``cv2.INTER_CUBIC``: its edges, found on the enlarged grey, fall between its
+    own pixels."""
     twice = (2 * film[0], 2 * film[1])
     try:
         rgb = decode_image(
@@ -181,7 +187,9 @@ def _target_gray(data: bytes, limits: ImageLimits, film: tuple[int, int]) -> NDA
         raise
     gray = np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
     if gray.shape != (film[1], film[0]):
-        gray = np.asarray(cv2.resize(gray, film, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+        larger = film[0] > gray.shape[1]
+        how = cv2.INTER_CUBIC if larger else cv2.INTER_AREA
+        gray = np.asarray(cv2.resize(gray, film, interpolation=how), dtype=np.uint8)
     return gray
 
 
@@ -199,12 +207,15 @@ def _render(data: bytes, target: tuple[int, int]) -> tuple[DepthImage, NDArray[n
 
 def _film_scale(film: tuple[int, int], target: tuple[int, int], what: str, field: str) -> float:
     """``s``, the ``film``'s width over the ``target``'s, when the film has the target's shape
-    and is at most its size (else a 422 naming ``field``)."""
+    and is at most :data:`~services.common.contracts.refine.MAX_FILM_SCALE` times its size (else
+    a 422 naming ``field``)."""
     (w, h), (width, height) = film, target
     scale = w / width
-    if not (8 <= w <= width and abs(h - height * scale) <= _SIDE_SLACK_PX):
+    if not (8 <= w <= MAX_FILM_SCALE * width and abs(h - height * scale) <= _SIDE_SLACK_PX):
         raise _invalid(
-            f"{what} is {w}x{h}: not the target's {width}x{height} shape at most its size", field
+            f"{what} is {w}x{h}: not the target's {width}x{height} shape at most "
+            f"{MAX_FILM_SCALE:g} times its size",
+            field,
         )
     return scale
 
@@ -259,7 +270,7 @@ def dense_report(
     near = moved <= allowed and turned <= MAX_TURN_DEG
     vouched = end >= FAR_GAIN * begin
     plausible = near or (vouched and moved <= FAR * allowed and turned <= FAR * MAX_TURN_DEG)
-    slack = max(BOX_SLACK_PX / scale, BOX_SLACK_RATIO * start.residual_px)
+    slack = max(BOX_SLACK_PX / min(scale, 1.0), BOX_SLACK_RATIO * start.residual_px)
     kept_boxes = box_shift <= slack or end >= FAR_SHARE
     accepted = converged and plausible and kept_boxes
     lead = (
@@ -391,6 +402,7 @@ def refine_pose(
         fit_focal=request.fit_focal,
         distortion=k.distortion,
         near=None if view.shading is None else outline(view.depth, view.objects, view.shading),
+        pixel=max(scale, 1.0),
     )
     hits = view.depth[view.depth > 0.0]
     depth = float(np.median(hits)) if hits.size else math.inf
@@ -414,9 +426,10 @@ def prepare_target(
     level when the focal length will be fitted, else the finest), made and kept in ``targets``
     for the refinements of the search to come (``POST /refine-pose/target``)."""
     film = request.film
-    _film_scale(film, _target_size(target, limits), "the film", "request.film")
+    scale = _film_scale(film, _target_size(target, limits), "the film", "request.film")
     maps = targets.maps(target, film, lambda: _target_gray(target, limits, film))
-    levels = LEVELS if request.fit_focal else LEVELS[-1:]
+    levels = pyramid(max(scale, 1.0))
+    levels = levels if request.fit_focal else levels[-1:]
     for level in levels:
         maps.level(*level)
     kept = all(maps.kept(*level) for level in levels)

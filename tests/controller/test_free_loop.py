@@ -321,16 +321,19 @@ def test_a_large_photo_is_rendered_at_the_view_width_with_its_intrinsics_scaled(
     ("width", "photo", "film"),
     [
         (160, (640, 480), (320, 240)),
-        (480, (640, 480), (640, 480)),  # no wider than the photo
+        (480, (640, 480), (960, 720)),  # up to twice the photo
+        (320, (320, 240), (640, 480)),  # a photo as small as the views: twice its size
+        (640, (400, 300), (800, 600)),  # no wider than twice the photo
         (800, (4000, 3000), (1280, 960)),  # nor than FOCAL_VIEW_MAX_WIDTH
         (1600, (4000, 3000), (1600, 1200)),  # unless the view width is
     ],
 )
-def test_without_intrinsics_the_views_are_twice_the_view_width_as_the_photo_allows(
+def test_without_intrinsics_the_views_are_twice_the_view_width_and_at_most_twice_the_photo(
     tmp_path, detail, width, photo, film
 ):
     """The focal length is fitted on the renders' edges: a search not given it renders them
-    twice the view width wide, never wider than the photo nor 1280 pixels."""
+    twice the view width wide, never wider than twice the photo (its grey is enlarged to the
+    film) nor 1280 pixels."""
     stages = FakeStages(detail, target_size=photo)
     final = run(tmp_path, stages, view_settings=ViewSettings(width=width))
     assert final.status == "succeeded", final.error

@@ -23,7 +23,7 @@ from services.common.geometry.free_camera import (
 )
 from services.optimizer.free import Intrinsics, scene_objects, solve_free_pose
 from services.optimizer.free.chamfer import ChamferProblem
-from services.optimizer.free.dense import refine_dense, worth_another_render
+from services.optimizer.free.dense import LEVELS, pyramid, refine_dense, worth_another_render
 from services.optimizer.free.edges import outline
 from services.optimizer.refine_pose import MIN_INLIER_SHARE
 from services.renderer.view import resolve_free_camera
@@ -176,6 +176,32 @@ def test_the_focal_length_is_refined_when_not_given(engine, catalog):
     distance, angle = errors(fit.rotation.T, fit.position, truth)
     assert distance < 0.01 * scene.spec.camera.radius
     assert angle < 0.5
+
+
+def test_the_pyramid_of_an_enlarged_film_keeps_its_tolerances_in_the_target_s_pixels():
+    assert pyramid(1.0) == LEVELS
+    # on a film twice the target's: coarse levels of as many target pixels, the finest the
+    # film's own with σ and τ of as many target pixels
+    assert pyramid(2.0) == ((8, 2.0, 8.0), (4, 1.5, 6.0), (1, 2.0, 10.0))
+
+
+def test_a_small_target_enlarged_twice_is_refined_on_the_enlarged_film(engine, catalog):
+    """The rolled view's target at 320 x 240, its grey enlarged to a 640 x 480 render started
+    8 % wide in fov and 2 %/2° off: the focal length comes back in the film's pixels."""
+    scene = catalog.get("garden")
+    _, truth = VIEWS[2]
+    target, _, true_camera = rendered(engine, scene, truth)
+    enlarged = cv2.resize(gray(target), (2 * W, 2 * H), interpolation=cv2.INTER_CUBIC)
+    start = moved(truth, 2.0, 0.02 * scene.spec.camera.radius, seed=4, fov_deg=54.0)
+    view = resolve_free_camera(scene, start, 2 * W, 2 * H)
+    rgb = engine.render(scene, view, 2 * W, 2 * H, SPP, 0).rgb
+    depth = engine.depth(scene, view, 2 * W, 2 * H).depth
+    fit = refine_dense(enlarged, rgb, depth, view.camera, fit_focal=True, pixel=2.0)
+    assert fit.intrinsics.fx == pytest.approx(2.0 * true_camera.fx, rel=0.01)
+    distance, angle = errors(fit.rotation.T, fit.position, truth)
+    assert distance < 0.01 * scene.spec.camera.radius
+    assert angle < 0.5
+    assert fit.share() > 0.8  # explained within two of the target's pixels, not the film's
 
 
 @pytest.mark.parametrize(("scene_id", "truth"), VIEWS, ids=["oblique", "nadir", "rolled"])

@@ -134,6 +134,30 @@ async def test_a_render_at_half_the_target_size_refines_it_too(client, engine, c
     assert refined.intrinsics.fx_px == pytest.approx(pose.intrinsics.fx_px)
 
 
+async def test_a_render_at_twice_the_target_size_refines_the_focal_length_too(
+    client, engine, catalog, case
+):
+    """A small photo without its intrinsics is refined on a film twice its size (its grey
+    enlarged): the fit answers in the target's pixels; a film beyond twice is refused."""
+    target, pose, _ = case
+    large = render(engine, catalog.get("demo"), scaled_camera(pose, 2.0), 2 * W, 2 * H)
+    body = (
+        await client.post("/refine-pose", **form(pose, target, large.npz(), fit_focal=True))
+    ).json()
+    assert body["fit"]["accepted"], body["fit"]
+    refined = FreePose.model_validate(body["pose"])
+    assert error(refined)[0] < error(pose)[0]
+    assert refined.intrinsics.fov_deg == pytest.approx(45.0, rel=0.01)
+    assert refined.intrinsics.cx_px == pytest.approx(pose.intrinsics.cx_px)
+    ready = await client.post("/refine-pose/target", **target_form(target, [2 * W, 2 * H]))
+    assert ready.status_code == 200, ready.text
+    too_large = await client.post(
+        "/refine-pose/target", **target_form(target, [2 * W + 8, 2 * H + 6])
+    )
+    assert too_large.status_code == 422
+    assert too_large.json()["field"] == "request.film"
+
+
 async def test_without_intrinsics_the_focal_length_is_fitted_and_said_so(client, case):
     target, pose, archive = case
     response = await client.post(
@@ -216,7 +240,7 @@ async def test_a_target_made_ready_is_found_by_the_refinement(app, client, case)
 async def test_a_target_to_make_ready_is_checked_naming_the_part(client, case):
     target, _, _ = case
     cases = [
-        (target_form(target, [W + 2, H]), 422, "request.film"),
+        (target_form(target, [W + 2, H]), 422, "request.film"),  # not the target's shape
         (target_form(target, [W // 2, H]), 422, "request.film"),
         (target_form(target, [4, 3]), 422, "request.film.0"),
         (target_form(target, "wide"), 422, "request.film"),

@@ -7,8 +7,9 @@ The body is ``multipart/form-data`` of three parts:
 * ``target``: the target image (PNG, JPEG or binary PPM), at its own size;
 * ``render``: the render at the request's pose as the renderer answers ``POST /render`` on
   ``Accept: application/x-npz`` (:mod:`services.common.depth_archive`: colours, depth, object
-  ids), on the target's shape scaled by ``s`` (its film at most the target's size): the render's
-  camera is the pose's with its pixel intrinsics scaled by ``s = render width / target width``.
+  ids), on the target's shape scaled by ``s`` (its film at most :data:`MAX_FILM_SCALE` times
+  the target's size): the render's camera is the pose's with its pixel intrinsics scaled by
+  ``s = render width / target width``.
 
 The answer is a :class:`RefinePoseResponse`.
 
@@ -30,6 +31,7 @@ from services.common.contracts.free import DenseReport, FreePose
 from services.common.geometry.scene import SCENE_ID_PATTERN
 
 __all__ = [
+    "MAX_FILM_SCALE",
     "REFINE_PARTS",
     "TARGET_PARTS",
     "RefinePoseRequest",
@@ -38,6 +40,11 @@ __all__ = [
     "TargetResponse",
 ]
 
+MAX_FILM_SCALE: Final = 2.0
+"""The render's film is at most this many times the target's size: a small photo without its
+intrinsics is refined on a film larger than itself, its grey upsampled, so that its edges are
+located to within a fraction of its own pixels (the focal length is told from the distance by
+a sub-pixel perspective effect)."""
 REFINE_PARTS: Final = ("request", "target", "render")
 """The form's parts: the JSON request, the target image, the render's archive."""
 TARGET_PARTS: Final = ("request", "target")
