@@ -128,6 +128,8 @@ def test_rolls_beyond_twenty_five_degrees_get_their_own_table():
     assert "roll" not in free_tables(issue)
     upright = [*issue, record(3, roll_deg=-88.0, answer=far), record(4, roll_deg=40.0)]
     assert [r.roll for r in upright[3:]] == ["60-90°", "25-60°"]
+    edges = [record(5 + i, roll_deg=d) for i, d in enumerate((25.01, 60.0, 90.0, -90.5))]
+    assert [r.roll for r in edges] == ["25-60°", "25-60°", "60-90°", "beyond 90°"]
     rows = last_table_rows(upright)
     assert list(rows) == ["±25°", "25-60°", "60-90°", "unknown", "all"]
     assert rows["60-90°"][2].strip() == "1"

@@ -48,6 +48,8 @@ METHODS: Final = (ANSWER, BOXES, BASELINE, BOUND)
 LENSES: Final = ("narrower", "±30 %", "wider", "unknown")
 ROLLS: Final = ("±25°", "25-60°", "60-90°", "beyond 90°", "unknown")
 """The targets' roll bands (issue 23's ±25°, then ``cosmos bench --free --roll-limit``'s)."""
+_ROLL_TOPS: Final = (("±25°", 25.0), ("25-60°", 60.0), ("60-90°", 90.0))
+"""The roll bands of :data:`ROLLS` up to their largest |roll| (degrees)."""
 
 Outcome = Literal["found", "ambiguous", "failed", "error"]
 """``found``: the search succeeded with a confirmed ``found`` free answer; ``ambiguous``: it
@@ -172,15 +174,7 @@ class FreeRecord(FrozenModel):
         if self.roll_deg is None:
             return "unknown"
         r = abs(self.roll_deg)
-        return (
-            "±25°"
-            if r <= 25.0
-            else "25-60°"
-            if r <= 60.0
-            else "60-90°"
-            if r <= 90.0
-            else "beyond 90°"
-        )
+        return next((band for band, top in _ROLL_TOPS if r <= top), "beyond 90°")
 
     @property
     def given(self) -> str:
