@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -49,6 +50,7 @@ from cosmos.bench.free_targets.report import TargetResult, dense_line, solver_ta
 from cosmos.bench.free_targets.solver import SOLVER, answer_estimate, confirmed_wrong
 from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderAnnotations, RenderRequest
+from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import (
     FreeCamera,
     free_pinhole_camera,
@@ -435,7 +437,23 @@ def test_the_dense_stage_renders_once_or_twice_per_target_and_reports_every_vari
     shapes = scene_shapes(garden)
     radius = garden.spec.camera.radius
     objects = scene_objects(garden.spec, garden.assets)
-    results = evaluate(targets[:3], shapes, radius, SEED, objects, renderer, spp=1)
+    widths: list[int] = []
+
+    class Spy:
+        """The renderer, keeping the film width of every depth render."""
+
+        def depth(self, request: RenderRequest) -> DepthImage:
+            widths.append(request.width)
+            return renderer.depth(request)
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(renderer, name)
+
+    results = evaluate(targets[:3], shapes, radius, SEED, objects, Spy(), spp=1)
+    # a target without its intrinsics is refined, as a search refines it, on twice its film
+    films = {t.annotations.camera.width * (1 if t.intrinsics_given else 2) for t in targets[:3]}
+    assert set(widths) <= films
+    assert any(not t.intrinsics_given for t in targets[:3]) == (max(widths) > FILM[0])
     methods = [dense_method(v) for v in FREE_VARIANTS]
     for result in results:
         # A second render only where the focal length was fitted and moved far.

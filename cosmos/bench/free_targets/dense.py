@@ -5,10 +5,12 @@ The render (RGB at the target's spp, and its depth: ``POST /render`` and ``POST 
 is made once per target at the box solver's best pose, with the intrinsics the solver used (the
 target's when it gives them, else its estimate); the refinement then runs on each image
 variant of the target (:data:`~.draw.FREE_VARIANTS`: clean, JPEG, noise), with the focal length
-free when the target did not give its intrinsics. A pose the renderer refuses (below the ground,
-inside an object) keeps the box solver's estimate, with no render spent; with
-``renders=2`` the refined pose is rendered once more and refined again from there. Without
-given intrinsics, a fit whose focal length moved far from the render's
+free when the target did not give its intrinsics. Such a target is refined as a search refines
+it: on a film :data:`~services.common.contracts.refine.MAX_FILM_SCALE` times its own, its grey
+enlarged (``cv2.INTER_CUBIC``) and the fit's tolerances in its pixels. A pose the renderer
+refuses (below the ground, inside an object) keeps the box solver's estimate, with no render
+spent; with ``renders=2`` the refined pose is rendered once more and refined again from there.
+Without given intrinsics, a fit whose focal length moved far from the render's
 (:func:`~services.optimizer.free.dense.worth_another_render`) gets one render more.
 """
 
@@ -25,6 +27,7 @@ from numpy.typing import NDArray
 from cosmos.bench.free_targets.draw import FREE_VARIANTS, FreeTarget, FreeVariant
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.rendering import Renderer
+from services.common.contracts.refine import MAX_FILM_SCALE
 from services.common.contracts.render import RenderRequest
 from services.common.depth_archive import DepthImage
 from services.common.errors import UnprocessableError
@@ -66,6 +69,21 @@ def _decode_gray(data: bytes) -> NDArray[np.uint8]:
     if gray is None:
         raise ValueError("a target image does not decode")
     return np.asarray(gray, dtype=np.uint8)
+
+
+def _enlarged(gray: NDArray[np.uint8], scale: int) -> NDArray[np.uint8]:
+    """``gray`` enlarged ``scale`` times (``cv2.INTER_CUBIC``), as the optimizer enlarges it."""
+    size = (gray.shape[1] * scale, gray.shape[0] * scale)
+    return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_CUBIC), dtype=np.uint8)
+
+
+def _on_film(camera: FreeCamera, scale: int) -> FreeCamera:
+    """``camera`` on a film ``scale`` times the target's: its pixel intrinsics scaled."""
+    if scale == 1:
+        return camera
+    pixels = ("fx_px", "fy_px", "cx_px", "cy_px")
+    update = {k: getattr(camera, k) * scale for k in pixels if getattr(camera, k) is not None}
+    return camera.model_copy(update=update)
 
 
 def _free_camera(camera: PinholeCamera) -> FreeCamera:
@@ -140,7 +158,12 @@ def run_dense(
         np.asarray(answer.pose.position, dtype=np.float64),
         answer.pose.intrinsics.fov_deg,
     )
-    first = render_at(renderer, target, answer.pose.free_camera(), spp)
+    scale = 1 if target.intrinsics_given else int(MAX_FILM_SCALE)
+    if scale > 1:
+        images = {v: _enlarged(image, scale) for v, image in images.items()}
+    first = render_at(
+        renderer, target, _on_film(answer.pose.free_camera(), scale), spp, scale=scale
+    )
     spent, calls = int(first is not None), []
     for variant in FREE_VARIANTS:
         rendered, estimate, budget, step = first, fallback, renders, 0
@@ -154,14 +177,16 @@ def run_dense(
                 pinhole,
                 fit_focal=not target.intrinsics_given,
                 near=_near(geometry),
+                pixel=float(scale),
             )
             calls.append((time.perf_counter() - started) * 1000.0)
-            estimate = _estimate(fit, width)
+            estimate = _estimate(fit, width * scale)
             step += 1
             if step == budget == renders and worth_another_render(fit, pinhole):
                 budget += 1
             if step < budget:
-                rendered = render_at(renderer, target, _free_camera(fit.camera(pinhole)), spp)
+                camera = _free_camera(fit.camera(pinhole))
+                rendered = render_at(renderer, target, camera, spp, scale=scale)
                 spent += int(rendered is not None and variant == FREE_VARIANTS[0])
         estimates[dense_method(variant)] = estimate
     return DenseRun(estimates, spent, sum(calls), tuple(calls))
