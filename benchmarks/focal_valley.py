@@ -57,6 +57,7 @@ from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.edges import (
     EdgePoints,
     edge_points_by_outline,
+    on_film,
     outline,
     target_level,
 )
@@ -175,10 +176,7 @@ def measure(
                     bgr = _decoded(_target_image(renderer, target, 1 if enlarge else scale))
                     gray = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
                     if enlarge:
-                        film = (gray.shape[1] * scale, gray.shape[0] * scale)
-                        gray = np.asarray(
-                            cv2.resize(gray, film, interpolation=cv2.INTER_CUBIC), dtype=np.uint8
-                        )
+                        gray = on_film(gray, (gray.shape[1] * scale, gray.shape[0] * scale))
                     rgb, depth, near, truth = _render(renderer, target, target.camera, scale)
                     points, _ = edge_points_by_outline(rgb, depth, truth, None, near)
                     if len(points.world) < dense.MIN_POINTS:

@@ -95,7 +95,7 @@ from services.common.geometry.free_camera import (
 from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
 from services.optimizer.free.dense import MIN_POINTS, pyramid, worth_another_render
-from services.optimizer.free.edges import outline
+from services.optimizer.free.edges import on_film, outline
 from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 
@@ -186,11 +186,7 @@ def _target_gray(data: bytes, limits: ImageLimits, film: tuple[int, int]) -> NDA
         exc.field = "target"
         raise
     gray = np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
-    if gray.shape != (film[1], film[0]):
-        larger = film[0] > gray.shape[1]
-        how = cv2.INTER_CUBIC if larger else cv2.INTER_AREA
-        gray = np.asarray(cv2.resize(gray, film, interpolation=how), dtype=np.uint8)
-    return gray
+    return on_film(gray, film)
 
 
 def _render(data: bytes, target: tuple[int, int]) -> tuple[DepthImage, NDArray[np.uint8], float]:

@@ -39,7 +39,7 @@ from services.common.geometry.free_camera import (
 )
 from services.optimizer.free import FreePoseAnswer
 from services.optimizer.free.dense import DenseFit, refine_dense, worth_another_render
-from services.optimizer.free.edges import outline
+from services.optimizer.free.edges import on_film, outline
 from services.renderer.client import RendererError
 
 __all__ = ["DENSE", "DenseRun", "dense_method", "run_dense"]
@@ -69,21 +69,6 @@ def _decode_gray(data: bytes) -> NDArray[np.uint8]:
     if gray is None:
         raise ValueError("a target image does not decode")
     return np.asarray(gray, dtype=np.uint8)
-
-
-def _enlarged(gray: NDArray[np.uint8], scale: int) -> NDArray[np.uint8]:
-    """``gray`` enlarged ``scale`` times (``cv2.INTER_CUBIC``), as the optimizer enlarges it."""
-    size = (gray.shape[1] * scale, gray.shape[0] * scale)
-    return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_CUBIC), dtype=np.uint8)
-
-
-def _on_film(camera: FreeCamera, scale: int) -> FreeCamera:
-    """``camera`` on a film ``scale`` times the target's: its pixel intrinsics scaled."""
-    if scale == 1:
-        return camera
-    pixels = ("fx_px", "fy_px", "cx_px", "cy_px")
-    update = {k: getattr(camera, k) * scale for k in pixels if getattr(camera, k) is not None}
-    return camera.model_copy(update=update)
 
 
 def _free_camera(camera: PinholeCamera) -> FreeCamera:
@@ -160,10 +145,12 @@ def run_dense(
     )
     scale = 1 if target.intrinsics_given else int(MAX_FILM_SCALE)
     if scale > 1:
-        images = {v: _enlarged(image, scale) for v, image in images.items()}
-    first = render_at(
-        renderer, target, _on_film(answer.pose.free_camera(), scale), spp, scale=scale
-    )
+        images = {
+            v: on_film(g, (g.shape[1] * scale, g.shape[0] * scale)) for v, g in images.items()
+        }
+    # the pose's pixel intrinsics times the scale, on the film that many times the target's
+    camera = answer.pose.in_target_pixels(scale).free_camera()
+    first = render_at(renderer, target, camera, spp, scale=scale)
     spent, calls = int(first is not None), []
     for variant in FREE_VARIANTS:
         rendered, estimate, budget, step = first, fallback, renders, 0

@@ -49,6 +49,7 @@ __all__ = [
     "exact_distance",
     "gray",
     "image_edges",
+    "on_film",
     "lens_coefficients",
     "target_level",
 ]
@@ -99,6 +100,16 @@ def gray(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
     if image.ndim == 2:
         return image
     return np.asarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+
+
+def on_film(gray: NDArray[np.uint8], film: tuple[int, int]) -> NDArray[np.uint8]:
+    """``gray`` brought to ``film`` ``(w, h)``: shrunk by ``cv2.INTER_AREA``, enlarged by
+    ``cv2.INTER_CUBIC`` (a small photo's edges, found on the enlarged grey, fall between its own
+    pixels), as it is when already that size."""
+    if gray.shape[:2] == (film[1], film[0]):
+        return gray
+    how = cv2.INTER_CUBIC if film[0] > gray.shape[1] else cv2.INTER_AREA
+    return np.asarray(cv2.resize(gray, film, interpolation=how), dtype=np.uint8)
 
 
 def camera_matrix(k: Intrinsics, scale: float = 1.0) -> FloatArray:
