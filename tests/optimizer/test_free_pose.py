@@ -202,6 +202,26 @@ def test_an_unknown_focal_length_is_estimated(scenes, zoom):
     assert turned < 0.5
 
 
+def test_a_focal_length_past_its_bounds_is_not_estimated(scenes):
+    """A photo through three times the scene camera's focal length (its intrinsics not given),
+    taken from three times as far: the boxes would take the fit past FOCAL_BOUNDS, so they do
+    not pin the focal length; the scene camera's is kept and said so, and the answer is not
+    found (it once ran on, chained fit after fit, to a 10° field of view 6 radii off)."""
+    objects = scenes["garden"]
+    zoom = 3.0
+    fov = math.degrees(2.0 * math.atan(math.tan(math.radians(objects.fov_deg) / 2.0) / zoom))
+    near = CAMERAS["hemisphere"]
+    camera = near.model_copy(
+        update={"position": tuple(zoom * v for v in near.position), "fov_deg": fov}
+    )
+    pinhole = free_pinhole_camera(camera, W, H, objects.fov_deg)
+    answer = solve_free_pose(objects, exact_detections(objects, pinhole), W, H)
+    assert answer.pose is not None
+    assert answer.pose.intrinsics.source == "scene"
+    assert answer.pose.intrinsics.fov_deg == pytest.approx(objects.fov_deg, rel=1e-6)
+    assert answer.status == "ambiguous", answer.reason
+
+
 def test_no_usable_detection_fails_with_a_reason(scenes):
     objects = scenes["demo"]
     answer = solve_free_pose(objects, [], W, H)

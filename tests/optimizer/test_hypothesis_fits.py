@@ -1,5 +1,6 @@
 """One solve's edge fits (services.optimizer.free.hypothesis_fits.EdgeFits): a start already
-fitted is not fitted again, and only such a start shares the fit made then."""
+fitted is not fitted again, and only such a start shares the fit made then; a fitted focal
+length stays within its bounds of the scene camera's."""
 
 from __future__ import annotations
 
@@ -10,7 +11,12 @@ import pytest
 import services.optimizer.free.hypothesis_fits as hypothesis_fits
 from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.optimizer.free import Intrinsics, project_boxes, scene_objects
-from services.optimizer.free.hypothesis_fits import SAME_START_DEG, SAME_START_POSITION, EdgeFits
+from services.optimizer.free.focal_bounds import FOCAL_BOUNDS, at_bound
+from services.optimizer.free.hypothesis_fits import (
+    SAME_START_DEG,
+    SAME_START_POSITION,
+    EdgeFits,
+)
 from services.optimizer.mapping import clipped_sides
 
 W, H = 320, 240
@@ -94,3 +100,28 @@ def test_a_start_beyond_the_tolerance_is_fitted_again(view, counted, monkeypatch
     shifted = tvec + np.array([3.0 * SAME_START_POSITION * objects.radius, 0.0, 0.0])
     fits.fit(every, every, rvec, shifted, k, False)
     assert len(counted) == 3
+
+
+def test_a_fitted_focal_stays_within_its_bounds_of_the_reference_whatever_the_start(view):
+    """Boxes seen through three times the reference focal length: a fit may not follow them past
+    FOCAL_BOUNDS of the reference, not even when it starts from a focal already fitted at the
+    bound (as a refit does), where a bound counted from the start would let it step on."""
+    objects, _, k, rvec, tvec = view
+    zoom = 3.0
+    far = tvec * np.array([1.0, 1.0, zoom])  # pulled back along the axis: a dolly zoom
+    boxes = project_boxes(
+        objects, cv2.Rodrigues(rvec)[0], far, (k.fx * zoom, k.fy * zoom), (k.cx, k.cy)
+    )
+    fits = EdgeFits(objects, boxes, clipped_sides(boxes, W, H), focal_reference=k.fx)
+    pairs = np.arange(len(objects)), np.arange(len(objects))
+    high = FOCAL_BOUNDS[1]
+    first = fits.fit(*pairs, rvec, tvec, k, True)
+    assert first.intrinsics.fx == pytest.approx(high * k.fx, rel=1e-3)
+    again = fits.fit(*pairs, first.rvec, first.tvec, first.intrinsics, True)
+    assert again.intrinsics.fx <= high * k.fx * (1 + 1e-6)
+    assert at_bound(again.intrinsics.fx, k.fx)
+    # Counted from its start, the same refit goes on towards the boxes' focal length.
+    loose = EdgeFits(objects, boxes, clipped_sides(boxes, W, H))
+    assert loose.fit(*pairs, first.rvec, first.tvec, first.intrinsics, True).intrinsics.fx > (
+        1.2 * high * k.fx
+    )

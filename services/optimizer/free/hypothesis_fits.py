@@ -11,7 +11,9 @@ every hypothesis' edge fit, started from the scene camera's; the :data:`FOCAL_WI
 those fits (least :func:`.tolerances.truncated_cost`) are also started from the other zooms of
 :data:`FOCAL_STARTS`, the least RMS kept. Every hypothesis gets the focal: a fixed-focal fit is
 a dolly zoom of the free one (farther and narrower), which at noise-level residuals would pass
-for a rival.
+for a rival. The focal length stays within :data:`~.focal_bounds.FOCAL_BOUNDS` of the scene
+camera's (:attr:`EdgeFits.focal_reference`) from whatever fit it starts, and a refined fit that
+ends on a bound keeps the scene camera's (:func:`refined`).
 
 Different hypotheses often come to the same pairs and the same centre-PnP pose, and the edge
 fit from there is the same least-squares problem from the same start: :class:`EdgeFits` fits it
@@ -28,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.optimizer.free.answer import IntrinsicsSource
+from services.optimizer.free.focal_bounds import at_bound
 from services.optimizer.free.hypotheses import pose_distance
 from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics, PoseFit, centre_pnp, refine_edges
@@ -100,6 +103,9 @@ class EdgeFits:
     objects: SceneObjects
     boxes: FloatArray
     masks: NDArray[np.bool_]
+    focal_reference: float | None = None
+    """The focal length (pixels) that a fitted one stays within
+    :data:`~.focal_bounds.FOCAL_BOUNDS` of, whatever fit it starts from: the scene camera's."""
     _made: list[tuple[tuple[object, ...], tuple[FloatArray, FloatArray], PoseFit]] = field(
         default_factory=list, init=False, repr=False
     )
@@ -127,7 +133,15 @@ class EdgeFits:
         for made_problem, made_start, made in self._made:
             if made_problem == problem and self._same(made_start, start):
                 return made
-        fitted = refine_edges(paired, b, m, *start, intrinsics, fit_focal=fit_focal)
+        fitted = refine_edges(
+            paired,
+            b,
+            m,
+            *start,
+            intrinsics,
+            fit_focal=fit_focal,
+            focal_reference=self.focal_reference,
+        )
         self._made.append((problem, start, fitted))
         return fitted
 
@@ -207,6 +221,10 @@ def refined(
     k = fit.intrinsics if estimated or not focal else intrinsics
     if len(dets) >= 3:
         fit = fits.fit(dets, objs, fit.rvec, fit.tvec, k, estimated)
+        if estimated and at_bound(fit.intrinsics.fx, intrinsics.fx):
+            # The boxes would take the focal further than it may go: they do not pin it.
+            fit = fits.fit(dets, objs, fit.rvec, fit.tvec, intrinsics, False)
+            estimated = False
     else:
         paired = fits.objects.subset(objs)
         fit = refine_edges(paired, fits.boxes[dets], fits.masks[dets], fit.rvec, fit.tvec, k)

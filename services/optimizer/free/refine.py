@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 from services.common.geometry.camera import focal_length_px
+from services.optimizer.free.focal_bounds import zoom_bounds
 from services.optimizer.free.objects import NEAR_DEPTH, SceneObjects, project_boxes
 from services.optimizer.geometry import FloatArray
 
@@ -51,10 +52,6 @@ a quarter of the fits and two thirds of the evaluations of a solve without intri
 not) and the free targets of ``python -m cosmos.bench.free_targets --scene demo
 --random-scenes 2 --n 8 --seed 1``; at 20 one bench target's pose moved 66°. 40 keeps twice
 the evaluations that failed."""
-FOCAL_BOUNDS: Final = (0.5, 2.0)
-"""With the focal length free, it stays within these factors of the start's: the distance-focal
-valley runs on towards the orthographic limit, and unbounded, a general-model fit on wrong pairs
-ran off to a camera 2400 scene units away at a 0.1° field of view (seed 5 of the free bench)."""
 _FAR_PX: Final = 1e4
 """Residual that stands for an object behind the camera: large, finite, so the solver backs off."""
 
@@ -189,6 +186,7 @@ def refine_edges(
     intrinsics: Intrinsics,
     *,
     fit_focal: bool = False,
+    focal_reference: float | None = None,
 ) -> PoseFit:
     """Least squares on the box edges (module docstring).
 
@@ -199,7 +197,9 @@ def refine_edges(
     masks : (n, 4) sides to ignore (clipped by the image border).
     rvec, tvec : the start, world-to-camera.
     intrinsics : the camera's; with ``fit_focal`` its focal lengths are scaled by a fitted
-        common factor within :data:`FOCAL_BOUNDS` (aspect ratio and principal point kept).
+        common factor (aspect ratio and principal point kept) that keeps ``fx`` within
+        :data:`~.focal_bounds.FOCAL_BOUNDS` of ``focal_reference`` (pixels, the scene
+        camera's; by default the start's ``fx``).
     """
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     m = np.asarray(masks, dtype=np.bool_).reshape(-1, 4)
@@ -217,7 +217,9 @@ def refine_edges(
 
     bounds = (np.full(start.size, -np.inf), np.full(start.size, np.inf))
     if fit_focal:
-        bounds[0][6], bounds[1][6] = (math.log(b) for b in FOCAL_BOUNDS)
+        reference = intrinsics.fx if focal_reference is None else focal_reference
+        low, high = (math.log(z) for z in zoom_bounds(intrinsics.fx, reference, (0.0, math.inf)))
+        bounds[0][6], bounds[1][6] = low, high
     fit = least_squares(
         residuals,
         start,

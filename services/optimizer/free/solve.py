@@ -13,8 +13,9 @@ The steps (each in its module):
    object's box); the fits are ranked by :func:`truncated_cost` over all detections, not by
    pairs first;
 3. without given intrinsics and with at least :data:`~.hypothesis_fits.MIN_FOCAL_PAIRS` pairs,
-   the focal length joins every hypothesis' edge fit (:mod:`.hypothesis_fits`). With fewer
-   pairs the scene camera's field of view is used and the answer says so;
+   the focal length joins every hypothesis' edge fit (:mod:`.hypothesis_fits`), within
+   :data:`~.focal_bounds.FOCAL_BOUNDS` of the scene camera's. With fewer pairs, or a fit that
+   ends on a bound, the scene camera's field of view is used and the answer says so;
 4. the answer's status (:class:`FreePoseAnswer`).
 
 With fewer than three usable detections no minimal set exists: the edges are fitted from a ring
@@ -271,7 +272,7 @@ def _solve(
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from))
 
-    edge_fits = EdgeFits(objects, boxes, masks)
+    edge_fits = EdgeFits(objects, boxes, masks, focal_reference=k0.fx)
     firsts = focal_fits(edge_fits, starts, k0, not given)
     for first, (_, _, dets, objs) in zip(firsts, starts, strict=True):
         keep(refined(edge_fits, compatible, first, (dets, objs), k0, (width, height)))
