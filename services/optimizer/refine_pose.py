@@ -94,8 +94,9 @@ from services.common.geometry.free_camera import (
 )
 from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
-from services.optimizer.free.dense import MIN_POINTS, pyramid, worth_another_render
+from services.optimizer.free.dense import MIN_POINTS, pyramid
 from services.optimizer.free.edges import on_film, outline
+from services.optimizer.free.refit import worth_another_render
 from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 
@@ -255,7 +256,7 @@ def dense_report(
     """How the ``fit`` from ``start`` (rendered at ``scale`` times the target's film, its
     points at median depth ``depth``) went: converged, accepted and why (module docstring);
     ``box_shift`` is :func:`box_shift_px` at the fit; ``render_again``
-    (:func:`~services.optimizer.free.dense.worth_another_render`) is kept for an accepted fit
+    (:func:`~services.optimizer.free.refit.worth_another_render`) is kept for an accepted fit
     only."""
     moved = float(np.linalg.norm(fit.position - np.asarray(start.position)))
     turned = rotation_angle_deg(fit.rotation.T, start.camera().rotation())

@@ -23,8 +23,9 @@ from services.common.geometry.free_camera import (
 )
 from services.optimizer.free import Intrinsics, scene_objects, solve_free_pose
 from services.optimizer.free.chamfer import ChamferProblem
-from services.optimizer.free.dense import LEVELS, pyramid, refine_dense, worth_another_render
+from services.optimizer.free.dense import LEVELS, pyramid, refine_dense
 from services.optimizer.free.edges import outline
+from services.optimizer.free.refit import worth_another_render
 from services.optimizer.refine_pose import MIN_INLIER_SHARE
 from services.renderer.view import resolve_free_camera
 

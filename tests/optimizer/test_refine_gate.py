@@ -17,7 +17,7 @@ from services.common.geometry.free_camera import (
     quaternion_of_rotation,
 )
 from services.optimizer.free import DenseFit, Intrinsics
-from services.optimizer.free.dense import worth_another_render
+from services.optimizer.free.refit import worth_another_render
 from services.optimizer.refine_pose import box_shift_px, dense_report
 
 START = FreeCamera(position=(0.0, -10.0, 5.0), look_at=(0.0, 0.0, 0.0))

@@ -11,7 +11,7 @@ enlarged (``cv2.INTER_CUBIC``) and the fit's tolerances in its pixels. A pose th
 refuses (below the ground, inside an object) keeps the box solver's estimate, with no render
 spent; with ``renders=2`` the refined pose is rendered once more and refined again from there.
 Without given intrinsics, a fit whose focal length moved far from the render's
-(:func:`~services.optimizer.free.dense.worth_another_render`) gets one render more.
+(:func:`~services.optimizer.free.refit.worth_another_render`) gets one render more.
 """
 
 from __future__ import annotations
@@ -38,8 +38,9 @@ from services.common.geometry.free_camera import (
     quaternion_of_rotation,
 )
 from services.optimizer.free import FreePoseAnswer
-from services.optimizer.free.dense import DenseFit, refine_dense, worth_another_render
+from services.optimizer.free.dense import DenseFit, refine_dense
 from services.optimizer.free.edges import on_film, outline
+from services.optimizer.free.refit import worth_another_render
 from services.renderer.client import RendererError
 
 __all__ = ["DENSE", "DenseRun", "dense_method", "run_dense"]
