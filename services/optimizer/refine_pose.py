@@ -86,6 +86,7 @@ from services.common.contracts.refine import (
 )
 from services.common.depth_archive import DepthImage
 from services.common.errors import ServiceError, UnprocessableError
+from services.common.geometry.camera import focal_length_px
 from services.common.geometry.free_camera import (
     free_pinhole_camera,
     quaternion_of_rotation,
@@ -400,6 +401,7 @@ def refine_pose(
         distortion=k.distortion,
         near=None if view.shading is None else outline(view.depth, view.objects, view.shading),
         pixel=max(scale, 1.0),
+        focal_reference=focal_length_px(scene.spec.camera.fov_deg, w),
     )
     hits = view.depth[view.depth > 0.0]
     depth = float(np.median(hits)) if hits.size else math.inf

@@ -25,6 +25,7 @@ from services.optimizer.free import Intrinsics, scene_objects, solve_free_pose
 from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.dense import LEVELS, pyramid, refine_dense
 from services.optimizer.free.edges import outline
+from services.optimizer.free.focal_bounds import FOCAL_BOUNDS
 from services.optimizer.free.refit import worth_another_render
 from services.optimizer.refine_pose import MIN_INLIER_SHARE
 from services.renderer.view import resolve_free_camera
@@ -402,3 +403,25 @@ def test_under_the_renders_own_light_its_shadows_join_the_fit(engine, catalog, s
     (plain, plain_angle), (distance, angle) = all_edges_and_outline(engine, scene, scene, truth)
     assert distance <= max(plain, 0.004 * scene.spec.camera.radius)
     assert angle <= max(plain_angle, 0.2)
+
+
+def test_a_focal_length_past_its_bounds_is_not_kept(engine, catalog):
+    """The rolled view, started 8 % wide, with a scene camera whose focal length puts the
+    bound of FOCAL_BOUNDS halfway between the start's and the true one: the fit ends past the
+    bound, and keeps the start's focal length (the pose alone fitted). Given a scene camera
+    of the start's focal length, whose bounds reach past the truth, the same fit finds it."""
+    scene = catalog.get("garden")
+    _, truth = VIEWS[2]
+    target, _, true_camera = rendered(engine, scene, truth)
+    start = moved(truth, 2.0, 0.02 * scene.spec.camera.radius, seed=4, fov_deg=54.0)
+    rgb, depth, camera = rendered(engine, scene, start)
+    assert camera.fx < 0.95 * true_camera.fx
+    halfway = (camera.fx + true_camera.fx) / 2.0 / FOCAL_BOUNDS[1]
+    bounded = refine_dense(
+        gray(target), rgb, depth, camera, fit_focal=True, focal_reference=halfway
+    )
+    assert not bounded.focal_fitted
+    assert bounded.intrinsics.fx == pytest.approx(camera.fx)
+    free = refine_dense(gray(target), rgb, depth, camera, fit_focal=True, focal_reference=camera.fx)
+    assert free.focal_fitted
+    assert free.intrinsics.fx == pytest.approx(true_camera.fx, rel=0.01)

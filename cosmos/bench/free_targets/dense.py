@@ -31,7 +31,7 @@ from services.common.contracts.refine import MAX_FILM_SCALE
 from services.common.contracts.render import RenderRequest
 from services.common.depth_archive import DepthImage
 from services.common.errors import UnprocessableError
-from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.camera import PinholeCamera, focal_length_px
 from services.common.geometry.free_camera import (
     FreeCamera,
     free_pinhole_camera,
@@ -127,9 +127,12 @@ def run_dense(
     *,
     spp: int = 16,
     renders: int = 1,
+    scene_fov_deg: float | None = None,
 ) -> DenseRun:
     """The dense stage on ``target`` from the box solver's ``answer`` (module docstring); the
-    image variants' noise is seeded by ``seed`` and the target's index."""
+    image variants' noise is seeded by ``seed`` and the target's index. A focal length fitted
+    stays within the optimizer's bounds of the scene camera's (``scene_fov_deg``), as
+    ``/refine-pose`` keeps it."""
     methods = [dense_method(v) for v in FREE_VARIANTS]
     if answer.pose is None:
         return DenseRun(dict.fromkeys(methods), 0, 0.0)
@@ -152,6 +155,9 @@ def run_dense(
     # the pose's pixel intrinsics times the scale, on the film that many times the target's
     camera = answer.pose.in_target_pixels(scale).free_camera()
     first = render_at(renderer, target, camera, spp, scale=scale)
+    reference = None
+    if scene_fov_deg is not None:
+        reference = focal_length_px(scene_fov_deg, width * scale)
     spent, calls = int(first is not None), []
     for variant in FREE_VARIANTS:
         rendered, estimate, budget, step = first, fallback, renders, 0
@@ -166,6 +172,7 @@ def run_dense(
                 fit_focal=not target.intrinsics_given,
                 near=_near(geometry),
                 pixel=float(scale),
+                focal_reference=reference,
             )
             calls.append((time.perf_counter() - started) * 1000.0)
             estimate = _estimate(fit, width * scale)

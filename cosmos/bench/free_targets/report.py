@@ -107,7 +107,15 @@ def evaluate(
             estimates[SOLVER] = answer_estimate(answer)
             status = answer.status
             if renderer is not None:
-                dense = run_dense(target, answer, renderer, seed, spp=spp, renders=renders)
+                dense = run_dense(
+                    target,
+                    answer,
+                    renderer,
+                    seed,
+                    spp=spp,
+                    renders=renders,
+                    scene_fov_deg=objects.fov_deg,
+                )
                 estimates.update(dense.estimates)
                 spent, dense_ms, call_ms = dense.renders, dense.refine_ms, dense.call_ms
         results.append(

@@ -3,14 +3,16 @@
 Without them, distance and focal length trade along a valley (a dolly zoom) that runs on
 towards the orthographic limit: boxes, and edges too where the view hardly shows perspective
 (seen from above, a flat layout), fit ever narrower lenses from ever farther away about as
-well. So a fitted focal length ``f`` stays within :data:`FOCAL_BOUNDS` of the scene camera's
-``f₀``,
+well. So a fitted focal length ``f`` is sought within :data:`FOCAL_BOUNDS` of the scene
+camera's ``f₀``,
 
 .. math:: b_0 f_0 \\le f \\le b_1 f_0,
 
-whatever fit it starts from (each start's own bounds let refits step on along the valley), and
-a fit that ends on a bound (:func:`at_bound`) has not found the focal length: the data would
-take it further, and the caller keeps a focal length it did not fit.
+and a fit that ends on a bound or beyond (:func:`at_bound`) has not found the focal length: the
+data would take it further, and the caller keeps a focal length it did not fit. The box solve's
+fits are bounded so whatever fit they start from (:func:`zoom_bounds`: each start's own bounds
+let refits step on along the valley); the dense fit keeps its bounds about its start, which it
+then checks.
 """
 
 from __future__ import annotations
