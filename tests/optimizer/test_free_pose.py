@@ -220,6 +220,7 @@ def test_a_focal_length_past_its_bounds_is_not_estimated(scenes):
     assert answer.pose.intrinsics.source == "scene"
     assert answer.pose.intrinsics.fov_deg == pytest.approx(objects.fov_deg, rel=1e-6)
     assert answer.status == "ambiguous", answer.reason
+    assert "beyond 0.5 to 2 times the scene camera's" in answer.reason
 
 
 def test_no_usable_detection_fails_with_a_reason(scenes):

@@ -74,13 +74,21 @@ from services.optimizer.free.answer import (
 )
 from services.optimizer.free.colours import recoloured
 from services.optimizer.free.few import few_detections, few_fits
+from services.optimizer.free.focal_bounds import FOCAL_BOUNDS
 from services.optimizer.free.hypotheses import (
     distinct,
     general_labels,
     hypotheses,
     label_costs,
 )
-from services.optimizer.free.hypothesis_fits import EdgeFits, Fit, focal_fits, left_out, refined
+from services.optimizer.free.hypothesis_fits import (
+    MIN_FOCAL_PAIRS,
+    EdgeFits,
+    Fit,
+    focal_fits,
+    left_out,
+    refined,
+)
 from services.optimizer.free.objects import SceneObjects
 from services.optimizer.free.refine import Intrinsics, pose_uncertainty
 from services.optimizer.free.tolerances import (
@@ -333,11 +341,18 @@ def _solve(
 def _loose(best: PoseCandidate, radius: float) -> tuple[Ambiguity | None, str]:
     """Why the boxes pin ``best`` too loosely to call it found (module docstring): the kind,
     ``focal`` (the scene camera's fov assumed) or ``loose`` (its σ), and a sentence; or None."""
-    if best.intrinsics.source == "scene":
+    if best.intrinsics.source == "scene" and best.inliers < MIN_FOCAL_PAIRS:
         return "focal", (
             f"only {best.inliers} objects paired and no intrinsics given: the scene camera's "
             "field of view was assumed, and distance trades against focal length; give the "
             "photo's intrinsics, or a view with at least 4 of the scene's objects"
+        )
+    if best.intrinsics.source == "scene":
+        low, high = FOCAL_BOUNDS
+        return "focal", (
+            f"no intrinsics given, and the boxes would put the focal length beyond {low:g} to "
+            f"{high:g} times the scene camera's: its field of view was assumed, and distance "
+            "trades against focal length; give the photo's intrinsics"
         )
     if (
         FIRM_SIGMAS * best.position_sigma > WRONG_POSITION * radius
