@@ -47,8 +47,8 @@ def zoom_bounds(
 
 def at_bound(fitted: float, reference: float) -> bool:
     """Whether a ``fitted`` focal length ended on a bound of :data:`FOCAL_BOUNDS` about the
-    ``reference`` (within :data:`AT_BOUND` in log) or beyond it (a start outside them, which
-    its fit could not leave)."""
+    ``reference`` (within :data:`AT_BOUND` in log) or beyond it (where a dense fit, bounded
+    about its start, may end)."""
     zoom = math.log(fitted / reference)
     low, high = (math.log(b) for b in FOCAL_BOUNDS)
     return zoom <= low + AT_BOUND or zoom >= high - AT_BOUND
