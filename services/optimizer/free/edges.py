@@ -49,8 +49,8 @@ __all__ = [
     "exact_distance",
     "gray",
     "image_edges",
-    "on_film",
     "lens_coefficients",
+    "on_film",
     "target_level",
 ]
 
