@@ -96,6 +96,7 @@ edge at full resolution: a pose that explains the image leaves most points there
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Final
 
@@ -300,10 +301,11 @@ def _align(
     k: Intrinsics,
     distortion: LensDistortion | None,
     x: FloatArray,
+    zooms: Sequence[float] = ZOOM_STARTS,
 ) -> FloatArray:
-    """Coarse to fine from ``x`` (pose, or pose and zoom when it has 7 entries) over
-    ``levels`` (the finest of :data:`LEVELS`, or all), keeping at each level the best by the
-    full-resolution cost (module docstring)."""
+    """Coarse to fine from ``x`` (pose, or pose and zoom when it has 7 entries, then started
+    from each of its ``zooms``) over ``levels`` (the finest of :data:`LEVELS`, or all), keeping
+    at each level the best by the full-resolution cost (module docstring)."""
     fit_focal = x.size == 7
     judge = ChamferProblem(points, levels[-1], k, distortion, fit_focal)
 
@@ -314,7 +316,7 @@ def _align(
     if fit_focal:
         rotation, _ = cv2.Rodrigues(x[:3])
         depth = float(np.median(points.world @ rotation[2] + x[5]))
-        candidates = [_zoomed(x, zoom, depth) for zoom in ZOOM_STARTS]
+        candidates = [_zoomed(x, zoom, depth) for zoom in zooms]
     costs = [cost(y) for y in candidates]
     for level, limit in zip(levels, LEVEL_POINTS[-len(levels) :], strict=True):
         problem = ChamferProblem(points, level, k, distortion, fit_focal, limit)
@@ -380,6 +382,7 @@ def refine_dense(
     near: NDArray[np.bool_] | None = None,
     pixel: float = 1.0,
     focal_reference: float | None = None,
+    zooms: Sequence[float] = ZOOM_STARTS,
 ) -> DenseFit:
     """Refine ``camera`` (the estimate the render was made at, on the target's film) so that the
     render's edges fall on the target's (module docstring).
@@ -427,7 +430,7 @@ def refine_dense(
     depths = points.world @ rotation0[2] + x0[5]
     if len(points.world) >= MIN_POINTS:
         if fit_focal:
-            x = _align(points, levels, k, distortion, x0)
+            x = _align(points, levels, k, distortion, x0, zooms)
             focal_sigma = _zoom_sigma(ChamferProblem(points, fine, k, distortion, True), x, radius)
             beyond = focal_reference is not None and at_bound(k.fx * x[6], focal_reference)
             focal_fitted = focal_sigma <= ZOOM_SIGMA and not beyond
