@@ -53,6 +53,12 @@ Accepted
     right box pose 10-18 % / 6-9° away); right fits that moved the boxes that far (2-25 px: the
     general model's boxes were wrong) left 0.796-0.97.
 
+Focal check
+    A pose whose focal length was stated, not given (the photo's EXIF: ``check_focal``), is
+    fitted with it, and fitted again from the same render with the focal length free, bounded
+    about the stated one (``focal_check``): whether the image bears the statement out is the
+    controller's to judge (:mod:`services.controller.exif_check`).
+
 Above chance
     Every share here, and the counts compared with the start's, are taken above the share a
     pose placed at random would leave on the target's edges (``chance``,
@@ -79,6 +85,7 @@ from services.common.catalog import SceneCatalog
 from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed
 from services.common.contracts.refine import (
     MAX_FILM_SCALE,
+    FocalCheck,
     RefinePoseRequest,
     RefinePoseResponse,
     TargetRequest,
@@ -95,13 +102,14 @@ from services.common.geometry.free_camera import (
 )
 from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
-from services.optimizer.free.dense import MIN_POINTS, pyramid
+from services.optimizer.free.dense import MIN_POINTS, ZOOM_STARTS, pyramid
 from services.optimizer.free.edges import on_film, outline
 from services.optimizer.free.refit import worth_another_render
 from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
 
 __all__ = [
+    "CHECK_ZOOMS",
     "FAR",
     "FAR_GAIN",
     "FAR_SHARE",
@@ -144,6 +152,11 @@ LEAD_GAIN: Final = 2.0
 LEAD_REACH: Final = 1.0
 """…and moved at most this many times the points' median depth."""
 _SIDE_SLACK_PX: Final = 1.0
+CHECK_ZOOMS: Final = (1.0,)
+"""The focal check (``check_focal``) starts from the stated focal length alone, not from every
+zoom of :data:`~services.optimizer.free.dense.ZOOM_STARTS` as a fit without intrinsics does:
+84 ms against 254 ms (median, 8 demo targets at 320 x 240; the pose alone 53 ms), and its
+verdicts are those ``python -m benchmarks.exif_check`` measures with it."""
 CHANCE_SAID: Final = 0.05
 """A target edge density at which the reasons say what share a random pose would explain."""
 
@@ -392,30 +405,46 @@ def refine_pose(
         }
     )
     pinhole = free_pinhole_camera(camera, w, h, k.fov_deg)
-    fit = refine_dense(
-        maps,
-        rgb,
-        view.depth,
-        pinhole,
-        fit_focal=request.fit_focal,
-        distortion=k.distortion,
-        near=None if view.shading is None else outline(view.depth, view.objects, view.shading),
-        pixel=max(scale, 1.0),
-        focal_reference=focal_length_px(scene.spec.camera.fov_deg, w),
-    )
+    near = None if view.shading is None else outline(view.depth, view.objects, view.shading)
     hits = view.depth[view.depth > 0.0]
     depth = float(np.median(hits)) if hits.size else math.inf
-    again = worth_another_render(fit, pinhole)
-    focal = (fit.intrinsics.fx / scale, fit.intrinsics.fy / scale, k.cx_px, k.cy_px)
-    position = (float(fit.position[0]), float(fit.position[1]), float(fit.position[2]))
-    boxes = predicted_boxes(objects, names, fit.rotation.T, position, focal, k.distortion)
-    shift = box_shift_px(start, boxes)
-    report = dense_report(fit, start, depth, scale, box_shift=shift, render_again=again)
-    pose = _refined(fit, start, report, scale, width)
-    pairs = tuple(
-        c.model_copy(update={"predicted_box": boxes[c.object]}) for c in start.correspondences
-    )
-    return RefinePoseResponse(pose=pose.model_copy(update={"correspondences": pairs}), fit=report)
+
+    def fitted(
+        fit_focal: bool, reference: float, zooms: tuple[float, ...] = ZOOM_STARTS
+    ) -> RefinePoseResponse:
+        """The fit from the render (the focal length free or not, bounded about ``reference``
+        on the film, started from ``zooms`` of it) as the contract answers it."""
+        fit = refine_dense(
+            maps,
+            rgb,
+            view.depth,
+            pinhole,
+            fit_focal=fit_focal,
+            distortion=k.distortion,
+            near=near,
+            pixel=max(scale, 1.0),
+            focal_reference=reference,
+            zooms=zooms,
+        )
+        again = worth_another_render(fit, pinhole)
+        focal = (fit.intrinsics.fx / scale, fit.intrinsics.fy / scale, k.cx_px, k.cy_px)
+        position = (float(fit.position[0]), float(fit.position[1]), float(fit.position[2]))
+        boxes = predicted_boxes(objects, names, fit.rotation.T, position, focal, k.distortion)
+        shift = box_shift_px(start, boxes)
+        report = dense_report(fit, start, depth, scale, box_shift=shift, render_again=again)
+        pose = _refined(fit, start, report, scale, width)
+        pairs = tuple(
+            c.model_copy(update={"predicted_box": boxes[c.object]}) for c in start.correspondences
+        )
+        return RefinePoseResponse(
+            pose=pose.model_copy(update={"correspondences": pairs}), fit=report
+        )
+
+    answer = fitted(request.fit_focal, focal_length_px(scene.spec.camera.fov_deg, w))
+    if not request.check_focal or request.fit_focal:
+        return answer
+    check = fitted(True, pinhole.fx, CHECK_ZOOMS)  # bounded about the stated focal length
+    return answer.model_copy(update={"focal_check": FocalCheck(pose=check.pose, fit=check.fit)})
 
 
 def prepare_target(

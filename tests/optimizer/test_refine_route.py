@@ -16,6 +16,7 @@ import pytest
 from fastapi import FastAPI
 
 from services.common.contracts.free import FreePose
+from services.common.contracts.refine import RefinePoseResponse
 from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import FreeCamera
 from services.controller.free_loop import scaled_camera
@@ -258,3 +259,51 @@ async def test_a_target_to_make_ready_is_checked_naming_the_part(client, case):
         assert response.status_code == status, (field, response.text)
         assert response.headers["content-type"] == "application/problem+json"
         assert response.json()["field"] == field
+
+
+async def test_a_stated_focal_length_is_kept_and_checked_by_a_fit_of_its_own(
+    client, engine, catalog
+):
+    """A focal length 10 % long, as a photo's EXIF may state it after a crop: the pose is fitted
+    with it, and the check (``check_focal``) fits it from the same render, near the true one."""
+    scene = catalog.get("demo")
+    view = resolve_free_camera(scene, TRUTH, W, H)
+    target = png(engine.render(scene, view, W, H, 16, 1).rgb)
+    annotations = engine.annotate(scene, view, W, H, None)
+    labels = scene_objects(scene.spec, scene.assets).labels
+    detections = [
+        {"label": labels[i], "class_id": i, "confidence": 0.9, "box": list(obj.box)}
+        for i, obj in enumerate(annotations.objects)
+        if obj.box is not None and obj.visible_fraction >= 0.6
+    ]
+    true_fx = (W / 2.0) / math.tan(math.radians(45.0 / 2.0))
+    stated = {"fx_px": 1.1 * true_fx, "fy_px": 1.1 * true_fx, "source": "exif"}
+    body = {
+        "scene": "demo",
+        "target": {"image_size": [W, H], "detections": detections},
+        "intrinsics": stated,
+    }
+    answer = (await client.post("/free-pose", json=body)).json()
+    pose = FreePose.model_validate(answer["pose"])
+    archive = render(engine, scene, pose.camera(), W, H).npz()
+    request = json.dumps(
+        {"scene": "demo", "pose": pose.model_dump(mode="json"), "check_focal": True}
+    )
+    files = {"target": ("target.png", target), "render": ("render.npz", archive)}
+    response = await client.post("/refine-pose", data={"request": request}, files=files)
+    assert response.status_code == 200, response.text
+    refined = RefinePoseResponse.model_validate(response.json())
+    assert refined.pose.intrinsics.source == "exif"
+    assert refined.pose.intrinsics.fx_px == pytest.approx(1.1 * true_fx)
+    assert not refined.fit.focal_fitted
+    check = refined.focal_check
+    assert check is not None
+    assert check.fit.accepted, check.fit
+    assert check.fit.focal_fitted
+    assert check.pose.intrinsics.source == "estimated"
+    assert check.pose.intrinsics.fx_px == pytest.approx(true_fx, rel=0.02)
+    assert check.fit.focal_sigma is not None and check.fit.focal_sigma < 0.01
+    assert error(check.pose)[0] < error(refined.pose)[0]
+    # not asked, not checked
+    plain = await client.post("/refine-pose", **form(pose, target, archive))
+    assert RefinePoseResponse.model_validate(plain.json()).focal_check is None

@@ -34,6 +34,7 @@ __all__ = [
     "MAX_FILM_SCALE",
     "REFINE_PARTS",
     "TARGET_PARTS",
+    "FocalCheck",
     "RefinePoseRequest",
     "RefinePoseResponse",
     "TargetRequest",
@@ -53,21 +54,37 @@ TARGET_PARTS: Final = ("request", "target")
 
 class RefinePoseRequest(FrozenModel):
     """The ``request`` part: the ``scene``, the ``pose`` the render was made at (as ``POST
-    /free-pose`` answered it, target pixels) and whether to fit the focal length too
-    (``fit_focal``: the photo's intrinsics were not given)."""
+    /free-pose`` answered it, target pixels), whether to fit the focal length too
+    (``fit_focal``: the photo's intrinsics were not given) and whether to check the pose's
+    focal length (``check_focal``: it was stated, not given, as by the photo's EXIF): the pose
+    is then fitted with it, and again with the focal length free from the same render
+    (``RefinePoseResponse.focal_check``)."""
 
     scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)]
     pose: FreePose
     fit_focal: bool = False
+    check_focal: bool = False
+
+
+class FocalCheck(FrozenModel):
+    """The pose fitted with the focal length free, from the same render, as a check of the
+    focal length the request's pose states: the ``pose`` it ends at (its intrinsics
+    ``estimated`` when the edges pinned the focal length, its ``residual_px`` the fit's edge
+    RMS) and how that fit went (``fit``)."""
+
+    pose: FreePose
+    fit: DenseReport
 
 
 class RefinePoseResponse(FrozenModel):
     """The refined ``pose`` (its intrinsics ``estimated`` when the focal length was fitted, its
     ``residual_px`` the dense fit's edge RMS, its pairs' predicted boxes at the refined pose)
-    and how the fit went (``fit``): use it only when ``fit.accepted``."""
+    and how the fit went (``fit``): use it only when ``fit.accepted``; ``focal_check`` when the
+    request asked to check the pose's focal length (null from an optimizer that does not)."""
 
     pose: FreePose
     fit: DenseReport
+    focal_check: FocalCheck | None = None
 
 
 class TargetRequest(FrozenModel):
