@@ -181,6 +181,30 @@ def test_a_photo_s_exif_focal_length_is_used_and_said_so(stack):
     assert unread.result.free.pose.intrinsics.source == "estimated"
 
 
+def test_an_exif_focal_length_the_image_refutes_is_overruled(stack):
+    """The EXIF states a focal length 15 % long (a crop it does not say): the search does not
+    keep it, the render's edges fit the true one, and the answer says so, unconfirmed."""
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, truth = renderer.render_camera("demo", DRONE)
+    k = truth.camera
+    focal_35mm = round(1.15 * k.fx * math.hypot(36.0, 24.0) / math.hypot(k.width, k.height))
+    final = search_for(stack, exif_jpeg(image, focal_35mm))
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    free = result.free
+    assert free is not None
+    assert not result.confirmed
+    assert free.status == "ambiguous"
+    assert "do not bear out the photo's EXIF focal length" in result.reason, result.reason
+    assert free.pose.intrinsics.source == "estimated"
+    assert free.pose.intrinsics.fx_px == pytest.approx(k.fx, rel=0.02)
+    assert math.dist(free.pose.position, DRONE.position) < 0.02 * RADIUS
+    assert free.box_pose is not None  # the EXIF's pose, 15 % along the axis
+    assert math.dist(free.box_pose.position, DRONE.position) > 0.05 * RADIUS
+    assert result.renders == 1
+
+
 def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, capsys):
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, _ = renderer.render_camera("demo", DRONE)

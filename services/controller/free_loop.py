@@ -32,11 +32,12 @@ the render's edges pin it (the intrinsics given: :func:`~.free_refine.edges_pin`
 ``rivals`` answer's candidates, every one was rendered and only one agreed, and its edges hold.
 Never with the focal length of the photo's EXIF, which no render can check: with one 15 % off,
 14 of 16 answers of ``python -m benchmarks.exif_focal`` agreed with their render while 12-14 %
-of the radius off. Any other ambiguous pose whose render agrees is answered ``ambiguous`` with
-its alternatives (the other agreeing ones first), never confirmed; when no render agrees, the
-rendered pose that best explains the target (the most edges on the target's after an accepted
-fit, then at its own render's pose, then the box match) is answered, ``ambiguous`` and
-unconfirmed, saying so.
+of the radius off; the render's edges overrule one that they pin elsewhere, and the answer then
+takes their focal length (:mod:`~services.controller.exif_check`). Any other ambiguous pose
+whose render agrees is answered ``ambiguous`` with its alternatives (the other agreeing ones
+first), never confirmed; when no render agrees, the rendered pose that best explains the target
+(the most edges on the target's after an accepted fit, then at its own render's pose, then the
+box match) is answered, ``ambiguous`` and unconfirmed, saying so.
 
 Every render is an iteration (its ``camera`` the free camera rendered, its ``pose`` the grid
 pose nearest it), recorded as the hemisphere loop records its own (:class:`Writes`); the
@@ -68,6 +69,7 @@ from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import FreeCamera
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
+from services.controller.exif_check import exif_overruled, with_checked_focal
 from services.controller.failures import failure, unreadable_answer
 from services.controller.free_candidates import as_rendered, with_candidate
 from services.controller.free_iterations import (
@@ -369,6 +371,10 @@ class FreeSearchLoop:
         result = free_result(answer, history, grid, chosen, verdict)
         if outcome is not None:
             result = refined_result(result, outcome, grid)
+        overruled = exif_overruled(outcome)
+        if overruled is not None and isinstance(outcome, RefinePoseResponse):
+            stated = outcome.pose.intrinsics.fx_px
+            result = with_checked_focal(result, overruled, stated, grid)
         return with_extra_renders(result, refit, followed)
 
     async def _refit(

@@ -240,6 +240,12 @@ async def alongside(work: Coroutine[Any, Any, None] | None) -> AsyncIterator[Non
             task.cancel()
 
 
+def _stated(search: Search) -> bool:
+    """Whether the search's focal length was stated by its photo's EXIF, not given: its
+    refinements check it (:mod:`~services.controller.exif_check`)."""
+    return search.intrinsics is not None and search.intrinsics.source == "exif"
+
+
 async def prepare_target(
     stages: Stages, search: Search, image: bytes, film: tuple[int, int]
 ) -> None:
@@ -254,7 +260,7 @@ async def prepare_target(
     and the median one-render search 205 → 195 ms on that bench; with 4000 x 3000 JPEG photos of
     the demo (through ``cosmos up``, 18 searches a run) the first refinement took 38 ms against
     77 ms before the maps were kept and made ahead, the median search 279 ms against 294-333."""
-    request = TargetRequest(film=film, fit_focal=search.intrinsics is None)
+    request = TargetRequest(film=film, fit_focal=search.intrinsics is None or _stated(search))
     try:
         await stages.prepare_target(request, image, search.id)
     except Exception as exc:  # the search goes on whatever this says
@@ -269,10 +275,16 @@ async def refine_by_render(
     pose: FreePose,
     archive: bytes,
 ) -> RefinePoseResponse | str:
-    """``pose`` refined against the target ``image`` by the render ``archive`` at it; why not
-    (a sentence) when the optimizer refused the request, stayed away or answered out of
-    contract: the search keeps its box pose then, it does not fail."""
-    request = RefinePoseRequest(scene=search.scene, pose=pose, fit_focal=search.intrinsics is None)
+    """``pose`` refined against the target ``image`` by the render ``archive`` at it (its focal
+    length checked too when the photo's EXIF stated it); why not (a sentence) when the
+    optimizer refused the request, stayed away or answered out of contract: the search keeps
+    its box pose then, it does not fail."""
+    request = RefinePoseRequest(
+        scene=search.scene,
+        pose=pose,
+        fit_focal=search.intrinsics is None,
+        check_focal=_stated(search),
+    )
     try:
         return await outages.call(
             search.id, lambda: stages.refine_pose(request, image, archive, search.id)

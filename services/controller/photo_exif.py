@@ -24,7 +24,8 @@ benchmarks.exif_focal`` (16 drone views of demo and garden, 640 × 480 JPEGs) me
 with the EXIF read, 100 % within 2 % of the radius and 1°, median 0.72 %; with it not read,
 56 %, median 1.48 %; with the fov given exactly, 100 %, median 0.35 %. No answer is confirmed
 on an EXIF focal length (:mod:`~services.controller.free_loop`): with one 15 % too long, the
-answers were 14 % off, and their renders agreed all the same.
+answers were 14 % off, and their renders agreed all the same. The render's edges overrule one
+that they clearly put elsewhere (:mod:`~services.controller.exif_check`).
 
 Only a JPEG's EXIF is read (what cameras and drones write): Pillow parses its APP1 segment
 without decoding pixels, whereas a PNG's ``eXIf`` chunk may follow the pixels, which it would

@@ -21,6 +21,7 @@ from services.common.contracts.free import (
     nearest_grid_pose,
 )
 from services.common.contracts.refine import (
+    FocalCheck,
     RefinePoseRequest,
     RefinePoseResponse,
     TargetRequest,
@@ -109,6 +110,7 @@ class FakeStages(ScriptedCalls):
         self.meet = meet  # every fit ends at the right candidate (x = right)
         self.source = "given"  # where the optimizer says its intrinsics came from
         self.pitch = 90.0  # the candidates' pitch, as the optimizer says it
+        self.focal_check: float | None = None  # the check's focal length off the stated one
         self.prepared: list[tuple[TargetRequest, int]] = []  # and the refinements made by then
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
@@ -178,7 +180,16 @@ class FakeStages(ScriptedCalls):
             moved_rotation_deg=self.turn,
             render_again=len(self.refinements) <= self.refits,
         )
-        return RefinePoseResponse(pose=refined, fit=fit)
+        check = None
+        if request.check_focal and self.focal_check is not None:
+            f = k.fx_px * (1.0 + self.focal_check)
+            checked = k.model_copy(update={"fx_px": f, "fy_px": f, "source": "estimated"})
+            moved = (end + 0.5, y + 0.1, z)
+            check = FocalCheck(
+                pose=pose.model_copy(update={"position": moved, "intrinsics": checked}),
+                fit=fit.model_copy(update={"focal_fitted": True, "focal_sigma": 0.002}),
+            )
+        return RefinePoseResponse(pose=refined, fit=fit, focal_check=check)
 
     async def detect(self, image, media_type, request_id="", scene=None) -> DetectResponse:
         if image == PNG:
