@@ -82,8 +82,8 @@ def with_checked_focal(
     ratio = pose.intrinsics.fx_px / stated_fx_px - 1.0
     reason = (
         f"{result.reason}; but the image's edges do not bear out the photo's EXIF focal length "
-        f"(a crop or a zoom it does not state?): fitted with the pose from the same render, "
-        f"they put it {abs(ratio):.1%} {'longer' if ratio > 0 else 'shorter'} (±"
+        "(as after a crop or a zoom that the EXIF does not state): fitted with the pose from the "
+        f"same render, they put it {abs(ratio):.1%} {'longer' if ratio > 0 else 'shorter'} (±"
         f"{fit.focal_sigma or 0.0:.1%}; {fit.inliers} of {fit.edge_points} edge points on the "
         "target's), and the answer takes theirs: not confirmed; give fov_deg or the intrinsics "
         "to confirm it"
