@@ -29,8 +29,12 @@ against the truth and against the EXIF (median), and what two rules would have d
   points on the target's: how many answers that confirms, and how many of those are wrong;
 * **switch** to the check's pose (its focal length estimated) when it lands more than
   :data:`DISAGREE` from the stated one at that standard deviation (in brackets, at
-  :data:`LOOSE_SIGMA`), leaving :data:`SHARE` of its edge points on the target's: the answers
-  within 5 %/2° before and after.
+  :data:`LOOSE_SIGMA`, and with the check started from every zoom of
+  :data:`~services.optimizer.free.dense.ZOOM_STARTS`, as a fit without intrinsics is),
+  leaving :data:`SHARE` of its edge points on the target's: the answers within 5 %/2° before
+  and after.
+
+Last, the median milliseconds per fit: the pose alone, the check, the check from every zoom.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from __future__ import annotations
 import argparse
 import math
 import tempfile
+import time
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -56,7 +61,10 @@ from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.free_targets.solver import target_detections
 from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
+from services.common.depth_archive import DepthImage
+from services.common.geometry.camera import PinholeCamera
 from services.optimizer.free import DenseFit, refine_dense, scene_objects
+from services.optimizer.free.dense import ZOOM_STARTS
 from services.optimizer.free.edges import outline
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.free.solve import solve_free_pose
@@ -76,34 +84,50 @@ WITHIN: Final = (0.05, 2.0)
 
 
 @dataclass(frozen=True)
+class Check:
+    """A focal-free fit from the render: whether its pose is within 5 %/2°, its share of edge
+    points on the target's, its focal length's standard deviation (∞ when not pinned) and
+    offsets from the stated and the true one, and its milliseconds."""
+
+    right: bool
+    share: float
+    sigma: float
+    vs_stated: float
+    vs_true: float
+    ms: float
+
+    def switches(self, sigma: float = SIGMA) -> bool:
+        """Whether it overrules the stated focal length at ``sigma``."""
+        return self.share >= SHARE and self.sigma <= sigma and abs(self.vs_stated) > DISAGREE
+
+
+@dataclass(frozen=True)
 class Case:
-    """One target searched with one stated focal length: its band, the error ``e``, whether
-    the answer (pose alone) and the check's pose are within 5 %/2°, and the check."""
+    """One target searched with one stated focal length: its band, the error ``e``, the answer
+    (the pose alone: within 5 %/2°, its share, its milliseconds) and the ``checks`` (started
+    from :data:`~services.optimizer.refine_pose.CHECK_ZOOMS`, then from every zoom of
+    :data:`~services.optimizer.free.dense.ZOOM_STARTS`)."""
 
     band: str
     error: float
     answer_right: bool
-    check_right: bool
     answer_share: float
-    check_share: float
-    check_sigma: float
-    check_vs_stated: float
-    check_vs_true: float
+    answer_ms: float
+    checks: tuple[Check, Check]
 
     def confirms(self) -> bool:
+        check = self.checks[0]
         return (
             self.answer_share >= SHARE
-            and self.check_share >= SHARE
-            and self.check_sigma <= SIGMA
-            and abs(self.check_vs_stated) <= AGREE
+            and check.share >= SHARE
+            and check.sigma <= SIGMA
+            and abs(check.vs_stated) <= AGREE
         )
 
-    def switches(self, sigma: float = SIGMA) -> bool:
-        return (
-            self.check_share >= SHARE
-            and self.check_sigma <= sigma
-            and abs(self.check_vs_stated) > DISAGREE
-        )
+    def after(self, k: int, sigma: float = SIGMA) -> bool:
+        """Whether the answer is within 5 %/2° once check ``k`` may overrule it."""
+        check = self.checks[k]
+        return check.right if check.switches(sigma) else self.answer_right
 
 
 def _gray(png: bytes) -> np.ndarray:
@@ -117,13 +141,59 @@ def _estimate(fit: DenseFit, width: int) -> Estimate:
     return Estimate.of_world_to_camera(fit.rotation, fit.translation, fit.intrinsics.fov_deg(width))
 
 
+@dataclass(frozen=True)
+class Searched:
+    """What a search with a stated focal length rendered: the target's grey and truth, the
+    stated intrinsics, the render (colours, geometry, pinhole) and its outline pixels."""
+
+    gray: np.ndarray
+    truth: Estimate
+    radius: float
+    stated: Intrinsics
+    rendered: tuple[np.ndarray, DepthImage, PinholeCamera]
+
+    def fitted(self, focal: bool, zooms: tuple[float, ...]) -> tuple[DenseFit, float]:
+        """The dense fit from the render (the focal length free or not) and its ms."""
+        rgb, geometry, pinhole = self.rendered
+        near = None
+        if geometry.shading is not None:
+            near = outline(geometry.depth, geometry.objects, geometry.shading)
+        started = time.perf_counter()
+        fit = refine_dense(
+            self.gray,
+            rgb,
+            geometry.depth,
+            pinhole,
+            fit_focal=focal,
+            near=near,
+            focal_reference=self.stated.fx,
+            zooms=zooms,
+        )
+        return fit, (time.perf_counter() - started) * 1000.0
+
+    def right(self, fit: DenseFit) -> bool:
+        width = self.rendered[2].width
+        return pose_error(_estimate(fit, width), self.truth, self.radius).within(*WITHIN)
+
+    def check(self, zooms: tuple[float, ...], true_fx: float) -> Check:
+        fit, ms = self.fitted(True, zooms)
+        return Check(
+            right=self.right(fit),
+            share=fit.share(),
+            # a focal length the edges left loose checks nothing either way
+            sigma=fit.focal_sigma if fit.focal_fitted else math.inf,
+            vs_stated=fit.intrinsics.fx / self.stated.fx - 1.0,
+            vs_true=fit.intrinsics.fx / true_fx - 1.0,
+            ms=ms,
+        )
+
+
 def _cases(
     renderer: LocalRenderer, catalog: SceneCatalog, target: FreeTarget, seed: int
 ) -> Iterator[Case]:
     """``target`` searched with each stated focal length of :data:`EXIF_ERRORS`."""
     scene = catalog.get(target.scene)
     objects = scene_objects(scene.spec, scene.assets)
-    radius = scene.spec.camera.radius
     film = target.annotations.camera
     truth = Estimate.of_world_to_camera(
         np.asarray(film.rotation), np.asarray(film.translation), film.fov_deg
@@ -138,46 +208,26 @@ def _cases(
         rendered = render_at(renderer, target, answer.pose.free_camera(), VIEW_SPP)
         if rendered is None:
             continue
-        rgb, geometry, pinhole = rendered
-        near = None
-        if geometry.shading is not None:
-            near = outline(geometry.depth, geometry.objects, geometry.shading)
-        fits = [
-            refine_dense(
-                gray,
-                rgb,
-                geometry.depth,
-                pinhole,
-                fit_focal=focal,
-                near=near,
-                focal_reference=stated.fx,
-                zooms=CHECK_ZOOMS,
-            )
-            for focal in (False, True)
-        ]
-        right = [
-            pose_error(_estimate(fit, film.width), truth, radius).within(*WITHIN) for fit in fits
-        ]
-        check = fits[1]
-        # a focal length the edges left loose checks nothing either way
-        sigma = check.focal_sigma if check.focal_fitted else math.inf
+        searched = Searched(gray, truth, scene.spec.camera.radius, stated, rendered)
+        answer_fit, answer_ms = searched.fitted(False, CHECK_ZOOMS)
         yield Case(
             band=target.band,
             error=error,
-            answer_right=right[0],
-            check_right=right[1],
-            answer_share=fits[0].share(),
-            check_share=check.share(),
-            check_sigma=sigma,
-            check_vs_stated=check.intrinsics.fx / stated.fx - 1.0,
-            check_vs_true=check.intrinsics.fx / film.fx - 1.0,
+            answer_right=searched.right(answer_fit),
+            answer_share=answer_fit.share(),
+            answer_ms=answer_ms,
+            checks=(
+                searched.check(CHECK_ZOOMS, film.fx),
+                searched.check(ZOOM_STARTS, film.fx),
+            ),
         )
 
 
 def _print(cases: list[Case]) -> None:
     print(
         f"{'EXIF':>6s} {'band':6s} {'n':>3s} {'answer ok':>9s}  {'check−true':>10s} "
-        f"{'check−EXIF':>10s}  {'confirmed (wrong)':>17s}  ok before → switched (at σ 1 %)"
+        f"{'check−EXIF':>10s}  {'confirmed (wrong)':>17s}  ok before → switched (at σ 1 %; "
+        "from every zoom)"
     )
     groups: dict[tuple[float, str], list[Case]] = defaultdict(list)
     for case in cases:
@@ -189,18 +239,24 @@ def _print(cases: list[Case]) -> None:
             if not group:
                 continue
             confirmed = [c for c in group if c.confirms()]
-            after, loose = (
-                sum(c.check_right if c.switches(sigma) else c.answer_right for c in group)
-                for sigma in (SIGMA, LOOSE_SIGMA)
+            after, loose, every = (
+                sum(c.after(k, sigma) for c in group)
+                for k, sigma in ((0, SIGMA), (0, LOOSE_SIGMA), (1, SIGMA))
             )
             print(
                 f"{error:+6.0%} {band:6s} {len(group):3d} "
                 f"{sum(c.answer_right for c in group):9d}  "
-                f"{np.median([c.check_vs_true for c in group]):+10.1%} "
-                f"{np.median([c.check_vs_stated for c in group]):+10.1%}  "
+                f"{np.median([c.checks[0].vs_true for c in group]):+10.1%} "
+                f"{np.median([c.checks[0].vs_stated for c in group]):+10.1%}  "
                 f"{len(confirmed):9d} ({sum(not c.answer_right for c in confirmed):d})    "
-                f"{sum(c.answer_right for c in group):14d} → {after:d} ({loose:d})"
+                f"{sum(c.answer_right for c in group):14d} → {after:d} ({loose:d}; {every:d})"
             )
+    alone = float(np.median([c.answer_ms for c in cases]))
+    one, all_zooms = (float(np.median([c.checks[k].ms for c in cases])) for k in (0, 1))
+    print(
+        f"ms per fit (median): the pose alone {alone:.0f}, the check {one:.0f} "
+        f"({one / alone:.1f} x), from every zoom {all_zooms:.0f} ({all_zooms / alone:.1f} x)"
+    )
 
 
 def main(argv: list[str] | None = None) -> None:

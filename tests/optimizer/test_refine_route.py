@@ -302,7 +302,8 @@ async def test_a_stated_focal_length_is_kept_and_checked_by_a_fit_of_its_own(
     assert check.fit.focal_fitted
     assert check.pose.intrinsics.source == "estimated"
     assert check.pose.intrinsics.fx_px == pytest.approx(true_fx, rel=0.02)
-    assert check.fit.focal_sigma is not None and check.fit.focal_sigma < 0.01
+    assert check.fit.focal_sigma is not None
+    assert check.fit.focal_sigma < 0.01
     assert error(check.pose)[0] < error(refined.pose)[0]
     # not asked, not checked
     plain = await client.post("/refine-pose", **form(pose, target, archive))
