@@ -207,7 +207,7 @@ def test_an_exif_focal_length_the_image_refutes_is_overruled(stack):
 
 def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, capsys):
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
-        image, _ = renderer.render_camera("demo", DRONE)
+        image, truth = renderer.render_camera("demo", DRONE)
     photo = tmp_path / "drone.png"
     photo.write_bytes(image)
     monkeypatch.setenv("COSMOS_API_KEY", stack.api_key)
@@ -221,9 +221,13 @@ def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, caps
     assert "yaw/pitch/roll" in printed
     assert "nearest grid pose: lat" in printed
     assert len(list((tmp_path / "out").glob("search-*-trajectory.png"))) == 1
-    # a camera's JPEG: its EXIF focal length, unless told not to read it
+    # a camera's JPEG: its EXIF focal length (the camera's, as a camera writes it), unless
+    # told not to read it
+    k = truth.camera
     photo = tmp_path / "drone.jpg"
-    photo.write_bytes(exif_jpeg(image, 45))
+    photo.write_bytes(
+        exif_jpeg(image, round(k.fx * math.hypot(36.0, 24.0) / math.hypot(k.width, k.height)))
+    )
     argv = ["search", str(photo), "--scene", "demo", "--free", "--url", stack.controller]
     assert main([*argv, "--out", str(tmp_path / "out")]) == 0
     assert "intrinsics exif: fov" in capsys.readouterr().out
