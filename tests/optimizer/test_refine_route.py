@@ -67,21 +67,28 @@ def error(pose: FreePose) -> tuple[float, float]:
     return moved, turned
 
 
-@pytest.fixture(scope="module")
-async def case(client, engine, catalog) -> tuple[bytes, FreePose, DepthImage]:
-    """The target's PNG, its box pose (from boxes with the detector's edge noise tripled, so a
-    little off) and the render at that pose."""
-    scene = catalog.get("demo")
+def seen(engine, scene, noise_px: float = 0.0) -> tuple[np.ndarray, list[dict]]:
+    """The real engine's image of :data:`TRUTH` and its objects' visible boxes (those at least
+    60 % visible), each edge moved by Gaussian noise of ``noise_px``, as detections."""
     view = resolve_free_camera(scene, TRUTH, W, H)
     image = engine.render(scene, view, W, H, 16, 1).rgb
     annotations = engine.annotate(scene, view, W, H, None)
     labels = scene_objects(scene.spec, scene.assets).labels
-    noise = np.random.default_rng(5).normal(0.0, 2.0, (len(annotations.objects), 4))
+    noise = np.random.default_rng(5).normal(0.0, noise_px, (len(annotations.objects), 4))
     detections = [
         {"label": labels[i], "class_id": i, "confidence": 0.9, "box": list(obj.box + noise[i])}
         for i, obj in enumerate(annotations.objects)
         if obj.box is not None and obj.visible_fraction >= 0.6
     ]
+    return image, detections
+
+
+@pytest.fixture(scope="module")
+async def case(client, engine, catalog) -> tuple[bytes, FreePose, DepthImage]:
+    """The target's PNG, its box pose (from boxes with the detector's edge noise tripled, so a
+    little off) and the render at that pose."""
+    scene = catalog.get("demo")
+    image, detections = seen(engine, scene, noise_px=2.0)
     body = {
         "scene": "demo",
         "target": {"image_size": [W, H], "detections": detections},
@@ -267,15 +274,8 @@ async def test_a_stated_focal_length_is_kept_and_checked_by_a_fit_of_its_own(
     """A focal length 10 % long, as a photo's EXIF may state it after a crop: the pose is fitted
     with it, and the check (``check_focal``) fits it from the same render, near the true one."""
     scene = catalog.get("demo")
-    view = resolve_free_camera(scene, TRUTH, W, H)
-    target = png(engine.render(scene, view, W, H, 16, 1).rgb)
-    annotations = engine.annotate(scene, view, W, H, None)
-    labels = scene_objects(scene.spec, scene.assets).labels
-    detections = [
-        {"label": labels[i], "class_id": i, "confidence": 0.9, "box": list(obj.box)}
-        for i, obj in enumerate(annotations.objects)
-        if obj.box is not None and obj.visible_fraction >= 0.6
-    ]
+    image, detections = seen(engine, scene)
+    target = png(image)
     true_fx = (W / 2.0) / math.tan(math.radians(45.0 / 2.0))
     stated = {"fx_px": 1.1 * true_fx, "fy_px": 1.1 * true_fx, "source": "exif"}
     body = {
