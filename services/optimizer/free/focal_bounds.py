@@ -34,14 +34,12 @@ AT_BOUND: Final = 1e-3
 """A fitted focal length this close (in log) to a bound ran into it."""
 
 
-def zoom_bounds(
-    start: float, reference: float, relative: tuple[float, float] = FOCAL_BOUNDS
-) -> tuple[float, float]:
-    """The zooms of a ``start`` focal length (pixels) that a fit may reach: within ``relative``
-    of the start, and within :data:`FOCAL_BOUNDS` of the ``reference`` (the scene camera's, same
-    pixels); 1 always included, so that the start is a feasible point."""
-    low = max(relative[0], FOCAL_BOUNDS[0] * reference / start)
-    high = min(relative[1], FOCAL_BOUNDS[1] * reference / start)
+def zoom_bounds(start: float, reference: float) -> tuple[float, float]:
+    """The zooms of a ``start`` focal length (pixels) that a fit may reach: within
+    :data:`FOCAL_BOUNDS` of the ``reference`` (the scene camera's, same pixels), however far the
+    start is from it; 1 always included, so that the start is a feasible point."""
+    low = FOCAL_BOUNDS[0] * reference / start
+    high = FOCAL_BOUNDS[1] * reference / start
     return min(low, 1.0), max(high, 1.0)
 
 

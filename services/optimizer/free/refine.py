@@ -218,7 +218,7 @@ def refine_edges(
     bounds = (np.full(start.size, -np.inf), np.full(start.size, np.inf))
     if fit_focal:
         reference = intrinsics.fx if focal_reference is None else focal_reference
-        low, high = (math.log(z) for z in zoom_bounds(intrinsics.fx, reference, (0.0, math.inf)))
+        low, high = (math.log(z) for z in zoom_bounds(intrinsics.fx, reference))
         bounds[0][6], bounds[1][6] = low, high
     fit = least_squares(
         residuals,
