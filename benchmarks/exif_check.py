@@ -49,10 +49,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
 
-import cv2
 import numpy as np
 
-from cosmos.bench.free_targets.dense import render_at
+from cosmos.bench.free_targets.dense import decode_gray, fit_estimate, near_outline, render_at
 from cosmos.bench.free_targets.draw import BANDS, FreeTarget, draw_targets
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.metrics import pose_error
@@ -65,7 +64,6 @@ from services.common.depth_archive import DepthImage
 from services.common.geometry.camera import PinholeCamera
 from services.optimizer.free import DenseFit, refine_dense, scene_objects
 from services.optimizer.free.dense import ZOOM_STARTS
-from services.optimizer.free.edges import outline
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.free.solve import solve_free_pose
 from services.optimizer.refine_pose import CHECK_ZOOMS
@@ -130,17 +128,6 @@ class Case:
         return check.right if check.switches(sigma) else self.answer_right
 
 
-def _gray(png: bytes) -> np.ndarray:
-    gray = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
-    if gray is None:
-        raise ValueError("the renderer's PNG does not decode")
-    return np.asarray(gray)
-
-
-def _estimate(fit: DenseFit, width: int) -> Estimate:
-    return Estimate.of_world_to_camera(fit.rotation, fit.translation, fit.intrinsics.fov_deg(width))
-
-
 @dataclass(frozen=True)
 class Searched:
     """What a search with a stated focal length rendered: the target's grey and truth, the
@@ -155,9 +142,6 @@ class Searched:
     def fitted(self, focal: bool, zooms: tuple[float, ...]) -> tuple[DenseFit, float]:
         """The dense fit from the render (the focal length free or not) and its ms."""
         rgb, geometry, pinhole = self.rendered
-        near = None
-        if geometry.shading is not None:
-            near = outline(geometry.depth, geometry.objects, geometry.shading)
         started = time.perf_counter()
         fit = refine_dense(
             self.gray,
@@ -165,7 +149,7 @@ class Searched:
             geometry.depth,
             pinhole,
             fit_focal=focal,
-            near=near,
+            near=near_outline(geometry),
             focal_reference=self.stated.fx,
             zooms=zooms,
         )
@@ -173,7 +157,7 @@ class Searched:
 
     def right(self, fit: DenseFit) -> bool:
         width = self.rendered[2].width
-        return pose_error(_estimate(fit, width), self.truth, self.radius).within(*WITHIN)
+        return pose_error(fit_estimate(fit, width), self.truth, self.radius).within(*WITHIN)
 
     def check(self, zooms: tuple[float, ...], true_fx: float) -> Check:
         fit, ms = self.fitted(True, zooms)
@@ -199,7 +183,7 @@ def _cases(
         np.asarray(film.rotation), np.asarray(film.translation), film.fov_deg
     )
     detections = target_detections(target, objects, np.random.default_rng([seed, target.index]))
-    gray = _gray(target.png)
+    gray = decode_gray(target.png)
     for error in EXIF_ERRORS:
         stated = Intrinsics(film.fx * (1 + error), film.fy * (1 + error), film.cx, film.cy)
         answer = solve_free_pose(objects, detections, film.width, film.height, stated)

@@ -43,7 +43,16 @@ from services.optimizer.free.edges import on_film, outline
 from services.optimizer.free.refit import worth_another_render
 from services.renderer.client import RendererError
 
-__all__ = ["DENSE", "DenseRun", "dense_method", "run_dense"]
+__all__ = [
+    "DENSE",
+    "DenseRun",
+    "decode_gray",
+    "dense_method",
+    "fit_estimate",
+    "near_outline",
+    "render_at",
+    "run_dense",
+]
 
 DENSE: Final = "dense"
 
@@ -65,7 +74,8 @@ class DenseRun:
     call_ms: tuple[float, ...] = ()
 
 
-def _decode_gray(data: bytes) -> NDArray[np.uint8]:
+def decode_gray(data: bytes) -> NDArray[np.uint8]:
+    """An encoded image (PNG, JPEG) as 8-bit grey."""
     gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if gray is None:
         raise ValueError("a target image does not decode")
@@ -84,7 +94,7 @@ def _free_camera(camera: PinholeCamera) -> FreeCamera:
     )
 
 
-def _near(geometry: DepthImage) -> NDArray[np.bool_] | None:
+def near_outline(geometry: DepthImage) -> NDArray[np.bool_] | None:
     """The pixels near the render's outline, as the optimizer's ``/refine-pose`` takes them."""
     if geometry.shading is None:
         return None
@@ -115,7 +125,8 @@ def render_at(
     return np.asarray(bgr[..., ::-1], dtype=np.uint8), depth, pinhole
 
 
-def _estimate(fit: DenseFit, width: int) -> Estimate:
+def fit_estimate(fit: DenseFit, width: int) -> Estimate:
+    """A dense fit's camera on a film ``width`` pixels wide."""
     return Estimate.of_world_to_camera(fit.rotation, fit.translation, fit.intrinsics.fov_deg(width))
 
 
@@ -138,7 +149,7 @@ def run_dense(
         return DenseRun(dict.fromkeys(methods), 0, 0.0)
     width = target.annotations.camera.width
     images = {
-        v: _decode_gray(target.image(v, np.random.default_rng([seed, target.index, 3])))
+        v: decode_gray(target.image(v, np.random.default_rng([seed, target.index, 3])))
         for v in FREE_VARIANTS
     }
     estimates: dict[str, Estimate | None] = {}
@@ -170,12 +181,12 @@ def run_dense(
                 geometry.depth,
                 pinhole,
                 fit_focal=not target.intrinsics_given,
-                near=_near(geometry),
+                near=near_outline(geometry),
                 pixel=float(scale),
                 focal_reference=reference,
             )
             calls.append((time.perf_counter() - started) * 1000.0)
-            estimate = _estimate(fit, width * scale)
+            estimate = fit_estimate(fit, width * scale)
             step += 1
             if step == budget == renders and worth_another_render(fit, pinhole):
                 budget += 1
