@@ -35,7 +35,7 @@ from services.common.contracts.free import FreePoseRequest
 from services.common.contracts.optimize import ImageDetections
 from services.common.contracts.refine import RefinePoseRequest
 from services.common.geometry.free_camera import FreeCamera
-from services.controller.free_loop import scaled_camera
+from services.controller.free_match import scaled_camera
 from services.optimizer.free import scene_objects
 from services.optimizer.free.dense import LEVELS
 from services.optimizer.free.edges import (

@@ -82,7 +82,7 @@ from services.controller.free_iterations import (
     timings_of,
     worth_following,
 )
-from services.controller.free_match import FreeMatch, compare_view, view_film
+from services.controller.free_match import FreeMatch, compare_view, scaled_camera, view_film
 from services.controller.free_refine import (
     alongside,
     edges_hold,
@@ -104,7 +104,7 @@ from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
 from services.controller.writes import Writes
 
-__all__ = ["FOCAL_VIEW_MAX_WIDTH", "FOCAL_VIEW_SCALE", "FreeSearchLoop", "scaled_camera"]
+__all__ = ["FOCAL_VIEW_MAX_WIDTH", "FOCAL_VIEW_SCALE", "FreeSearchLoop"]
 
 FOCAL_VIEW_SCALE: Final = 2
 """A search without the photo's intrinsics renders its views, and fits its focal length, on a
@@ -132,20 +132,6 @@ FOCAL_VIEW_MAX_WIDTH: Final = 1280
 """…but never wider than this (unless the view width itself is): the renderer's default limits
 (2048 a side, 4.2 megapixels) take it on any shape up to 5:3 and 4:3 alike, and a fit of the
 focal length there takes about four times one at 640."""
-
-
-def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
-    """``pose``'s camera on a film ``scale`` times the target's: the pixel intrinsics scaled
-    (the lens, on normalised coordinates, is unchanged)."""
-    k = pose.intrinsics
-    return pose.camera().model_copy(
-        update={
-            "fx_px": k.fx_px * scale,
-            "fy_px": k.fy_px * scale,
-            "cx_px": k.cx_px * scale,
-            "cy_px": k.cy_px * scale,
-        }
-    )
 
 
 class FreeSearchLoop:

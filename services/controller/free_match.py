@@ -2,7 +2,8 @@
 target's, box by box.
 
 The render is made at the pose with the intrinsics used, on a film the target's shape scaled by
-``s`` (:func:`view_film`); its boxes are scaled back by ``1 / s``. Each target detection that the
+``s`` (:func:`view_film`, the camera's pixel intrinsics scaled too: :func:`scaled_camera`); its
+boxes are scaled back by ``1 / s``. Each target detection that the
 pose paired with an object must be seen again in the render: a detection of the same label,
 or named as the object the pose paired it with (the optimizer pairs a detection whose colour
 contradicts its label with the object its colour names: the render's may name it right), whose
@@ -29,9 +30,18 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from services.common.contracts.detect import Detection
+from services.common.contracts.free import FreePose
 from services.common.contracts.optimize import ViewMatch
+from services.common.geometry.free_camera import FreeCamera
 
-__all__ = ["GATE_FRACTION", "GATE_MIN_PX", "FreeMatch", "compare_view", "view_film"]
+__all__ = [
+    "GATE_FRACTION",
+    "GATE_MIN_PX",
+    "FreeMatch",
+    "compare_view",
+    "scaled_camera",
+    "view_film",
+]
 
 GATE_FRACTION: Final = 0.1
 """Share of a target box's diagonal its render's box may be off by, edge RMS."""
@@ -65,6 +75,20 @@ def view_film(
     scale = min(max_scale, max_width / width)
     film = (max(8, round(width * scale)), max(8, round(height * scale)))
     return film, film[0] / width
+
+
+def scaled_camera(pose: FreePose, scale: float) -> FreeCamera:
+    """``pose``'s camera on a film ``scale`` times the target's: the pixel intrinsics scaled
+    (the lens, on normalised coordinates, is unchanged)."""
+    k = pose.intrinsics
+    return pose.camera().model_copy(
+        update={
+            "fx_px": k.fx_px * scale,
+            "fy_px": k.fy_px * scale,
+            "cx_px": k.cx_px * scale,
+            "cy_px": k.cy_px * scale,
+        }
+    )
 
 
 def _boxes(detections: Sequence[Detection], factor: float) -> FloatArray:

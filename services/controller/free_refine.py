@@ -69,6 +69,8 @@ __all__ = [
     "edges_pin_pose",
     "edges_unvouched",
     "alongside",
+    "ask_refinement",
+    "fit_pins",
     "prepare_target",
     "refine_by_render",
     "refined_result",
@@ -149,9 +151,13 @@ def _pinned(
     ``min_points`` or more edge points on the target's, the intrinsics given (else None)."""
     if known is None or known.source != "given" or not isinstance(outcome, RefinePoseResponse):
         return None
-    fit = outcome.fit
-    pinned = fit.accepted and fit.share() >= PIN_SHARE and fit.edge_points >= min_points
-    return outcome if pinned else None
+    return outcome if fit_pins(outcome.fit, min_points) else None
+
+
+def fit_pins(fit: DenseReport, min_points: int = MIN_PIN_POINTS, share: float = PIN_SHARE) -> bool:
+    """Whether a dense ``fit`` pins its pose: accepted, leaving at least ``share`` of its
+    ``min_points`` or more edge points on the target's."""
+    return fit.accepted and fit.share() >= share and fit.edge_points >= min_points
 
 
 def edges_hold(
@@ -285,15 +291,29 @@ async def refine_by_render(
         fit_focal=search.intrinsics is None,
         check_focal=_stated(search),
     )
+    return await ask_refinement(stages, outages, search.id, request, image, archive)
+
+
+async def ask_refinement(
+    stages: Stages,
+    outages: OutagePolicy,
+    search_id: str,
+    request: RefinePoseRequest,
+    image: bytes,
+    archive: bytes,
+) -> RefinePoseResponse | str:
+    """The optimizer's refinement of ``request``'s pose against the target ``image`` by the
+    render ``archive``; why not (a sentence) when it refused, stayed away or answered out of
+    contract."""
     try:
         return await outages.call(
-            search.id, lambda: stages.refine_pose(request, image, archive, search.id)
+            search_id, lambda: stages.refine_pose(request, image, archive, search_id)
         )
     except SearchFailed as exc:
-        _log.warning("search %s: no dense refinement: %s", search.id, exc)
+        _log.warning("search %s: no dense refinement: %s", search_id, exc)
         return f"no dense refinement ({exc.problem.detail or exc.problem.title})"
     except ValidationError as exc:
-        _log.warning("search %s: the optimizer's refinement is out of contract: %s", search.id, exc)
+        _log.warning("search %s: the optimizer's refinement is out of contract: %s", search_id, exc)
         return "no dense refinement (the optimizer's answer does not fit this controller)"
 
 

@@ -19,7 +19,7 @@ from services.common.contracts.free import FreePose
 from services.common.contracts.refine import RefinePoseResponse
 from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import FreeCamera
-from services.controller.free_loop import scaled_camera
+from services.controller.free_match import scaled_camera
 from services.optimizer.app import create_app
 from services.optimizer.free import scene_objects
 from services.optimizer.settings import OptimizerSettings
