@@ -25,7 +25,7 @@ from cosmos.stack import Stack, plan_local_stack, plan_stack, running_stack
 from services.common.auth import bearer
 from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import Search
-from services.common.geometry.pose import GridIndex, PoseQuery
+from services.common.geometry.pose import GridIndex, Pose, PoseQuery
 from services.common.images import encode_ppm
 from services.controller.client import ControllerClient
 from services.controller.keys import local_key
@@ -93,6 +93,40 @@ def test_searches_find_the_targets_grid_pose(stack, scene, count):
             {(i.pose.index.lat, i.pose.index.lon) for i in final.iterations}
         )
         assert [i.index for i in final.iterations] == list(range(len(final.iterations)))
+
+
+def test_an_unconfirmed_answer_is_settled_by_the_render_s_edges(stack):
+    """A demo target between grid poses, nearest lat 4, searched for one view from lat 3: the
+    search runs out of views, unconfirmed, at lat 3. One render more, with its depth, at that
+    pose, and the dense fit from it, puts the camera within 0.5° of the target's: the answer is
+    the target's nearest grid pose, still unconfirmed."""
+    grid = grid_of(stack, "demo")
+    truth = GridIndex(lat=4, lon=5)
+    on_grid = grid.pose(truth)
+    theta, phi = on_grid.theta_deg + 1.5, on_grid.phi_deg + 2.0
+    assert grid.nearest(Pose(theta_deg=theta, phi_deg=phi)) == truth
+    with RendererClient(stack.renderers[0], token=stack.service_token) as client:
+        query = PoseQuery(theta_deg=theta, phi_deg=phi)
+        image = client.render_png(RenderRequest(scene="demo", pose=query))
+    start = grid.pose(grid.nearest(Pose(theta_deg=on_grid.theta_deg - 7.5, phi_deg=phi)))
+    final = run_search(
+        stack,
+        image,
+        "demo",
+        start_theta_deg=start.theta_deg,
+        start_phi_deg=start.phi_deg,
+        max_iterations=1,
+    )
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    assert [i.pose.index.lat for i in final.iterations] == [3]
+    assert not result.confirmed
+    assert result.pose.index == truth, result.reason
+    assert abs(result.refined_pose.theta_deg - theta) < 0.5, result.refined_pose
+    assert abs(result.refined_pose.phi_deg - phi) < 0.5, result.refined_pose
+    assert result.renders == 2
+    assert "the render's edges put the camera at" in result.reason
 
 
 @pytest.mark.parametrize("strategy", ["paper", "simple"])

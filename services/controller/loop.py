@@ -7,7 +7,10 @@ objects in it and asks the optimizer for the next pose, until the optimizer says
 
 A search that runs out of iterations, or whose strategy goes round in circles, still succeeds,
 with an *unconfirmed* answer (``result.confirmed`` false): the visited pose whose view matched
-the target best by the optimizer's match score. Only real errors fail a search (a stage
+the target best by the optimizer's match score. An unconfirmed answer of the reprojection
+strategy is settled by one render more, with its depth, at its pose: the dense fit from it may
+move the answer to the grid pose nearest the camera it finds (:mod:`.grid_edges`). Only real
+errors fail a search (a stage
 unavailable for longer than the outage budget (:mod:`~services.controller.outages`) or refusing,
 nothing detected in the target, a grid the optimizer cannot search).
 
@@ -52,6 +55,7 @@ from services.common.geometry.pose import Pose
 from services.common.images import media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import SearchFailed, failure, unreadable_answer
+from services.controller.grid_edges import EDGE_STRATEGY, settle_by_edges
 from services.controller.outages import OutagePolicy
 from services.controller.progress import Progress, View, at
 from services.controller.stages import Stages
@@ -232,7 +236,9 @@ class SearchLoop:
             iteration = progress.add(pose, view, answer, timings)
             new_target = progress.take_unrecorded_target()
             if answer.done:
-                result = _result_of(iteration, progress.renders)
+                result = await self._settle(
+                    progress, image, _result_of(iteration, progress.renders)
+                )
                 return await writes.succeed(result, iteration, new_target)
             if answer.stuck:
                 why = (
@@ -240,11 +246,30 @@ class SearchLoop:
                     f"after {len(progress.history)} views"
                 )
                 result = _best_visited(progress.history, progress.renders, why)
+                result = await self._settle(progress, image, result)
                 return await writes.succeed(result, iteration, new_target)
             writes.hold(iteration, new_target)
             pose = answer.next
         why = f"no view matched the target within {search.max_iterations} views"
-        return await writes.succeed(_best_visited(progress.history, progress.renders, why))
+        result = _best_visited(progress.history, progress.renders, why)
+        return await writes.succeed(await self._settle(progress, image, result))
+
+    async def _settle(self, progress: Progress, image: bytes, result: SearchResult) -> SearchResult:
+        """``result``, when unconfirmed and the reprojection strategy's, settled by a render of
+        its pose with depth and the dense fit from it (:mod:`.grid_edges`)."""
+        search = progress.search
+        if result.confirmed or search.strategy != EDGE_STRATEGY or progress.target is None:
+            return result
+        return await settle_by_edges(
+            self.stages,
+            self.outages,
+            search,
+            progress.scene,
+            progress.grid,
+            image,
+            progress.target_size,
+            result,
+        )
 
     async def _begin(self, search: Search, image: bytes) -> Progress:
         """The search's scene and grid, and what it recorded before (nothing when new). A search

@@ -15,6 +15,7 @@ import pytest
 from pydantic import ValidationError
 
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
+from services.common.contracts.free import DenseReport
 from services.common.contracts.optimize import (
     GridPose,
     NextPoseRequest,
@@ -22,6 +23,7 @@ from services.common.contracts.optimize import (
     PoseEstimate,
     ViewMatch,
 )
+from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import (
     TERMINAL_STATUSES,
@@ -31,9 +33,10 @@ from services.common.contracts.search import (
     ViewSettings,
 )
 from services.common.errors import ProblemDetails
-from services.common.geometry.pose import GridIndex
+from services.common.geometry.pose import GridIndex, Pose
 from services.controller.broker import BrokerError
 from services.controller.events import Notifier
+from services.controller.grid_edges import grid_free_pose
 from services.controller.runner import NotRetryable, SearchRunner, StillStopping
 from services.controller.stages import StageError
 from services.controller.store import SearchStore, open_store, utcnow
@@ -66,8 +69,10 @@ class FakeStages(ScriptedCalls):
         boxes=1,
         faults: dict[str, tuple[int, BaseException]] | None = None,
         back_after: int | None = None,
+        settled_at: GridIndex | None = None,
     ):
         self.detail = scene
+        self.settled_at = settled_at
         self.grid = scene.grid.grid()
         self.target_model, self.view_model = models
         self.stuck_after = stuck_after
@@ -104,6 +109,38 @@ class FakeStages(ScriptedCalls):
         self._call("render")
         self.rendered_with.append(view_settings)
         return f"P6 {index.lat} {index.lon}".encode()
+
+    def settings_for(self, view_settings: ViewSettings | None) -> ViewSettings:
+        return view_settings or ViewSettings()
+
+    async def render_camera(self, scene_id, camera, size, request_id="", view_settings=None, **_):
+        self._call("render depth")
+        return b"archive"
+
+    async def refine_pose(self, request, target, render, request_id="") -> RefinePoseResponse:
+        """A fit that pins the camera on the hemisphere at :attr:`settled_at` (its grid pose,
+        nudged 0.4° in θ), or one the optimizer did not accept (None)."""
+        self._call("refine")
+        pinned = self.settled_at is not None
+        pose = request.pose
+        if self.settled_at is not None:
+            at = self.grid.pose(self.settled_at)
+            moved = Pose(theta_deg=at.theta_deg + 0.4, phi_deg=at.phi_deg)
+            radius = self.detail.spec.camera.radius
+            pose = grid_free_pose(moved, radius, self.detail.spec.camera.fov_deg, (320, 240))
+        fit = DenseReport(
+            converged=pinned,
+            accepted=pinned,
+            reason="refined" if pinned else "the dense fit did not converge",
+            edge_points=900,
+            inliers=880 if pinned else 200,
+            start_inliers=600,
+            residual_px=0.4,
+            focal_fitted=False,
+            moved=0.1,
+            moved_rotation_deg=2.0,
+        )
+        return RefinePoseResponse(pose=pose, fit=fit)
 
     async def detect(
         self, image: bytes, media_type: str, request_id: str = "", scene: str | None = None
@@ -180,7 +217,11 @@ def _back_end(request):
 
 
 def stored(
-    tmp_path, stages: FakeStages, max_iterations: int = 6, view_settings=None
+    tmp_path,
+    stages: FakeStages,
+    max_iterations: int = 6,
+    view_settings=None,
+    strategy: str = "reprojection",
 ) -> SearchStore:
     """A store holding search ``s1`` as submitted: queued, its target image, nothing else."""
     store = open_store(_BACK_END["url"] or f"sqlite:///{tmp_path}/c.sqlite3")
@@ -190,7 +231,7 @@ def stored(
         id="s1",
         status="queued",
         scene="demo",
-        strategy="reprojection",
+        strategy=strategy,
         start=stages.grid_pose(GridIndex(lat=3, lon=0)),
         seed=1,
         max_iterations=max_iterations,
@@ -237,9 +278,60 @@ def test_a_search_out_of_iterations_answers_its_best_visited_pose(tmp_path, deta
     assert not result.confirmed
     assert result.pose.index == GridIndex(lat=3, lon=2)
     assert result.confidence == pytest.approx(0.8)
-    assert result.renders == 6
+    assert result.renders == 7  # and the render with depth for the edges
     assert result.reason.startswith("not confirmed: no view matched the target within 6 views")
+    assert "the render's edges did not settle it (the dense fit did not converge)" in result.reason
     assert [it.match.score for it in final.iterations if it.match][2] == pytest.approx(0.8)
+
+
+def test_an_unconfirmed_answer_moves_where_the_render_s_edges_pin_the_camera(tmp_path, detail):
+    """The best visited pose is lat 3 lon 2; the dense fit from its render pins the camera
+    0.4° from lat 3 lon 3, on the hemisphere: that is the answer, still unconfirmed."""
+    stages = FakeStages(detail, settled_at=GridIndex(lat=3, lon=3))
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert not result.confirmed
+    assert result.pose.index == GridIndex(lat=3, lon=3)
+    on_grid = stages.grid.pose(GridIndex(lat=3, lon=3))
+    assert result.refined_pose.theta_deg == pytest.approx(on_grid.theta_deg + 0.4, abs=1e-6)
+    assert result.refined_pose.phi_deg == pytest.approx(on_grid.phi_deg, abs=1e-6)
+    assert "nearest lat 3 lon 3, not lat 3 lon 2 (not rendered there)" in result.reason
+    assert result.renders == 7
+    assert stages.calls["render depth"] == stages.calls["refine"] == 1
+    assert result.refit_timings is not None
+
+
+def test_the_paper_s_strategies_are_not_settled(tmp_path, detail):
+    stages = FakeStages(detail, settled_at=GridIndex(lat=3, lon=3))
+    paper = run_stored(stored(tmp_path, stages, strategy="paper"), stages)
+    assert paper.result is not None
+    assert paper.result.pose.index == GridIndex(lat=3, lon=2)
+    assert paper.result.renders == 6
+    assert stages.calls["render depth"] == 0
+
+
+def test_a_confirmed_answer_is_not_settled(tmp_path, detail):
+    stages = FakeStages(detail, done_after=2, settled_at=GridIndex(lat=3, lon=3))
+    done = run(tmp_path, stages)
+    assert done.result is not None
+    assert done.result.confirmed
+    assert stages.calls["render depth"] == stages.calls["refine"] == 0
+
+
+def test_a_render_for_the_edges_that_fails_keeps_the_answer(tmp_path, detail):
+    refused = StageError("renderer", ProblemDetails(title="Bad request", status=422))
+    stages = FakeStages(
+        detail, settled_at=GridIndex(lat=3, lon=3), faults={"render depth": (0, refused)}
+    )
+    final = run(tmp_path, stages)
+    assert final.status == "succeeded"
+    result = final.result
+    assert result is not None
+    assert result.pose.index == GridIndex(lat=3, lon=2)
+    assert result.renders == 6
+    assert "the render's edges did not settle it (no render:" in result.reason
+    assert stages.calls["refine"] == 0
 
 
 def test_a_stuck_search_answers_its_best_visited_pose(tmp_path, detail):
@@ -305,11 +397,12 @@ def test_an_interrupted_search_resumes_from_its_recorded_iterations(tmp_path, de
     again = FakeStages(detail)
     final = run_stored(store, again)
     assert final.status == "succeeded", final.error
-    assert again.calls == {"scene": 1, "render": 2, "detect view": 2, "optimize": 2}
+    views = {"scene": 1, "render": 2, "detect view": 2, "optimize": 2}
+    assert again.calls == {**views, "render depth": 1, "refine": 1}  # its answer unconfirmed
     assert [len(r.history) for r in again.requests] == [3, 4]
     assert final.result is not None
     assert final.result.pose.index == GridIndex(lat=3, lon=2)
-    assert final.result.renders == 4
+    assert final.result.renders == 5  # 4 views and the render with depth for the edges
 
 
 def test_a_resumed_search_renders_with_the_view_settings_it_was_submitted_with(tmp_path, detail):
@@ -348,7 +441,7 @@ def test_a_pose_seen_before_is_not_rendered_again(tmp_path, detail):
     assert len(final.iterations) == 11
     assert stages.calls["render"] == stages.calls["detect view"] == 8
     assert final.result is not None
-    assert final.result.renders == 8
+    assert final.result.renders == 9  # 8 poses and the render with depth for the edges
     assert [it.timings.render_ms for it in final.iterations[8:]] == [0.0] * 3
 
 

@@ -132,7 +132,7 @@ class StageTimings(FrozenModel):
     optimize_ms: NonNegMs = 0.0
     refine_ms: NonNegMs = Field(
         default=0.0,
-        description="A free search's dense refinement by the render (alongside the detection).",
+        description="A dense refinement by the render (a free search's alongside the detection).",
     )
     total_ms: NonNegMs = 0.0
 
@@ -210,8 +210,9 @@ class SearchResult(FrozenModel):
     )
     refit_timings: StageTimings | None = Field(
         default=None,
-        description="A free search's render after its iterations, at the refined pose (a fit "
-        "of the focal length that moved far from the render): its render, detect and dense "
+        description="A render after the iterations: a free search's at the refined pose (a "
+        "fit of the focal length that moved far from the render), a hemisphere search's with "
+        "depth at its unconfirmed answer (its edges settle it): its render, detect and dense "
         "refinement milliseconds. Null when none was made.",
     )
 
