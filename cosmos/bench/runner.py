@@ -127,6 +127,11 @@ class SearchRecord(FrozenModel):
         default=None, description="Angle between the true view direction and refined_pose."
     )
     renders: int = 0
+    after_renders: int = Field(
+        default=0,
+        description="Renders after the iterations (an unconfirmed answer's render with depth, "
+        "whose edges settle it); in renders, and their times in render_ms and optimize_ms.",
+    )
     iterations: int = 0
     wall_ms: float = 0.0
     render_ms: float = 0.0
@@ -284,6 +289,7 @@ def record_of(
         for it in search.iterations
     )
     result = search.result
+    after = result.refit_timings if result is not None else None
     found = result.pose.index if result is not None else None
     refined = result.refined_pose if result is not None else None
     success = search.status == "succeeded" and found == target.truth
@@ -306,11 +312,12 @@ def record_of(
             float(angular_distance_deg(refined, target.pose)) if refined is not None else None
         ),
         renders=result.renders if result is not None else len({(t.lat, t.lon) for t in trajectory}),
+        after_renders=int(after is not None),
         iterations=len(trajectory),
         wall_ms=wall_ms,
-        render_ms=sum(t.render_ms for t in trajectory),
+        render_ms=sum(t.render_ms for t in trajectory) + (after.render_ms if after else 0.0),
         detect_ms=sum(t.detect_ms for t in trajectory),
-        optimize_ms=sum(t.optimize_ms for t in trajectory),
+        optimize_ms=sum(t.optimize_ms for t in trajectory) + (after.refine_ms if after else 0.0),
         loop_ms=sum(t.total_ms for t in trajectory),
         error=search.error.detail if search.error is not None else None,
         trajectory=trajectory,

@@ -226,7 +226,8 @@ def test_a_ci_sized_bench_through_the_real_stack(tmp_path, capsys):
     assert float(np.median([r.renders for r in predicted])) == 1, printed
     assert "reprojection, predicted start" in printed
     for r in records:
-        assert r.renders == len({(t.lat, t.lon) for t in r.trajectory})
+        assert r.renders == len({(t.lat, t.lon) for t in r.trajectory}) + r.after_renders
+        assert r.after_renders == 0 or (r.strategy == "reprojection" and r.confirmed is False)
         assert r.wall_ms >= r.stage_ms * 0.5
     profile = report["profile"]
     assert {row["scene"] for row in profile["rows"]} == {"demo", "garden", "all"}
