@@ -41,16 +41,15 @@ from __future__ import annotations
 
 import argparse
 import math
-import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Final
 
 import numpy as np
 
+from benchmarks.seeded import seeded_scenes
 from cosmos.bench.free_targets.dense import decode_gray, fit_estimate, near_outline, render_at
 from cosmos.bench.free_targets.draw import BANDS, FreeTarget, draw_targets
 from cosmos.bench.free_targets.estimate import Estimate
@@ -58,7 +57,6 @@ from cosmos.bench.free_targets.metrics import pose_error
 from cosmos.bench.free_targets.rendering import LocalRenderer
 from cosmos.bench.free_targets.shapes import scene_shapes
 from cosmos.bench.free_targets.solver import target_detections
-from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
 from services.common.depth_archive import DepthImage
 from services.common.geometry.camera import PinholeCamera
@@ -67,7 +65,6 @@ from services.optimizer.free.dense import ZOOM_STARTS
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.free.solve import solve_free_pose
 from services.optimizer.refine_pose import CHECK_ZOOMS
-from services.renderer.settings import RendererSettings
 
 EXIF_ERRORS: Final = (-0.05, -0.02, 0.0, 0.02, 0.05, 0.15)
 """The stated focal length's error, as a share of the true one."""
@@ -250,19 +247,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--random-scenes", type=int, default=2)
     args = parser.parse_args(argv)
     cases: list[Case] = []
-    settings = RendererSettings()
-    with tempfile.TemporaryDirectory() as work:
-        for seed in (int(s) for s in args.seeds.split(",")):
-            ids = ["demo"]
-            for i in range(args.random_scenes):
-                ids.append(f"rand{seed}-{i}")
-                generate_scene(np.random.default_rng([seed, i]), Path(work), ids[-1])
-            catalog = SceneCatalog([*settings.scene_directories(), Path(work)])
-            with LocalRenderer(catalog, settings) as renderer:
-                for scene_id in ids:
-                    scene = catalog.get(scene_id)
-                    for target in draw_targets(renderer, scene, scene_shapes(scene), args.n, seed):
-                        cases.extend(_cases(renderer, catalog, target, seed))
+    seeds = (int(s) for s in args.seeds.split(","))
+    for renderer, catalog, scene_id, seed in seeded_scenes(seeds, args.random_scenes):
+        scene = catalog.get(scene_id)
+        for target in draw_targets(renderer, scene, scene_shapes(scene), args.n, seed):
+            cases.extend(_cases(renderer, catalog, target, seed))
     _print(cases)
 
 

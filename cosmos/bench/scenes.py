@@ -51,6 +51,7 @@ __all__ = [
     "MeshExtent",
     "footprint",
     "generate_scene",
+    "generate_scenes",
     "make_mesh",
     "mesh_extent",
     "scene_summary",
@@ -455,6 +456,15 @@ def generate_scene(rng: np.random.Generator | int, folder: Path, scene_id: str =
         },
     }
     return write_scene_yaml(folder / f"{scene_id}.yaml", data)
+
+
+def generate_scenes(count: int, seed: int, folder: Path) -> list[str]:
+    """``count`` random scenes of ``seed`` written to ``folder`` (:func:`generate_scene`: the
+    ``i``-th ``rand<seed>-<i>``, from a generator seeded ``[seed, i]``); their ids."""
+    ids = [f"rand{seed}-{i}" for i in range(count)]
+    for i, scene_id in enumerate(ids):
+        generate_scene(np.random.default_rng([seed, i]), folder, scene_id)
+    return ids
 
 
 def scene_summary(scene: LoadedScene) -> dict[str, Any]:

@@ -19,8 +19,6 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from cosmos.bench.free_targets.draw import DrawError, draw_targets
 from cosmos.bench.free_targets.rendering import LocalRenderer, Renderer
 from cosmos.bench.free_targets.report import (
@@ -31,7 +29,7 @@ from cosmos.bench.free_targets.report import (
     text_table,
 )
 from cosmos.bench.free_targets.shapes import scene_shapes
-from cosmos.bench.scenes import generate_scene
+from cosmos.bench.scenes import generate_scenes
 from services.common.auth import token_from_environment
 from services.common.catalog import SceneCatalog
 from services.common.errors import ServiceError
@@ -139,14 +137,6 @@ def _run(
     sys.stdout.write("\n\n".join(out) + "\n")
 
 
-def _generate(count: int, seed: int, folder: Path) -> list[str]:
-    """``count`` random scenes written to ``folder``; their ids."""
-    ids = [f"rand{seed}-{i}" for i in range(count)]
-    for i, scene_id in enumerate(ids):
-        generate_scene(np.random.default_rng([seed, i]), folder, scene_id)
-    return ids
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.random_scenes and args.url:
@@ -155,7 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     settings = RendererSettings()
     try:
         with tempfile.TemporaryDirectory(prefix="cosmos-free-scenes-") as tmp:
-            random_ids = _generate(args.random_scenes, args.seed, Path(tmp))
+            random_ids = generate_scenes(args.random_scenes, args.seed, Path(tmp))
             directories = settings.scene_directories() + ([Path(tmp)] if random_ids else [])
             catalog = SceneCatalog(directories)
             if args.url:
