@@ -10,9 +10,9 @@ with an *unconfirmed* answer (``result.confirmed`` false): the visited pose whos
 the target best by the optimizer's match score. An unconfirmed answer of the reprojection
 strategy is settled by one render more, with its depth, at its pose: the dense fit from it may
 move the answer to the grid pose nearest the camera it finds (:mod:`.grid_edges`). Only real
-errors fail a search (a stage
-unavailable for longer than the outage budget (:mod:`~services.controller.outages`) or refusing,
-nothing detected in the target, a grid the optimizer cannot search).
+errors fail a search (a stage unavailable for longer than the outage budget
+(:mod:`~services.controller.outages`) or refusing, nothing detected in the target, a grid the
+optimizer cannot search).
 
 The optimizer's question is made from what the search has seen
 (:mod:`~services.controller.progress`, with the scene's object classes when they apply).
@@ -213,9 +213,10 @@ class SearchLoop:
            the first time);
         2. detect the view's objects (a pose seen before is neither rendered nor detected again);
         3. ask the optimizer for the next pose, given the target and every view so far;
-        4. stop when the optimizer says done (the answer is confirmed) or that the search goes
-           round in circles, or after ``max_iterations`` views (both answer the best visited
-           pose, unconfirmed); else move to the next pose and go on at 1.
+        4. stop when the optimizer says done (the answer is confirmed unless ambiguous) or that
+           the search goes round in circles, or after ``max_iterations`` views (both answer the
+           best visited pose, unconfirmed); else move to the next pose and go on at 1;
+        5. an unconfirmed answer is settled by the render's edges (:meth:`_settle`).
 
         Every iteration is recorded (:class:`Writes`); raises :class:`SearchFailed`.
         """
