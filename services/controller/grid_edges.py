@@ -1,4 +1,5 @@
-"""A hemisphere search's unconfirmed answer settled by the render's edges.
+"""A hemisphere search's answer settled by the render's edges: an unconfirmed one, or one
+confirmed near a boundary between grid poses.
 
 The reprojection strategy's answer is the grid pose nearest its estimate from the boxes. With
 few objects, or a target between grid poses, that estimate can sit a few degrees off and pick a
@@ -18,8 +19,12 @@ Measured with ``python -m benchmarks.grid_edges`` (seeds 41 and 42: the demo and
 scenes each, 8 off-grid targets per scene, clean and with pixel noise, 464 fits): from a render
 at the true grid pose, 94 of 96 fits settled the answer, all at the true grid pose; from a
 render at one of its neighbours (an answer the boxes got wrong), 274 of 368 settled it, 272 at
-the true grid pose (0 → 272 answers right), the direction within 0.16° median. The answer stays
-unconfirmed: the render was not made at the pose the edges moved it to.
+the true grid pose (0 → 272 answers right), the direction within 0.16° median. An answer the
+edges move is unconfirmed: the render was not made at the pose they moved it to.
+
+A confirmed answer is checked so when its estimate lies near a boundary
+(:func:`near_a_boundary`): the strategy confirms between neighbours by comparing their views,
+which is not the same as the nearest grid pose. It stays confirmed when the edges keep it.
 
 Only the reprojection strategy's answers are settled so: ``simple`` and ``paper`` are the
 paper's strategies, measured as it describes them. The render counts in the answer's renders.
@@ -52,10 +57,12 @@ from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 
 __all__ = [
+    "BOUNDARY_SHARE",
     "EDGE_STRATEGY",
     "ON_SPHERE",
     "SETTLE_SHARE",
     "grid_free_pose",
+    "near_a_boundary",
     "settle_by_edges",
     "settled_result",
 ]
@@ -70,6 +77,15 @@ chance) to settle the answer. In the benchmark's run (module docstring) no bound
 answer; from a neighbour, 0.5 settled 297 answers (295 right), 0.7 274 (272), 0.9 117 (117). The
 bound is kept above the least a fit converges with (0.5) for the targets it did not measure (a
 changed light, a moved object), where a fit may hold on to part of the image."""
+BOUNDARY_SHARE: Final = 0.25
+"""A confirmed answer whose estimate lies this share of a step from nearer another grid pose
+(:func:`near_a_boundary`) is checked by the render's edges too: the strategy may have confirmed
+it by comparing views, and near the zenith a view's boxes follow φ more than θ, so the grid pose
+whose view matches best need not be the nearest. In the runs of stop 49 (2,720 reprojection
+searches: ``cosmos bench --profile --n 20`` and ``cosmos bench --random-scenes 5 --n 5``, seeds
+7-10) 29 confirmed answers lay within 2° so (of a 7.5° or 5° step), one of them wrong: a garden
+target at θ 17.2° confirmed at θ 22.5° (its estimate 0.95° inside), the view of the true grid
+pose, 9° away in φ, matching worse."""
 ON_SPHERE: Final = 0.01
 """How far (a share of the radius) a settling fit's camera may stand off the hemisphere. In the
 benchmark's run, from a neighbour at a share of 0.7: within 0.5 %, 268 settled (266 right);
@@ -111,10 +127,10 @@ def settled_result(
     share: float = SETTLE_SHARE,
     on_sphere: float = ON_SPHERE,
 ) -> SearchResult:
-    """``result`` (unconfirmed, one render more) with the dense fit's ``outcome`` from the
-    render at its pose (module docstring): its grid pose and direction when the fit pins a
-    camera on the hemisphere (``share`` and ``on_sphere`` the bounds), else as it was; the
-    reason says which."""
+    """``result`` (one render more) with the dense fit's ``outcome`` from the render at its
+    pose (module docstring): its grid pose and direction when the fit pins a camera on the
+    hemisphere (``share`` and ``on_sphere`` the bounds), else as it was; the reason says which.
+    A confirmed answer stays confirmed unless the fit moves it to another grid pose."""
     renders = result.renders + 1
     if isinstance(outcome, str):
         reason = f"{result.reason}; the render's edges did not settle it: {outcome}"
@@ -142,15 +158,41 @@ def settled_result(
     )
     if nearest.index == result.pose.index:
         reason = f"{result.reason}; {where}: nearest this grid pose"
+        confirmed = result.confirmed
     else:
         was = result.pose.index
-        reason = (
-            f"{result.reason}; {where}: nearest lat {index.lat} lon {index.lon}, not lat "
-            f"{was.lat} lon {was.lon} (not rendered there)"
+        moved = (
+            f"{where}: nearest lat {index.lat} lon {index.lon}, not lat {was.lat} lon {was.lon} "
+            "(not rendered there)"
         )
+        reason = f"{result.reason}; {moved}"
+        if result.confirmed:
+            reason = f"not confirmed: {moved}; the views had confirmed it: {result.reason}"
+        confirmed = False
     return result.model_copy(
-        update={"pose": nearest, "refined_pose": direction, "renders": renders, "reason": reason}
+        update={
+            "pose": nearest,
+            "refined_pose": direction,
+            "renders": renders,
+            "reason": reason,
+            "confirmed": confirmed,
+        }
     )
+
+
+def near_a_boundary(result: SearchResult, grid: SearchableGrid) -> bool:
+    """Whether ``result``'s ``refined_pose`` lies within :data:`BOUNDARY_SHARE` of a step
+    nearer another grid pose than its own: ``min_{g ≠ a} ∠(r, g) − ∠(r, a) < b Δ`` (``r`` the
+    refined direction, ``a`` the answer's grid pose, ``Δ`` the step)."""
+    hemisphere = grid.grid()
+    r = result.refined_pose
+    t, p = np.radians(r.theta_deg), np.radians(r.phi_deg)
+    thetas, phis = np.radians(hemisphere.theta_deg), np.radians(hemisphere.phi_deg)
+    cosine = np.cos(t) * np.cos(thetas) + np.sin(t) * np.sin(thetas) * np.cos(phis - p)
+    angles = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    own = hemisphere.flat(result.pose.index)
+    margin = float(np.min(np.delete(angles, own)) - angles[own])
+    return margin < BOUNDARY_SHARE * grid.angle_step_deg
 
 
 async def settle_by_edges(

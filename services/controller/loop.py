@@ -8,8 +8,9 @@ objects in it and asks the optimizer for the next pose, until the optimizer says
 A search that runs out of iterations, or whose strategy goes round in circles, still succeeds,
 with an *unconfirmed* answer (``result.confirmed`` false): the visited pose whose view matched
 the target best by the optimizer's match score. An unconfirmed answer of the reprojection
-strategy is settled by one render more, with its depth, at its pose: the dense fit from it may
-move the answer to the grid pose nearest the camera it finds (:mod:`.grid_edges`). Only real
+strategy (or one confirmed near a boundary between grid poses) is settled by one render more,
+with its depth, at its pose: the dense fit from it may move the answer to the grid pose nearest
+the camera it finds, unconfirmed (:mod:`.grid_edges`). Only real
 errors fail a search (a stage unavailable for longer than the outage budget
 (:mod:`~services.controller.outages`) or refusing, nothing detected in the target, a grid the
 optimizer cannot search).
@@ -55,7 +56,7 @@ from services.common.geometry.pose import Pose
 from services.common.images import media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import SearchFailed, failure, unreadable_answer
-from services.controller.grid_edges import EDGE_STRATEGY, settle_by_edges
+from services.controller.grid_edges import EDGE_STRATEGY, near_a_boundary, settle_by_edges
 from services.controller.outages import OutagePolicy
 from services.controller.progress import Progress, View, at
 from services.controller.stages import Stages
@@ -216,7 +217,8 @@ class SearchLoop:
         4. stop when the optimizer says done (the answer is confirmed unless ambiguous) or that
            the search goes round in circles, or after ``max_iterations`` views (both answer the
            best visited pose, unconfirmed); else move to the next pose and go on at 1;
-        5. an unconfirmed answer is settled by the render's edges (:meth:`_settle`).
+        5. an unconfirmed answer, or one confirmed near a boundary, is settled by the render's
+           edges (:meth:`_settle`).
 
         Every iteration is recorded (:class:`Writes`); raises :class:`SearchFailed`.
         """
@@ -256,10 +258,13 @@ class SearchLoop:
         return await writes.succeed(await self._settle(progress, image, result))
 
     async def _settle(self, progress: Progress, image: bytes, result: SearchResult) -> SearchResult:
-        """``result``, when unconfirmed and the reprojection strategy's, settled by a render of
-        its pose with depth and the dense fit from it (:mod:`.grid_edges`)."""
+        """``result``, when the reprojection strategy's and unconfirmed or confirmed near a
+        boundary between grid poses, settled by a render of its pose with depth and the dense
+        fit from it (:mod:`.grid_edges`)."""
         search = progress.search
-        if result.confirmed or search.strategy != EDGE_STRATEGY or progress.target is None:
+        if search.strategy != EDGE_STRATEGY or progress.target is None:
+            return result
+        if result.confirmed and not near_a_boundary(result, progress.grid):
             return result
         return await settle_by_edges(
             self.stages,

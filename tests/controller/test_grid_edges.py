@@ -14,7 +14,13 @@ from services.common.contracts.search import SearchResult
 from services.common.geometry.camera import pinhole_camera
 from services.common.geometry.free_camera import free_pinhole_camera
 from services.common.geometry.pose import GridIndex, Pose
-from services.controller.grid_edges import ON_SPHERE, grid_free_pose, settled_result
+from services.controller.grid_edges import (
+    BOUNDARY_SHARE,
+    ON_SPHERE,
+    grid_free_pose,
+    near_a_boundary,
+    settled_result,
+)
 
 GRID = SearchableGrid(angle_step_deg=7.5, min_theta_deg=7.5, max_theta_deg=82.5)
 RADIUS, FOV, SIZE = 8.0, 45.0, (320, 240)
@@ -114,3 +120,31 @@ def test_a_refinement_that_never_ran_settles_nothing():
     assert settled.pose == answer.pose
     assert settled.renders == 2
     assert settled.reason.endswith("did not settle it: no dense refinement (optimizer away)")
+
+
+def test_a_confirmed_answer_moved_by_the_edges_is_no_longer_confirmed():
+    answer = _answer(GridIndex(lat=3, lon=4)).model_copy(
+        update={"confirmed": True, "ambiguous": False, "reason": "the views agree"}
+    )
+    at = GRID.grid().pose(GridIndex(lat=4, lon=5))
+    settled = settled_result(answer, _outcome(at), GRID, RADIUS)
+    assert settled.pose.index == GridIndex(lat=4, lon=5)
+    assert not settled.confirmed
+    assert settled.reason.startswith("not confirmed: the render's edges put the camera at")
+    assert settled.reason.endswith("the views had confirmed it: the views agree")
+    kept = settled_result(answer, _outcome(GRID.grid().pose(GridIndex(lat=3, lon=4))), GRID, RADIUS)
+    assert kept.confirmed
+    assert kept.pose == answer.pose
+
+
+@pytest.mark.parametrize(("offset", "near"), [(0.0, False), (2.0, False), (3.4, True), (3.7, True)])
+def test_near_a_boundary_is_within_a_quarter_step_of_the_next_grid_pose(offset, near):
+    """Lat 2 (θ 22.5°) and lat 3 (θ 30°) at φ 0°: an estimate ``offset`` from lat 2 towards
+    lat 3 is nearer lat 3 than lat 2 by 7.5° − 2 · offset, under a quarter step (1.875°) past
+    an offset of 2.81°."""
+    answer = _answer(GridIndex(lat=2, lon=0))
+    pose = answer.pose
+    moved = Pose(theta_deg=pose.theta_deg + offset, phi_deg=pose.phi_deg)
+    result = answer.model_copy(update={"refined_pose": moved})
+    assert near_a_boundary(result, GRID) is near
+    assert BOUNDARY_SHARE * GRID.angle_step_deg == pytest.approx(1.875)

@@ -70,9 +70,11 @@ class FakeStages(ScriptedCalls):
         faults: dict[str, tuple[int, BaseException]] | None = None,
         back_after: int | None = None,
         settled_at: GridIndex | None = None,
+        estimate_theta: float = 0.5,
     ):
         self.detail = scene
         self.settled_at = settled_at
+        self.estimate_theta = estimate_theta
         self.grid = scene.grid.grid()
         self.target_model, self.view_model = models
         self.stuck_after = stuck_after
@@ -171,7 +173,7 @@ class FakeStages(ScriptedCalls):
             move="stay" if done else "E",
             estimate=PoseEstimate(
                 grid=grid_pose,
-                theta_deg=grid_pose.theta_deg + 0.5,
+                theta_deg=grid_pose.theta_deg + self.estimate_theta,
                 phi_deg=grid_pose.phi_deg,
                 residual_px=1.0,
                 confidence=0.9,
@@ -317,6 +319,36 @@ def test_a_confirmed_answer_is_not_settled(tmp_path, detail):
     assert done.result is not None
     assert done.result.confirmed
     assert stages.calls["render depth"] == stages.calls["refine"] == 0
+
+
+def test_a_confirmed_answer_near_a_boundary_is_checked_by_the_edges(tmp_path, detail):
+    """Done at lat 3 lon 2 (θ 30°) on an estimate at θ 33.5°, 0.25° short of the boundary with
+    lat 4: the render's edges pin the camera 0.4° from lat 4 lon 2, and the answer moves there,
+    no longer confirmed."""
+    stages = FakeStages(
+        detail, done_after=3, estimate_theta=3.5, settled_at=GridIndex(lat=4, lon=2)
+    )
+    final = run(tmp_path, stages)
+    result = final.result
+    assert result is not None
+    assert result.pose.index == GridIndex(lat=4, lon=2)
+    assert not result.confirmed
+    assert result.reason.startswith("not confirmed: the render's edges put the camera at")
+    assert "the views had confirmed it: the views differ" in result.reason
+    assert result.renders == 4
+    assert stages.calls["render depth"] == 1
+
+
+def test_a_confirmed_answer_the_edges_keep_stays_confirmed(tmp_path, detail):
+    stages = FakeStages(
+        detail, done_after=3, estimate_theta=3.5, settled_at=GridIndex(lat=3, lon=2)
+    )
+    result = run(tmp_path, stages).result
+    assert result is not None
+    assert result.pose.index == GridIndex(lat=3, lon=2)
+    assert result.confirmed
+    assert result.reason.endswith("nearest this grid pose")
+    assert result.renders == 4
 
 
 def test_a_render_for_the_edges_that_fails_keeps_the_answer(tmp_path, detail):
