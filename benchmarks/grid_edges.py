@@ -40,22 +40,24 @@ from services.common.contracts.search import SearchResult
 from services.common.depth_archive import DepthImage
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery
+from services.controller.free_refine import MIN_PIN_POINTS
 from services.controller.grid_edges import ON_SPHERE, SETTLE_SHARE, grid_free_pose, settled_result
 from services.optimizer.free_pose import SceneObjectCache
 from services.optimizer.refine_pose import ImageLimits, refine_pose
 
 VARIANTS: tuple[Variant, ...] = ("clean", "noise")
 BANDS = ((0.0, 30.0, "θ < 30°"), (30.0, 60.0, "30-60°"), (60.0, 90.1, "θ > 60°"))
-RULES: tuple[tuple[float, float], ...] = (
-    (SETTLE_SHARE, ON_SPHERE),
+RULES: tuple[tuple[float, float, int], ...] = (
+    (SETTLE_SHARE, ON_SPHERE, MIN_PIN_POINTS),
     *(
-        (share, on)
+        (share, on, MIN_PIN_POINTS)
         for share in (0.5, 0.7, 0.9)
         for on in (0.005, 0.01, 0.02, 0.05)
         if (share, on) != (SETTLE_SHARE, ON_SPHERE)
     ),
+    *((SETTLE_SHARE, ON_SPHERE, points) for points in (50, 100)),
 )
-"""The (share, on-sphere) bounds tried: the shipped ones first, then the others."""
+"""The (share, on-sphere, least edge points) bounds tried: the shipped ones first."""
 VIEW_SPP = 8
 """The searches' views' samples per pixel (the controller's default)."""
 
@@ -64,7 +66,7 @@ VIEW_SPP = 8
 class Fit:
     """One fit from a render at ``start``: whether it settled the answer, where, how far off."""
 
-    rule: tuple[float, float]
+    rule: tuple[float, float, int]
     band: str
     from_truth: bool
     settled: bool
@@ -133,8 +135,15 @@ def _fits(
                     confirmed=False,
                 )
                 for bounds in RULES:
+                    share, on_sphere, points = bounds
                     settled = settled_result(
-                        answer, outcome, grid, camera.radius, share=bounds[0], on_sphere=bounds[1]
+                        answer,
+                        outcome,
+                        grid,
+                        camera.radius,
+                        share=share,
+                        on_sphere=on_sphere,
+                        min_points=points,
                     )
                     fits.append(
                         Fit(
@@ -152,7 +161,10 @@ def _fits(
 
 def _print(fits: list[Fit]) -> None:
     shipped = [f for f in fits if f.rule == RULES[0]]
-    print(f"share {SETTLE_SHARE:g}, camera within {ON_SPHERE:.1%} of the radius (as shipped):\n")
+    print(
+        f"share {SETTLE_SHARE:g}, camera within {ON_SPHERE:.1%} of the radius, at least "
+        f"{MIN_PIN_POINTS} edge points (as shipped):\n"
+    )
     _print_rule(shipped)
     print(
         f"\nmedian ms per fit: {statistics.median(f.ms for f in shipped):.0f} ({len(shipped)} fits)"
@@ -161,10 +173,10 @@ def _print(fits: list[Fit]) -> None:
         "\nother bounds: settled answers, at the truth, from the true grid pose and a neighbour:\n"
     )
     print(
-        "| share | within % of the radius | from the truth: settled (right) "
+        "| share | within % of the radius | least edge points | from the truth: settled (right) "
         "| from a neighbour: settled (right) |"
     )
-    print("|---|---|---|---|")
+    print("|---|---|---|---|---|")
     for rule in RULES[1:]:
         mine = [f for f in fits if f.rule == rule]
         cells = []
@@ -172,7 +184,7 @@ def _print(fits: list[Fit]) -> None:
             settled = [f for f in mine if f.from_truth == from_truth and f.settled]
             total = sum(f.from_truth == from_truth for f in mine)
             cells.append(f"{len(settled)} of {total} ({sum(f.right_after for f in settled)})")
-        print(f"| {rule[0]:g} | {rule[1]:.1%} | {cells[0]} | {cells[1]} |")
+        print(f"| {rule[0]:g} | {rule[1]:.1%} | {rule[2]} | {cells[0]} | {cells[1]} |")
 
 
 def _print_rule(fits: list[Fit]) -> None:

@@ -52,7 +52,7 @@ from services.common.geometry.free_camera import (
 from services.common.geometry.pose import Pose
 from services.controller.failures import SearchFailed
 from services.controller.free_match import scaled_camera, view_film
-from services.controller.free_refine import ask_refinement, fit_pins
+from services.controller.free_refine import MIN_PIN_POINTS, ask_refinement, fit_pins
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 
@@ -126,11 +126,13 @@ def settled_result(
     *,
     share: float = SETTLE_SHARE,
     on_sphere: float = ON_SPHERE,
+    min_points: int = MIN_PIN_POINTS,
 ) -> SearchResult:
     """``result`` (one render more) with the dense fit's ``outcome`` from the render at its
     pose (module docstring): its grid pose and direction when the fit pins a camera on the
-    hemisphere (``share`` and ``on_sphere`` the bounds), else as it was; the reason says which.
-    A confirmed answer stays confirmed unless the fit moves it to another grid pose."""
+    hemisphere (``share``, ``on_sphere`` and ``min_points`` the bounds), else as it was; the
+    reason says which. A confirmed answer stays confirmed unless the fit moves it to another
+    grid pose."""
     renders = result.renders + 1
     if isinstance(outcome, str):
         reason = f"{result.reason}; the render's edges did not settle it: {outcome}"
@@ -140,7 +142,7 @@ def settled_result(
     why = ""
     if not fit.accepted:
         why = fit.reason
-    elif not fit_pins(fit, share=share):
+    elif not fit_pins(fit, min_points, share):
         why = f"{fit.inliers} of {fit.edge_points} edge points on the target's: too few to pin it"
     elif abs(off) > on_sphere:
         why = f"its camera stands {off:+.1%} of the radius off the hemisphere"
