@@ -70,7 +70,7 @@ __all__ = [
 _log = logging.getLogger("cosmos.controller")
 
 EDGE_STRATEGY: Final = "reprojection"
-"""The strategy whose unconfirmed answers the render's edges settle."""
+"""The strategy whose answers the render's edges settle."""
 SETTLE_SHARE: Final = 0.7
 """The share of the render's edge points an accepted fit must leave on the target's (above
 chance) to settle the answer. In the benchmark's run (module docstring) no bound moved a right
@@ -81,7 +81,7 @@ BOUNDARY_SHARE: Final = 0.25
 """A confirmed answer whose estimate lies this share of a step from nearer another grid pose
 (:func:`near_a_boundary`) is checked by the render's edges too: the strategy may have confirmed
 it by comparing views, and near the zenith a view's boxes follow φ more than θ, so the grid pose
-whose view matches best need not be the nearest. In the runs of stop 49 (2,720 reprojection
+whose view matches best need not be the nearest. In the runs of 2026-12-06 (2,720 reprojection
 searches: ``cosmos bench --profile --n 20`` and ``cosmos bench --random-scenes 5 --n 5``, seeds
 7-10) 29 confirmed answers lay within 2° so (of a 7.5° or 5° step), one of them wrong: a garden
 target at θ 17.2° confirmed at θ 22.5° (its estimate 0.95° inside), the view of the true grid
