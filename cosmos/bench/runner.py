@@ -128,9 +128,7 @@ class SearchRecord(FrozenModel):
     )
     renders: int = 0
     after_renders: int = Field(
-        default=0,
-        description="Renders after the iterations (an unconfirmed answer's render with depth, "
-        "whose edges settle it); in renders, and their times in render_ms and optimize_ms.",
+        default=0, description="Renders after the iterations (their edges settle the answer)."
     )
     iterations: int = 0
     wall_ms: float = 0.0
@@ -267,7 +265,8 @@ def record_of(
     raw: Mapping[str, Any] | None = None,
     arm: str = "general",
 ) -> SearchRecord:
-    """The bench's view of a finished search: success against the ground truth, stage times;
+    """The bench's view of a finished search: success against the ground truth, stage times
+    (with a render after the iterations and its refinement, in render and optimize ms);
     from ``raw`` (the search's JSON) whether its answer was confirmed, and the trace of a miss or
     an unconfirmed answer."""
     raw = raw if raw is not None else search.model_dump(mode="json")
@@ -290,8 +289,7 @@ def record_of(
     )
     result = search.result
     after = result.refit_timings if result is not None else None
-    found = result.pose.index if result is not None else None
-    refined = result.refined_pose if result is not None else None
+    found, refined = (result.pose.index, result.refined_pose) if result else (None, None)
     success = search.status == "succeeded" and found == target.truth
     return SearchRecord(
         scene=target.scene,
