@@ -39,7 +39,8 @@ from services.common.contracts.render import RenderRequest
 from services.common.contracts.search import SearchResult
 from services.common.depth_archive import DepthImage
 from services.common.geometry.grid import HemisphereGrid
-from services.common.geometry.pose import GridIndex, Pose, PoseQuery
+from services.common.geometry.pose import GridIndex, PoseQuery
+from services.common.geometry.sphere import angular_distance_deg
 from services.controller.free_refine import MIN_PIN_POINTS
 from services.controller.grid_edges import ON_SPHERE, SETTLE_SHARE, grid_free_pose, settled_result
 from services.optimizer.free_pose import SceneObjectCache
@@ -77,14 +78,6 @@ class Fit:
 
 def _band(theta: float) -> str:
     return next(name for low, high, name in BANDS if low <= theta < high)
-
-
-def _angle_deg(a: Pose, b: Pose) -> float:
-    """The great-circle angle between two hemisphere directions."""
-    ta, tb = math.radians(a.theta_deg), math.radians(b.theta_deg)
-    dp = math.radians(a.phi_deg - b.phi_deg)
-    c = math.cos(ta) * math.cos(tb) + math.sin(ta) * math.sin(tb) * math.cos(dp)
-    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
 
 
 def _archive(renderer: LocalRenderer, scene: str, index: GridIndex, seed: int) -> bytes:
@@ -152,7 +145,7 @@ def _fits(
                             from_truth=start == drawn.truth,
                             settled=settled.refined_pose != at,
                             right_after=settled.pose.index == drawn.truth,
-                            angle_deg=_angle_deg(settled.refined_pose, drawn.pose),
+                            angle_deg=float(angular_distance_deg(settled.refined_pose, drawn.pose)),
                             ms=ms,
                         )
                     )

@@ -50,6 +50,7 @@ from services.common.geometry.free_camera import (
     yaw_pitch_roll_of_rotation,
 )
 from services.common.geometry.pose import Pose
+from services.common.geometry.sphere import angular_distance_deg
 from services.controller.failures import SearchFailed
 from services.controller.free_match import scaled_camera, view_film
 from services.controller.free_refine import MIN_PIN_POINTS, ask_refinement, fit_pins
@@ -187,11 +188,7 @@ def near_a_boundary(result: SearchResult, grid: SearchableGrid) -> bool:
     nearer another grid pose than its own: ``min_{g ≠ a} ∠(r, g) − ∠(r, a) < b Δ`` (``r`` the
     refined direction, ``a`` the answer's grid pose, ``Δ`` the step)."""
     hemisphere = grid.grid()
-    r = result.refined_pose
-    t, p = np.radians(r.theta_deg), np.radians(r.phi_deg)
-    thetas, phis = np.radians(hemisphere.theta_deg), np.radians(hemisphere.phi_deg)
-    cosine = np.cos(t) * np.cos(thetas) + np.sin(t) * np.sin(thetas) * np.cos(phis - p)
-    angles = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    angles = angular_distance_deg(result.refined_pose, (hemisphere.theta_deg, hemisphere.phi_deg))
     own = hemisphere.flat(result.pose.index)
     margin = float(np.min(np.delete(angles, own)) - angles[own])
     return margin < BOUNDARY_SHARE * grid.angle_step_deg
