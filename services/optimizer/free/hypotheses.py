@@ -14,7 +14,9 @@ A minimal set is three detections and an assignment of distinct compatible objec
 OpenCV's AP3P (``cv2.solveP3P``, Ke & Roumeliotis 2017) gives up to four poses from the box
 centres against the objects' centroids. Every pose is scored against all detections at once: the
 objects' centroids are projected, each detection may pair with a compatible object whose
-projected centroid lies within its gate (:func:`centre_gate`) and whose projected box's diagonal
+projected centroid lies within its gate (:func:`centre_gate`; a box the image border cuts shows
+only part of its object, whose centroid lies on past the box's centre towards that border, so
+that side's offset counts for nothing) and whose projected box's diagonal
 is within a factor :data:`SIZE_RATIO` of the detection's (a minimal set of wrong objects puts
 them at wrong depths), and the one-to-one pairing is the gated Hungarian assignment of
 :func:`~services.optimizer.matching.assign`. A second box on a more confident detection's object
@@ -57,6 +59,7 @@ from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.free.tolerances import box_diagonals
 from services.optimizer.geometry import FloatArray
+from services.optimizer.mapping import clipped_sides
 from services.optimizer.matching import assign
 
 __all__ = [
@@ -98,7 +101,9 @@ _SIZED_CHUNK: Final = 64
 general-model solve (8 test cameras of ``tests/optimizer/test_free_pose.py``, intrinsics given)
 took 0.75-0.95 times as long, the same hypotheses."""
 _UNPAIRED: Final = 1.0 + SHAPE_MISMATCH_COST
-"""An unpaired detection's cost: no pair costs more."""
+"""An unpaired detection's cost: no pair of the right colour costs more (a general-model
+pairing whose colour contradicts it may: :data:`~.colours.COLOUR_COST`), and the assignment
+leaves such a pair out."""
 
 
 @dataclass(frozen=True)
@@ -133,6 +138,8 @@ class _Evidence:
     size: tuple[float, float]
     general: bool
     """Whether labels are the general model's (the box sizes are then checked)."""
+    clipped: NDArray[np.bool_]
+    """(D, 4) which sides ``[x1, y1, x2, y2]`` of each box touch the image border."""
 
 
 def compatibility(objects: SceneObjects, labels: tuple[str, ...]) -> NDArray[np.bool_]:
@@ -209,10 +216,23 @@ def _centre_costs(
     with np.errstate(all="ignore"):  # a centroid in the camera's plane: inf, out of the gate
         pix = cam[..., :2] / cam[..., 2:3] * (intrinsics.fx, intrinsics.fy)
         pix += (intrinsics.cx, intrinsics.cy)
-        dist = np.linalg.norm(centres[np.newaxis, :, np.newaxis, :] - pix[:, np.newaxis], axis=-1)
+        offset = pix[:, np.newaxis] - centres[np.newaxis, :, np.newaxis, :]
+        dist = np.linalg.norm(_unclipped(offset, evidence.clipped), axis=-1)
     cost = _gated(dist / gates[:, np.newaxis], evidence.costs[np.newaxis])
     cost[np.broadcast_to((cam[..., 2] <= 0.0)[:, np.newaxis, :], cost.shape)] = np.inf
     return cost
+
+
+def _unclipped(offset: FloatArray, clipped: NDArray[np.bool_]) -> FloatArray:
+    """``offset`` (N, D, M, 2), projected centroid minus box centre, with its component toward a
+    clipped side of the box set to 0: the border cut the object, whose centroid lies on past the
+    visible box's centre, beyond it (module docstring)."""
+    du, dv = offset[..., 0], offset[..., 1]
+    left, top, right, bottom = (clipped[np.newaxis, :, np.newaxis, s] for s in range(4))
+    du = np.where((left & (du < 0.0)) | (right & (du > 0.0)), 0.0, du)
+    dv = np.where((top & (dv < 0.0)) | (bottom & (dv > 0.0)), 0.0, dv)
+    out: FloatArray = np.stack([du, dv], axis=-1)
+    return out
 
 
 def _cheap(
@@ -360,7 +380,10 @@ def hypotheses(
         -np.einsum("nji,nj->ni", rotations, t_all)[:, 2] > 0.0
     )
     r_all, t_all, rotations = r_all[above], t_all[above], rotations[above]
-    evidence = _Evidence(b, centres, gates, label_cost, intrinsics, (width, height), general)
+    clipped = clipped_sides(b, width, height)
+    evidence = _Evidence(
+        b, centres, gates, label_cost, intrinsics, (width, height), general, clipped
+    )
     if not general:
         # One at a time, on Rodrigues' rotations: scored in a batch on SciPy's (equal to
         # 1e-15), a changed demo target of the free bench (seed 1, #0) lost its right pose;
