@@ -1,5 +1,5 @@
-"""A scene's own detector's label checked against the colour it measured: a changed scene's
-mislabelled object is paired by its colour, and nothing else changes."""
+"""Labels checked against the colours the detector measured: a changed scene's mislabelled
+object is paired by its colour, and a general-model pairing pays for its colour distance."""
 
 from __future__ import annotations
 
@@ -12,12 +12,13 @@ from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.optimizer.free import scene_objects, solve_free_pose
 from services.optimizer.free.colours import (
     AGREES,
+    COLOUR_COST,
     CONTRADICTED,
     RELABEL_COST,
     colour_distances,
     recoloured,
 )
-from services.optimizer.free.hypotheses import general_labels, label_costs
+from services.optimizer.free.hypotheses import SHAPE_MISMATCH_COST, general_labels, label_costs
 from tests.optimizer.test_free_pose import H, W, errors, exact_detections, intrinsics_of
 
 
@@ -72,13 +73,29 @@ def test_a_label_its_colour_contradicts_may_also_be_the_object_of_that_colour(de
     np.testing.assert_array_equal(out[1:], costs[1:])
 
 
-def test_a_general_model_label_is_left_to_the_geometry(demo):
-    labels = ("sphere",)
+def test_a_general_model_pairing_is_priced_by_its_colour(demo):
+    """The demo's balls are all spheres: by shape, a ``sphere`` detection is any of them alike.
+    Its colour makes its own ball free, a far colour dear, and a ``cube`` label on that ball
+    costs nothing more than its colour says (the general model's shapes are often wrong)."""
+    labels = ("sphere", "cube", "sphere")
     costs = label_costs(demo, labels)
-    measured = [shaded_srgb(demo.colors[0], 0.8)]
-    np.testing.assert_array_equal(
-        recoloured(costs, demo, general_labels(demo, labels), measured), costs
-    )
+    assert np.all(costs[0] == 0.0)
+    assert np.all(costs[1] == SHAPE_MISMATCH_COST)
+    measured = [
+        shaded_srgb(demo.colors[0], 0.8),
+        shaded_srgb(demo.colors[0], 0.5),
+        (20.0, 20.0, 30.0),  # too dark to say anything
+    ]
+    d = colour_distances(measured, demo)
+    out = recoloured(costs, demo, general_labels(demo, labels), measured)
+    assert out[0, 0] < 0.05
+    assert out[1, 0] < 0.05
+    far = d[0] >= CONTRADICTED
+    assert far[1:].all()
+    np.testing.assert_allclose(out[0, far], COLOUR_COST)
+    np.testing.assert_allclose(out[1, far], SHAPE_MISMATCH_COST + COLOUR_COST)
+    np.testing.assert_array_equal(out[2], costs[2])
+    assert np.isfinite(out).all()  # evidence, not proof: every pairing stays possible
     assert AGREES < CONTRADICTED
 
 
