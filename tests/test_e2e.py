@@ -28,6 +28,7 @@ from services.common.contracts.search import Search
 from services.common.geometry.pose import GridIndex, Pose, PoseQuery
 from services.common.images import encode_ppm
 from services.controller.client import ControllerClient
+from services.controller.grid_edges import STEEP_THETA_DEG
 from services.controller.keys import local_key
 from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
@@ -75,7 +76,9 @@ def grid_of(stack: Stack, scene: str):
 @pytest.mark.parametrize(("scene", "count"), [("demo", 5), ("garden", 2)])
 def test_searches_find_the_targets_grid_pose(stack, scene, count):
     """Without a start: the controller predicts it from the target's detections, and the
-    search ends after that one render (a target near the zenith among them)."""
+    search ends after that one render. A target near the zenith among them: looking that
+    steeply down, the views' confirmation is checked by one render more, with its depth, whose
+    edges keep the answer (``grid_edges.steep``)."""
     grid = grid_of(stack, scene)
     rng = np.random.default_rng(99 if scene == "demo" else 7)
     near_zenith = grid.flat(GridIndex(lat=0, lon=2))
@@ -85,13 +88,17 @@ def test_searches_find_the_targets_grid_pose(stack, scene, count):
         final = run_search(stack, image, scene, seed=int(flat))
         assert final.status == "succeeded", (target, final.error)
         assert not final.start_given
-        assert final.result is not None
-        assert final.result.confirmed, final.result
-        assert final.result.pose.index == target, (target, final.result)
-        assert final.result.renders == 1, (target, final.iterations)
-        assert final.result.renders == len(
-            {(i.pose.index.lat, i.pose.index.lon) for i in final.iterations}
-        )
+        result = final.result
+        assert result is not None
+        assert result.confirmed, result
+        assert result.pose.index == target, (target, result)
+        views = {(i.pose.index.lat, i.pose.index.lon) for i in final.iterations}
+        assert len(views) == 1, (target, final.iterations)
+        checked = result.pose.theta_deg < STEEP_THETA_DEG
+        assert (result.refit_timings is not None) is checked, result
+        assert result.renders == 1 + checked, (target, result)
+        if checked:
+            assert result.reason.endswith("nearest this grid pose"), result.reason
         assert [i.index for i in final.iterations] == list(range(len(final.iterations)))
 
 

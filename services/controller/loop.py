@@ -56,7 +56,12 @@ from services.common.geometry.pose import Pose
 from services.common.images import media_type_of
 from services.controller.events import Notifier
 from services.controller.failures import SearchFailed, failure, unreadable_answer
-from services.controller.grid_edges import EDGE_STRATEGY, near_a_boundary, settle_by_edges
+from services.controller.grid_edges import (
+    EDGE_STRATEGY,
+    near_a_boundary,
+    settle_by_edges,
+    steep,
+)
 from services.controller.outages import OutagePolicy
 from services.controller.progress import Progress, View, at
 from services.controller.stages import Stages
@@ -258,13 +263,14 @@ class SearchLoop:
         return await writes.succeed(await self._settle(progress, image, result))
 
     async def _settle(self, progress: Progress, image: bytes, result: SearchResult) -> SearchResult:
-        """``result``, when the reprojection strategy's and unconfirmed or confirmed near a
-        boundary between grid poses, settled by a render of its pose with depth and the dense
-        fit from it (:mod:`.grid_edges`)."""
+        """``result``, when the reprojection strategy's and unconfirmed, or confirmed near a
+        boundary between grid poses or looking steeply down, settled by a render of its pose
+        with depth and the dense fit from it (:mod:`.grid_edges`)."""
         search = progress.search
         if search.strategy != EDGE_STRATEGY or progress.target is None:
             return result
-        if result.confirmed and not near_a_boundary(result, progress.grid):
+        looks_down = steep(result)
+        if result.confirmed and not (looks_down or near_a_boundary(result, progress.grid)):
             return result
         return await settle_by_edges(
             self.stages,
@@ -275,6 +281,7 @@ class SearchLoop:
             image,
             progress.target_size,
             result,
+            vouch=looks_down,
         )
 
     async def _begin(self, search: Search, image: bytes) -> Progress:

@@ -17,9 +17,11 @@ from services.common.geometry.pose import GridIndex, Pose
 from services.controller.grid_edges import (
     BOUNDARY_SHARE,
     ON_SPHERE,
+    STEEP_THETA_DEG,
     grid_free_pose,
     near_a_boundary,
     settled_result,
+    steep,
 )
 
 GRID = SearchableGrid(angle_step_deg=7.5, min_theta_deg=7.5, max_theta_deg=82.5)
@@ -119,7 +121,7 @@ def test_a_refinement_that_never_ran_settles_nothing():
     settled = settled_result(answer, "no dense refinement (optimizer away)", GRID, RADIUS)
     assert settled.pose == answer.pose
     assert settled.renders == 2
-    assert settled.reason.endswith("did not settle it: no dense refinement (optimizer away)")
+    assert settled.reason.endswith("did not settle it (no dense refinement (optimizer away))")
 
 
 def test_a_confirmed_answer_moved_by_the_edges_is_no_longer_confirmed():
@@ -148,3 +150,38 @@ def test_near_a_boundary_is_within_a_quarter_step_of_the_next_grid_pose(offset, 
     result = answer.model_copy(update={"refined_pose": moved})
     assert near_a_boundary(result, GRID) is near
     assert BOUNDARY_SHARE * GRID.angle_step_deg == pytest.approx(1.875)
+
+
+@pytest.mark.parametrize(
+    ("lat", "refined", "looks_down"),
+    [(0, None, True), (2, None, True), (3, None, False), (3, 28.0, True), (5, 40.0, False)],
+)
+def test_steep_is_an_estimate_or_grid_pose_below_the_steep_theta(lat, refined, looks_down):
+    """The grid's rings are 7.5° apart from 7.5°: lat 2 is θ 22.5°, lat 3 θ 30°."""
+    answer = _answer(GridIndex(lat=lat, lon=0))
+    if refined is not None:
+        answer = answer.model_copy(update={"refined_pose": Pose(theta_deg=refined, phi_deg=0.0)})
+    assert steep(answer) is looks_down
+    assert STEEP_THETA_DEG == 30.0
+
+
+def test_a_steep_confirmed_answer_the_edges_cannot_settle_is_no_longer_confirmed():
+    """Looking down, the views hardly tell the rings apart: their confirmation stands only when
+    the edges keep the answer; a refused fit, or no fit, unconfirms it (``vouch``), where an
+    answer elsewhere keeps its confirmation."""
+    answer = _answer(GridIndex(lat=1, lon=2)).model_copy(
+        update={"confirmed": True, "ambiguous": False, "reason": "the views agree"}
+    )
+    refused = _outcome(Pose(theta_deg=45.0, phi_deg=120.0), inliers=300)
+    for outcome in (refused, "no dense refinement (optimizer away)"):
+        kept = settled_result(answer, outcome, GRID, RADIUS)
+        assert kept.confirmed
+        doubted = settled_result(answer, outcome, GRID, RADIUS, vouch=True)
+        assert not doubted.confirmed
+        assert doubted.pose == answer.pose
+        assert doubted.renders == 2
+        assert doubted.reason.startswith("not confirmed: looking 75° down, the views hardly tell")
+        assert doubted.reason.endswith("the views had confirmed it: the views agree")
+    held = settled_result(answer, _outcome(answer.refined_pose), GRID, RADIUS, vouch=True)
+    assert held.confirmed
+    assert held.pose == answer.pose

@@ -71,9 +71,11 @@ class FakeStages(ScriptedCalls):
         back_after: int | None = None,
         settled_at: GridIndex | None = None,
         estimate_theta: float = 0.5,
+        ring: int = 3,
     ):
         self.detail = scene
         self.settled_at = settled_at
+        self.ring = ring
         self.estimate_theta = estimate_theta
         self.grid = scene.grid.grid()
         self.target_model, self.view_model = models
@@ -161,7 +163,7 @@ class FakeStages(ScriptedCalls):
         self.requests.append(request)
         here = request.history[-1].pose
         lon = here.lon or 0
-        nxt = GridIndex(lat=3, lon=(lon + 1) % 8)
+        nxt = GridIndex(lat=self.ring, lon=(lon + 1) % 8)
         score = 0.8 if lon == 2 else 0.1 * lon / 8
         done = len(request.history) >= self.done_after
         grid_pose = self.grid_pose(GridIndex(lat=here.lat or 0, lon=lon))
@@ -339,16 +341,47 @@ def test_a_confirmed_answer_near_a_boundary_is_checked_by_the_edges(tmp_path, de
     assert stages.calls["render depth"] == 1
 
 
-def test_a_confirmed_answer_the_edges_keep_stays_confirmed(tmp_path, detail):
+@pytest.mark.parametrize(
+    ("ring", "estimate_theta"),
+    [(3, 3.5), (1, 0.5)],
+    ids=["near a boundary", "looking 75 degrees down"],
+)
+def test_a_confirmed_answer_the_edges_keep_stays_confirmed(tmp_path, detail, ring, estimate_theta):
+    """Checked by the render's edges near a boundary (θ 33.5° on lat 3, θ 30°) or looking
+    steeply down (θ 15.5° on lat 1, θ 15°), the answer they pin to its grid pose stays
+    confirmed."""
     stages = FakeStages(
-        detail, done_after=3, estimate_theta=3.5, settled_at=GridIndex(lat=3, lon=2)
+        detail,
+        done_after=3,
+        ring=ring,
+        estimate_theta=estimate_theta,
+        settled_at=GridIndex(lat=ring, lon=2),
     )
     result = run(tmp_path, stages).result
     assert result is not None
-    assert result.pose.index == GridIndex(lat=3, lon=2)
+    assert result.pose.index == GridIndex(lat=ring, lon=2)
     assert result.confirmed
     assert result.reason.endswith("nearest this grid pose")
     assert result.renders == 4
+    assert stages.calls["render depth"] == stages.calls["refine"] == 1
+
+
+def test_a_steep_confirmed_answer_the_edges_cannot_check_is_not_confirmed(tmp_path, detail):
+    refused = StageError("renderer", ProblemDetails(title="Bad request", status=422))
+    stages = FakeStages(
+        detail,
+        done_after=3,
+        ring=1,
+        settled_at=GridIndex(lat=1, lon=2),
+        faults={"render depth": (0, refused)},
+    )
+    result = run(tmp_path, stages).result
+    assert result is not None
+    assert result.pose.index == GridIndex(lat=1, lon=2)
+    assert not result.confirmed
+    assert result.reason.startswith("not confirmed: looking 74° down, the views hardly tell")
+    assert "(no render:" in result.reason
+    assert result.reason.endswith("the views had confirmed it: the views differ")
 
 
 def test_a_render_for_the_edges_that_fails_keeps_the_answer(tmp_path, detail):
