@@ -96,9 +96,9 @@ STEEP_THETA_DEG: Final = 30.0
 """A confirmed answer whose estimate lies below this θ (the camera looking more than 60° down)
 is checked by the render's edges, and keeps its confirmation only when they keep it
 (:func:`steep`). Near the zenith the boxes tell θ least: in the hemisphere runs of 2026-12-06
-(``cosmos bench --random-scenes 5 --n 5``, seeds 7-11, 2,700 reprojection searches with a
-refined direction and ``--profile``'s), the refined direction's error at θ < 30° had p90 1.4-1.9°
-and p99 6.5-8.9°, at 30-60° 0.8-0.9° and 3.6-5.0°; every answer confirmed wrong lay below 30°:
+(``cosmos bench --random-scenes 5 --n 5``, seeds 7-11, 3,000 reprojection searches), the
+refined direction's error at θ < 30° had p90 1.4-1.9° and p99 6.5-8.9°, at 30-60° 0.8-0.9° and
+3.6-5.0°; every answer confirmed wrong lay below 30°:
 the garden's at θ 17.2° (caught near a boundary), and on seed 11, with the scene's own model, a
 JPEG target at θ 15° whose true view the views rejected (one object not detected) and which was
 confirmed at θ 20° (given and predicted start alike), and a noisy one at θ 7° confirmed at
