@@ -227,7 +227,10 @@ def test_a_ci_sized_bench_through_the_real_stack(tmp_path, capsys):
     assert "reprojection, predicted start" in printed
     for r in records:
         assert r.renders == len({(t.lat, t.lon) for t in r.trajectory}) + r.after_renders
-        assert r.after_renders == 0 or (r.strategy == "reprojection" and r.confirmed is False)
+        # One render for the edges after the iterations, the reprojection strategy's only: for
+        # an unconfirmed answer, or a confirmed one near a boundary or looking steeply down.
+        assert r.after_renders <= 1
+        assert r.after_renders == 0 or r.strategy == "reprojection"
         assert r.wall_ms >= r.stage_ms * 0.5
     profile = report["profile"]
     assert {row["scene"] for row in profile["rows"]} == {"demo", "garden", "all"}
