@@ -65,8 +65,8 @@ __all__ = [
     "EDGE_STRATEGY",
     "ON_SPHERE",
     "SETTLE_SHARE",
-    "grid_free_pose",
     "STEEP_THETA_DEG",
+    "grid_free_pose",
     "near_a_boundary",
     "settle_by_edges",
     "settled_result",
@@ -98,14 +98,14 @@ is checked by the render's edges, and keeps its confirmation only when they keep
 (:func:`steep`). Near the zenith the boxes tell θ least: in the hemisphere runs of 2026-12-06
 (``cosmos bench --random-scenes 5 --n 5``, seeds 7-11, 3,000 reprojection searches), the
 refined direction's error at θ < 30° had p90 1.4-1.9° and p99 6.5-8.9°, at 30-60° 0.8-0.9° and
-3.6-5.0°; every answer confirmed wrong lay below 30°:
-the garden's at θ 17.2° (caught near a boundary), and on seed 11, with the scene's own model, a
-JPEG target at θ 15° whose true view the views rejected (one object not detected) and which was
-confirmed at θ 20° (given and predicted start alike), and a noisy one at θ 7° confirmed at
-θ 14°, its estimate 12.1°. The same 300 searches with the scenes' own models, one run before and
-one after this check: confirmed wrong 3 → 0, found 296 → 299, confirmed right 280 → 272 (right
-answers below 30° whose fit could not settle them, six under another light), renders 616 → 652,
-the median with a predicted start still 1 (docs/EVALUATION.md)."""
+3.6-5.0°; every answer confirmed wrong lay below 30°: the garden's at θ 17.2° (caught near a
+boundary), and on seed 11, with the scene's own model, a JPEG target at θ 15° whose true view
+the views rejected (one object not detected) and which was confirmed at θ 20° (given and
+predicted start alike), and a noisy one at θ 7° confirmed at θ 14°, its estimate 12.1°. The
+same 300 searches with the scenes' own models, one run before and one after this check:
+confirmed wrong 3 → 0, found 296 → 299, confirmed right 280 → 272 (right answers below 30° whose
+fit could not settle them, six under another light), renders 616 → 652, the median with a
+predicted start still 1 (docs/EVALUATION.md)."""
 ON_SPHERE: Final = 0.01
 """How far (a share of the radius) a settling fit's camera may stand off the hemisphere. In the
 benchmark's run, from a neighbour at a share of 0.7: within 0.5 %, 268 settled (266 right);
