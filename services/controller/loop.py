@@ -8,9 +8,9 @@ objects in it and asks the optimizer for the next pose, until the optimizer says
 A search that runs out of iterations, or whose strategy goes round in circles, still succeeds,
 with an *unconfirmed* answer (``result.confirmed`` false): the visited pose whose view matched
 the target best by the optimizer's match score. An unconfirmed answer of the reprojection
-strategy (or one confirmed near a boundary between grid poses) is settled by one render more,
-with its depth, at its pose: the dense fit from it may move the answer to the grid pose nearest
-the camera it finds, unconfirmed (:mod:`.grid_edges`). Only real
+strategy (or one confirmed near a boundary between grid poses, or looking steeply down) is
+settled by one render more, with its depth, at its pose: the dense fit from it may move the
+answer to the grid pose nearest the camera it finds, unconfirmed (:mod:`.grid_edges`). Only real
 errors fail a search (a stage unavailable for longer than the outage budget
 (:mod:`~services.controller.outages`) or refusing, nothing detected in the target, a grid the
 optimizer cannot search).
@@ -222,8 +222,8 @@ class SearchLoop:
         4. stop when the optimizer says done (the answer is confirmed unless ambiguous) or that
            the search goes round in circles, or after ``max_iterations`` views (both answer the
            best visited pose, unconfirmed); else move to the next pose and go on at 1;
-        5. an unconfirmed answer, or one confirmed near a boundary, is settled by the render's
-           edges (:meth:`_settle`).
+        5. an unconfirmed answer, or one confirmed near a boundary or looking steeply down, is
+           settled by the render's edges (:meth:`_settle`).
 
         Every iteration is recorded (:class:`Writes`); raises :class:`SearchFailed`.
         """

@@ -226,12 +226,13 @@ def _centre_costs(
 def _unclipped(offset: FloatArray, clipped: NDArray[np.bool_]) -> FloatArray:
     """``offset`` (N, D, M, 2), projected centroid minus box centre, with its component toward a
     clipped side of the box set to 0: the border cut the object, whose centroid lies on past the
-    visible box's centre, beyond it (module docstring)."""
-    du, dv = offset[..., 0], offset[..., 1]
-    left, top, right, bottom = (clipped[np.newaxis, :, np.newaxis, s] for s in range(4))
-    du = np.where((left & (du < 0.0)) | (right & (du > 0.0)), 0.0, du)
-    dv = np.where((top & (dv < 0.0)) | (bottom & (dv > 0.0)), 0.0, dv)
-    out: FloatArray = np.stack([du, dv], axis=-1)
+    visible box's centre, beyond it (module docstring). One clip, bounded at 0 on the cut sides
+    ``[x1, y1]`` from below and ``[x2, y2]`` from above."""
+    if not clipped.any():
+        return offset
+    low = np.where(clipped[:, :2], 0.0, -np.inf)[np.newaxis, :, np.newaxis, :]
+    high = np.where(clipped[:, 2:], 0.0, np.inf)[np.newaxis, :, np.newaxis, :]
+    out: FloatArray = np.clip(offset, low, high)
     return out
 
 
