@@ -363,6 +363,37 @@ def test_an_object_the_border_cuts_is_paired_by_its_visible_part(scenes):
     assert_exact(answer, pinhole, objects.radius)
 
 
+def test_a_minimal_set_with_no_p3p_root_is_solved_by_least_squares(scenes):
+    """A nadir view of the garden (a held-out free bench target) with the hat cut by the border:
+    its box's centre lies 10 px short of the hat's, and AP3P finds no real root for the three
+    boxes. The least-squares pose (SQPnP) of that set still pairs all three, a start for the
+    edge fits and the render (without it: no hypothesis, and through the stack an answer 1.3
+    radii away)."""
+    objects = scenes["garden"]
+    camera = FreeCamera(
+        position=(1.4738, -1.7774, 11.4185), quaternion_wxyz=(0.0, -0.7957, -0.6057, 0.0)
+    )
+    pinhole = free_pinhole_camera(camera, W, H, 31.6072)
+    dets = [d for d in exact_detections(objects, pinhole) if d.label in {"red", "arch", "hat"}]
+    boxes = np.array([d.box for d in dets])
+    assert len(dets) == 3
+    assert boxes[:, 2].max() == W
+    k = intrinsics_of(pinhole)
+    world = objects.centroids[[objects.labels.index(d.label) for d in dets]]
+    centres = (boxes[:, :2] + boxes[:, 2:]) / 2.0
+    roots, _, _ = cv2.solveP3P(world, centres, k.matrix(), None, flags=cv2.SOLVEPNP_AP3P)
+    assert roots == 0
+    found = hypotheses(objects, boxes, label_costs(objects, tuple(d.label for d in dets)), k, W, H)
+    assert found
+    assert found[0].inliers == 3
+    rvec, _ = cv2.Rodrigues(np.asarray(pinhole.rotation))
+    moved, turned = pose_distance(
+        (found[0].rvec, found[0].tvec), (rvec.ravel(), pinhole.translation)
+    )
+    assert moved < 0.5 * objects.radius
+    assert turned < 15.0
+
+
 def test_a_spurious_detection_is_left_unpaired(scenes):
     """A false detection of a real class, far from that object's place: it is not paired."""
     objects = scenes["garden"]
