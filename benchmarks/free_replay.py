@@ -3,7 +3,8 @@ estimate from the target's boxes alone lands within 10 %/5° (and 5 %/2°), as r
 run (the pose it rendered first) and as this code solves the same detections now.
 
 Run: ``.venv/bin/python -m benchmarks.free_replay out/bench-free/free.json [more.json …]
-[--variant clean --variant jpeg …] [--all-variants]``
+[--variant clean --variant jpeg …] [--all-variants] [--dump replay.jsonl]`` (``--dump``: each
+record's replayed error and status, to compare two versions of the code record by record)
 
 Each report is one ``cosmos bench --free`` run whose records kept their target detections
 (``FreeRecord.target_detections``). Its generated scenes are made again from the run's seed, as
@@ -87,7 +88,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("reports", nargs="+", type=Path, help="free.json of cosmos bench --free")
     parser.add_argument("--variant", action="append", help="count only these (repeatable)")
     parser.add_argument("--all-variants", action="store_true")
+    parser.add_argument(
+        "--dump", type=Path, help="write each record's replayed error and status here (JSON lines)"
+    )
     args = parser.parse_args(argv)
+    dumped: list[str] = []
     variants = None if args.all_variants else (args.variant or list(GOAL_VARIANTS))
     rows: dict[tuple[str, str, str], list[tuple[bool, ...]]] = defaultdict(list)
     statuses: Counter[str] = Counter()
@@ -106,6 +111,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             for record in records:
                 error, status = replayed(record, catalog, cache)
                 statuses[status] += 1
+                ident = [str(path), record.scene, record.variant, record.index, record.given]
+                errors = [error.position, error.rotation_deg]
+                dumped.append(json.dumps({"key": ident, "error": errors, "status": status}))
                 was = record.error("boxes")
                 hits = (
                     *(was.within(*lim) for lim in LIMITS),
@@ -122,6 +130,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         now = " · ".join(_cell([h[k] for h in row]) for k in (2, 3))
         print(f"{key[0]:8s} {key[1]:6s} {key[2]:13s} {recorded:>17s} {now:>17s}")
     print("replayed statuses: " + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
+    if args.dump:
+        args.dump.write_text("".join(line + "\n" for line in dumped))
     return 0
 
 
