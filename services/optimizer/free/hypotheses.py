@@ -7,8 +7,8 @@ shape class, which it gets wrong on shapes it never saw (a generated scene's mes
 cubes, cylinders or spheres, a sphere as a cone): its label is evidence, not proof, so such a
 detection may be any object, one of another shape costing :data:`SHAPE_MISMATCH_COST` more.
 An own-detector label that the detection's measured colour contradicts may also be the object
-of the same shape that its colour names (:mod:`.colours`: a changed scene's model named the
-magenta ball ``red`` once the red one was gone).
+that its colour names (:mod:`.colours`: a changed scene's model named the magenta ball ``red``
+once the red one was gone; on a drone view the garden's model named its green post ``arch``).
 
 A minimal set is three detections and an assignment of distinct compatible objects to them;
 OpenCV's AP3P (``cv2.solveP3P``, Ke & Roumeliotis 2017) gives up to four poses from the box
