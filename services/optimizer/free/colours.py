@@ -5,7 +5,7 @@ A scene's own detector names an object's identity class, and the pose solver tru
 red ball left out of a photo, its model named the magenta ball ``red`` (0.81), and the solve
 paired it with the red ball's place, 180 % of the radius off. The detector also measures each
 object's mean colour (``Detection.color``, sRGB), and the scene file gives each untextured
-object's linear-RGB ``color``. Compared as chromaticities of linear RGB, ``c / (r + g + b)``,
+object's linear-RGB ``color`` (a textured one's is its texture's mean: :mod:`.objects`). Compared as chromaticities of linear RGB, ``c / (r + g + b)``,
 which a white light's shading leaves in place:
 
 .. math:: d_{ij} = \\lVert χ(\\mathrm{lin}(m_i)) - χ(ρ_j) \\rVert_2
@@ -56,6 +56,7 @@ from numpy.typing import ArrayLike
 
 from services.optimizer.free.hypotheses import SHAPE_MISMATCH_COST
 from services.optimizer.free.objects import SceneObjects
+from services.optimizer.free.srgb import linear
 from services.optimizer.geometry import FloatArray
 
 __all__ = [
@@ -83,12 +84,6 @@ COLOUR_COST: Final = 0.5
 or more (less in proportion below it): twice a wrong shape's, under an unpaired detection's."""
 
 
-def _linear(srgb: FloatArray) -> FloatArray:
-    """sRGB values (0–1) decoded to linear RGB (IEC 61966-2-1)."""
-    out: FloatArray = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
-    return out
-
-
 def _chromaticity(rgb: FloatArray) -> FloatArray:
     total = rgb.sum(axis=-1, keepdims=True)
     out: FloatArray = rgb / np.where(total > 1e-9, total, np.nan)
@@ -102,7 +97,7 @@ def colour_distances(measured: ArrayLike, objects: SceneObjects) -> FloatArray:
     m = np.asarray(measured, dtype=np.float64).reshape(-1, 3)
     if objects.colors is None:
         return np.full((len(m), len(objects)), np.nan)
-    seen = _chromaticity(_linear(np.clip(m, 0.0, 255.0) / 255.0))
+    seen = _chromaticity(linear(np.clip(m, 0.0, 255.0) / 255.0))
     seen[~(m.sum(axis=1) >= DARK_SUM)] = np.nan
     known = _chromaticity(np.asarray(objects.colors, dtype=np.float64))
     distances: FloatArray = np.linalg.norm(seen[:, None, :] - known[None, :, :], axis=-1)
