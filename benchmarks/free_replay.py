@@ -111,7 +111,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             for record in records:
                 error, status = replayed(record, catalog, cache)
                 statuses[status] += 1
-                ident = [str(path), record.scene, record.variant, record.index, record.given]
+                where = [str(path), record.detector, record.scene, record.variant]
+                ident = [*where, record.index, record.given]
                 errors = [error.position, error.rotation_deg]
                 dumped.append(json.dumps({"key": ident, "error": errors, "status": status}))
                 was = record.error("boxes")
