@@ -243,8 +243,8 @@ def _colour(obj: SceneObject, texture: Path | None) -> tuple[float, float, float
     detector's measure averages an object's pixels. Textured objects (the garden's crate and
     duck) used to have no colour, so a label the detector mistook on them went unchecked.
     Replayed on seven free bench runs (``benchmarks.free_replay --dump``, 1,080 targets): box
-    estimates within 5 %/2° 9 more (the own models' 272 → 275 of 440, the general model's
-    117 → 118), within 10 %/5° 5 more, none fewer; ``found`` the same 188."""
+    estimates within 5 %/2° 4 more (the own models' 272 → 275 of 440, the general model's
+    117 → 118), within 10 %/5° 5 more, none fewer; ``found`` the same 192."""
     if obj.color is not None:
         r, g, b = obj.color
         return float(r), float(g), float(b)
