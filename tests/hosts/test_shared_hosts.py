@@ -46,11 +46,13 @@ TOPOLOGY = (
     *(spec for spec in ONE_CONTROLLER if spec.role is not CONTROLLER),  # the same stages
 )
 LEASE_S = 3.0
-TAKEOVER_S = 10 * LEASE_S
+TAKEOVER_S = 40 * LEASE_S
 """Orphaned searches are taken over once their lease lapses: on an idle machine within the
-lease, a claim period and the poll that sees it (~4-6 s, which the test prints). The bound only
-tells a takeover by the lease from none (the wait gives up at 60 s): with both cores busy beside
-the test (training a detector, a bench), takeovers took 13.7 and 14.7 s."""
+lease, a claim period and the poll that sees it (~4-6 s, which the test prints). Neither the
+killed nor the partitioned controller can give them up, so any takeover is the lease's: this
+only bounds the wait for one, which tells a takeover from none. How fast it comes is a figure
+the test prints (docs/EVALUATION.md records it), not a bound it asserts: with both cores busy
+beside the test (training a detector, a bench, CI) takeovers took 13.7, 14.7 and 47 s."""
 RENDER_TIMEOUT_S = 6.0
 CONTROLLER_ENV = {
     "COSMOS_CONTROLLER_LEASE_S": str(LEASE_S),
@@ -178,7 +180,7 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
         ended)."""
         load.wait(
             lambda: held <= ledger.held_by(pid(name)) | ended(),
-            60,
+            TAKEOVER_S,
             f"{name} to take {len(held)} searches over",
             poll_s=0.1,
         )
@@ -302,8 +304,6 @@ def test_two_controllers_share_searches_through_a_cut_a_kill_a_partition_and_a_b
     assert cut_off  # so did the partition
     assert counts.running_at_kill >= 1
     assert counts.resumed == counts.running_at_kill
-    assert took_kill_s < TAKEOVER_S
-    assert took_partition_s < TAKEOVER_S
     assert probes.statuses("/livez") == {200}
     assert 503 in probes.statuses("/readyz")
     assert slowest["/livez"] < LIVEZ_S, probes.seen
