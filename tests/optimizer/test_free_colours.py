@@ -37,6 +37,25 @@ def demo(catalog):
     return scene_objects(scene.spec, scene.assets)
 
 
+@pytest.fixture(scope="module")
+def garden(catalog):
+    scene = catalog.get("garden")
+    return scene_objects(scene.spec, scene.assets)
+
+
+def drone_view(objects, seen, truth: FreeCamera, *, given: bool = True):
+    """The box solve of detections ``seen`` (label, box, measured colour each) of a view from
+    ``truth``, its intrinsics given or not: the answer, its position and rotation errors."""
+    detections = [
+        Detection(label=label, class_id=i, confidence=0.85, box=box, color=color)
+        for i, (label, box, color) in enumerate(seen)
+    ]
+    pinhole = free_pinhole_camera(truth, W, H, truth.fov_deg)
+    k = intrinsics_of(pinhole) if given else None
+    answer = solve_free_pose(objects, detections, W, H, k)
+    return answer, *errors(answer.pose, pinhole)
+
+
 def test_a_colour_is_near_its_object_under_any_shade_and_far_from_the_others(demo):
     names = list(demo.names)
     for shade in (0.3, 0.6, 1.0):
@@ -100,13 +119,11 @@ def test_a_general_model_pairing_is_priced_by_its_colour(demo):
     assert AGREES < CONTRADICTED
 
 
-def test_a_drone_view_whose_shapes_the_scene_model_mistook(catalog):
+def test_a_drone_view_whose_shapes_the_scene_model_mistook(garden):
     """The garden's own model on a held-out drone view (the free bench's seed 27, target 1,
     JPEG): it named the red ball, cut by the border, ``duck`` and the green post ``arch``.
     Their colours name them; with the post paired by its colour the pose is found (allowed only
     objects of the label's shape, the answer was 1.1 radii off)."""
-    scene = catalog.get("garden")
-    garden = scene_objects(scene.spec, scene.assets)
     seen = [
         ("duck", (76.89, 0.0, 108.59, 14.67), (148.8, 53.5, 53.7)),
         ("duck", (195.4, 8.0, 224.46, 37.18), (141.8, 112.5, 19.5)),
@@ -114,31 +131,23 @@ def test_a_drone_view_whose_shapes_the_scene_model_mistook(catalog):
         ("arch", (9.06, 49.92, 47.67, 89.98), (63.6, 161.2, 85.3)),
         ("hat", (6.39, 9.34, 35.77, 43.44), (187.6, 148.7, 72.6)),
     ]
-    detections = [
-        Detection(label=label, class_id=i, confidence=0.85, box=box, color=color)
-        for i, (label, box, color) in enumerate(seen)
-    ]
     truth = FreeCamera(
         position=(-6.4411, 3.2002, 6.8369),
         quaternion_wxyz=(0.1818, -0.3226, 0.9041, -0.2131),
         fov_deg=44.6991,
     )
-    pinhole = free_pinhole_camera(truth, W, H, garden.fov_deg)
-    answer = solve_free_pose(garden, detections, W, H, intrinsics_of(pinhole))
-    moved, turned = errors(answer.pose, pinhole)
+    answer, moved, turned = drone_view(garden, seen, truth)
     assert moved < 0.05 * garden.radius, answer.reason
     assert turned < 2.0, answer.reason
     assert any(c.label == "arch" and c.object == "post" for c in answer.pose.correspondences)
 
 
-def test_a_textured_object_has_its_texture_s_colour(catalog):
+def test_a_textured_object_has_its_texture_s_colour(garden):
     """The garden's duck is textured: its colour is its texture's, so a label naming it can be
     contradicted. On a held-out drone view (the free bench's seed 27, target 5, its fov not
     given) the garden's model named the red ball, cut by the border, ``duck`` and the orange hat
     ``red``: by their colours both are paired right (the duck of unknown colour, the answer was
     37 % of the radius and 50° off)."""
-    scene = catalog.get("garden")
-    garden = scene_objects(scene.spec, scene.assets)
     assert np.isfinite(garden.colors).all()
     seen = [
         ("post", (171.13, 83.28, 211.63, 140.49), (77.8, 199.6, 107.4)),
@@ -146,18 +155,12 @@ def test_a_textured_object_has_its_texture_s_colour(catalog):
         ("duck", (107.62, 0.0, 147.72, 13.85), (196.7, 69.9, 68.4)),
         ("red", (49.38, 73.25, 93.81, 118.15), (217.8, 170.9, 76.3)),
     ]
-    detections = [
-        Detection(label=label, class_id=i, confidence=0.85, box=box, color=color)
-        for i, (label, box, color) in enumerate(seen)
-    ]
     truth = FreeCamera(
         position=(2.2009, 5.6298, 7.8701),
         quaternion_wxyz=(0.0545, -0.0921, -0.9679, 0.2276),
         fov_deg=31.7327,
     )
-    pinhole = free_pinhole_camera(truth, W, H, truth.fov_deg)
-    answer = solve_free_pose(garden, detections, W, H)
-    moved, turned = errors(answer.pose, pinhole)
+    answer, moved, turned = drone_view(garden, seen, truth, given=False)
     assert moved < 0.05 * garden.radius, answer.reason
     assert turned < 2.0, answer.reason
     paired = {(c.label, c.object) for c in answer.pose.correspondences}
@@ -206,11 +209,9 @@ def test_the_red_ball_left_out_and_the_magenta_one_named_red(demo, view):
     assert by_label.pose.inliers < answer.pose.inliers
 
 
-def test_a_label_its_colour_contradicts_may_be_an_object_of_another_shape(catalog):
+def test_a_label_its_colour_contradicts_may_be_an_object_of_another_shape(garden):
     """The garden's own model named its green post (a cylinder) ``arch`` (a blue mesh) on a
     drone view: the post may be paired too, a wrong shape dearer. The arch stays compatible."""
-    scene = catalog.get("garden")
-    garden = scene_objects(scene.spec, scene.assets)
     post, arch = garden.names.index("post"), garden.names.index("arch")
     assert garden.shapes[post] != garden.shapes[arch]
     labels = ("arch",)
