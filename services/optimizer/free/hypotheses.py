@@ -443,7 +443,8 @@ def _ties_broken(
     The boxes' extents, which the centres leave out, tell the triples apart. Replayed on nine
     free bench runs (``benchmarks.free_replay --all-variants``, 1,400 targets): box estimates
     within 5 %/2° 2 more (that view, clean and noisy; JPEG 1.4 radii → 9 % off), none fewer;
-    8 others moved, all outside 10 %/5° before and after; the solves as fast."""
+    7 others moved, all outside 10 %/5° before and after, and one ``found`` estimate became
+    ``ambiguous`` at the same pose; the solves as fast."""
     scored.sort(key=_rank)
     head = scored[:TIE_BROKEN]
     keys = [_rank(h) for h in head]
