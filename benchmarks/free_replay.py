@@ -68,6 +68,15 @@ def replayed(
     return pose_error(estimate, record.truth.estimate(), record.radius), answer.status
 
 
+def run_catalog(config: dict[str, Any], folder: Path, settings: RendererSettings) -> SceneCatalog:
+    """The scenes a run searched: the built-in ones and its generated ones, made again from its
+    seed into ``folder`` (:func:`cosmos.bench.scenes.generate_scene`, as the run made them)."""
+    seed = int(config["seed"])
+    for i in range(int(config.get("random_scenes") or 0)):
+        generate_scene(np.random.default_rng([seed, i]), folder, f"rand{seed}-{i}")
+    return SceneCatalog([*settings.scene_directories(), folder])
+
+
 def _records(path: Path, variants: Sequence[str] | None) -> tuple[list[FreeRecord], dict[str, Any]]:
     report = json.loads(path.read_text())
     records = [FreeRecord.model_validate(r) for r in report["records"]]
@@ -103,10 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             sys.stderr.write(f"{path}: no records with target detections (an older run?)\n")
             continue
         with tempfile.TemporaryDirectory(prefix="cosmos-replay-") as tmp:
-            for i in range(int(config.get("random_scenes") or 0)):
-                seed = int(config["seed"])
-                generate_scene(np.random.default_rng([seed, i]), Path(tmp), f"rand{seed}-{i}")
-            catalog = SceneCatalog([*settings.scene_directories(), Path(tmp)])
+            catalog = run_catalog(config, Path(tmp), settings)
             cache = SceneObjectCache()
             for record in records:
                 error, status = replayed(record, catalog, cache)

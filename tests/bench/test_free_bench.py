@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from benchmarks import free_truth
 from benchmarks.free_replay import replayed
+from benchmarks.free_truth import right_and_stray
 from cosmos.bench import free_run
 from cosmos.bench.free_bench import searching
 from cosmos.bench.free_bench.checkpoint import Checkpoint
@@ -296,6 +298,10 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
         first = r.error(BOXES)
         assert again.position == pytest.approx(first.position, abs=1e-3)
         assert again.rotation_deg == pytest.approx(first.rotation_deg, abs=0.05)
+        # against the truth (benchmarks.free_truth): the demo's own model names what it boxes
+        right, stray = right_and_stray(r, target, catalog.get("demo"))
+        assert right >= 3, r.target_detections
+        assert right + stray <= r.detections
     loose = sum(r.error(ANSWER).within(*THRESHOLDS[1]) for r in records)
     share = f"{loose / len(records):.0%}"
     all_row = next(line for line in printed.splitlines() if line.startswith("all variants"))
@@ -304,6 +310,12 @@ def test_cosmos_bench_free_through_the_real_stack(tmp_path, capsys, monkeypatch)
     assert "median renders per search" in printed
     assert "× the floor" in printed
     assert "time (medians, ms): wall " in printed
+    # drawn again from the run's config (its film 400 x 225), the targets' truth lines up
+    assert free_truth.main([str(out / "free.json"), "--all-intrinsics"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()]
+    own = [row for row in rows if row[0] == "own"]
+    assert {row[1] for row in own} <= {"3", "≥4"}
+    assert sum(int(row[2]) for row in own) == len(records)
     md = results_md.read_text()
     assert "## Free cameras through the local stack (`--free`)" in md
     assert f"```sh\n{report['command']}\n```" in md  # the command that prints it
