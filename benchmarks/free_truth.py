@@ -29,6 +29,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Final
 
+import numpy as np
+
 from benchmarks.free_replay import GOAL_VARIANTS, LIMITS, _records, replayed, run_catalog
 from cosmos.bench.free_bench.records import FreeRecord
 from cosmos.bench.free_targets.draw import FOV_RANGE, ROLL_LIMIT_DEG, FreeTarget, draw_targets
@@ -38,31 +40,30 @@ from services.common.geometry.scene import LoadedScene
 from services.common.scene_models import object_classes
 from services.optimizer.free_pose import SceneObjectCache
 from services.renderer.settings import RendererSettings
+from training.metrics import box_iou
 
 MIN_IOU: Final = 0.5
-
-
-def iou(a: Sequence[float], b: Sequence[float]) -> float:
-    """Intersection over union of two ``[x1, y1, x2, y2]`` boxes."""
-    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - w * h
-    return w * h / union if union > 0 else 0.0
 
 
 def right_and_stray(record: FreeRecord, target: FreeTarget, scene: LoadedScene) -> tuple[int, int]:
     """How many of ``record``'s detections are right (module docstring), and how many lie on
     no object at least 60 % visible."""
     shown = [o for o in target.annotations.objects if o.name in target.usable and o.box]
+    if not record.target_detections:
+        return 0, 0
+    if not shown:
+        return 0, len(record.target_detections)
     classes = {name: c.label for c in object_classes(scene.spec) for name in c.objects}
+    overlaps = box_iou(
+        np.array([d.box for d in record.target_detections]), np.array([o.box for o in shown])
+    )
     right = stray = 0
-    for d in record.target_detections:
-        best = max(shown, key=lambda o: iou(d.box, o.box or (0, 0, 0, 0)), default=None)
-        if best is None or best.box is None or iou(d.box, best.box) < MIN_IOU:
+    for d, row in zip(record.target_detections, overlaps, strict=True):
+        best = shown[int(np.argmax(row))]
+        if row.max() < MIN_IOU:
             stray += 1
             continue
-        names = {best.name, best.shape, classes.get(best.name, best.name)}
-        right += d.label in names
+        right += d.label in {best.name, best.shape, classes.get(best.name, best.name)}
     return right, stray
 
 
