@@ -8,6 +8,7 @@ import math
 from collections.abc import Iterator
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -305,6 +306,18 @@ def test_baseline_recovers_an_exact_pose_from_exact_centroids(garden: LoadedScen
     assert error.position < 1e-6
     assert error.rotation_deg < 1e-5
     assert baseline_pnp(centroids[:2], pixels[:2], K, camera.fov_deg) is None
+
+
+def test_baseline_answers_no_pose_where_opencv_reports_nan() -> None:
+    """Four box centres on one pixel: ``cv2.solvePnPRansac`` says it succeeded, with a NaN
+    translation; the baseline gives no pose, which the bench records as a miss."""
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
+    same = np.full((4, 2), 10.0)
+    ok, _, tvec, _ = cv2.solvePnPRansac(corners, same, K, None)
+    assert ok  # what OpenCV says of it
+    assert not np.all(np.isfinite(tvec))
+    assert baseline_pnp(corners, same, K, 45.0) is None
 
 
 def test_box_fit_returns_the_truth_without_noise(garden: LoadedScene) -> None:

@@ -67,7 +67,10 @@ def baseline_pnp(
     centroids: FloatArray, box_centres: FloatArray, intrinsics: FloatArray, fov_deg: float
 ) -> Estimate | None:
     """``cv2.solvePnPRansac`` with its defaults on paired centroids ``(N, 3)`` and box centres
-    ``(N, 2)`` (pixels); None when OpenCV refuses (too few points) or finds no pose."""
+    ``(N, 2)`` (pixels); None when OpenCV refuses (too few points) or finds no pose. A pose it
+    reports found but with NaN in it (degenerate pairs: every box centre on one pixel, say) is
+    no pose either: one such garden target (seed 31) stopped a whole ``cosmos bench --free``
+    run."""
     try:
         ok, rvec, tvec, _inliers = cv2.solvePnPRansac(
             np.ascontiguousarray(centroids, dtype=np.float64),
@@ -77,7 +80,7 @@ def baseline_pnp(
         )
     except cv2.error:
         return None
-    if not ok:
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
         return None
     rotation = np.asarray(cv2.Rodrigues(rvec)[0], dtype=np.float64)
     return Estimate.of_world_to_camera(
