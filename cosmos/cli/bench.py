@@ -14,6 +14,24 @@ def _csv(value: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in value.split(",") if part.strip())
 
 
+class _Listed(argparse.Action):
+    """A comma-separated list that a repeated option extends (``--scene demo --scene garden``
+    is ``demo,garden``): argparse's plain store kept the last one only, and a bench meant for
+    two scenes ran one without a word."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> None:
+        given = f"_{self.dest}_given"
+        before = getattr(namespace, self.dest) if getattr(namespace, given, False) else None
+        setattr(namespace, self.dest, f"{before},{values}" if before else str(values))
+        setattr(namespace, given, True)
+
+
 def _aspect(value: str) -> tuple[int, int]:
     """``W:H``: whole numbers, the ratio within 1:4 to 4:1."""
     try:
@@ -137,18 +155,26 @@ def register(commands: Commands) -> None:
     )
     bench.add_argument("--n", type=int, default=60, help="targets per scene and variant")
     bench.add_argument(
-        "--scenes", "--scene", default="demo,garden", help="comma-separated scene ids"
+        "--scenes",
+        "--scene",
+        action=_Listed,
+        default="demo,garden",
+        help="comma-separated scene ids (repeatable)",
     )
     bench.add_argument(
-        "--strategies", help="default simple,paper,reprojection (reprojection with --random-scenes)"
+        "--strategies",
+        action=_Listed,
+        help="default simple,paper,reprojection (reprojection with --random-scenes)",
     )
     bench.add_argument(
         "--variants",
+        action=_Listed,
         help="of clean,jpeg,noise,offgrid,photo,changed; default the first four (all six with "
         "--random-scenes)",
     )
     bench.add_argument(
         "--starts",
+        action=_Listed,
         default="given,predicted",
         help="how searches start: given (the target's random start, the paper's protocol), "
         "predicted (none given: the controller predicts it from the target); default both",
