@@ -33,7 +33,13 @@ import numpy as np
 
 from benchmarks.free_replay import GOAL_VARIANTS, LIMITS, _records, replayed, run_catalog
 from cosmos.bench.free_bench.records import FreeRecord
-from cosmos.bench.free_targets.draw import FOV_RANGE, ROLL_LIMIT_DEG, FreeTarget, draw_targets
+from cosmos.bench.free_targets.draw import (
+    FOV_RANGE,
+    ROLL_LIMIT_DEG,
+    FreeTarget,
+    draw_targets,
+    target_film,
+)
 from cosmos.bench.free_targets.rendering import LocalRenderer
 from cosmos.bench.free_targets.shapes import scene_shapes
 from services.common.geometry.scene import LoadedScene
@@ -67,19 +73,15 @@ def right_and_stray(record: FreeRecord, target: FreeTarget, scene: LoadedScene) 
     return right, stray
 
 
-def _film(config: dict[str, Any], scene: LoadedScene) -> tuple[int | None, int | None]:
-    """The run's target film (``cosmos.bench.free_run``'s rule, from its recorded config)."""
-    aspect = config.get("target_aspect")
-    if not aspect:
-        return config.get("target_width"), None
-    width = int(config.get("target_width") or scene.spec.camera.width)
-    return width, max(1, round(width * aspect[1] / aspect[0]))
-
-
 def _targets(
     renderer: LocalRenderer, scene: LoadedScene, config: dict[str, Any]
 ) -> dict[int, FreeTarget]:
-    width, height = _film(config, scene)
+    aspect = config.get("target_aspect")
+    width, height = target_film(
+        config.get("target_width"),
+        (int(aspect[0]), int(aspect[1])) if aspect else None,
+        scene.spec.camera.width,
+    )
     low, high = config.get("fov_range") or FOV_RANGE
     drawn = draw_targets(
         renderer,

@@ -54,6 +54,7 @@ from cosmos.bench.free_targets.draw import (
     DrawError,
     FreeTarget,
     draw_targets,
+    target_film,
 )
 from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.shapes import scene_shapes
@@ -71,7 +72,6 @@ from cosmos.bench.session import (
     services_info,
     write_report,
 )
-from services.common.geometry.scene import LoadedScene
 from services.optimizer.free import SceneObjects, scene_objects
 from services.renderer.client import RendererClient
 
@@ -108,16 +108,6 @@ def _roll_limit(config: BenchConfig) -> float:
     return ROLL_LIMIT_DEG if config.roll_limit is None else config.roll_limit
 
 
-def _film(config: BenchConfig, scene: LoadedScene) -> tuple[int | None, int | None]:
-    """The targets' film ``(width, height)``: ``--target-width`` (else the scene camera's) on
-    ``--target-aspect``; None where the scene camera's own is meant."""
-    if config.target_aspect is None:
-        return config.target_width, None
-    width = config.target_width or scene.spec.camera.width
-    w, h = config.target_aspect
-    return width, max(1, round(width * h / w))
-
-
 def _jobs(
     config: BenchConfig,
     ep: Endpoints,
@@ -137,7 +127,7 @@ def _jobs(
         return []
     scene = ep.scene_of(scene_id)
     shapes = scene_shapes(scene)
-    width, height = _film(config, scene)
+    width, height = target_film(config.target_width, config.target_aspect, scene.spec.camera.width)
     jobs: list[Job] = []
     with RendererClient(ep.renderer, token=ep.service_token) as renderer:
         try:

@@ -44,6 +44,7 @@ from cosmos.bench.free_targets.draw import (
     ROLL_LIMIT_DEG,
     band_of,
     elevation_strata,
+    target_film,
 )
 from cosmos.bench.free_targets.estimate import intrinsics_matrix
 from cosmos.bench.free_targets.metrics import MISSED
@@ -478,3 +479,13 @@ def test_the_dense_stage_renders_once_or_twice_per_target_and_reports_every_vari
     assert table.splitlines()[0].split()[2] == "intrinsics"
     assert all(any(m in line for line in table.splitlines()) for m in methods)
     assert dense_line(results).startswith("dense: renders per search median 1")
+
+
+def test_the_targets_film_follows_the_width_and_aspect_asked_for():
+    """``--target-width`` alone keeps the scene camera's aspect (height None: the draw's own);
+    ``--target-aspect`` sets the height from the width asked for, else the scene camera's."""
+    assert target_film(None, None, 320) == (None, None)
+    assert target_film(1280, None, 320) == (1280, None)
+    assert target_film(None, (16, 9), 320) == (320, 180)
+    assert target_film(1280, (4, 3), 320) == (1280, 960)
+    assert target_film(1001, (16, 9), 320) == (1001, 563)

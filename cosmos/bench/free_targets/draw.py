@@ -75,6 +75,7 @@ __all__ = [
     "draw_elevation_fov",
     "draw_targets",
     "elevation_strata",
+    "target_film",
     "usable_objects",
     "visible_shares",
 ]
@@ -291,6 +292,18 @@ def _shares(count: int, share: float, rng: np.random.Generator) -> np.ndarray:
     mask = np.zeros(count, dtype=bool)
     mask[rng.permutation(count)[: round(share * count)]] = True
     return mask
+
+
+def target_film(
+    width: int | None, aspect: tuple[int, int] | None, scene_width: int
+) -> tuple[int | None, int | None]:
+    """The targets' film ``(width, height)`` for ``--target-width`` ``width`` (else the scene
+    camera's ``scene_width``) on ``--target-aspect`` ``w:h``: ``height = round(width · h / w)``;
+    None where the scene camera's own is meant."""
+    if aspect is None:
+        return width, None
+    wide = width or scene_width
+    return wide, max(1, round(wide * aspect[1] / aspect[0]))
 
 
 def draw_targets(
