@@ -16,6 +16,8 @@ from services.optimizer.free.hypothesis_fits import (
     SAME_START_DEG,
     SAME_START_POSITION,
     EdgeFits,
+    Fit,
+    left_out,
 )
 from services.optimizer.mapping import clipped_sides
 
@@ -125,3 +127,25 @@ def test_a_fitted_focal_stays_within_its_bounds_of_the_reference_whatever_the_st
     assert loose.fit(*pairs, first.rvec, first.tvec, first.intrinsics, True).intrinsics.fx > (
         1.2 * high * k.fx
     )
+
+
+def test_three_pairs_left_out_keep_the_scene_cameras_focal_length(view):
+    """Four objects in view, no intrinsics given, one box 20 px off (its object moved since the
+    scene was modelled): the focal length fitted on all four is pulled a third short.
+    Refitted without that pair, three pairs are too few to hold a focal length: the refit is
+    on the scene camera's, as it says (it once kept the one the moved box had pulled, while
+    saying ``scene``)."""
+    objects, boxes, k, rvec, tvec = view
+    moved = boxes[:4].copy()
+    moved[0] += 20.0
+    fits = EdgeFits(objects, moved, clipped_sides(moved, W, H), focal_reference=k.fx)
+    pairs = np.arange(4)
+    pulled = fits.fit(pairs, pairs, rvec, tvec, k, True)
+    assert pulled.intrinsics.fx < 0.9 * k.fx
+    compatible = np.eye(4, len(objects), dtype=np.bool_)
+    best = Fit(pulled, pairs, pairs, "estimated")
+    three = [f for f in left_out(fits, compatible, best, k, (W, H)) if len(f.detections) == 3]
+    assert three, "no refit without the moved box"
+    for fit in three:
+        assert fit.source == "scene"
+        assert fit.fit.intrinsics.fx == pytest.approx(k.fx, rel=1e-9)

@@ -276,7 +276,9 @@ def left_out(
         keep = np.arange(len(ratio)) != drop
         dets, objs = best.detections[keep], best.objects[keep]
         estimate = focal and len(dets) >= MIN_FOCAL_PAIRS
-        k = best.fit.intrinsics if focal else intrinsics
+        # Three pairs do not hold a focal length, and the one fitted with the dropped pair is
+        # what that pair pulled: the scene camera's, as refined() goes back to it.
+        k = best.fit.intrinsics if estimate else intrinsics
         first = fits.fit(dets, objs, best.fit.rvec, best.fit.tvec, k, estimate)
         fit = refined(fits, compatible, (first, estimate), (dets, objs), intrinsics, size)
         if fit is not None and truncated_cost(fit.fit, fit.detections, gates) < bar:
