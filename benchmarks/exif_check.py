@@ -62,6 +62,7 @@ from services.common.depth_archive import DepthImage
 from services.common.geometry.camera import PinholeCamera
 from services.optimizer.free import DenseFit, refine_dense, scene_objects
 from services.optimizer.free.dense import ZOOM_STARTS
+from services.optimizer.free.focal_bounds import FocalRange
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.free.solve import solve_free_pose
 from services.optimizer.refine_pose import CHECK_ZOOMS
@@ -147,7 +148,7 @@ class Searched:
             pinhole,
             fit_focal=focal,
             near=near_outline(geometry),
-            focal_reference=self.stated.fx,
+            focal_range=FocalRange.about(self.stated.fx),
             zooms=zooms,
         )
         return fit, (time.perf_counter() - started) * 1000.0

@@ -104,6 +104,7 @@ from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
 from services.optimizer.free.dense import MIN_POINTS, ZOOM_STARTS, pyramid
 from services.optimizer.free.edges import on_film, outline
+from services.optimizer.free.focal_bounds import FocalRange
 from services.optimizer.free.refit import worth_another_render
 from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
@@ -412,10 +413,10 @@ def refine_pose(
     depth = float(np.median(hits)) if hits.size else math.inf
 
     def fitted(
-        fit_focal: bool, reference: float, zooms: tuple[float, ...] = ZOOM_STARTS
+        fit_focal: bool, lenses: FocalRange, zooms: tuple[float, ...] = ZOOM_STARTS
     ) -> RefinePoseResponse:
-        """The fit from the render (the focal length free or not, bounded about ``reference``
-        on the film, started from ``zooms`` of it) as the contract answers it."""
+        """The fit from the render (the focal length free or not, within ``lenses`` on the
+        film, started from ``zooms`` of the pose's) as the contract answers it."""
         fit = refine_dense(
             maps,
             rgb,
@@ -425,7 +426,7 @@ def refine_pose(
             distortion=k.distortion,
             near=near,
             pixel=max(scale, 1.0),
-            focal_reference=reference,
+            focal_range=lenses,
             zooms=zooms,
         )
         again = worth_another_render(fit, pinhole)
@@ -442,10 +443,11 @@ def refine_pose(
             pose=pose.model_copy(update={"correspondences": pairs}), fit=report
         )
 
-    answer = fitted(request.fit_focal, focal_length_px(scene.spec.camera.fov_deg, w))
+    scene_focal = focal_length_px(scene.spec.camera.fov_deg, w)
+    answer = fitted(request.fit_focal, FocalRange.of(scene_focal, w, h))
     if not request.check_focal or request.fit_focal:
         return answer
-    check = fitted(True, pinhole.fx, CHECK_ZOOMS)  # bounded about the stated focal length
+    check = fitted(True, FocalRange.about(pinhole.fx), CHECK_ZOOMS)  # about the stated one
     return answer.model_copy(update={"focal_check": FocalCheck(pose=check.pose, fit=check.fit)})
 
 

@@ -25,7 +25,7 @@ from services.optimizer.free import Intrinsics, scene_objects, solve_free_pose
 from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.dense import LEVELS, pyramid, refine_dense
 from services.optimizer.free.edges import outline
-from services.optimizer.free.focal_bounds import FOCAL_BOUNDS
+from services.optimizer.free.focal_bounds import FOCAL_BOUNDS, FocalRange
 from services.optimizer.free.refit import worth_another_render
 from services.optimizer.refine_pose import MIN_INLIER_SHARE
 from services.renderer.view import resolve_free_camera
@@ -418,10 +418,11 @@ def test_a_focal_length_past_its_bounds_is_not_kept(engine, catalog):
     assert camera.fx < 0.95 * true_camera.fx
     halfway = (camera.fx + true_camera.fx) / 2.0 / FOCAL_BOUNDS[1]
     bounded = refine_dense(
-        gray(target), rgb, depth, camera, fit_focal=True, focal_reference=halfway
+        gray(target), rgb, depth, camera, fit_focal=True, focal_range=FocalRange.about(halfway)
     )
     assert not bounded.focal_fitted
     assert bounded.intrinsics.fx == pytest.approx(camera.fx)
-    free = refine_dense(gray(target), rgb, depth, camera, fit_focal=True, focal_reference=camera.fx)
+    lenses = FocalRange.about(camera.fx)
+    free = refine_dense(gray(target), rgb, depth, camera, fit_focal=True, focal_range=lenses)
     assert free.focal_fitted
     assert free.intrinsics.fx == pytest.approx(true_camera.fx, rel=0.01)

@@ -11,7 +11,7 @@ import pytest
 import services.optimizer.free.hypothesis_fits as hypothesis_fits
 from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.optimizer.free import Intrinsics, project_boxes, scene_objects
-from services.optimizer.free.focal_bounds import FOCAL_BOUNDS, at_bound
+from services.optimizer.free.focal_bounds import FOCAL_BOUNDS, FocalRange, at_bound
 from services.optimizer.free.hypothesis_fits import (
     SAME_START_DEG,
     SAME_START_POSITION,
@@ -114,14 +114,14 @@ def test_a_fitted_focal_stays_within_its_bounds_of_the_reference_whatever_the_st
     boxes = project_boxes(
         objects, cv2.Rodrigues(rvec)[0], far, (k.fx * zoom, k.fy * zoom), (k.cx, k.cy)
     )
-    fits = EdgeFits(objects, boxes, clipped_sides(boxes, W, H), focal_reference=k.fx)
+    fits = EdgeFits(objects, boxes, clipped_sides(boxes, W, H), focal_range=FocalRange.about(k.fx))
     pairs = np.arange(len(objects)), np.arange(len(objects))
     high = FOCAL_BOUNDS[1]
     first = fits.fit(*pairs, rvec, tvec, k, True)
     assert first.intrinsics.fx == pytest.approx(high * k.fx, rel=1e-3)
     again = fits.fit(*pairs, first.rvec, first.tvec, first.intrinsics, True)
     assert again.intrinsics.fx <= high * k.fx * (1 + 1e-6)
-    assert at_bound(again.intrinsics.fx, k.fx)
+    assert at_bound(again.intrinsics.fx, FocalRange.about(k.fx))
     # Counted from its start, the same refit goes on towards the boxes' focal length.
     loose = EdgeFits(objects, boxes, clipped_sides(boxes, W, H))
     assert loose.fit(*pairs, first.rvec, first.tvec, first.intrinsics, True).intrinsics.fx > (
@@ -138,7 +138,7 @@ def test_three_pairs_left_out_keep_the_scene_cameras_focal_length(view):
     objects, boxes, k, rvec, tvec = view
     moved = boxes[:4].copy()
     moved[0] += 20.0
-    fits = EdgeFits(objects, moved, clipped_sides(moved, W, H), focal_reference=k.fx)
+    fits = EdgeFits(objects, moved, clipped_sides(moved, W, H), focal_range=FocalRange.about(k.fx))
     pairs = np.arange(4)
     pulled = fits.fit(pairs, pairs, rvec, tvec, k, True)
     assert pulled.intrinsics.fx < 0.9 * k.fx

@@ -40,6 +40,7 @@ from services.common.geometry.free_camera import (
 from services.optimizer.free import FreePoseAnswer
 from services.optimizer.free.dense import DenseFit, refine_dense
 from services.optimizer.free.edges import on_film, outline
+from services.optimizer.free.focal_bounds import FocalRange
 from services.optimizer.free.refit import worth_another_render
 from services.renderer.client import RendererError
 
@@ -142,12 +143,12 @@ def run_dense(
 ) -> DenseRun:
     """The dense stage on ``target`` from the box solver's ``answer`` (module docstring); the
     image variants' noise is seeded by ``seed`` and the target's index. A focal length fitted
-    stays within the optimizer's bounds of the scene camera's (``scene_fov_deg``), as
-    ``/refine-pose`` keeps it."""
+    stays within the lenses the optimizer considers for the scene camera's (``scene_fov_deg``:
+    :class:`~services.optimizer.free.focal_bounds.FocalRange`), as ``/refine-pose`` keeps it."""
     methods = [dense_method(v) for v in FREE_VARIANTS]
     if answer.pose is None:
         return DenseRun(dict.fromkeys(methods), 0, 0.0)
-    width = target.annotations.camera.width
+    width, height = target.annotations.camera.width, target.annotations.camera.height
     images = {
         v: decode_gray(target.image(v, np.random.default_rng([seed, target.index, 3])))
         for v in FREE_VARIANTS
@@ -166,9 +167,10 @@ def run_dense(
     # the pose's pixel intrinsics times the scale, on the film that many times the target's
     camera = answer.pose.in_target_pixels(scale).free_camera()
     first = render_at(renderer, target, camera, spp, scale=scale)
-    reference = None
+    lenses = None
     if scene_fov_deg is not None:
-        reference = focal_length_px(scene_fov_deg, width * scale)
+        film = (width * scale, height * scale)
+        lenses = FocalRange.of(focal_length_px(scene_fov_deg, film[0]), *film)
     spent, calls = int(first is not None), []
     for variant in FREE_VARIANTS:
         rendered, estimate, budget, step = first, fallback, renders, 0
@@ -183,7 +185,7 @@ def run_dense(
                 fit_focal=not target.intrinsics_given,
                 near=near_outline(geometry),
                 pixel=float(scale),
-                focal_reference=reference,
+                focal_range=lenses,
             )
             calls.append((time.perf_counter() - started) * 1000.0)
             estimate = fit_estimate(fit, width * scale)

@@ -72,8 +72,8 @@ Unknown focal length
     camera moved back by ``(s - 1) z̃``), carries every start through the levels and keeps the
     best. The fitted focal is kept unless the edges leave it loose (:data:`ZOOM_SIGMA`); then
     the estimate's focal stays and the pose alone is fitted (:attr:`DenseFit.focal_fitted`).
-    So too when the fit ends outside :data:`~.focal_bounds.FOCAL_BOUNDS` of the scene camera's
-    focal length (``focal_reference``), or on a bound: it is sought within them.
+    So too when the fit ends outside the lenses considered (``focal_range``: a
+    :class:`~.focal_bounds.FocalRange`), or on a bound: it is sought within them.
     The render's silhouettes and occlusions belong to its own viewpoint: when the fit moved far
     from it, most of the remaining focal error is that bias, and one more render at the fit
     and a refit remove it (:func:`~.refit.worth_another_render`; so too for a fit of the pose alone
@@ -118,7 +118,7 @@ from services.optimizer.free.edges import (
     edge_points,
     edge_points_by_outline,
 )
-from services.optimizer.free.focal_bounds import at_bound
+from services.optimizer.free.focal_bounds import FocalRange, at_bound
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.free.target_maps import TargetMaps
 from services.optimizer.geometry import FloatArray
@@ -381,7 +381,7 @@ def refine_dense(
     distortion: LensDistortion | None = None,
     near: NDArray[np.bool_] | None = None,
     pixel: float = 1.0,
-    focal_reference: float | None = None,
+    focal_range: FocalRange | None = None,
     zooms: Sequence[float] = ZOOM_STARTS,
 ) -> DenseFit:
     """Refine ``camera`` (the estimate the render was made at, on the target's film) so that the
@@ -395,9 +395,9 @@ def refine_dense(
     only the edges no light moves, and the others join a last fit when the target shows them
     (:data:`LIGHT_SHARE`); ``pixel`` ≥ 1, the film's pixels per target pixel when a small
     target was enlarged to it: the levels are :func:`pyramid`'s, and a point is explained
-    within :data:`INLIER_PX` of the target's pixels; ``focal_reference``, the scene camera's
-    focal length on the film: a fitted one that ends outside :data:`~.focal_bounds.FOCAL_BOUNDS`
-    of it, or on a bound, is not kept. The answer's pixels are the film's.
+    within :data:`INLIER_PX` of the target's pixels; ``focal_range``, the focal lengths considered
+    on the film (:class:`~.focal_bounds.FocalRange`): a fitted one that ends outside it, or on
+    a bound, is not kept. The answer's pixels are the film's.
     """
     target = target_gray if isinstance(target_gray, TargetMaps) else TargetMaps(target_gray)
     shape = (camera.height, camera.width)
@@ -432,7 +432,7 @@ def refine_dense(
         if fit_focal:
             x = _align(points, levels, k, distortion, x0, zooms)
             focal_sigma = _zoom_sigma(ChamferProblem(points, fine, k, distortion, True), x, radius)
-            beyond = focal_reference is not None and at_bound(k.fx * x[6], focal_reference)
+            beyond = focal_range is not None and at_bound(k.fx * x[6], focal_range)
             focal_fitted = focal_sigma <= ZOOM_SIGMA and not beyond
         if not focal_fitted:
             x = np.append(_align(points, levels, k, distortion, x0[:6]), 1.0)

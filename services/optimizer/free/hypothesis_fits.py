@@ -11,9 +11,9 @@ every hypothesis' edge fit, started from the scene camera's; the :data:`FOCAL_WI
 those fits (least :func:`.tolerances.truncated_cost`) are also started from the other zooms of
 :data:`FOCAL_STARTS`, the least RMS kept. Every hypothesis gets the focal: a fixed-focal fit is
 a dolly zoom of the free one (farther and narrower), which at noise-level residuals would pass
-for a rival. The focal length stays within :data:`~.focal_bounds.FOCAL_BOUNDS` of the scene
-camera's (:attr:`EdgeFits.focal_reference`) from whatever fit it starts, and a refined fit that
-ends on a bound keeps the scene camera's (:func:`refined`).
+for a rival. The focal length stays within the lenses considered (:attr:`EdgeFits.focal_range`:
+:class:`~.focal_bounds.FocalRange`) from whatever fit it starts, and a refined fit that ends on
+a bound keeps the scene camera's (:func:`refined`).
 
 Different hypotheses often come to the same pairs and the same centre-PnP pose, and the edge
 fit from there is the same least-squares problem from the same start: :class:`EdgeFits` fits it
@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.optimizer.free.answer import IntrinsicsSource
-from services.optimizer.free.focal_bounds import at_bound
+from services.optimizer.free.focal_bounds import FocalRange, at_bound
 from services.optimizer.free.hypotheses import pose_distance
 from services.optimizer.free.objects import SceneObjects, project_boxes
 from services.optimizer.free.refine import Intrinsics, PoseFit, centre_pnp, refine_edges
@@ -103,9 +103,10 @@ class EdgeFits:
     objects: SceneObjects
     boxes: FloatArray
     masks: NDArray[np.bool_]
-    focal_reference: float | None = None
-    """The focal length (pixels) that a fitted one stays within
-    :data:`~.focal_bounds.FOCAL_BOUNDS` of, whatever fit it starts from: the scene camera's."""
+    focal_range: FocalRange | None = None
+    """The focal lengths (pixels) a fitted one stays within, whatever fit it starts from
+    (:class:`~.focal_bounds.FocalRange`; by default within :data:`~.focal_bounds.FOCAL_BOUNDS`
+    of the scene camera's)."""
     _made: list[tuple[tuple[object, ...], tuple[FloatArray, FloatArray], PoseFit]] = field(
         default_factory=list, init=False, repr=False
     )
@@ -140,7 +141,7 @@ class EdgeFits:
             *start,
             intrinsics,
             fit_focal=fit_focal,
-            focal_reference=self.focal_reference,
+            focal_range=self.focal_range,
         )
         self._made.append((problem, start, fitted))
         return fitted
@@ -148,6 +149,11 @@ class EdgeFits:
     def _same(self, a: tuple[FloatArray, FloatArray], b: tuple[FloatArray, FloatArray]) -> bool:
         moved, turned = pose_distance(a, b)
         return moved <= SAME_START_POSITION * self.objects.radius and turned <= SAME_START_DEG
+
+    def bounds(self, scene: Intrinsics) -> FocalRange:
+        """The focal lengths a fit may take: :attr:`focal_range`, else within
+        :data:`~.focal_bounds.FOCAL_BOUNDS` of the ``scene`` camera's."""
+        return FocalRange.about(scene.fx) if self.focal_range is None else self.focal_range
 
 
 def reassign(
@@ -221,7 +227,7 @@ def refined(
     k = fit.intrinsics if estimated or not focal else intrinsics
     if len(dets) >= 3:
         fit = fits.fit(dets, objs, fit.rvec, fit.tvec, k, estimated)
-        if estimated and at_bound(fit.intrinsics.fx, intrinsics.fx):
+        if estimated and at_bound(fit.intrinsics.fx, fits.bounds(intrinsics)):
             # The boxes would take the focal further than it may go: they do not pin it.
             fit = fits.fit(dets, objs, fit.rvec, fit.tvec, intrinsics, False)
             estimated = False

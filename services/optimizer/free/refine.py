@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 from services.common.geometry.camera import focal_length_px
-from services.optimizer.free.focal_bounds import zoom_bounds
+from services.optimizer.free.focal_bounds import FocalRange, zoom_bounds
 from services.optimizer.free.objects import NEAR_DEPTH, SceneObjects, project_boxes
 from services.optimizer.geometry import FloatArray
 
@@ -186,7 +186,7 @@ def refine_edges(
     intrinsics: Intrinsics,
     *,
     fit_focal: bool = False,
-    focal_reference: float | None = None,
+    focal_range: FocalRange | None = None,
 ) -> PoseFit:
     """Least squares on the box edges (module docstring).
 
@@ -198,8 +198,8 @@ def refine_edges(
     rvec, tvec : the start, world-to-camera.
     intrinsics : the camera's; with ``fit_focal`` its focal lengths are scaled by a fitted
         common factor (aspect ratio and principal point kept) that keeps ``fx`` within
-        :data:`~.focal_bounds.FOCAL_BOUNDS` of ``focal_reference`` (pixels, the scene
-        camera's; by default the start's ``fx``).
+        ``focal_range`` (:class:`~.focal_bounds.FocalRange`, pixels; by default
+        :data:`~.focal_bounds.FOCAL_BOUNDS` of the start's ``fx``).
     """
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     m = np.asarray(masks, dtype=np.bool_).reshape(-1, 4)
@@ -217,8 +217,8 @@ def refine_edges(
 
     bounds = (np.full(start.size, -np.inf), np.full(start.size, np.inf))
     if fit_focal:
-        reference = intrinsics.fx if focal_reference is None else focal_reference
-        low, high = (math.log(z) for z in zoom_bounds(intrinsics.fx, reference))
+        focal = FocalRange.about(intrinsics.fx) if focal_range is None else focal_range
+        low, high = (math.log(z) for z in zoom_bounds(intrinsics.fx, focal))
         bounds[0][6], bounds[1][6] = low, high
     fit = least_squares(
         residuals,

@@ -13,8 +13,8 @@ The steps (each in its module):
    object's box); the fits are ranked by :func:`truncated_cost` over all detections, not by
    pairs first;
 3. without given intrinsics and with at least :data:`~.hypothesis_fits.MIN_FOCAL_PAIRS` pairs,
-   the focal length joins every hypothesis' edge fit (:mod:`.hypothesis_fits`), within
-   :data:`~.focal_bounds.FOCAL_BOUNDS` of the scene camera's. With fewer pairs, or a fit that
+   the focal length joins every hypothesis' edge fit (:mod:`.hypothesis_fits`), within the
+   lenses considered (:class:`~.focal_bounds.FocalRange`). With fewer pairs, or a fit that
    ends on a bound, the scene camera's field of view is used and the answer says so;
 4. the answer's status (:class:`FreePoseAnswer`).
 
@@ -74,7 +74,7 @@ from services.optimizer.free.answer import (
 )
 from services.optimizer.free.colours import recoloured
 from services.optimizer.free.few import few_detections, few_fits
-from services.optimizer.free.focal_bounds import FOCAL_BOUNDS
+from services.optimizer.free.focal_bounds import FocalRange
 from services.optimizer.free.hypotheses import (
     distinct,
     general_labels,
@@ -280,7 +280,8 @@ def _solve(
         if fit is not None and fit.fit.position()[2] > 0.0:
             fits.append(fit if not given else Fit(fit.fit, fit.detections, fit.objects, known_from))
 
-    edge_fits = EdgeFits(objects, boxes, masks, focal_reference=k0.fx)
+    lenses = FocalRange.of(k0.fx, width, height)
+    edge_fits = EdgeFits(objects, boxes, masks, focal_range=lenses)
     firsts = focal_fits(edge_fits, starts, k0, not given)
     for first, (_, _, dets, objs) in zip(firsts, starts, strict=True):
         keep(refined(edge_fits, compatible, first, (dets, objs), k0, (width, height)))
@@ -321,7 +322,7 @@ def _solve(
         )
         others = rivals[:MAX_ALTERNATIVES]
         return FreePoseAnswer("ambiguous", reason, best, others, len(index), "rivals")
-    kind, loose = _loose(best, objects.radius)
+    kind, loose = _loose(best, objects.radius, lenses.fov_deg(width))
     if kind is not None:
         others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
         return FreePoseAnswer("ambiguous", f"ambiguous: {loose}", best, others, len(index), kind)
@@ -338,9 +339,12 @@ def _solve(
     return FreePoseAnswer("found", reason, best, (), len(index))
 
 
-def _loose(best: PoseCandidate, radius: float) -> tuple[Ambiguity | None, str]:
+def _loose(
+    best: PoseCandidate, radius: float, lenses: tuple[float, float]
+) -> tuple[Ambiguity | None, str]:
     """Why the boxes pin ``best`` too loosely to call it found (module docstring): the kind,
-    ``focal`` (the scene camera's fov assumed) or ``loose`` (its σ), and a sentence; or None."""
+    ``focal`` (the scene camera's fov assumed) or ``loose`` (its σ), and a sentence; or None.
+    ``lenses``: the widest and narrowest horizontal fov (degrees) a fit may take."""
     if best.intrinsics.source == "scene" and best.inliers < MIN_FOCAL_PAIRS:
         return "focal", (
             f"only {best.inliers} objects paired and no intrinsics given: the scene camera's "
@@ -348,11 +352,11 @@ def _loose(best: PoseCandidate, radius: float) -> tuple[Ambiguity | None, str]:
             "photo's intrinsics, or a view with at least 4 of the scene's objects"
         )
     if best.intrinsics.source == "scene":
-        low, high = FOCAL_BOUNDS
+        widest, narrowest = lenses
         return "focal", (
-            f"no intrinsics given, and the boxes would put the focal length beyond {low:g} to "
-            f"{high:g} times the scene camera's: its field of view was assumed, and distance "
-            "trades against focal length; give the photo's intrinsics"
+            "no intrinsics given, and the boxes would put the field of view beyond the lenses "
+            f"considered ({narrowest:.0f}° to {widest:.0f}° across): the scene camera's was "
+            "assumed, and distance trades against focal length; give the photo's intrinsics"
         )
     if (
         FIRM_SIGMAS * best.position_sigma > WRONG_POSITION * radius
