@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from services.common.caches import SharedLru, array_nbytes
 from services.common.contracts.optimize import TargetCacheStats
-from services.optimizer.free.edges import Level, gray, target_level
+from services.optimizer.free.edges import Level, gray, target_level, with_contrast
 
 __all__ = ["DEFAULT_TARGET_CACHE_BYTES", "TargetMapCache", "TargetMaps"]
 
@@ -39,8 +39,9 @@ _Key = tuple[bytes, tuple[int, int]]
 
 
 class TargetMaps:
-    """One target's grey image on a film and its distance-map levels, each made when first
-    asked for (and kept in ``levels`` under ``key``, when given)."""
+    """One target's grey image on a film, its contrast raised to :data:`~.edges.MIN_SPAN`
+    (:func:`~.edges.with_contrast`), and its distance-map levels, each made when first asked
+    for (and kept in ``levels`` under ``key``, when given)."""
 
     def __init__(
         self,
@@ -48,7 +49,7 @@ class TargetMaps:
         levels: SharedLru[Level] | None = None,
         key: _Key | None = None,
     ) -> None:
-        self.gray = gray(np.asarray(target_gray, dtype=np.uint8))
+        self.gray = with_contrast(gray(np.asarray(target_gray, dtype=np.uint8)))
         self._levels = levels if key is not None else None
         self._key = key
 
