@@ -34,7 +34,9 @@ __all__ = [
     "BLUR_SIGMA_PX",
     "CANNY_PX",
     "MAX_POINTS",
+    "MIN_SPAN",
     "OUTLINE_PX",
+    "SPAN_PERCENTILES",
     "DEPTH_JUMP",
     "outline",
     "ORIENTATION_BINS",
@@ -74,7 +76,8 @@ Stretched, it ends 2.9 % off. The renders of ``benchmarks.dense_light``'s 40 cas
 levels or more, their clean targets 111 or more; at 150, a quarter of those were stretched too,
 and one clean fit of 40 fell outside 5 %/2°."""
 SPAN_PERCENTILES: Final = (0.5, 99.5)
-
+"""The percentiles between which a grey image's span is taken: a few specular or black pixels
+do not count."""
 OUTLINE_PX: Final = 2
 """How far (Chebyshev, pixels) a render edge may lie from the outline and still be the same
 edge: the ids, depth and shading are sampled once at each pixel centre (±½ px), the colours are
