@@ -14,6 +14,7 @@ from hypothesis.extra import numpy as hnp
 from services.common.geometry.camera import (
     camera_axes,
     focal_length_px,
+    fov_deg_of,
     mitsuba_to_world,
     pinhole_camera,
     pixel_rays,
@@ -337,3 +338,8 @@ def test_mitsuba_to_world_matches_mitsubas_look_at(theta, phi):
         origin=[float(v) for v in origin], target=[0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0]
     )
     np.testing.assert_allclose(np.array(look_at.matrix), mitsuba_to_world(pose, 8.0), atol=1e-5)
+
+
+@given(st.floats(1.0, 179.0), st.floats(16.0, 8000.0))
+def test_the_fov_of_a_focal_length_inverts_focal_length_px(fov, width):
+    assert fov_deg_of(focal_length_px(fov, width), width) == pytest.approx(fov, rel=1e-9)

@@ -22,6 +22,7 @@ __all__ = [
     "camera_axes",
     "pinhole_camera",
     "focal_length_px",
+    "fov_deg_of",
     "mitsuba_to_world",
     "pixel_rays",
     "project",
@@ -86,6 +87,12 @@ def camera_axes(
 def focal_length_px(fov_deg: float, width: float) -> float:
     """Focal length in pixels for a horizontal field of view: ``f = (W / 2) / tan(fov / 2)``."""
     return (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+
+
+def fov_deg_of(focal_px: float, width: float) -> float:
+    """The horizontal field of view of a focal length in pixels (:func:`focal_length_px`'s
+    inverse): ``fov = 2 atan(W / (2 f))``."""
+    return math.degrees(2.0 * math.atan(width / (2.0 * focal_px)))
 
 
 def pinhole_camera(

@@ -28,6 +28,8 @@ import math
 from dataclasses import dataclass
 from typing import Final
 
+from services.common.geometry.camera import fov_deg_of
+
 __all__ = [
     "AT_BOUND",
     "FOCAL_BOUNDS",
@@ -82,11 +84,7 @@ class FocalRange:
     def fov_deg(self, width: float) -> tuple[float, float]:
         """The horizontal fields of view (degrees) of the range's ends on a film ``width``
         pixels wide: widest first."""
-
-        def fov(focal: float) -> float:
-            return math.degrees(2.0 * math.atan(width / (2.0 * focal)))
-
-        return fov(self.low), fov(self.high)
+        return fov_deg_of(self.low, width), fov_deg_of(self.high, width)
 
 
 def zoom_bounds(start: float, focal: FocalRange) -> tuple[float, float]:

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-from services.common.geometry.camera import focal_length_px
+from services.common.geometry.camera import focal_length_px, fov_deg_of
 from services.optimizer.free.focal_bounds import FocalRange, zoom_bounds
 from services.optimizer.free.objects import NEAR_DEPTH, SceneObjects, project_boxes
 from services.optimizer.geometry import FloatArray
@@ -81,7 +81,7 @@ class Intrinsics:
 
     def fov_deg(self, width: float) -> float:
         """The horizontal field of view over an image ``width`` pixels wide."""
-        return math.degrees(2.0 * math.atan(width / (2.0 * self.fx)))
+        return fov_deg_of(self.fx, width)
 
     def matrix(self) -> FloatArray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
