@@ -4,10 +4,9 @@ replaced by the pose at its dense fit when the render there stood for it
 
 from __future__ import annotations
 
-import math
-
 from services.common.contracts.free import FreePose, FreePoseResponse
 from services.common.contracts.search import Iteration
+from services.common.geometry.camera import fov_deg_of
 from services.common.geometry.free_camera import (
     rotation_of_quaternion,
     yaw_pitch_roll_of_rotation,
@@ -41,7 +40,7 @@ def as_rendered(
         pose = candidates[it.index]
         scale = it.image_size[0] / size[0]
         fx, fy = camera.fx_px / scale, camera.fy_px / scale
-        fov = math.degrees(2.0 * math.atan(size[0] / (2.0 * fx)))
+        fov = fov_deg_of(fx, size[0])
         ypr = yaw_pitch_roll_of_rotation(rotation_of_quaternion(camera.quaternion_wxyz))
         rendered = pose.model_copy(
             update={

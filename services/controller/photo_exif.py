@@ -43,6 +43,7 @@ from typing import Final
 from PIL import ExifTags, Image
 
 from services.common.contracts.free import PhotoIntrinsics
+from services.common.geometry.camera import fov_deg_of
 
 __all__ = ["ASPECT_TOLERANCE", "FOV_RANGE_DEG", "ExifFocal", "exif_focal", "exif_intrinsics"]
 
@@ -112,7 +113,7 @@ def exif_focal(image: bytes, size: tuple[int, int]) -> ExifFocal | None:
             )
     if found is None:
         return None
-    fov = math.degrees(2.0 * math.atan(width / (2.0 * found.focal_px)))
+    fov = fov_deg_of(found.focal_px, width)
     return found if FOV_RANGE_DEG[0] < fov < FOV_RANGE_DEG[1] else None
 
 

@@ -40,7 +40,7 @@ from services.common.contracts.free import (
     nearest_grid_pose,
 )
 from services.common.errors import UnprocessableError
-from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.camera import PinholeCamera, fov_deg_of
 from services.common.geometry.free_camera import LensDistortion
 from services.common.geometry.lens import distort, image_folds, undistort_pixels
 from services.common.geometry.scene import LoadedScene
@@ -114,7 +114,7 @@ def _given(
     else:
         k = Intrinsics.of_fov(photo.fov_deg or 0.0, width, height)
     for name, side, focal in (("fx_px", width, k.fx), ("fy_px", height, k.fy)):
-        if not math.degrees(2.0 * math.atan(side / (2.0 * focal))) < MAX_FOV_DEG:
+        if not fov_deg_of(focal, side) < MAX_FOV_DEG:
             raise _invalid(
                 f"{name} {focal:g} gives a field of view of 180° or more over {side} pixels",
                 f"intrinsics.{name}",

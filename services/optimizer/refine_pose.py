@@ -93,7 +93,7 @@ from services.common.contracts.refine import (
 )
 from services.common.depth_archive import DepthImage
 from services.common.errors import ServiceError, UnprocessableError
-from services.common.geometry.camera import focal_length_px
+from services.common.geometry.camera import focal_length_px, fov_deg_of
 from services.common.geometry.free_camera import (
     free_pinhole_camera,
     quaternion_of_rotation,
@@ -357,7 +357,7 @@ def _refined(
                 fy_px=fy,
                 cx_px=k.cx_px,
                 cy_px=k.cy_px,
-                fov_deg=math.degrees(2.0 * math.atan(width / (2.0 * fx))),
+                fov_deg=fov_deg_of(fx, width),
                 source="estimated" if fit.focal_fitted else k.source,
                 distortion=k.distortion,
             ),

@@ -13,7 +13,6 @@ masks take the nearest rendered pixel, so the ground-truth boxes are those of th
 
 from __future__ import annotations
 
-import math
 import threading
 from dataclasses import dataclass
 
@@ -22,7 +21,7 @@ import numpy as np
 from cachetools import LRUCache, cached
 from numpy.typing import NDArray
 
-from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.camera import PinholeCamera, fov_deg_of
 from services.common.geometry.free_camera import LensDistortion
 from services.common.geometry.lens import undistort_pixels
 
@@ -63,7 +62,7 @@ def _rendered_pinhole(
         update={
             "width": width,
             "height": height,
-            "fov_deg": math.degrees(2.0 * math.atan(width / (2.0 * focal))),
+            "fov_deg": fov_deg_of(focal, width),
             "fx": focal,
             "fy": focal,
             "cx": cx,

@@ -9,7 +9,6 @@ loaded scene: the engine checks it (:func:`check_outside_objects`).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +17,7 @@ from numpy.typing import NDArray
 from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderRequest
 from services.common.errors import UnprocessableError
+from services.common.geometry.camera import fov_deg_of
 from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 from services.common.geometry.grid import GridError
 from services.common.geometry.lens import image_folds
@@ -92,7 +92,7 @@ def resolve_free_camera(
         )
     pinhole = free_pinhole_camera(camera, width, height, scene.spec.camera.fov_deg)
     for name, side, focal in (("fx_px", width, pinhole.fx), ("fy_px", height, pinhole.fy)):
-        if not math.degrees(2.0 * math.atan(side / (2.0 * focal))) < _MAX_FOV_DEG:
+        if not fov_deg_of(focal, side) < _MAX_FOV_DEG:
             raise _invalid_camera(
                 f"{name} {focal:g} gives a field of view of 180° or more over {side} pixels",
                 name,

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.camera import PinholeCamera, fov_deg_of
 from services.common.geometry.free_camera import FreeCamera, free_pinhole_camera
 
 __all__ = ["Estimate", "intrinsics_matrix"]
@@ -54,4 +53,4 @@ def intrinsics_matrix(camera: PinholeCamera) -> FloatArray:
 
 def fov_of_focal(fx: float, width: int) -> float:
     """The horizontal fov in degrees of focal length ``fx`` px on a ``width``-pixel film."""
-    return math.degrees(2.0 * math.atan(width / (2.0 * fx)))
+    return fov_deg_of(fx, width)

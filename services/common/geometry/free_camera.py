@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from services.common.base import FrozenModel, Number
-from services.common.geometry.camera import PinholeCamera, focal_length_px
+from services.common.geometry.camera import PinholeCamera, focal_length_px, fov_deg_of
 from services.common.geometry.pose import Pose
 
 __all__ = [
@@ -325,7 +325,7 @@ def free_pinhole_camera(
     return PinholeCamera(
         width=width,
         height=height,
-        fov_deg=math.degrees(2.0 * math.atan(width / (2.0 * fx))),
+        fov_deg=fov_deg_of(fx, width),
         fx=fx,
         fy=fy,
         cx=cx,

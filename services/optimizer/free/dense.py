@@ -106,7 +106,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from services.common.contracts.free import above_chance
-from services.common.geometry.camera import PinholeCamera
+from services.common.geometry.camera import PinholeCamera, fov_deg_of
 from services.common.geometry.free_camera import LensDistortion
 from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.edges import (
@@ -238,7 +238,7 @@ class DenseFit:
         k = self.intrinsics
         return start.model_copy(
             update={
-                "fov_deg": math.degrees(2.0 * math.atan(start.width / (2.0 * k.fx))),
+                "fov_deg": fov_deg_of(k.fx, start.width),
                 "fx": k.fx,
                 "fy": k.fy,
                 "rotation": tuple(tuple(float(v) for v in row) for row in self.rotation),
