@@ -3,7 +3,7 @@ process or by a renderer at ``--url``; ``--annotations FILE`` also writes its gr
 
 A free camera instead of a hemisphere pose: ``--position X,Y,Z`` with one orientation,
 ``--ypr YAW,PITCH,ROLL``, ``--look-at X,Y,Z [--roll DEG]`` or ``--quaternion W,X,Y,Z``, and
-optionally ``--fov DEG`` or ``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2``
+optionally ``--fov DEG`` or ``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2[,K3]``
 (:class:`~services.common.geometry.free_camera.FreeCamera` states the conventions).
 """
 
@@ -31,15 +31,17 @@ _FREE_ONLY = ("ypr", "look_at", "quaternion", "roll", "fov", "intrinsics", "dist
 """Flags that only mean something for a free camera (``--position``)."""
 
 
-def _numbers(flag: str, text: str, count: int, names: str) -> tuple[float, ...]:
-    """``count`` finite comma-separated numbers from ``text``, or a ValueError naming ``flag``."""
+def _numbers(flag: str, text: str, count: int, names: str, optional: int = 0) -> tuple[float, ...]:
+    """``count`` (up to ``count + optional``) finite comma-separated numbers from ``text``, or a
+    ValueError naming ``flag``."""
     parts = text.split(",")
     try:
         values = tuple(float(part) for part in parts)
     except ValueError:
         values = ()
-    if len(values) != count or len(parts) != count:
-        raise ValueError(f"{flag} takes {count} comma-separated numbers {names}, not {text!r}")
+    if not count <= len(values) == len(parts) <= count + optional:
+        counts = f"{count} or {count + optional}" if optional == 1 else str(count)
+        raise ValueError(f"{flag} takes {counts} comma-separated numbers {names}, not {text!r}")
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"{flag} takes finite numbers, not {text!r}")
     return values
@@ -90,8 +92,8 @@ def free_camera_of_args(args: argparse.Namespace) -> FreeCamera:
         fx, fy, cx, cy = _numbers("--intrinsics", args.intrinsics, 4, "FX,FY,CX,CY")
         fields.update(fx_px=fx, fy_px=fy, cx_px=cx, cy_px=cy)
     if args.distortion is not None:
-        k1, k2, p1, p2 = _numbers("--distortion", args.distortion, 4, "K1,K2,P1,P2")
-        fields["distortion"] = LensDistortion(k1=k1, k2=k2, p1=p1, p2=p2)
+        lens = _numbers("--distortion", args.distortion, 4, "K1,K2,P1,P2[,K3]", optional=1)
+        fields["distortion"] = LensDistortion.of_coefficients(lens)
     try:
         return FreeCamera(**fields)
     except ValidationError as exc:
@@ -204,7 +206,7 @@ def register(commands: Commands) -> None:
     free.add_argument(
         "--intrinsics", metavar="FX,FY,CX,CY", help="OpenCV intrinsics in pixels of the film"
     )
-    free.add_argument("--distortion", metavar="K1,K2,P1,P2", help="OpenCV lens distortion")
+    free.add_argument("--distortion", metavar="K1,K2,P1,P2[,K3]", help="OpenCV lens distortion")
     render.add_argument("--scene", default="demo")
     render.add_argument("--width", type=int, help="film width in pixels (the scene's default)")
     render.add_argument("--height", type=int, help="film height in pixels")

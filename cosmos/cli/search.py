@@ -2,7 +2,7 @@
 when to come back, for up to ``--retry-for`` seconds), follow it, save its plots.
 
 ``--free`` searches for any camera (``mode=free``), optionally with the photo's ``--fov DEG`` or
-``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2`` (the controller checks them);
+``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2[,K3]`` (the controller checks them);
 without them the controller reads the focal length from the photo's EXIF, unless ``--no-exif``."""
 
 from __future__ import annotations
@@ -106,7 +106,9 @@ def register(commands: Commands) -> None:
     free.add_argument(
         "--intrinsics", metavar="FX,FY,CX,CY", help="the photo's OpenCV intrinsics in its pixels"
     )
-    free.add_argument("--distortion", metavar="K1,K2,P1,P2", help="the photo's lens distortion")
+    free.add_argument(
+        "--distortion", metavar="K1,K2,P1,P2[,K3]", help="the photo's lens distortion"
+    )
     free.add_argument(
         "--no-exif",
         action="store_true",

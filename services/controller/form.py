@@ -96,16 +96,21 @@ def search_options(form: Mapping[str, str], query: Sequence[tuple[str, str]]) ->
         ) from exc
 
 
-def _four(text: str, field: str) -> tuple[float, float, float, float]:
-    values = [float(part) for part in text.split(",")]  # the option's pattern: four numbers
+def _finite(text: str, field: str) -> list[float]:
+    values = [float(part) for part in text.split(",")]  # the option's pattern: numbers
     if not all(math.isfinite(v) for v in values):
-        raise UnprocessableError(f"{field} must be four finite numbers", field=field)
+        raise UnprocessableError(f"{field} must be finite numbers", field=field)
+    return values
+
+
+def _four(text: str, field: str) -> tuple[float, float, float, float]:
+    values = _finite(text, field)  # the option's pattern: four numbers
     return values[0], values[1], values[2], values[3]
 
 
 def photo_intrinsics(options: SearchOptions) -> PhotoIntrinsics | None:
     """The photo's intrinsics a free search was given (``fov_deg`` or ``intrinsics``
-    ``fx,fy,cx,cy``, and ``distortion`` ``k1,k2,p1,p2``), None when none were. Raises
+    ``fx,fy,cx,cy``, and ``distortion`` ``k1,k2,p1,p2[,k3]``), None when none were. Raises
     :class:`UnprocessableError` naming the field for intrinsics of a hemisphere search, both
     ``fov_deg`` and ``intrinsics``, a distortion without either, or values out of range."""
     given = {
@@ -137,8 +142,9 @@ def photo_intrinsics(options: SearchOptions) -> PhotoIntrinsics | None:
     try:
         if options.distortion is not None:
             name = "distortion"
-            k1, k2, p1, p2 = _four(options.distortion, "distortion")
-            fields["distortion"] = LensDistortion(k1=k1, k2=k2, p1=p1, p2=p2)
+            fields["distortion"] = LensDistortion.of_coefficients(
+                _finite(options.distortion, "distortion")
+            )
             name = "intrinsics" if options.intrinsics is not None else "fov_deg"
         return PhotoIntrinsics.model_validate(fields)
     except ValidationError as exc:

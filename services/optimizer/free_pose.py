@@ -125,7 +125,7 @@ def _given(
         return k, None
     if image_folds(_pinhole(k, width, height), lens):
         raise _invalid(
-            "the radial distortion (k1, k2) stops increasing before the image's corners, so it "
+            "the radial distortion (k1, k2, k3) stops increasing before the image's corners, so it "
             "folds the image: dr_d/dr = 1 + 3 k1 r² + 5 k2 r⁴ must stay positive",
             "intrinsics.distortion.k1",
             "distortion-folds-image",

@@ -102,7 +102,7 @@ def resolve_free_camera(
     distortion = camera.distortion
     if distortion is not None and image_folds(pinhole, distortion):
         raise _invalid_camera(
-            "the radial distortion (k1, k2) stops increasing before the film's corners, so it "
+            "the radial distortion (k1, k2, k3) stops increasing before the film's corners, so it "
             "folds the image: dr_d/dr = 1 + 3 k1 r² + 5 k2 r⁴ must stay positive",
             "distortion.k1",
             "distortion-folds-image",

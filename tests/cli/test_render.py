@@ -37,13 +37,13 @@ def test_free_camera_renders_with_its_ground_truth(tmp_path: Path) -> None:
 def test_intrinsics_and_distortion_reach_the_camera(tmp_path: Path) -> None:
     ann = tmp_path / "view.json"
     argv = ["render", "--position", "0,0,6", "--ypr", "30,90,0"]
-    argv += ["--intrinsics", "90,88,47,37", "--distortion", "-0.05,0.01,0,0", *FILM]
+    argv += ["--intrinsics", "90,88,47,37", "--distortion", "-0.05,0.01,0,0,0.002", *FILM]
     argv += ["-o", str(tmp_path / "v.png"), "--annotations", str(ann)]
     assert main(argv) == 0
     truth = json.loads(ann.read_text())
     camera = truth["camera"]
     assert (camera["fx"], camera["fy"], camera["cx"], camera["cy"]) == (90, 88, 47, 37)
-    assert truth["distortion"] == {"k1": -0.05, "k2": 0.01, "p1": 0.0, "p2": 0.0}
+    assert truth["distortion"] == {"k1": -0.05, "k2": 0.01, "p1": 0.0, "p2": 0.0, "k3": 0.002}
     forward = np.asarray(camera["rotation"])[2]  # world-to-camera: row 2 is the optical axis
     assert forward == pytest.approx([0.0, 0.0, -1.0], abs=1e-9)
 
@@ -71,6 +71,10 @@ def _flags(**given: object) -> argparse.Namespace:
         (["--position", "1,2", "--ypr", "0,90,0"], "--position takes 3 comma-separated numbers"),
         (["--position", "0,0,5", "--ypr", "0,nan,0"], "--ypr takes finite numbers"),
         (["--position", "0,0,5", "--ypr", "a,b,c"], "--ypr takes 3 comma-separated numbers"),
+        (
+            ["--position", "0,0,5", "--ypr", "0,90,0", "--fov", "60", "--distortion", "0,0,0"],
+            "--distortion takes 4 or 5 comma-separated numbers",
+        ),
         (["--position", "0,0,5"], "exactly one of --ypr, --look-at and --quaternion"),
         (["--position", "0,0,5", "--ypr", "0,90,0", "--look-at", "0,0,0"], "exactly one of"),
         (["--position", "0,0,5", "--quaternion", "0,0,0,0"], "zero length"),

@@ -177,6 +177,8 @@ LENSES = [
     LensDistortion(k1=-0.25, k2=0.05),
     LensDistortion(k1=0.1, k2=0.01, p1=0.002, p2=-0.003),
     LensDistortion(p1=0.01),
+    # a drone's calibrated lens (DJI's DewarpData order), k3 included
+    LensDistortion(k1=-0.269, k2=0.116, p1=-8.8e-5, p2=-3.1e-4, k3=-0.0358),
 ]
 
 
@@ -212,17 +214,30 @@ def test_undistortion_inverts_the_lens(lens):
     np.testing.assert_allclose(back, pixels, atol=1e-6)
 
 
-@settings(max_examples=100, deadline=None)
-@given(k1=coefficients, k2=coefficients)
-def test_the_fold_radius_is_where_the_radial_model_stops_increasing(k1, k2):
-    r_star = fold_radius(LensDistortion(k1=k1, k2=k2))
-    slope = lambda r: 1 + 3 * k1 * r**2 + 5 * k2 * r**4  # noqa: E731
+@settings(max_examples=200, deadline=None)
+@given(k1=coefficients, k2=coefficients, k3=coefficients)
+def test_the_fold_radius_is_where_the_radial_model_stops_increasing(k1, k2, k3):
+    r_star = fold_radius(LensDistortion(k1=k1, k2=k2, k3=k3))
+    slope = lambda r: 1 + 3 * k1 * r**2 + 5 * k2 * r**4 + 7 * k3 * r**6  # noqa: E731
     if math.isinf(r_star):
         assert all(slope(r) > 0 for r in np.linspace(0, 10, 200))
     else:
-        scale = 1 + abs(3 * k1 * r_star**2) + abs(5 * k2 * r_star**4)
+        scale = 1 + abs(3 * k1 * r_star**2) + abs(5 * k2 * r_star**4) + abs(7 * k3 * r_star**6)
         assert slope(r_star) / scale == pytest.approx(0.0, abs=1e-9)
         assert all(slope(r) > 0 for r in np.linspace(0, r_star, 50)[:-1])
+
+
+def test_a_lens_takes_opencv_s_four_or_five_coefficients():
+    assert LensDistortion.of_coefficients([-0.2, 0.05, 0.001, 0.002]) == LensDistortion(
+        k1=-0.2, k2=0.05, p1=0.001, p2=0.002
+    )
+    five = LensDistortion.of_coefficients([-0.2, 0.05, 0.001, 0.002, -0.01])
+    assert five.k3 == -0.01
+    np.testing.assert_array_equal(five.coefficients(), [-0.2, 0.05, 0.001, 0.002, -0.01])
+    assert not LensDistortion(k3=1e-6).is_zero
+    for count in (3, 6):
+        with pytest.raises(ValueError, match="4 or 5 numbers"):
+            LensDistortion.of_coefficients([0.0] * count)
 
 
 def test_a_strong_barrel_distortion_folds_a_wide_film():
@@ -234,6 +249,9 @@ def test_a_strong_barrel_distortion_folds_a_wide_film():
     assert not image_folds(pinhole, LensDistortion(k1=-0.05))
     assert image_folds(pinhole, LensDistortion(k1=-0.1))
     assert not image_folds(pinhole, LensDistortion(k1=0.5, k2=0.1))
+    # k3 alone: r* = (1 / 0.7)^(1/6) ≈ 1.06 and r_d(r*) = 6 r* / 7 ≈ 0.91, inside the corner
+    assert image_folds(pinhole, LensDistortion(k3=-0.1))
+    assert not image_folds(pinhole, LensDistortion(k3=-0.01))
 
 
 @pytest.mark.parametrize(("elevation", "azimuth"), [(10.0, 0.0), (45.0, 123.0), (90.0, 300.0)])

@@ -24,6 +24,7 @@ from services.common.contracts.search import (
     ViewSettings,
 )
 from services.common.errors import ProblemDetails, UnprocessableError
+from services.common.geometry.free_camera import LensDistortion
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
 from services.controller.stages import StageError
@@ -416,6 +417,7 @@ def test_compare_view_takes_the_paired_object_s_name_for_a_mislabelled_detection
         ({"mode": "free", "intrinsics": "0,300,160,120"}, "intrinsics"),
         ({"mode": "free", "intrinsics": "1e999,300,160,120"}, "intrinsics"),
         ({"mode": "free", "fov_deg": "50", "distortion": "5000,0,0,0"}, "distortion"),
+        ({"mode": "free", "fov_deg": "50", "distortion": "0,0,0,0,5000"}, "distortion"),
     ],
 )
 def test_bad_free_options_name_their_field(fields, field):
@@ -435,6 +437,11 @@ def test_free_options_give_the_photo_s_intrinsics():
     assert (intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px) == (300.0, 310.0, 160.5)
     assert intrinsics.distortion is not None
     assert intrinsics.distortion.k1 == -0.1
+    assert intrinsics.distortion.k3 == 0.0
+    with_k3 = options.model_dump() | {"distortion": "-0.1,0.01,0,0,-0.002"}
+    lens = photo_intrinsics(SearchOptions.model_validate(with_k3))
+    assert lens is not None
+    assert lens.distortion == LensDistortion(k1=-0.1, k2=0.01, k3=-0.002)
     free = SearchOptions.model_validate({"scene": "demo", "mode": "free"})
     assert photo_intrinsics(free) is None
 

@@ -247,7 +247,7 @@ async def test_a_free_camera_renders_and_annotates(client):
 
 
 async def test_a_distorted_free_camera_reports_its_lens(client):
-    lens = {"k1": -0.2, "k2": 0.03, "p1": 0.001, "p2": 0.0}
+    lens = {"k1": -0.2, "k2": 0.03, "p1": 0.001, "p2": 0.0, "k3": -0.01}
     body = {"scene": "demo", "camera": {**NADIR, "distortion": lens}, "width": 96, "spp": 1}
     response = await client.post("/render", json=body)
     assert response.status_code == 200, response.text

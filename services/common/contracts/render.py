@@ -100,7 +100,7 @@ class RenderAnnotations(FrozenModel):
     camera: PinholeCamera
     distortion: LensDistortion | None = Field(
         default=None,
-        description="The image's lens distortion (OpenCV k1, k2, p1, p2) on top of the pinhole "
+        description="The image's lens distortion (OpenCV k1, k2, p1, p2, k3) on top of the pinhole "
         "``camera``; null for a pinhole image. Boxes and projected centres are in the distorted "
         "image.",
     )

@@ -57,6 +57,8 @@ MAX_ITERATIONS: Final = 500
 _NUMBER = r"\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*"
 _FOUR_NUMBERS = rf"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}$"
 """Four comma-separated decimal numbers, as a form field carries a camera's four parameters."""
+_LENS_NUMBERS = rf"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}(,{_NUMBER})?$"
+"""OpenCV's distortion coefficients ``k1,k2,p1,p2`` and optionally ``k3``."""
 
 ViewSpp = Annotated[int, Field(ge=1, le=1024)]
 """Samples per pixel of a search's views (the controller's ``COSMOS_CONTROLLER_VIEW_SPP``)."""
@@ -111,10 +113,10 @@ class SearchOptions(FrozenModel):
         description="Free mode: the photo's OpenCV intrinsics `fx,fy,cx,cy` in its pixels "
         "(instead of fov_deg).",
     )
-    distortion: Annotated[str, Field(max_length=200, pattern=_FOUR_NUMBERS)] | None = Field(
+    distortion: Annotated[str, Field(max_length=250, pattern=_LENS_NUMBERS)] | None = Field(
         default=None,
-        description="Free mode: the photo's OpenCV lens distortion `k1,k2,p1,p2` (with fov_deg "
-        "or intrinsics).",
+        description="Free mode: the photo's OpenCV lens distortion `k1,k2,p1,p2` or "
+        "`k1,k2,p1,p2,k3` (with fov_deg or intrinsics).",
     )
     exif: bool = Field(
         default=True,

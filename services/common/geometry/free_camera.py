@@ -33,12 +33,13 @@ Intrinsics, in pixels of the rendered film (pixel (0, 0) is the top-left corner 
 pixel): either ``fov_deg`` (horizontal, square pixels, principal point at the film's centre: the
 scene file's camera), or ``fx_px`` and ``fy_px`` with optional ``cx_px``, ``cy_px`` (the film's
 centre when left out), as OpenCV's camera matrix. Neither gives the scene camera's fov. Lens
-distortion ``k1, k2, p1, p2`` is OpenCV's (Brown–Conrady) model on normalised coordinates.
+distortion ``k1, k2, p1, p2, k3`` is OpenCV's (Brown–Conrady) model on normalised coordinates.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Annotated, Any
 
 import numpy as np
@@ -76,12 +77,12 @@ MIN_QUATERNION_NORM = 1e-6
 
 
 class LensDistortion(FrozenModel):
-    """OpenCV's radial and tangential lens distortion (``k1, k2, p1, p2``; k3 = 0).
+    """OpenCV's radial and tangential lens distortion (``k1, k2, p1, p2, k3``).
 
     On normalised coordinates (x, y) = (X_c / Z_c, Y_c / Z_c), with r² = x² + y²::
 
-        x_d = x (1 + k1 r² + k2 r⁴) + 2 p1 x y + p2 (r² + 2 x²)
-        y_d = y (1 + k1 r² + k2 r⁴) + p1 (r² + 2 y²) + 2 p2 x y
+        x_d = x (1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2 x²)
+        y_d = y (1 + k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2 y²) + 2 p2 x y
 
     and the pixel is ``(fx x_d + cx, fy y_d + cy)``, as ``cv2.projectPoints``.
     """
@@ -90,15 +91,24 @@ class LensDistortion(FrozenModel):
     k2: Coefficient = 0.0
     p1: Coefficient = 0.0
     p2: Coefficient = 0.0
+    k3: Coefficient = 0.0
+
+    @classmethod
+    def of_coefficients(cls, values: Sequence[float]) -> LensDistortion:
+        """A lens from OpenCV's ``distCoeffs`` order: ``k1, k2, p1, p2`` and optionally ``k3``.
+        Raises ``ValueError`` for any other count, and pydantic's for values out of range."""
+        if len(values) not in (4, 5):
+            raise ValueError(f"k1,k2,p1,p2 and optionally k3: 4 or 5 numbers, not {len(values)}")
+        return cls.model_validate(dict(zip(("k1", "k2", "p1", "p2", "k3"), values, strict=False)))
 
     @property
     def is_zero(self) -> bool:
         """Whether this is no distortion at all (a pinhole image)."""
-        return self.k1 == self.k2 == self.p1 == self.p2 == 0.0
+        return self.k1 == self.k2 == self.p1 == self.p2 == self.k3 == 0.0
 
     def coefficients(self) -> FloatArray:
-        """``(k1, k2, p1, p2)`` as OpenCV's ``distCoeffs``."""
-        return np.array([self.k1, self.k2, self.p1, self.p2], dtype=np.float64)
+        """``(k1, k2, p1, p2, k3)`` as OpenCV's ``distCoeffs``."""
+        return np.array([self.k1, self.k2, self.p1, self.p2, self.k3], dtype=np.float64)
 
 
 def _free_camera_schema(schema: dict[str, Any]) -> None:

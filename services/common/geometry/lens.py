@@ -1,8 +1,8 @@
 """Projection through a lens with OpenCV distortion, its inverse, and whether it folds the film.
 
 The pinhole part is :class:`~services.common.geometry.camera.PinholeCamera`; the distortion is
-:class:`~services.common.geometry.free_camera.LensDistortion` (``k1, k2, p1, p2``, the model of
-``cv2.projectPoints``). Pixel (0, 0) is the top-left corner of the top-left pixel, as in
+:class:`~services.common.geometry.free_camera.LensDistortion` (``k1, k2, p1, p2, k3``, the model
+of ``cv2.projectPoints``). Pixel (0, 0) is the top-left corner of the top-left pixel, as in
 :func:`~services.common.geometry.camera.project`.
 """
 
@@ -31,13 +31,18 @@ UNDISTORT_TOLERANCE_PX = 1e-3
 """How far a pixel, undistorted and distorted again, may land from where it was."""
 
 
+def _radial(d: LensDistortion, r2: FloatArray | float) -> FloatArray | float:
+    """The radial factor ``1 + k1 r² + k2 r⁴ + k3 r⁶`` at ``r2`` = r²."""
+    return 1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * d.k3))
+
+
 def distort(xy: ArrayLike, distortion: LensDistortion) -> FloatArray:
     """Distort normalised coordinates ``(..., 2)`` (the equations of :class:`LensDistortion`)."""
     pts = np.asarray(xy, dtype=np.float64)
     x, y = pts[..., 0], pts[..., 1]
     d = distortion
     r2 = x * x + y * y
-    radial = 1.0 + d.k1 * r2 + d.k2 * r2 * r2
+    radial = _radial(d, r2)
     xd = x * radial + 2.0 * d.p1 * x * y + d.p2 * (r2 + 2.0 * x * x)
     yd = y * radial + d.p1 * (r2 + 2.0 * y * y) + 2.0 * d.p2 * x * y
     return np.stack([xd, yd], axis=-1)
@@ -67,19 +72,23 @@ def project_lens(
 def fold_radius(distortion: LensDistortion) -> float:
     """The undistorted radius r* where the radial model stops increasing (inf if it never does).
 
-    ``r_d = r (1 + k1 r² + k2 r⁴)`` has ``dr_d/dr = 1 + 3 k1 r² + 5 k2 r⁴``, positive at r = 0;
-    r* is the smallest positive root s = r*² of ``5 k2 s² + 3 k1 s + 1 = 0``.
+    ``r_d = r (1 + k1 r² + k2 r⁴ + k3 r⁶)`` has ``dr_d/dr = 1 + 3 k1 s + 5 k2 s² + 7 k3 s³`` in
+    s = r², 1 at s = 0; r*² is its smallest positive real root (``numpy.roots``, then two Newton
+    steps to polish the companion matrix's eigenvalue).
     """
-    a, b = 5.0 * distortion.k2, 3.0 * distortion.k1
-    if a == 0.0:
-        return math.inf if b >= 0.0 else math.sqrt(-1.0 / b)
-    disc = b * b - 4.0 * a
-    if disc < 0.0:
+    d = distortion
+    slope = np.polynomial.Polynomial([1.0, 3.0 * d.k1, 5.0 * d.k2, 7.0 * d.k3])
+    roots = np.roots(slope.coef[::-1])  # leading zeros (k3 = 0, …) are trimmed
+    real = roots[np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots))].real
+    positive = real[real > 0.0]
+    if positive.size == 0:
         return math.inf
-    # The roots q / a and 1 / q, with q of the sign of -b: no cancellation (Numerical Recipes 5.6).
-    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
-    positive = [s for s in (q / a, 1.0 / q) if s > 0.0]
-    return math.sqrt(min(positive)) if positive else math.inf
+    s = float(np.min(positive))
+    for _ in range(2):
+        step = slope.deriv()(s)
+        if step != 0.0:
+            s -= slope(s) / step
+    return math.sqrt(s)
 
 
 def image_folds(camera: PinholeCamera, distortion: LensDistortion) -> bool:
@@ -90,7 +99,7 @@ def image_folds(camera: PinholeCamera, distortion: LensDistortion) -> bool:
     r_star = fold_radius(distortion)
     if math.isinf(r_star):
         return False
-    reach = r_star * (1.0 + distortion.k1 * r_star**2 + distortion.k2 * r_star**4)
+    reach = r_star * float(_radial(distortion, r_star**2))
     xs = (np.array([0.0, camera.width]) - camera.cx) / camera.fx
     ys = (np.array([0.0, camera.height]) - camera.cy) / camera.fy
     corner = math.sqrt(float(np.max(xs**2)) + float(np.max(ys**2)))

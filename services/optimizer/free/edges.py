@@ -152,8 +152,8 @@ def camera_matrix(k: Intrinsics, scale: float = 1.0) -> FloatArray:
 
 
 def lens_coefficients(distortion: LensDistortion | None) -> FloatArray:
-    """OpenCV's ``(k1, k2, p1, p2)`` of the lens (zeros without one)."""
-    return np.zeros(4) if distortion is None else distortion.coefficients()
+    """OpenCV's ``(k1, k2, p1, p2, k3)`` of the lens (zeros without one)."""
+    return np.zeros(5) if distortion is None else distortion.coefficients()
 
 
 def edge_points(
