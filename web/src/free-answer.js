@@ -6,7 +6,7 @@ import { h } from "./dom.js";
 import { poseText } from "./geometry.js";
 
 const fixed = (values, digits) => values.map((v) => v.toFixed(digits)).join(", ");
-const SOURCES = { given: "given", exif: "from the photo's EXIF", estimated: "estimated from the boxes", scene: "the scene camera's" };
+const SOURCES = { given: "given", calibration: "the drone's calibration (XMP)", exif: "from the photo's EXIF", estimated: "estimated from the boxes", scene: "the scene camera's" };
 
 /** A free pose's camera as the 3D view's frustum takes it; `film`: [width, height] of the image
  * its intrinsics are in pixels of (else twice the principal point). */
