@@ -14,12 +14,12 @@ import httpx
 import numpy as np
 import pytest
 
-from cosmos.bench.variants import exif_jpeg
+from cosmos.bench.variants import dji_xmp, exif_jpeg
 from cosmos.cli import main
 from cosmos.stack import Stack
 from services.common.auth import bearer
 from services.common.contracts.search import Search
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import FreeCamera, LensDistortion
 from services.controller.client import ControllerClient
 from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
@@ -179,6 +179,46 @@ def test_a_photo_s_exif_focal_length_is_used_and_said_so(stack):
     assert unread.result is not None
     assert unread.result.free is not None
     assert unread.result.free.pose.intrinsics.source == "estimated"
+
+
+def test_a_drone_s_calibration_in_its_xmp_is_used_as_given(stack):
+    """A survey drone's photo through a wide, barrel-distorted lens, its calibration in the XMP
+    (DJI's DewarpData) beside a nominal EXIF focal length: the search takes the calibration, as
+    if given, and confirms the pose; the EXIF's focal length alone, without the lens, does not."""
+    lens = LensDistortion(k1=-0.12, k2=0.02, p1=2e-4, p2=-3e-4, k3=-0.003)
+    focal = 640 / (2 * math.tan(math.radians(35.0)))  # 70° across 640 pixels
+    centre = (324.0, 237.0)
+    camera = DRONE.model_copy(
+        update={"fx_px": focal, "fy_px": focal, "cx_px": centre[0], "cy_px": centre[1]}
+        | {"distortion": lens}
+    )
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, _ = renderer.render_camera("demo", camera, width=640, height=480, spp=16)
+    nominal = round(focal * math.hypot(36.0, 24.0) / 800.0)
+    xmp = dji_xmp((focal, focal), centre, (640, 480), lens)
+    final = search_for(stack, exif_jpeg(image, nominal, xmp=xmp))
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    free = result.free
+    assert free is not None
+    k = free.pose.intrinsics
+    assert k.source == "calibration"
+    assert (k.cx_px, k.cy_px) == pytest.approx(centre)
+    assert k.distortion == lens
+    assert free.status == "found", result.reason
+    assert result.confirmed, result.reason
+    assert "the drone's calibration" in result.reason
+    calibrated = math.dist(free.pose.position, DRONE.position)
+    assert calibrated < 0.01 * RADIUS
+    assert rotation_error_deg(free.pose.quaternion_wxyz, DRONE) < 1.0
+    # the EXIF's focal length alone: a pinhole where the lens bends, never confirmed
+    exif_only = search_for(stack, exif_jpeg(image, nominal))
+    assert exif_only.result is not None
+    assert exif_only.result.free is not None
+    assert exif_only.result.free.pose.intrinsics.distortion is None
+    assert not exif_only.result.confirmed
+    assert math.dist(exif_only.result.free.pose.position, DRONE.position) > calibrated
 
 
 def test_an_exif_focal_length_the_image_refutes_is_overruled(stack):

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import ExifTags, Image
 
+from services.common.geometry.free_camera import LensDistortion
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.pose import GridIndex, Pose
 
@@ -142,11 +143,38 @@ def photo_finish(bgr: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np
     return out
 
 
-def exif_jpeg(png: bytes, focal_35mm: int) -> bytes:
+def dji_xmp(
+    focal: tuple[float, float],
+    centre: tuple[float, float],
+    size: tuple[int, int],
+    lens: LensDistortion | None,
+    *,
+    dewarped: bool = False,
+) -> bytes:
+    """The XMP packet a DJI survey drone writes for a photo of ``size`` pixels taken through a
+    calibrated lens: focal lengths ``focal`` (px), principal point ``centre`` (px, written as its
+    offset from the photo's centre), ``lens`` (k1, k2, p1, p2, k3), and ``DewarpFlag``
+    (:mod:`services.controller.photo_xmp` reads it)."""
+    d = lens or LensDistortion()
+    offset = (centre[0] - size[0] / 2, centre[1] - size[1] / 2)
+    numbers = [*focal, *offset, d.k1, d.k2, d.p1, d.p2, d.k3]
+    dewarp = "2024-05-01;" + ",".join(f"{v:.12f}" for v in numbers)
+    return (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF '
+        'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description '
+        'rdf:about="DJI Meta Data" xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+        f'drone-dji:GimbalPitchDegree="-60.00" drone-dji:DewarpData="{dewarp}" '
+        f'drone-dji:DewarpFlag="{int(dewarped)}"/></rdf:RDF></x:xmpmeta>'
+    ).encode()
+
+
+def exif_jpeg(png: bytes, focal_35mm: int, xmp: bytes | None = None) -> bytes:
     """``png`` as a camera's JPEG (quality 92) whose EXIF states ``focal_35mm`` as
-    FocalLengthIn35mmFilm (a free search reads it: :mod:`services.controller.photo_exif`)."""
+    FocalLengthIn35mmFilm (a free search reads it: :mod:`services.controller.photo_exif`), with
+    the ``xmp`` packet if any (:func:`dji_xmp`)."""
     exif = Image.Exif()
     exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = focal_35mm
     out = io.BytesIO()
-    Image.open(io.BytesIO(png)).convert("RGB").save(out, "JPEG", quality=92, exif=exif)
+    extra = {} if xmp is None else {"xmp": xmp}
+    Image.open(io.BytesIO(png)).convert("RGB").save(out, "JPEG", quality=92, exif=exif, **extra)
     return out.getvalue()

@@ -3,7 +3,8 @@ when to come back, for up to ``--retry-for`` seconds), follow it, save its plots
 
 ``--free`` searches for any camera (``mode=free``), optionally with the photo's ``--fov DEG`` or
 ``--intrinsics FX,FY,CX,CY`` and ``--distortion K1,K2,P1,P2[,K3]`` (the controller checks them);
-without them the controller reads the focal length from the photo's EXIF, unless ``--no-exif``."""
+without them the controller reads the lens from the photo's metadata (a drone's calibration in its
+XMP, else the EXIF focal length), unless ``--no-exif``."""
 
 from __future__ import annotations
 
@@ -112,7 +113,8 @@ def register(commands: Commands) -> None:
     free.add_argument(
         "--no-exif",
         action="store_true",
-        help="do not take the focal length from the photo's EXIF: estimate it from the boxes",
+        help="do not take the lens from the photo's metadata (a drone's calibration in its XMP, "
+        "the EXIF focal length): estimate the focal length from the boxes",
     )
     search.add_argument(
         "--retry-for",

@@ -40,6 +40,7 @@ from typing import Any, Final
 from pydantic import ValidationError
 
 from services.common.contracts.free import (
+    EXACT_SOURCES,
     DenseReport,
     FreeAmbiguity,
     FreePose,
@@ -139,8 +140,8 @@ def edges_pin_pose(
 ) -> RefinePoseResponse | None:
     """The dense fit, when it pins its pose (else None): it was accepted and leaves at least
     :data:`PIN_SHARE` of the render's edge points, at least :data:`MIN_PIN_POINTS` of them, on
-    the target's, and the photo's intrinsics were ``known``: given (an EXIF focal length no
-    render can check)."""
+    the target's, and the photo's intrinsics were ``known`` exactly: given or a drone's
+    calibration (an EXIF focal length no render can check)."""
     return _pinned(outcome, known, MIN_PIN_POINTS)
 
 
@@ -148,8 +149,10 @@ def _pinned(
     outcome: RefinePoseResponse | str | None, known: PhotoIntrinsics | None, min_points: int
 ) -> RefinePoseResponse | None:
     """``outcome`` when its fit was accepted and leaves at least :data:`PIN_SHARE` of its
-    ``min_points`` or more edge points on the target's, the intrinsics given (else None)."""
-    if known is None or known.source != "given" or not isinstance(outcome, RefinePoseResponse):
+    ``min_points`` or more edge points on the target's, the intrinsics exact (else None)."""
+    if known is None or known.source not in EXACT_SOURCES:
+        return None
+    if not isinstance(outcome, RefinePoseResponse):
         return None
     return outcome if fit_pins(outcome.fit, min_points) else None
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from services.common.contracts.free import (
+    EXACT_SOURCES,
     FreeAmbiguity,
     FreeAnswer,
     FreePose,
@@ -101,9 +102,10 @@ def choice(
 
 def checks_rivals(answer: FreePoseResponse, known: PhotoIntrinsics | None) -> bool:
     """Whether the search may render a ``rivals`` answer's other poses after one agrees: only
-    when their renders can settle it, the intrinsics given (it does when the agreeing render's
+    when their renders can settle it, the intrinsics exact (it does when the agreeing render's
     fit pins its pose: :func:`~.free_refine.edges_pin_pose`)."""
-    return answer.ambiguity == "rivals" and known is not None and known.source == "given"
+    exact = known is not None and known.source in EXACT_SOURCES
+    return answer.ambiguity == "rivals" and exact
 
 
 def _final_pose(
@@ -160,7 +162,7 @@ class Verdict:
 def _unconfirmed(ambiguity: FreeAmbiguity | None, pose: FreePose) -> str:
     """Why a pose whose render agrees is not confirmed, by why the boxes left it ambiguous."""
     source = pose.intrinsics.source
-    if ambiguity == "loose" and source == "given":
+    if ambiguity == "loose" and source in EXACT_SOURCES:
         return (
             "its edges do not pin the pose the boxes pinned loosely (too few of the render's "
             "edge points end on the target's)"

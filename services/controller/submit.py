@@ -26,6 +26,7 @@ from services.controller.broker import Broker
 from services.controller.form import photo_intrinsics
 from services.controller.keys import ApiKey
 from services.controller.photo_exif import exif_intrinsics
+from services.controller.photo_xmp import xmp_intrinsics
 from services.controller.quotas import Quotas
 from services.controller.runner import NotRetryable, SearchRunner
 from services.controller.settings import ControllerSettings
@@ -126,8 +127,10 @@ async def create_search(
     starts from only when the pose predicted from its target cannot be used (:mod:`.start`);
     a free search (``mode=free``) records it too but starts from the pose the optimizer
     solves for, with the photo's intrinsics when given
-    (:func:`~services.controller.form.photo_intrinsics`), else those its EXIF states unless
-    ``exif`` is false (:func:`~services.controller.photo_exif.exif_intrinsics`). With
+    (:func:`~services.controller.form.photo_intrinsics`), else those its metadata states unless
+    ``exif`` is false: a drone's calibration in its XMP
+    (:func:`~services.controller.photo_xmp.xmp_intrinsics`), else its EXIF focal length
+    (:func:`~services.controller.photo_exif.exif_intrinsics`). With
     ``start_early`` a given start view's render is under way while the pixels are decoded and
     the search stored (:meth:`Stages.render_early`; dropped again if the image turns out
     broken); a predicted start needs the target's detections first, so nothing is rendered
@@ -154,7 +157,8 @@ async def create_search(
         )
     intrinsics = photo_intrinsics(options)
     if intrinsics is None and options.mode == "free" and options.exif:
-        intrinsics = exif_intrinsics(image, (header.width, header.height))
+        size = (header.width, header.height)
+        intrinsics = xmp_intrinsics(image, size) or exif_intrinsics(image, size)
     if re.match(SCENE_ID_PATTERN, options.scene) is None:
         raise NotFoundError(
             f"unknown scene {options.scene!r}",

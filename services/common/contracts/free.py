@@ -40,7 +40,9 @@ __all__ = [
     "FreePoseRequest",
     "FreePoseResponse",
     "FreeStatus",
+    "EXACT_SOURCES",
     "IntrinsicsSource",
+    "KnownSource",
     "IntrinsicsUsed",
     "PhotoIntrinsics",
     "above_chance",
@@ -48,7 +50,13 @@ __all__ = [
 ]
 
 FreeStatus = Literal["found", "ambiguous", "failed"]
-IntrinsicsSource = Literal["given", "exif", "estimated", "scene"]
+IntrinsicsSource = Literal["given", "calibration", "exif", "estimated", "scene"]
+KnownSource = Literal["given", "calibration", "exif"]
+"""Where a photo's known intrinsics came from: ``given`` by the user, a drone's ``calibration``
+in the photo's XMP, or the focal length its ``exif`` states."""
+EXACT_SOURCES: frozenset[str] = frozenset({"given", "calibration"})
+"""Sources of the photo's exact intrinsics, which a render may confirm; an EXIF focal length is a
+nominal lens (whole millimetres) that no render can check."""
 FreeAmbiguity = Literal["few", "rivals", "focal", "loose"]
 Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
 NonNeg = Annotated[Number, Field(ge=0.0)]
@@ -58,7 +66,8 @@ class PhotoIntrinsics(FrozenModel):
     """The photo's intrinsics, when known: ``fov_deg`` (horizontal, square pixels, centred
     principal point) or OpenCV's ``fx_px``, ``fy_px`` (with ``cx_px``, ``cy_px``: the image's
     centre when left out), and optionally OpenCV's lens ``distortion`` (which needs one of them);
-    ``source`` says whether the user gave them or the photo's EXIF stated them.
+    ``source`` says whether the user gave them, a drone's calibration in the photo's XMP stated
+    them, or its EXIF stated the focal length.
     """
 
     fov_deg: FovDeg | None = None
@@ -67,9 +76,10 @@ class PhotoIntrinsics(FrozenModel):
     cx_px: PixelCoordinate | None = None
     cy_px: PixelCoordinate | None = None
     distortion: LensDistortion | None = None
-    source: Literal["given", "exif"] = Field(
+    source: KnownSource = Field(
         default="given",
-        description="`given` by the user, or read from the photo's `exif` (its focal length).",
+        description="`given` by the user, read from the drone's `calibration` in the photo's "
+        "XMP, or from the photo's `exif` (its focal length).",
     )
 
     @model_validator(mode="after")
@@ -112,7 +122,8 @@ class FreePoseRequest(FrozenModel):
 
 class IntrinsicsUsed(FrozenModel):
     """The intrinsics a pose was computed with, in pixels of the target image: ``given`` by the
-    request, read from the photo's ``exif``, ``estimated`` from the boxes, or the ``scene``
+    request, the drone's ``calibration`` in the photo's XMP, read from the photo's ``exif``,
+    ``estimated`` from the boxes, or the ``scene``
     camera's field of view (not given, too few objects to estimate it). ``distortion`` is the
     given lens, if any."""
 

@@ -120,9 +120,11 @@ class SearchOptions(FrozenModel):
     )
     exif: bool = Field(
         default=True,
-        description="Free mode, without fov_deg and intrinsics: take the focal length from the "
-        "photo's EXIF (FocalLengthIn35mmFilm, or FocalLength with FocalPlaneXResolution) when it "
-        "states one; false estimates it from the boxes instead.",
+        description="Free mode, without fov_deg and intrinsics: take the intrinsics from the "
+        "photo's metadata, a drone's calibration in its XMP (DJI's DewarpData: focal lengths, "
+        "principal point, distortion) or else the focal length its EXIF states "
+        "(FocalLengthIn35mmFilm, or FocalLength with FocalPlaneXResolution); false estimates the "
+        "focal length from the boxes instead.",
     )
 
 

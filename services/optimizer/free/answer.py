@@ -17,6 +17,7 @@ __all__ = [
     "FreePoseAnswer",
     "IntrinsicsSource",
     "IntrinsicsUsed",
+    "KnownSource",
     "PoseCandidate",
     "Status",
 ]
@@ -26,7 +27,9 @@ Ambiguity = Literal["few", "rivals", "focal", "loose"]
 """Why an answer is ``ambiguous``: ``few`` objects paired (under 3); ``rivals``, distinct poses
 that explain the boxes almost as well; ``focal``, 3 objects and no intrinsics (the scene
 camera's fov assumed); ``loose``, one pose whose boxes pin it only loosely (its σ)."""
-IntrinsicsSource = Literal["given", "exif", "estimated", "scene"]
+IntrinsicsSource = Literal["given", "calibration", "exif", "estimated", "scene"]
+KnownSource = Literal["given", "calibration", "exif"]
+"""Where known intrinsics came from: the user, a drone's calibration, or an EXIF focal length."""
 
 
 @dataclass(frozen=True)

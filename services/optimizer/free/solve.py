@@ -54,7 +54,7 @@ Status
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Final, Literal
+from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,6 +70,7 @@ from services.optimizer.free.answer import (
     FreePoseAnswer,
     IntrinsicsSource,
     IntrinsicsUsed,
+    KnownSource,
     PoseCandidate,
 )
 from services.optimizer.free.colours import recoloured
@@ -203,7 +204,7 @@ def solve_free_pose(
     min_confidence: float = 0.0,
     seed: int = 0,
     pixel_scale: float = 1.0,
-    known_from: Literal["given", "exif"] = "given",
+    known_from: KnownSource = "given",
 ) -> FreePoseAnswer:
     """The camera pose from the target's detections alone (module docstring).
 
@@ -223,8 +224,9 @@ def solve_free_pose(
         solve runs on the boxes and intrinsics divided by it, and answers in target pixels. The
         same view at 320 and 4000 pixels wide was answered with confidence 0.99 and 0.20 when
         the tolerances were target pixels.
-    known_from : where ``intrinsics`` come from: ``given`` by the user or read from the photo's
-        ``exif``; the answer's intrinsics say so. Both are used alike.
+    known_from : where ``intrinsics`` come from: ``given`` by the user, a drone's
+        ``calibration`` or the photo's ``exif``; the answer's intrinsics say so. All are used
+        alike.
     """
     s = pixel_scale
     scaled = [d.model_copy(update={"box": tuple(v / s for v in d.box)}) for d in detections]
@@ -239,7 +241,7 @@ def _solve(
     objects: SceneObjects,
     detections: Sequence[Detection],
     size: tuple[float, float],
-    known: tuple[Intrinsics | None, Literal["given", "exif"]],
+    known: tuple[Intrinsics | None, KnownSource],
     min_confidence: float,
     seed: int,
     unit: float,
@@ -341,6 +343,7 @@ def _solve(
         "estimated": "focal length estimated",
         "scene": "the scene camera's field of view assumed (too few objects to estimate it)",
         "given": "intrinsics given",
+        "calibration": "intrinsics from the drone's calibration (the photo's XMP)",
         "exif": "focal length from the photo's EXIF",
     }
     reason = (

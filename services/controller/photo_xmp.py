@@ -1,0 +1,156 @@
+"""A drone's calibrated intrinsics from its photo's XMP: DJI's ``drone-dji:DewarpData``.
+
+DJI's survey drones (Phantom 4 RTK, Mavic 3 Enterprise and Multispectral, Matrice 3D/4,
+Zenmuse P1) write the lens calibration into every photo's XMP packet, as their user manuals
+describe it::
+
+    drone-dji:DewarpData="2018-03-13;fx,fy,cx,cy,k1,k2,p1,p2,k3"
+
+- ``fx, fy``: the calibrated focal lengths in pixels of the photo as taken;
+- ``cx, cy``: the principal point's offset in pixels from the photo's centre;
+- ``k1, k2, p1, p2, k3``: OpenCV's distortion
+  (:class:`~services.common.geometry.free_camera.LensDistortion`).
+
+``drone-dji:DewarpFlag="1"`` says the camera has already undistorted the photo; it is then
+taken to keep the calibrated camera matrix (as ``cv2.undistort`` does) with no distortion.
+
+A photo brought down from ``W₀ × H₀`` (EXIF ``PixelXDimension`` × ``PixelYDimension``, its
+original size; the photo's own when absent) to ``W × H`` scales all of these by ``s = W / W₀``:
+``f = s f₀``, ``c = (W/2, H/2) + s c₀``; the distortion, on normalised coordinates, is
+unchanged. A crop (another aspect than the original's) is not used, nor a calibration whose
+field of view lies outside :data:`~services.controller.photo_exif.FOV_RANGE_DEG`, nor a lens that
+folds the photo or has no inverse over it: such metadata is ignored, never an error.
+
+Unlike an EXIF focal length (a nominal lens, whole millimetres), this is a measurement of the
+very lens: a search uses it as intrinsics given (``source="calibration"``), which a render may
+confirm. ``DewarpDataK6`` (OpenCV's rational model, k4–k6) is not read.
+
+Pillow reads the packet (``Image.getxmp``, with ``defusedxml`` against entity expansion), from
+the JPEG's APP1 segment, without decoding pixels.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import warnings
+from collections.abc import Iterator, Mapping
+from typing import Final
+
+import numpy as np
+from PIL import ExifTags, Image
+from pydantic import ValidationError
+
+from services.common.contracts.free import PhotoIntrinsics
+from services.common.geometry.camera import PinholeCamera, fov_deg_of
+from services.common.geometry.free_camera import LensDistortion
+from services.common.geometry.lens import image_folds, undistort_pixels
+from services.controller.photo_exif import ASPECT_TOLERANCE, FOV_RANGE_DEG
+
+__all__ = ["DEWARP_FIELDS", "xmp_intrinsics"]
+
+DEWARP_FIELDS: Final = 9
+"""``fx, fy, cx, cy, k1, k2, p1, p2, k3`` after the calibration's date."""
+_BORDER_SAMPLES: Final = 64
+
+
+def _values(xmp: object, key: str) -> Iterator[str]:
+    """Every value of ``key`` in Pillow's nested XMP dictionaries (attributes and elements
+    alike, by local name), depth first."""
+    if isinstance(xmp, Mapping):
+        for name, value in xmp.items():
+            if name == key and isinstance(value, str):
+                yield value
+            else:
+                yield from _values(value, key)
+    elif isinstance(xmp, list):
+        for item in xmp:
+            yield from _values(item, key)
+
+
+def _read(image: bytes) -> tuple[dict[str, object], dict[int, object]]:
+    if not image.startswith(b"\xff\xd8"):
+        return {}, {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Pillow's decompression-bomb warning: no pixels read
+        with Image.open(io.BytesIO(image)) as opened:
+            return opened.getxmp(), dict(opened.getexif().get_ifd(ExifTags.IFD.Exif))
+
+
+def _dewarp(text: str) -> list[float] | None:
+    """The nine numbers of a ``DewarpData`` value, None unless exactly nine finite ones."""
+    _, _, numbers = text.rpartition(";")
+    try:
+        values = [float(part) for part in numbers.split(",")]
+    except ValueError:
+        return None
+    return values if len(values) == DEWARP_FIELDS and all(map(math.isfinite, values)) else None
+
+
+def _usable(camera: PinholeCamera, lens: LensDistortion | None) -> bool:
+    """Whether the lens neither folds the photo nor lacks an inverse along its border."""
+    if lens is None or lens.is_zero:
+        return True
+    if image_folds(camera, lens):
+        return False
+    t = np.linspace(0.0, 1.0, _BORDER_SAMPLES)
+    w, h = camera.width, camera.height
+    border = np.concatenate(
+        [np.stack([t * w, 0 * t], 1), np.stack([t * w, h + 0 * t], 1)]
+        + [np.stack([0 * t, t * h], 1), np.stack([w + 0 * t, t * h], 1)]
+    )
+    try:
+        undistort_pixels(border, camera, lens)
+    except ValueError:
+        return False
+    return True
+
+
+def xmp_intrinsics(image: bytes, size: tuple[int, int]) -> PhotoIntrinsics | None:
+    """The calibrated intrinsics the XMP of ``image`` (a JPEG's bytes, ``size`` = (W, H)
+    pixels) states, by the module docstring's rules; None when it states none usable."""
+    try:
+        xmp, exif = _read(image)
+    except Exception:  # noqa: BLE001 - unreadable metadata means no calibration, never a failure
+        return None
+    values = next((v for v in map(_dewarp, _values(xmp, "DewarpData")) if v is not None), None)
+    if values is None:
+        return None
+    width, height = size
+    original = [exif.get(ExifTags.Base.ExifImageWidth), exif.get(ExifTags.Base.ExifImageHeight)]
+    try:
+        w0, h0 = (float(v) for v in original)  # type: ignore[arg-type]  # ints, or absent
+    except (TypeError, ValueError):
+        w0, h0 = float(width), float(height)
+    if not (w0 > 0 and h0 > 0) or abs(w0 / h0 / (width / height) - 1) > ASPECT_TOLERANCE:
+        return None
+    s = width / w0
+    fx, fy, cx, cy = (s * v for v in values[:4])
+    dewarped = any(v.strip() == "1" for v in _values(xmp, "DewarpFlag"))
+    try:
+        lens = None if dewarped else LensDistortion.of_coefficients(values[4:])
+        intrinsics = PhotoIntrinsics(
+            fx_px=fx,
+            fy_px=fy,
+            cx_px=width / 2 + cx,
+            cy_px=height / 2 + cy,
+            distortion=None if lens is None or lens.is_zero else lens,
+            source="calibration",
+        )
+    except ValidationError:
+        return None
+    if not FOV_RANGE_DEG[0] < fov_deg_of(fx, width) < FOV_RANGE_DEG[1]:
+        return None
+    camera = PinholeCamera(
+        width=width,
+        height=height,
+        fov_deg=fov_deg_of(fx, width),
+        fx=fx,
+        fy=fy,
+        cx=width / 2 + cx,
+        cy=height / 2 + cy,
+        rotation=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+        translation=(0.0, 0.0, 0.0),
+        position=(0.0, 0.0, 0.0),
+    )
+    return intrinsics if _usable(camera, intrinsics.distortion) else None
