@@ -131,3 +131,19 @@ async def in_process(app: ASGIApp, base_url: str, token: str) -> AsyncIterator[h
             transport=transport, base_url=base_url, headers=bearer(token)
         ) as client:
             yield client
+
+
+async def recorded_intrinsics(
+    client: httpx.AsyncClient, image: bytes, params: dict[str, str]
+) -> dict[str, Any] | None:
+    """Submit the JPEG ``image`` as a search of the demo scene with ``params`` (202 asserted) and
+    return the intrinsics the controller recorded for it (None when none)."""
+    answer = await client.post(
+        "/searches",
+        content=image,
+        params={"scene": "demo", **params},
+        headers={"content-type": "image/jpeg"},
+    )
+    assert answer.status_code == 202, answer.text
+    recorded: dict[str, Any] | None = answer.json()["intrinsics"]
+    return recorded
