@@ -110,7 +110,8 @@ def photos(seeds: Sequence[int], n: int, render_width: int, photo_width: int) ->
     return made
 
 
-def _answer(raw: dict[str, Any]) -> Estimate | None:
+def answer_estimate(raw: dict[str, Any]) -> Estimate | None:
+    """The free answer of a search's JSON ``raw`` as an estimate (None without one)."""
     result = raw.get("result") or {}
     pose = (result.get("free") or {}).get("pose")
     if not pose:
@@ -142,7 +143,7 @@ async def _search(url: str, key: str, shots: Sequence[Photo], radius: float) -> 
                     Outcome(
                         photo.band,
                         given,
-                        pose_error(_answer(raw), truth, radius),
+                        pose_error(answer_estimate(raw), truth, radius),
                         wall_ms,
                         int(result.get("renders") or 0),
                         bool(result.get("confirmed")),
@@ -151,7 +152,25 @@ async def _search(url: str, key: str, shots: Sequence[Photo], radius: float) -> 
     return outcomes
 
 
-def _row(label: str, rows: Sequence[Outcome]) -> str:
+def header(first: str) -> str:
+    """The table's header, ``first`` naming its first column."""
+    return (
+        f"{first:30s} {'n':>3s} {'≤5%/2°':>8s} {'≤2%/1°':>8s} {'fov med%':>7s} {'fov≤2%':>8s} "
+        f"{'wall ms':>8s} {'renders':>7s} {'conf':>5s} {'wrong':>5s}"
+    )
+
+
+def print_bands(label: str, outcomes: Sequence[Outcome]) -> None:
+    """A row of ``outcomes`` per elevation band that has any, then one of them all."""
+    for band in BANDS:
+        rows = [o for o in outcomes if o.band == band]
+        if rows:
+            print(row(f"{label} {band}", rows))
+    print(row(f"{label} all", outcomes))
+
+
+def row(label: str, rows: Sequence[Outcome]) -> str:
+    """One table row of ``rows`` (under :func:`header`)."""
     n = len(rows)
     within = sum(r.within for r in rows)
     tight = sum(r.error.position <= 0.02 and r.error.rotation_deg <= 1.0 for r in rows)
@@ -179,11 +198,6 @@ def main(argv: list[str] | None = None) -> None:
     shots = photos(seeds, args.n, args.render_width, args.photo_width)
     radius = SceneCatalog([BUILTIN_SCENES_DIR]).get(SCENE).spec.camera.radius
     print(f"{len(shots)} photos {args.photo_width} px wide of {SCENE}, seeds {args.seeds}")
-    header = (
-        f"{'arm / intrinsics / band':30s} {'n':>3s} {'≤5%/2°':>8s} {'≤2%/1°':>8s} "
-        f"{'fov med%':>7s} {'fov≤2%':>8s} {'wall ms':>8s} {'renders':>7s} {'conf':>5s} "
-        f"{'wrong':>5s}"
-    )
     for width in (int(w) for w in args.view_widths.split(",")):
         env = {"COSMOS_CONTROLLER_VIEW_WIDTH": str(width)}
         with tempfile.TemporaryDirectory(prefix="cosmos-drone-") as tmp:
@@ -191,15 +205,10 @@ def main(argv: list[str] | None = None) -> None:
                 assert stack.api_key is not None
                 outcomes = asyncio.run(_search(stack.controller, stack.api_key, shots, radius))
         print(f"\nview width {width} (searches without intrinsics render at {2 * width})")
-        print(header)
+        print(header("arm / intrinsics / band"))
         for given in (True, False):
             kind = "fov given" if given else "fov not given"
-            mine = [o for o in outcomes if o.given is given]
-            for band in BANDS:
-                rows = [o for o in mine if o.band == band]
-                if rows:
-                    print(_row(f"{kind} {band}", rows))
-            print(_row(f"{kind} all", mine))
+            print_bands(kind, [o for o in outcomes if o.given is given])
 
 
 if __name__ == "__main__":

@@ -37,21 +37,19 @@ import warnings
 from collections.abc import Iterator, Mapping
 from typing import Final
 
-import numpy as np
 from PIL import ExifTags, Image
 from pydantic import ValidationError
 
 from services.common.contracts.free import PhotoIntrinsics
-from services.common.geometry.camera import PinholeCamera, fov_deg_of
+from services.common.geometry.camera import film_camera, fov_deg_of
 from services.common.geometry.free_camera import LensDistortion
-from services.common.geometry.lens import image_folds, undistort_pixels
+from services.common.geometry.lens import invertible_over_film
 from services.controller.photo_exif import ASPECT_TOLERANCE, FOV_RANGE_DEG
 
 __all__ = ["DEWARP_FIELDS", "xmp_intrinsics"]
 
 DEWARP_FIELDS: Final = 9
 """``fx, fy, cx, cy, k1, k2, p1, p2, k3`` after the calibration's date."""
-_BORDER_SAMPLES: Final = 64
 
 
 def _values(xmp: object, key: str) -> Iterator[str]:
@@ -85,25 +83,6 @@ def _dewarp(text: str) -> list[float] | None:
     except ValueError:
         return None
     return values if len(values) == DEWARP_FIELDS and all(map(math.isfinite, values)) else None
-
-
-def _usable(camera: PinholeCamera, lens: LensDistortion | None) -> bool:
-    """Whether the lens neither folds the photo nor lacks an inverse along its border."""
-    if lens is None or lens.is_zero:
-        return True
-    if image_folds(camera, lens):
-        return False
-    t = np.linspace(0.0, 1.0, _BORDER_SAMPLES)
-    w, h = camera.width, camera.height
-    border = np.concatenate(
-        [np.stack([t * w, 0 * t], 1), np.stack([t * w, h + 0 * t], 1)]
-        + [np.stack([0 * t, t * h], 1), np.stack([w + 0 * t, t * h], 1)]
-    )
-    try:
-        undistort_pixels(border, camera, lens)
-    except ValueError:
-        return False
-    return True
 
 
 def xmp_intrinsics(image: bytes, size: tuple[int, int]) -> PhotoIntrinsics | None:
@@ -141,16 +120,6 @@ def xmp_intrinsics(image: bytes, size: tuple[int, int]) -> PhotoIntrinsics | Non
         return None
     if not FOV_RANGE_DEG[0] < fov_deg_of(fx, width) < FOV_RANGE_DEG[1]:
         return None
-    camera = PinholeCamera(
-        width=width,
-        height=height,
-        fov_deg=fov_deg_of(fx, width),
-        fx=fx,
-        fy=fy,
-        cx=width / 2 + cx,
-        cy=height / 2 + cy,
-        rotation=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
-        translation=(0.0, 0.0, 0.0),
-        position=(0.0, 0.0, 0.0),
-    )
-    return intrinsics if _usable(camera, intrinsics.distortion) else None
+    camera = film_camera(width, height, (fx, fy), (width / 2 + cx, height / 2 + cy))
+    lens = intrinsics.distortion
+    return intrinsics if lens is None or invertible_over_film(camera, lens) else None

@@ -27,6 +27,7 @@ from services.common.geometry.lens import (
     distort,
     fold_radius,
     image_folds,
+    invertible_over_film,
     project_lens,
     undistort_pixels,
 )
@@ -252,6 +253,25 @@ def test_a_strong_barrel_distortion_folds_a_wide_film():
     # k3 alone: r* = (1 / 0.7)^(1/6) ≈ 1.06 and r_d(r*) = 6 r* / 7 ≈ 0.91, inside the corner
     assert image_folds(pinhole, LensDistortion(k3=-0.1))
     assert not image_folds(pinhole, LensDistortion(k3=-0.01))
+
+
+def test_a_lens_just_short_of_folding_has_no_inverse_at_the_corners():
+    """k3 bends the radial model back just beyond the film's corners (reach 1.080 against a
+    corner at 1.078): it does not fold, but the corners' undistortion does not converge."""
+    film = free_pinhole_camera(
+        FreeCamera(
+            position=(0, 0, 5), yaw_deg=0, pitch_deg=90, fx_px=374.67, fy_px=374.67
+        ).model_copy(update={"cx_px": 315.25, "cy_px": 239.99}),
+        640,
+        480,
+        81.0,
+    )
+    near = LensDistortion(k1=-0.00891, k2=0.00287, p1=4.28e-4, p2=-4.30e-4, k3=-0.03408)
+    assert not image_folds(film, near)
+    assert not invertible_over_film(film, near)
+    assert invertible_over_film(film, LensDistortion(k1=-0.1, k2=0.01, k3=-0.002))
+    assert not invertible_over_film(film, LensDistortion(k1=-0.9))  # folds
+    assert invertible_over_film(film, LensDistortion())
 
 
 @pytest.mark.parametrize(("elevation", "azimuth"), [(10.0, 0.0), (45.0, 123.0), (90.0, 300.0)])

@@ -20,6 +20,7 @@ from services.common.geometry.pose import Pose
 __all__ = [
     "PinholeCamera",
     "camera_axes",
+    "film_camera",
     "pinhole_camera",
     "focal_length_px",
     "fov_deg_of",
@@ -93,6 +94,26 @@ def fov_deg_of(focal_px: float, width: float) -> float:
     """The horizontal field of view of a focal length in pixels (:func:`focal_length_px`'s
     inverse): ``fov = 2 atan(W / (2 f))``."""
     return math.degrees(2.0 * math.atan(width / (2.0 * focal_px)))
+
+
+def film_camera(
+    width: int, height: int, focal: tuple[float, float], centre: tuple[float, float]
+) -> PinholeCamera:
+    """A camera of intrinsics alone (``focal`` = (fx, fy), ``centre`` = (cx, cy) pixels on a
+    ``width`` x ``height`` film) at the origin, looking along +z: for checks on the film alone
+    (whether a lens folds it)."""
+    return PinholeCamera(
+        width=width,
+        height=height,
+        fov_deg=fov_deg_of(focal[0], width),
+        fx=focal[0],
+        fy=focal[1],
+        cx=centre[0],
+        cy=centre[1],
+        rotation=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+        translation=(0.0, 0.0, 0.0),
+        position=(0.0, 0.0, 0.0),
+    )
 
 
 def pinhole_camera(

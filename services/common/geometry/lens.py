@@ -22,6 +22,7 @@ __all__ = [
     "distort",
     "fold_radius",
     "image_folds",
+    "invertible_over_film",
     "project_lens",
     "undistort_pixels",
 ]
@@ -131,3 +132,31 @@ def undistort_pixels(
     if not error <= UNDISTORT_TOLERANCE_PX:
         raise ValueError(f"the distortion has no unique inverse over the film ({error:.3g} px off)")
     return np.asarray(xy, dtype=np.float64)
+
+
+def invertible_over_film(
+    camera: PinholeCamera, distortion: LensDistortion, samples: int = 64
+) -> bool:
+    """Whether ``distortion`` neither folds ``camera``'s film (:func:`image_folds`) nor lacks an
+    inverse along its border (``samples`` points a side through :func:`undistort_pixels`): a lens
+    a photo can have been taken through, and the renderer can draw."""
+    if distortion.is_zero:
+        return True
+    if image_folds(camera, distortion):
+        return False
+    t = np.linspace(0.0, 1.0, samples)
+    w, h = float(camera.width), float(camera.height)
+    zero, one = np.zeros_like(t), np.ones_like(t)
+    border = np.concatenate(
+        [
+            np.stack([t * w, zero], 1),
+            np.stack([t * w, one * h], 1),
+            np.stack([zero, t * h], 1),
+            np.stack([one * w, t * h], 1),
+        ]
+    )
+    try:
+        undistort_pixels(border, camera, distortion)
+    except ValueError:
+        return False
+    return True
