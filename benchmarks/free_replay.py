@@ -3,8 +3,10 @@ estimate from the target's boxes alone lands within 10 %/5° (and 5 %/2°), as r
 run (the pose it rendered first) and as this code solves the same detections now.
 
 Run: ``.venv/bin/python -m benchmarks.free_replay out/bench-free/free.json [more.json …]
-[--variant clean --variant jpeg …] [--all-variants] [--dump replay.jsonl]`` (``--dump``: each
-record's replayed error and status, to compare two versions of the code record by record)
+[--variant clean --variant jpeg …] [--all-variants] [--dump replay.jsonl] [--attitude σ]``
+(``--dump``: each record's replayed error and status, to compare two versions of the code record
+by record; ``--attitude``: each solve is also given the true camera's pitch and roll, each off by
+a seeded normal draw of σ degrees, as a drone's gimbal states them in its photo's XMP)
 
 Each report is one ``cosmos bench --free`` run whose records kept their target detections
 (``FreeRecord.target_detections``). Its generated scenes are made again from the run's seed, as
@@ -25,6 +27,7 @@ import argparse
 import json
 import sys
 import tempfile
+import zlib
 from collections import Counter, defaultdict
 from collections.abc import Sequence
 from pathlib import Path
@@ -37,8 +40,12 @@ from cosmos.bench.free_targets.estimate import Estimate
 from cosmos.bench.free_targets.metrics import PoseError, pose_error
 from cosmos.bench.scenes import generate_scene
 from services.common.catalog import SceneCatalog
-from services.common.contracts.free import FreePoseRequest, PhotoIntrinsics
+from services.common.contracts.free import CameraAttitude, FreePoseRequest, PhotoIntrinsics
 from services.common.contracts.optimize import ImageDetections
+from services.common.geometry.free_camera import (
+    rotation_of_quaternion,
+    yaw_pitch_roll_of_rotation,
+)
 from services.optimizer.free_pose import SceneObjectCache, free_pose
 from services.renderer.settings import RendererSettings
 
@@ -48,10 +55,28 @@ DETECTOR_INPUT: Final = (320, 256)
 LIMITS: Final = ((0.10, 5.0), (0.05, 2.0))
 
 
+def stated_attitude(record: FreeRecord, sigma_deg: float) -> CameraAttitude:
+    """The true camera's pitch and roll, each off by a normal draw of ``sigma_deg`` seeded by the
+    record's place in its run (a gimbal's error)."""
+    key = f"{record.scene}/{record.variant}/{record.index}/{record.detector}".encode()
+    off = np.random.default_rng(zlib.crc32(key)).normal(0.0, sigma_deg, size=2)
+    _, pitch, roll = yaw_pitch_roll_of_rotation(
+        rotation_of_quaternion(record.truth.quaternion_wxyz)
+    )
+    return CameraAttitude(
+        pitch_deg=float(np.clip(pitch + off[0], -90.0, 90.0)),
+        roll_deg=float((roll + off[1] + 180.0) % 360.0 - 180.0),
+    )
+
+
 def replayed(
-    record: FreeRecord, catalog: SceneCatalog, cache: SceneObjectCache
+    record: FreeRecord,
+    catalog: SceneCatalog,
+    cache: SceneObjectCache,
+    attitude_sigma: float | None = None,
 ) -> tuple[PoseError, str]:
-    """The box solve's error and status on ``record``'s detections, solved now."""
+    """The box solve's error and status on ``record``'s detections, solved now (given the
+    camera's attitude off by ``attitude_sigma`` degrees, when not None)."""
     assert record.target_size is not None
     intrinsics = PhotoIntrinsics(fov_deg=record.truth.fov_deg) if record.intrinsics_given else None
     request = FreePoseRequest(
@@ -59,6 +84,7 @@ def replayed(
         target=ImageDetections(image_size=record.target_size, detections=record.target_detections),
         intrinsics=intrinsics,
         detector_input=DETECTOR_INPUT,
+        attitude=None if attitude_sigma is None else stated_attitude(record, attitude_sigma),
     )
     answer = free_pose(request, catalog, cache)
     pose = answer.pose
@@ -100,6 +126,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--dump", type=Path, help="write each record's replayed error and status here (JSON lines)"
     )
+    parser.add_argument(
+        "--attitude",
+        type=float,
+        metavar="SIGMA",
+        help="give each solve the true pitch and roll, off by a normal draw of SIGMA degrees",
+    )
     args = parser.parse_args(argv)
     dumped: list[str] = []
     variants = None if args.all_variants else (args.variant or list(GOAL_VARIANTS))
@@ -115,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             catalog = run_catalog(config, Path(tmp), settings)
             cache = SceneObjectCache()
             for record in records:
-                error, status = replayed(record, catalog, cache)
+                error, status = replayed(record, catalog, cache, args.attitude)
                 statuses[status] += 1
                 where = [str(path), record.detector, record.scene, record.variant]
                 ident = [*where, record.index, record.given]

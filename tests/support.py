@@ -133,11 +133,11 @@ async def in_process(app: ASGIApp, base_url: str, token: str) -> AsyncIterator[h
             yield client
 
 
-async def recorded_intrinsics(
+async def submitted_search(
     client: httpx.AsyncClient, image: bytes, params: dict[str, str]
-) -> dict[str, Any] | None:
+) -> dict[str, Any]:
     """Submit the JPEG ``image`` as a search of the demo scene with ``params`` (202 asserted) and
-    return the intrinsics the controller recorded for it (None when none)."""
+    return the search the controller recorded (its JSON)."""
     answer = await client.post(
         "/searches",
         content=image,
@@ -145,5 +145,5 @@ async def recorded_intrinsics(
         headers={"content-type": "image/jpeg"},
     )
     assert answer.status_code == 202, answer.text
-    recorded: dict[str, Any] | None = answer.json()["intrinsics"]
+    recorded: dict[str, Any] = answer.json()
     return recorded

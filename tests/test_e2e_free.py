@@ -19,7 +19,11 @@ from cosmos.cli import main
 from cosmos.stack import Stack
 from services.common.auth import bearer
 from services.common.contracts.search import Search
-from services.common.geometry.free_camera import FreeCamera, LensDistortion
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    LensDistortion,
+    yaw_pitch_roll_of_rotation,
+)
 from services.controller.client import ControllerClient
 from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
@@ -195,7 +199,9 @@ def test_a_drone_s_calibration_in_its_xmp_is_used_as_given(stack):
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, _ = renderer.render_camera("demo", camera, width=640, height=480, spp=16)
     nominal = round(focal * math.hypot(36.0, 24.0) / 800.0)
-    xmp = dji_xmp((focal, focal), centre, (640, 480), lens)
+    _, pitch, roll = yaw_pitch_roll_of_rotation(DRONE.rotation())
+    gimbal = (pitch + 0.4, roll - 0.3)  # a gimbal's angles are good to about a degree
+    xmp = dji_xmp((focal, focal), centre, (640, 480), lens, attitude=gimbal)
     final = search_for(stack, exif_jpeg(image, nominal, xmp=xmp))
     assert final.status == "succeeded", final.error
     result = final.result
@@ -204,6 +210,8 @@ def test_a_drone_s_calibration_in_its_xmp_is_used_as_given(stack):
     assert free is not None
     k = free.pose.intrinsics
     assert k.source == "calibration"
+    assert final.attitude is not None
+    assert (final.attitude.pitch_deg, final.attitude.roll_deg) == pytest.approx(gimbal, abs=0.01)
     assert (k.cx_px, k.cy_px) == pytest.approx(centre)
     assert k.distortion == lens
     assert free.status == "found", result.reason
@@ -219,6 +227,29 @@ def test_a_drone_s_calibration_in_its_xmp_is_used_as_given(stack):
     assert exif_only.result.free.pose.intrinsics.distortion is None
     assert not exif_only.result.confirmed
     assert math.dist(exif_only.result.free.pose.position, DRONE.position) > calibrated
+
+
+def test_a_pose_the_photo_s_gimbal_contradicts_is_not_answered(stack):
+    """The XMP's gimbal says the camera looked 30° steeper than it did (a scene whose ground is
+    not level, say): no pose that explains the boxes has that attitude, and the answer says
+    so, unconfirmed, with the boxes' pose and the photo's angles."""
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, truth = renderer.render_camera("demo", DRONE)
+    k = truth.camera
+    _, pitch, roll = yaw_pitch_roll_of_rotation(DRONE.rotation())
+    xmp = dji_xmp(
+        (k.fx, k.fy), (k.cx, k.cy), (k.width, k.height), None, attitude=(pitch + 30, roll)
+    )
+    final = search_for(stack, exif_jpeg(image, 35, xmp=xmp))
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert not result.confirmed
+    assert result.free.status == "ambiguous"
+    assert f"pitch and roll the photo states ({pitch + 30:.1f}°" in result.reason, result.reason
+    assert result.free.pose.intrinsics.source == "calibration"
+    assert math.dist(result.free.pose.position, DRONE.position) < 0.05 * RADIUS
 
 
 def test_an_exif_focal_length_the_image_refutes_is_overruled(stack):

@@ -150,20 +150,28 @@ def dji_xmp(
     lens: LensDistortion | None,
     *,
     dewarped: bool = False,
+    attitude: tuple[float, float] | None = None,
 ) -> bytes:
     """The XMP packet a DJI survey drone writes for a photo of ``size`` pixels taken through a
     calibrated lens: focal lengths ``focal`` (px), principal point ``centre`` (px, written as its
-    offset from the photo's centre), ``lens`` (k1, k2, p1, p2, k3), and ``DewarpFlag``
-    (:mod:`services.controller.photo_xmp` reads it)."""
+    offset from the photo's centre), ``lens`` (k1, k2, p1, p2, k3), ``DewarpFlag``, and the
+    gimbal's angles for a camera ``attitude`` (pitch, roll in this project's conventions: DJI's
+    pitch is its negative) when given (:mod:`services.controller.photo_xmp` reads them)."""
     d = lens or LensDistortion()
     offset = (centre[0] - size[0] / 2, centre[1] - size[1] / 2)
     numbers = [*focal, *offset, d.k1, d.k2, d.p1, d.p2, d.k3]
     dewarp = "2024-05-01;" + ",".join(f"{v:.12f}" for v in numbers)
+    gimbal = (
+        ""
+        if attitude is None
+        else f'drone-dji:GimbalPitchDegree="{-attitude[0]:+.2f}" '
+        f'drone-dji:GimbalRollDegree="{attitude[1]:+.2f}" drone-dji:GimbalYawDegree="-79.00" '
+    )
     return (
         '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF '
         'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description '
         'rdf:about="DJI Meta Data" xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
-        f'drone-dji:GimbalPitchDegree="-60.00" drone-dji:DewarpData="{dewarp}" '
+        f'{gimbal}drone-dji:DewarpData="{dewarp}" '
         f'drone-dji:DewarpFlag="{int(dewarped)}"/></rdf:RDF></x:xmpmeta>'
     ).encode()
 

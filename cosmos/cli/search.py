@@ -113,8 +113,8 @@ def register(commands: Commands) -> None:
     free.add_argument(
         "--no-exif",
         action="store_true",
-        help="do not take the lens from the photo's metadata (a drone's calibration in its XMP, "
-        "the EXIF focal length): estimate the focal length from the boxes",
+        help="do not read the photo's metadata (a drone's calibration and gimbal angles in its "
+        "XMP, the EXIF focal length): estimate the focal length from the boxes",
     )
     search.add_argument(
         "--retry-for",

@@ -187,6 +187,7 @@ class FreeSearchLoop:
             target=ImageDetections(image_size=size, detections=detections),
             intrinsics=search.intrinsics,
             detector_input=model.input_size if model is not None else None,
+            attitude=search.attitude,
         )
         t0 = time.perf_counter()
         try:

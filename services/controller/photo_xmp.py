@@ -1,4 +1,4 @@
-"""A drone's calibrated intrinsics from its photo's XMP: DJI's ``drone-dji:DewarpData``.
+"""A drone's calibrated intrinsics and its camera's attitude from its photo's XMP (DJI's).
 
 DJI's survey drones (Phantom 4 RTK, Mavic 3 Enterprise and Multispectral, Matrice 3D/4,
 Zenmuse P1) write the lens calibration into every photo's XMP packet, as their user manuals
@@ -25,6 +25,13 @@ Unlike an EXIF focal length (a nominal lens, whole millimetres), this is a measu
 very lens: a search uses it as intrinsics given (``source="calibration"``), which a render may
 confirm. ``DewarpDataK6`` (OpenCV's rational model, k4–k6) is not read.
 
+The same packet states the gimbal's attitude, ``drone-dji:GimbalPitchDegree`` and
+``GimbalRollDegree`` (:func:`xmp_attitude`): in DJI's NED frame, rotation order ZYX, pitch −90°
+looking straight down and roll about the optical axis, right side down for a positive one. In
+this project's conventions (:mod:`services.common.geometry.free_camera`: pitch below the
+horizontal, roll turning the camera clockwise as seen from behind it) that is pitch ``−p`` and
+roll ``r``. The gimbal's yaw is a compass heading, which a scene's axes need not follow: not read.
+
 Pillow reads the packet (``Image.getxmp``, with ``defusedxml`` against entity expansion), from
 the JPEG's APP1 segment, without decoding pixels.
 """
@@ -40,13 +47,13 @@ from typing import Final
 from PIL import ExifTags, Image
 from pydantic import ValidationError
 
-from services.common.contracts.free import PhotoIntrinsics
+from services.common.contracts.free import CameraAttitude, PhotoIntrinsics
 from services.common.geometry.camera import film_camera, fov_deg_of
 from services.common.geometry.free_camera import LensDistortion
 from services.common.geometry.lens import invertible_over_film
 from services.controller.photo_exif import ASPECT_TOLERANCE, FOV_RANGE_DEG
 
-__all__ = ["DEWARP_FIELDS", "xmp_intrinsics"]
+__all__ = ["DEWARP_FIELDS", "xmp_attitude", "xmp_intrinsics"]
 
 DEWARP_FIELDS: Final = 9
 """``fx, fy, cx, cy, k1, k2, p1, p2, k3`` after the calibration's date."""
@@ -123,3 +130,31 @@ def xmp_intrinsics(image: bytes, size: tuple[int, int]) -> PhotoIntrinsics | Non
     camera = film_camera(width, height, (fx, fy), (width / 2 + cx, height / 2 + cy))
     lens = intrinsics.distortion
     return intrinsics if lens is None or invertible_over_film(camera, lens) else None
+
+
+def _angle(xmp: object, key: str) -> float | None:
+    """The first value of ``key`` that reads as a finite number of degrees, else None."""
+    for text in _values(xmp, key):
+        try:
+            value = float(text)
+        except ValueError:
+            continue
+        if math.isfinite(value):
+            return value
+    return None
+
+
+def xmp_attitude(image: bytes) -> CameraAttitude | None:
+    """The camera's pitch and roll that the XMP of ``image`` (a JPEG's bytes) states through
+    its gimbal's angles (module docstring), None when it states no usable pair."""
+    try:
+        xmp, _ = _read(image)
+    except Exception:  # noqa: BLE001 - unreadable metadata means no attitude, never a failure
+        return None
+    pitch, roll = _angle(xmp, "GimbalPitchDegree"), _angle(xmp, "GimbalRollDegree")
+    if pitch is None or roll is None:
+        return None
+    try:
+        return CameraAttitude(pitch_deg=-pitch, roll_deg=roll)
+    except ValidationError:
+        return None

@@ -26,7 +26,7 @@ from services.controller.broker import Broker
 from services.controller.form import photo_intrinsics
 from services.controller.keys import ApiKey
 from services.controller.photo_exif import exif_intrinsics
-from services.controller.photo_xmp import xmp_intrinsics
+from services.controller.photo_xmp import xmp_attitude, xmp_intrinsics
 from services.controller.quotas import Quotas
 from services.controller.runner import NotRetryable, SearchRunner
 from services.controller.settings import ControllerSettings
@@ -130,7 +130,8 @@ async def create_search(
     (:func:`~services.controller.form.photo_intrinsics`), else those its metadata states unless
     ``exif`` is false: a drone's calibration in its XMP
     (:func:`~services.controller.photo_xmp.xmp_intrinsics`), else its EXIF focal length
-    (:func:`~services.controller.photo_exif.exif_intrinsics`). With
+    (:func:`~services.controller.photo_exif.exif_intrinsics`); and its camera's pitch and roll
+    when its XMP states them (:func:`~services.controller.photo_xmp.xmp_attitude`). With
     ``start_early`` a given start view's render is under way while the pixels are decoded and
     the search stored (:meth:`Stages.render_early`; dropped again if the image turns out
     broken); a predicted start needs the target's detections first, so nothing is rendered
@@ -156,9 +157,11 @@ async def create_search(
             "give start_theta_deg and start_phi_deg together", field="start_theta_deg"
         )
     intrinsics = photo_intrinsics(options)
-    if intrinsics is None and options.mode == "free" and options.exif:
+    read = options.mode == "free" and options.exif
+    if intrinsics is None and read:
         size = (header.width, header.height)
         intrinsics = xmp_intrinsics(image, size) or exif_intrinsics(image, size)
+    attitude = xmp_attitude(image) if read else None
     if re.match(SCENE_ID_PATTERN, options.scene) is None:
         raise NotFoundError(
             f"unknown scene {options.scene!r}",
@@ -229,6 +232,7 @@ async def create_search(
             view_settings=view_settings,
             mode=options.mode,
             intrinsics=intrinsics,
+            attitude=attitude,
         )
         if len(image) <= INLINE_WRITE_BYTES and store.database.dialect == "sqlite":
             store.create(record, image, owner=owner, leases=leases)

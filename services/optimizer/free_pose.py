@@ -276,8 +276,16 @@ def free_pose(
     objects = cache.get(scene)
     scale = pixel_scale((width, height), request.detector_input)
     known_from = request.intrinsics.source if request.intrinsics is not None else "given"
+    stated = request.attitude
     solved = solve_free_pose(
-        objects, detections, width, height, k, pixel_scale=scale, known_from=known_from
+        objects,
+        detections,
+        width,
+        height,
+        k,
+        pixel_scale=scale,
+        known_from=known_from,
+        attitude=None if stated is None else (stated.pitch_deg, stated.roll_deg),
     )
     answer = _renderable(solved, objects)
     grid = scene.spec.search.grid()

@@ -12,9 +12,10 @@ import pytest
 from PIL import ExifTags, Image
 
 from cosmos.bench.variants import dji_xmp
+from services.common.contracts.free import CameraAttitude
 from services.common.geometry.free_camera import LensDistortion
-from services.controller.photo_xmp import xmp_intrinsics
-from tests.support import recorded_intrinsics
+from services.controller.photo_xmp import xmp_attitude, xmp_intrinsics
+from tests.support import submitted_search
 
 T = ExifTags.Base
 P4RTK = LensDistortion(k1=-0.269478, k2=0.115681, p1=-8.75619e-5, p2=-3.06177e-4, k3=-0.0357628)
@@ -123,6 +124,30 @@ def test_a_packet_declaring_entities_is_refused_not_expanded():
     assert xmp_intrinsics(jpeg(SIZE, declared.encode()), SIZE) is None
 
 
+def test_the_gimbal_gives_the_camera_s_pitch_and_roll_in_our_conventions():
+    """DJI's pitch −90° looks straight down (ours +90°); its roll keeps its sign."""
+    xmp = dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, attitude=(62.5, -3.25))
+    assert b'GimbalPitchDegree="-62.50"' in xmp
+    assert xmp_attitude(jpeg(SIZE, xmp)) == CameraAttitude(pitch_deg=62.5, roll_deg=-3.25)
+
+
+@pytest.mark.parametrize(
+    "xmp",
+    [
+        dji_xmp(FOCAL, CENTRE, SIZE, P4RTK),  # no gimbal
+        dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, attitude=(60.0, 0.0)).replace(
+            b'GimbalRollDegree="+0.00" ', b""
+        ),  # a pitch alone
+        dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, attitude=(60.0, 0.0)).replace(b"-60.00", b"nan"),
+        dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, attitude=(60.0, 0.0)).replace(b"-60.00", b"-120"),
+        None,
+    ],
+    ids=["none", "pitch-alone", "nan", "beyond-straight-down", "no-xmp"],
+)
+def test_no_usable_gimbal_is_no_attitude(xmp):
+    assert xmp_attitude(jpeg(SIZE, xmp)) is None
+
+
 @pytest.mark.anyio
 @pytest.mark.parametrize(
     ("params", "source"),
@@ -132,11 +157,14 @@ async def test_a_free_search_prefers_the_calibration_to_the_exif(controller, par
     _, client = controller
     size = (320, 240)
     original = {T.ExifImageWidth: SIZE[0], T.ExifImageHeight: SIZE[1], T.FocalLengthIn35mmFilm: 24}
-    image = jpeg(size, dji_xmp(FOCAL, CENTRE, SIZE, P4RTK), original)
-    intrinsics = await recorded_intrinsics(client, image, params)
-    if source is None:
+    image = jpeg(size, dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, attitude=(80.0, 1.5)), original)
+    search = await submitted_search(client, image, params)
+    intrinsics = search["intrinsics"]
+    if source is None:  # told not to read the metadata: neither lens nor attitude
         assert intrinsics is None
+        assert search["attitude"] is None
         return
+    assert search["attitude"] == {"pitch_deg": 80.0, "roll_deg": 1.5}
     assert intrinsics is not None
     assert intrinsics["source"] == source
     assert intrinsics["fx_px"] == pytest.approx(FOCAL[0] * 320 / SIZE[0])

@@ -32,6 +32,7 @@ from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import SCENE_ID_PATTERN
 
 __all__ = [
+    "CameraAttitude",
     "DenseReport",
     "FreeAmbiguity",
     "FreeAnswer",
@@ -57,7 +58,7 @@ in the photo's XMP, or the focal length its ``exif`` states."""
 EXACT_SOURCES: frozenset[str] = frozenset({"given", "calibration"})
 """Sources of the photo's exact intrinsics, which a render may confirm; an EXIF focal length is a
 nominal lens (whole millimetres) that no render can check."""
-FreeAmbiguity = Literal["few", "rivals", "focal", "loose"]
+FreeAmbiguity = Literal["few", "rivals", "focal", "loose", "attitude"]
 Unit = Annotated[Number, Field(ge=0.0, le=1.0)]
 NonNeg = Annotated[Number, Field(ge=0.0)]
 
@@ -102,17 +103,33 @@ class PhotoIntrinsics(FrozenModel):
         return self.model_dump(exclude_none=True, exclude={"source"})
 
 
+class CameraAttitude(FrozenModel):
+    """The camera's pitch and roll as the photo states them (a drone's gimbal, in its XMP), in
+    the conventions of :mod:`services.common.geometry.free_camera`: pitch below the horizontal
+    (90°: nadir), roll about the optical axis. No yaw: a drone's is a compass heading, and a
+    scene's axes need not point north."""
+
+    pitch_deg: Annotated[Number, Field(ge=-90.0, le=90.0)]
+    roll_deg: Annotated[Number, Field(ge=-180.0, le=180.0)]
+
+
 class FreePoseRequest(FrozenModel):
     """``POST /free-pose``: the scene, the target image's size and detections (boxes in its
     pixels; none is a ``failed`` answer, not an error), the photo's intrinsics if known
     (otherwise the scene camera's field of view is the start and the focal length is estimated
     from four paired objects on), and the network input of the detector that found the boxes
     (``detector_input``: its box errors grow in the image's pixels with the image it shrank;
-    without it they are taken as at the image's own size)."""
+    without it they are taken as at the image's own size), and the camera's ``attitude`` when
+    the photo states it (poses far from it are not answered)."""
 
     scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)]
     target: ImageDetections
     intrinsics: PhotoIntrinsics | None = None
+    attitude: CameraAttitude | None = Field(
+        default=None,
+        description="The camera's pitch and roll the photo states (its drone's gimbal): poses "
+        "whose down direction lies more than 10° from theirs are not answered.",
+    )
     detector_input: tuple[ImageSide, ImageSide] | None = Field(
         default=None,
         description="The detector's network input (width, height) in pixels: the "

@@ -9,7 +9,7 @@ from pydantic import ConfigDict, Field, Strict
 
 from services.common.base import FrozenModel, Integer, Number
 from services.common.contracts.detect import Detection, ModelInfo
-from services.common.contracts.free import FreeAnswer, PhotoIntrinsics
+from services.common.contracts.free import CameraAttitude, FreeAnswer, PhotoIntrinsics
 from services.common.contracts.optimize import GridPose, StrategyName, ViewMatch
 from services.common.errors import ProblemDetails, problem_type
 from services.common.geometry.free_camera import FreeCamera
@@ -123,8 +123,9 @@ class SearchOptions(FrozenModel):
         description="Free mode, without fov_deg and intrinsics: take the intrinsics from the "
         "photo's metadata, a drone's calibration in its XMP (DJI's DewarpData: focal lengths, "
         "principal point, distortion) or else the focal length its EXIF states "
-        "(FocalLengthIn35mmFilm, or FocalLength with FocalPlaneXResolution); false estimates the "
-        "focal length from the boxes instead.",
+        "(FocalLengthIn35mmFilm, or FocalLength with FocalPlaneXResolution); and the camera's "
+        "pitch and roll its gimbal's angles in the XMP state. false reads none of them and "
+        "estimates the focal length from the boxes instead.",
     )
 
 
@@ -257,6 +258,11 @@ class Search(FrozenModel):
     )
     intrinsics: PhotoIntrinsics | None = Field(
         default=None, description="A free search's photo intrinsics, when they were given."
+    )
+    attitude: CameraAttitude | None = Field(
+        default=None,
+        description="A free search's camera pitch and roll, when its photo states them (a "
+        "drone's gimbal, in its XMP): poses far from them are not answered.",
     )
     view_settings: ViewSettings | None = Field(
         default=None,

@@ -54,6 +54,7 @@ __all__ = [
     "rotation_angle_deg",
     "FreeCamera",
     "LensDistortion",
+    "attitude_error_deg",
     "direction_pose",
     "free_camera_of_pose",
     "free_pinhole_camera",
@@ -244,6 +245,17 @@ def rotation_angle_deg(a: ArrayLike, b: ArrayLike) -> float:
     ``θ = acos((tr(AᵀB) − 1) / 2)``, clipped against rounding."""
     cosine = (float(np.trace(np.asarray(a, dtype=np.float64).T @ np.asarray(b))) - 1.0) / 2.0
     return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
+
+
+def attitude_error_deg(rotation_cw: ArrayLike, pitch_deg: float, roll_deg: float) -> float:
+    """How far (degrees) the camera of rotation ``rotation_cw`` (camera-to-world) is from the
+    attitude ``pitch_deg``, ``roll_deg`` (module docstring; any yaw): the angle between the
+    world's down ``g = (0, 0, -1)`` in either camera's axes, ``acos(R_cwᵀ g · R(0, ϑ, ρ)ᵀ g)``.
+    It leaves the heading out, so it is defined at the nadir too, where roll and yaw merge."""
+    down = np.array([0.0, 0.0, -1.0])
+    seen = np.asarray(rotation_cw, dtype=np.float64).T @ down
+    stated = rotation_of_yaw_pitch_roll(0.0, pitch_deg, roll_deg).T @ down
+    return math.degrees(math.acos(min(1.0, max(-1.0, float(seen @ stated)))))
 
 
 def quaternion_of_rotation(rotation: ArrayLike) -> tuple[float, float, float, float]:

@@ -23,10 +23,11 @@ __all__ = [
 ]
 
 Status = Literal["found", "ambiguous", "failed"]
-Ambiguity = Literal["few", "rivals", "focal", "loose"]
+Ambiguity = Literal["few", "rivals", "focal", "loose", "attitude"]
 """Why an answer is ``ambiguous``: ``few`` objects paired (under 3); ``rivals``, distinct poses
 that explain the boxes almost as well; ``focal``, 3 objects and no intrinsics (the scene
-camera's fov assumed); ``loose``, one pose whose boxes pin it only loosely (its σ)."""
+camera's fov assumed); ``loose``, one pose whose boxes pin it only loosely (its σ);
+``attitude``, no pose that explains the boxes has the camera's attitude the photo states."""
 IntrinsicsSource = Literal["given", "calibration", "exif", "estimated", "scene"]
 KnownSource = Literal["given", "calibration", "exif"]
 """Where known intrinsics came from: the user, a drone's calibration, or an EXIF focal length."""

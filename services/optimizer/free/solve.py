@@ -16,7 +16,10 @@ The steps (each in its module):
    the focal length joins every hypothesis' edge fit (:mod:`.hypothesis_fits`), within the
    lenses considered (:class:`~.focal_bounds.FocalRange`). With fewer pairs, or a fit that
    ends on a bound, the scene camera's field of view is used and the answer says so;
-4. the answer's status (:class:`FreePoseAnswer`).
+4. with the camera's attitude the photo states (a drone's gimbal pitch and roll), the fits whose
+   down direction lies more than :data:`ATTITUDE_TOLERANCE_DEG` from it are dropped before any
+   is ranked as the answer or a rival (none left: ``ambiguous``, ``attitude``);
+5. the answer's status (:class:`FreePoseAnswer`).
 
 With fewer than three usable detections no minimal set exists: the edges are fitted from a ring
 of start views around the scene (:data:`~.few.FEW_STARTS_DEG`), and the answer is ``ambiguous`` with
@@ -54,6 +57,7 @@ Status
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Final
 
 import numpy as np
@@ -61,7 +65,9 @@ from numpy.typing import NDArray
 
 from services.common.contracts.detect import Detection
 from services.common.geometry.free_camera import (
+    attitude_error_deg,
     quaternion_of_rotation,
+    rotation_of_quaternion,
     yaw_pitch_roll_of_rotation,
 )
 from services.optimizer.free.answer import (
@@ -124,6 +130,14 @@ red ball moved 0.97 units, the fov given): the six best hypotheses all paired it
 the one that did not for pairing five boxes, and came down to two pairs 162 % of the radius
 off; the seventh pairs the four others and is refined 0.4 % off."""
 MAX_ALTERNATIVES: Final = 4
+ATTITUDE_TOLERANCE_DEG: Final = 10.0
+"""How far (:func:`~services.common.geometry.free_camera.attitude_error_deg`) a fit's down
+direction may lie from the one the photo's attitude states. A box fit within 10 %/5° of the
+truth is within 5° of it; a gimbal's attitude is good to about a degree, a modelled site's
+ground to a few more. On the ``RESULTS.md`` run's 199 box estimates (``cosmos bench --free
+--scene demo --random-scenes 2 --n 8 --seed 21``), the 111 within 10 %/5° of the truth were at
+most 4.7° from its down direction; of the 88 outside, 31 were more than 10° from it (flips and
+the general model's wrong pairings, 10–134°)."""
 OWN_DETECTOR: Final = (
     "a detector of the scene's own objects (`cosmos scenes add`: the general one serving this "
     "scene names shapes, not objects, and misses shapes it never saw)"
@@ -205,6 +219,7 @@ def solve_free_pose(
     seed: int = 0,
     pixel_scale: float = 1.0,
     known_from: KnownSource = "given",
+    attitude: tuple[float, float] | None = None,
 ) -> FreePoseAnswer:
     """The camera pose from the target's detections alone (module docstring).
 
@@ -227,12 +242,20 @@ def solve_free_pose(
     known_from : where ``intrinsics`` come from: ``given`` by the user, a drone's
         ``calibration`` or the photo's ``exif``; the answer's intrinsics say so. All are used
         alike.
+    attitude : the camera's ``(pitch, roll)`` in degrees when the photo states them (its
+        gimbal's); fits far from them are not answered (:data:`ATTITUDE_TOLERANCE_DEG`).
     """
     s = pixel_scale
     scaled = [d.model_copy(update={"box": tuple(v / s for v in d.box)}) for d in detections]
     k = intrinsics.on_film(1.0 / s) if intrinsics is not None else None
     answer = _solve(
-        objects, scaled, (width / s, height / s), (k, known_from), min_confidence, seed, s
+        objects,
+        scaled,
+        (width / s, height / s),
+        (k, known_from, attitude),
+        min_confidence,
+        seed,
+        s,
     )
     return answer.in_target_pixels(s)
 
@@ -241,16 +264,16 @@ def _solve(
     objects: SceneObjects,
     detections: Sequence[Detection],
     size: tuple[float, float],
-    known: tuple[Intrinsics | None, KnownSource],
+    known: tuple[Intrinsics | None, KnownSource, tuple[float, float] | None],
     min_confidence: float,
     seed: int,
     unit: float,
 ) -> FreePoseAnswer:
     """:func:`solve_free_pose` in the detector's pixels (``size`` the image's in them), with the
-    ``known`` intrinsics (None if not) and where they come from; the reasons say pixels times
-    ``unit``, the target's."""
+    ``known`` intrinsics (None if not), where they come from and the stated attitude (None if
+    not); the reasons say pixels times ``unit``, the target's."""
     width, height = size
-    intrinsics, known_from = known
+    intrinsics, known_from, attitude = known
     labels_all = tuple(d.label for d in detections)
     measured = [d.color if d.color is not None else (np.nan,) * 3 for d in detections]
     general_all = general_labels(objects, labels_all)
@@ -314,6 +337,39 @@ def _solve(
         nothing = "no camera pose above the ground explains the detections"
         return FreePoseAnswer("failed", nothing, None, (), len(index))
     poses = [_candidate(f, objects, (boxes, masks, labels, index), width) for f in ranked]
+    ruled_out = 0
+    if attitude is not None:
+        off = [
+            attitude_error_deg(rotation_of_quaternion(p.quaternion_wxyz), *attitude) for p in poses
+        ]
+        kept = [p for p, d in zip(poses, off, strict=True) if d <= ATTITUDE_TOLERANCE_DEG]
+        if not kept:
+            reason = (
+                "ambiguous: no pose that explains the boxes has the camera's pitch and roll the "
+                f"photo states ({attitude[0]:.1f}°, {attitude[1]:.1f}°): the nearest is "
+                f"{min(off):.0f}° off them; a scene whose ground is not level, a gimbal's "
+                "angles that are not the camera's, or boxes of other objects"
+            )
+            others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
+            return FreePoseAnswer("ambiguous", reason, poses[0], others, len(index), "attitude")
+        ruled_out, poses = len(poses) - len(kept), kept
+    answer = _status(poses, objects, (width, lenses, general, unit), len(index))
+    if not ruled_out:
+        return answer
+    said = f"; the photo's pitch and roll ruled out {ruled_out} other pose(s)"
+    return replace(answer, reason=answer.reason + said)
+
+
+def _status(
+    poses: list[PoseCandidate],
+    objects: SceneObjects,
+    context: tuple[float, FocalRange, bool, float],
+    usable: int,
+) -> FreePoseAnswer:
+    """The answer from the ranked distinct ``poses`` (module docstring's status), on a film
+    ``context[0]`` wide with the lenses considered, whether the labels are a general model's,
+    and the unit of the reasons' pixels; ``usable`` detections."""
+    width, lenses, general, unit = context
     best = poses[0]
     ratio = UNIQUE_RATIO_3 if best.inliers == 3 else AMBIGUITY_RATIO
     limit = ratio * max(best.residual_px, NOISE_FLOOR_PX)
@@ -325,7 +381,7 @@ def _solve(
             f"pose (4 to be sure): a wider view, or a photo with more of the scene's objects{own}"
         )
         others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
-        return FreePoseAnswer("ambiguous", reason, best, others, len(index), "few")
+        return FreePoseAnswer("ambiguous", reason, best, others, usable, "few")
     if rivals:
         reason = (
             f"ambiguous: {len(rivals)} distinct pose(s) explain the boxes almost as well "
@@ -334,11 +390,11 @@ def _solve(
             "decide"
         )
         others = rivals[:MAX_ALTERNATIVES]
-        return FreePoseAnswer("ambiguous", reason, best, others, len(index), "rivals")
+        return FreePoseAnswer("ambiguous", reason, best, others, usable, "rivals")
     kind, loose = _loose(best, objects.radius, lenses.fov_deg(width))
     if kind is not None:
         others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
-        return FreePoseAnswer("ambiguous", f"ambiguous: {loose}", best, others, len(index), kind)
+        return FreePoseAnswer("ambiguous", f"ambiguous: {loose}", best, others, usable, kind)
     focal = {
         "estimated": "focal length estimated",
         "scene": "the scene camera's field of view assumed (too few objects to estimate it)",
@@ -350,7 +406,7 @@ def _solve(
         f"found: {best.inliers} objects paired, edge RMS {best.residual_px * unit:.2f} px; "
         f"{focal[best.intrinsics.source]}"
     )
-    return FreePoseAnswer("found", reason, best, (), len(index))
+    return FreePoseAnswer("found", reason, best, (), usable)
 
 
 def _loose(
