@@ -191,6 +191,8 @@ def _unconfirmed(ambiguity: FreeAmbiguity | None, pose: FreePose) -> str:
         )
     if ambiguity == "few":
         return "other poses explain so few objects' boxes as well"
+    if ambiguity == "attitude":
+        return "the photo's pitch and roll (its gimbal's) say otherwise"
     return "the alternatives explain its boxes too"
 
 
