@@ -9,6 +9,8 @@ import io
 import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import ExifTags, Image
 
 from cosmos.bench.variants import dji_xmp
@@ -104,6 +106,24 @@ def test_the_calibration_may_be_an_element_rather_than_an_attribute():
 )
 def test_unusable_or_absent_calibrations_are_not_used(xmp, size, tags):
     assert xmp_intrinsics(jpeg(size, xmp, tags), size) is None
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    numbers=st.lists(st.floats(-1e7, 1e7), min_size=9, max_size=9)
+    | st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=12)
+)
+def test_any_numbers_in_the_calibration_are_read_or_ignored_never_raised(numbers):
+    """Metadata is the photo's, not the user's request: whatever it holds, the reader answers
+    intrinsics it checked or nothing."""
+    packet = dji_xmp(FOCAL, CENTRE, SIZE, P4RTK)
+    start = packet.index(b"2024-05-01;") + len(b"2024-05-01;")
+    end = packet.index(b'"', start)
+    text = ",".join(repr(v) for v in numbers).encode()
+    found = xmp_intrinsics(jpeg((64, 48), packet[:start] + text + packet[end:]), (64, 48))
+    if found is not None:
+        assert found.fx_px is not None
+        assert found.fx_px > 0
 
 
 def test_only_a_jpeg_is_read():
