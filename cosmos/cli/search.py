@@ -42,7 +42,7 @@ def _not_taken(refusal: ControllerError, budget_s: float) -> str:
     )
 
 
-_FREE_ONLY = ("fov", "intrinsics", "distortion")
+_FREE_ONLY = ("fov", "intrinsics", "distortion", "attitude")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
                 fov_deg=args.fov,
                 intrinsics=args.intrinsics,
                 distortion=args.distortion,
+                attitude=args.attitude,
                 exif="false" if args.no_exif else None,
             )
         except ControllerError as exc:
@@ -109,6 +110,11 @@ def register(commands: Commands) -> None:
     )
     free.add_argument(
         "--distortion", metavar="K1,K2,P1,P2[,K3]", help="the photo's lens distortion"
+    )
+    free.add_argument(
+        "--attitude",
+        metavar="PITCH,ROLL",
+        help="the camera's pitch (90: straight down) and roll in degrees, from a flight log",
     )
     free.add_argument(
         "--no-exif",

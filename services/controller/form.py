@@ -16,13 +16,13 @@ from typing import Any, Final
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from services.common.contracts.free import PhotoIntrinsics
+from services.common.contracts.free import CameraAttitude, PhotoIntrinsics
 from services.common.contracts.search import SearchOptions
 from services.common.errors import UnprocessableError
 from services.common.geometry.free_camera import LensDistortion
 from services.common.upload import request_body
 
-__all__ = ["OPENAPI", "photo_intrinsics", "search_options"]
+__all__ = ["OPENAPI", "photo_attitude", "photo_intrinsics", "search_options"]
 
 
 def _plain(schema: dict[str, Any]) -> dict[str, Any]:
@@ -150,3 +150,20 @@ def photo_intrinsics(options: SearchOptions) -> PhotoIntrinsics | None:
     except ValidationError as exc:
         first = exc.errors(include_url=False)[0]
         raise UnprocessableError(f"{name}: {first['msg']}", field=name) from exc
+
+
+def photo_attitude(options: SearchOptions) -> CameraAttitude | None:
+    """The camera's pitch and roll a free search was given (``attitude`` ``pitch,roll``), None
+    when not. Raises :class:`UnprocessableError` naming the field for an attitude on a
+    hemisphere search, or angles out of range (pitch within ±90°, roll within ±180°)."""
+    if options.attitude is None:
+        return None
+    if options.mode != "free":
+        raise UnprocessableError("attitude is for a free search (mode=free)", field="attitude")
+    pitch, roll = _finite(options.attitude, "attitude")
+    try:
+        return CameraAttitude(pitch_deg=pitch, roll_deg=roll)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        where = ".".join(str(part) for part in first["loc"])
+        raise UnprocessableError(f"attitude: {where} {first['msg']}", field="attitude") from exc

@@ -23,7 +23,7 @@ from services.common.geometry.pose import Pose
 from services.common.geometry.scene import SCENE_ID_PATTERN
 from services.common.images import checked_header, decode_image
 from services.controller.broker import Broker
-from services.controller.form import photo_intrinsics
+from services.controller.form import photo_attitude, photo_intrinsics
 from services.controller.keys import ApiKey
 from services.controller.photo_exif import exif_intrinsics
 from services.controller.photo_xmp import xmp_attitude, xmp_intrinsics
@@ -131,7 +131,8 @@ async def create_search(
     ``exif`` is false: a drone's calibration in its XMP
     (:func:`~services.controller.photo_xmp.xmp_intrinsics`), else its EXIF focal length
     (:func:`~services.controller.photo_exif.exif_intrinsics`); and its camera's pitch and roll
-    when its XMP states them (:func:`~services.controller.photo_xmp.xmp_attitude`). With
+    when given (:func:`~services.controller.form.photo_attitude`), else when its XMP states them
+    (:func:`~services.controller.photo_xmp.xmp_attitude`). With
     ``start_early`` a given start view's render is under way while the pixels are decoded and
     the search stored (:meth:`Stages.render_early`; dropped again if the image turns out
     broken); a predicted start needs the target's detections first, so nothing is rendered
@@ -161,7 +162,7 @@ async def create_search(
     if intrinsics is None and read:
         size = (header.width, header.height)
         intrinsics = xmp_intrinsics(image, size) or exif_intrinsics(image, size)
-    attitude = xmp_attitude(image) if read else None
+    attitude = photo_attitude(options) or (xmp_attitude(image) if read else None)
     if re.match(SCENE_ID_PATTERN, options.scene) is None:
         raise NotFoundError(
             f"unknown scene {options.scene!r}",

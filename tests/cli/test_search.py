@@ -19,6 +19,7 @@ from cosmos.cli import main, unreachable
         ["--intrinsics", "300,300,160,120"],
         ["--distortion", "0,0,0,0"],
         ["--no-exif"],
+        ["--attitude", "80,0"],
     ],
 )
 def test_lens_flags_need_free(tmp_path: Path, capsys: pytest.CaptureFixture[str], flags) -> None:
@@ -43,8 +44,13 @@ def test_lens_flags_need_free(tmp_path: Path, capsys: pytest.CaptureFixture[str]
             "-.1,0,0,0",
         ),
         (["render", "--position", "-4,3,5", "--look-at", "0,-1,0"], "position", "-4,3,5"),
+        (
+            ["search", "p.jpg", "--scene", "demo", "--free", "--attitude", "60,-2.5"],
+            "attitude",
+            "60,-2.5",
+        ),
     ],
-    ids=["search-barrel-lens", "search-no-leading-zero", "render-position"],
+    ids=["search-barrel-lens", "search-no-leading-zero", "render-position", "search-attitude"],
 )
 def test_a_list_may_start_with_a_minus_sign(argv: list[str], field: str, value: str) -> None:
     """A barrel lens's k1 is negative: argparse took ``-0.12,…`` for an unknown flag."""

@@ -190,3 +190,36 @@ async def test_a_free_search_prefers_the_calibration_to_the_exif(controller, par
     assert intrinsics["fx_px"] == pytest.approx(FOCAL[0] * 320 / SIZE[0])
     assert intrinsics["distortion"]["k3"] == pytest.approx(P4RTK.k3)
     assert math.isclose(intrinsics["cx_px"], 160.0 - 7.71 * 320 / SIZE[0])
+
+
+@pytest.mark.anyio
+async def test_a_given_attitude_stands_before_the_gimbal_s(controller):
+    _, client = controller
+    image = jpeg((320, 240), dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, attitude=(80.0, 1.5)))
+    params = {"mode": "free", "attitude": "62.5,-3"}
+    search = await submitted_search(client, image, params)
+    assert search["attitude"] == {"pitch_deg": 62.5, "roll_deg": -3.0}
+
+
+@pytest.mark.anyio
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"attitude": "60,0"},  # a hemisphere search
+        {"mode": "free", "attitude": "95,0"},  # beyond straight down
+        {"mode": "free", "attitude": "60,200"},
+        {"mode": "free", "attitude": "60"},
+        {"mode": "free", "attitude": "1e999,0"},
+    ],
+)
+async def test_a_bad_attitude_is_a_problem_naming_it(controller, params):
+    _, client = controller
+    answer = await client.post(
+        "/searches",
+        content=jpeg((320, 240), None),
+        params={"scene": "demo", **params},
+        headers={"content-type": "image/jpeg"},
+    )
+    assert answer.status_code == 422, answer.text
+    assert answer.headers["content-type"].startswith("application/problem+json")
+    assert answer.json()["field"] == "attitude", answer.json()

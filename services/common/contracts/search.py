@@ -58,6 +58,7 @@ _NUMBER = r"\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*"
 _FOUR_NUMBERS = rf"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}$"
 """Four comma-separated decimal numbers, as a form field carries a camera's four parameters."""
 _LENS_NUMBERS = rf"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}(,{_NUMBER})?$"
+_TWO_NUMBERS = rf"^{_NUMBER},{_NUMBER}$"
 """OpenCV's distortion coefficients ``k1,k2,p1,p2`` and optionally ``k3``."""
 
 ViewSpp = Annotated[int, Field(ge=1, le=1024)]
@@ -117,6 +118,13 @@ class SearchOptions(FrozenModel):
         default=None,
         description="Free mode: the photo's OpenCV lens distortion `k1,k2,p1,p2` or "
         "`k1,k2,p1,p2,k3` (with fov_deg or intrinsics).",
+    )
+    attitude: Annotated[str, Field(max_length=100, pattern=_TWO_NUMBERS)] | None = Field(
+        default=None,
+        description="Free mode: the camera's `pitch,roll` in degrees, as a flight log states "
+        "them (pitch below the horizontal, 90 straight down; roll turning the camera clockwise "
+        "as seen from behind it): poses whose down direction lies more than 10° from theirs are "
+        "not answered. Without it, a drone photo's XMP gimbal angles stand for it.",
     )
     exif: bool = Field(
         default=True,
