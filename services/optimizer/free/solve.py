@@ -337,27 +337,41 @@ def _solve(
         nothing = "no camera pose above the ground explains the detections"
         return FreePoseAnswer("failed", nothing, None, (), len(index))
     poses = [_candidate(f, objects, (boxes, masks, labels, index), width) for f in ranked]
-    ruled_out = 0
+    kept = poses
     if attitude is not None:
-        off = [
-            attitude_error_deg(rotation_of_quaternion(p.quaternion_wxyz), *attitude) for p in poses
-        ]
-        kept = [p for p, d in zip(poses, off, strict=True) if d <= ATTITUDE_TOLERANCE_DEG]
+        kept = _of_attitude(poses, attitude)
         if not kept:
-            reason = (
-                "ambiguous: no pose that explains the boxes has the camera's pitch and roll the "
-                f"photo states ({attitude[0]:.1f}°, {attitude[1]:.1f}°): the nearest is "
-                f"{min(off):.0f}° off them; a scene whose ground is not level, a gimbal's "
-                "angles that are not the camera's, or boxes of other objects"
-            )
-            others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
-            return FreePoseAnswer("ambiguous", reason, poses[0], others, len(index), "attitude")
-        ruled_out, poses = len(poses) - len(kept), kept
-    answer = _status(poses, objects, (width, lenses, general, unit), len(index))
-    if not ruled_out:
+            return _no_pose_of(attitude, poses, len(index))
+    answer = _status(kept, objects, (width, lenses, general, unit), len(index))
+    if len(kept) == len(poses):
         return answer
-    said = f"; the photo's pitch and roll ruled out {ruled_out} other pose(s)"
+    said = f"; the photo's pitch and roll ruled out {len(poses) - len(kept)} other pose(s)"
     return replace(answer, reason=answer.reason + said)
+
+
+def _off_attitude(pose: PoseCandidate, attitude: tuple[float, float]) -> float:
+    """How far (degrees) ``pose``'s down direction lies from the one ``attitude`` states."""
+    return attitude_error_deg(rotation_of_quaternion(pose.quaternion_wxyz), *attitude)
+
+
+def _of_attitude(poses: list[PoseCandidate], attitude: tuple[float, float]) -> list[PoseCandidate]:
+    """The ``poses`` within :data:`ATTITUDE_TOLERANCE_DEG` of the photo's ``(pitch, roll)``."""
+    return [p for p in poses if _off_attitude(p, attitude) <= ATTITUDE_TOLERANCE_DEG]
+
+
+def _no_pose_of(
+    attitude: tuple[float, float], poses: list[PoseCandidate], usable: int
+) -> FreePoseAnswer:
+    """``ambiguous`` (``attitude``): none of the ``poses`` keeps to the photo's attitude."""
+    nearest = min(_off_attitude(p, attitude) for p in poses)
+    reason = (
+        "ambiguous: no pose that explains the boxes has the camera's pitch and roll the photo "
+        f"states ({attitude[0]:.1f}°, {attitude[1]:.1f}°): the nearest is {nearest:.0f}° off "
+        "them; a scene whose ground is not level, a gimbal's angles that are not the camera's, "
+        "or boxes of other objects"
+    )
+    others = tuple(poses[1 : 1 + MAX_ALTERNATIVES])
+    return FreePoseAnswer("ambiguous", reason, poses[0], others, usable, "attitude")
 
 
 def _status(
