@@ -15,12 +15,14 @@ scene camera's (58–81° on the built-in scenes' 45°: a drone's wide camera). 
 −0.25…−0.05, ``k2`` 0…0.1, ``k3`` −0.04…0, ``p1, p2`` within ±5·10⁻⁴, the principal point
 within 1 % of the film's centre), brought to ``--photo-width`` (cubic) and written as a JPEG of
 quality 92 whose EXIF states ``FocalLengthIn35mmFilm`` (rounded) and the original size, and
-whose XMP states the calibration at that size.
+whose XMP states the calibration at that size and the gimbal's pitch and roll (the true ones,
+each off by a seeded normal draw of :data:`GIMBAL_SIGMA_DEG`).
 
 Arms, all through one local stack (``cosmos.stack.local_stack``), each photo searched once in
 each with ``mode=free``:
 
-- ``calibration``: the JPEG as the drone wrote it (the search reads the XMP);
+- ``calibration``: the JPEG as the drone wrote it (the search reads the XMP: the lens, and the
+  gimbal's attitude, which rules out poses of another tilt);
 - ``EXIF only``: the same without its XMP packet (a nominal focal length, no lens);
 - ``nothing read``: ``exif=false`` (the focal length estimated from the boxes, no lens);
 - ``given``: ``intrinsics`` and ``distortion`` given exactly (what the calibration stands for).
@@ -59,12 +61,18 @@ from cosmos.stack import local_stack
 from services.common.catalog import BUILTIN_SCENES_DIR, SceneCatalog
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.camera import film_camera, fov_deg_of
-from services.common.geometry.free_camera import FreeCamera, LensDistortion
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    LensDistortion,
+    yaw_pitch_roll_of_rotation,
+)
 from services.common.geometry.lens import invertible_over_film
 
 ARMS: Final = ("calibration", "EXIF only", "nothing read", "given")
 FOV_RANGE: Final = (1.3, 1.8)
 TARGET_SPP: Final = 16
+GIMBAL_SIGMA_DEG: Final = 0.5
+"""The gimbal's error in pitch and roll (a stabilised gimbal's attitude is good to about that)."""
 FULL_FRAME_DIAGONAL_MM: Final = math.hypot(36.0, 24.0)
 
 
@@ -101,6 +109,13 @@ def drone_lens(
         if invertible_over_film(film, lens):
             return focal, centre, lens
         k1, k2, k3 = 0.8 * k1, 0.8 * k2, 0.8 * k3
+
+
+def _gimbal(camera: FreeCamera, rng: np.random.Generator) -> tuple[float, float]:
+    """The camera's pitch and roll as its gimbal states them: off by :data:`GIMBAL_SIGMA_DEG`."""
+    _, pitch, roll = yaw_pitch_roll_of_rotation(camera.rotation())
+    off = rng.normal(0.0, GIMBAL_SIGMA_DEG, size=2)
+    return float(np.clip(pitch + off[0], -90.0, 90.0)), float(roll + off[1])
 
 
 def _jpeg(bgr: np.ndarray, focal_35mm: int, xmp: bytes | None) -> bytes:
@@ -154,7 +169,7 @@ def _photo(
     f35 = round(f * FULL_FRAME_DIAGONAL_MM / math.hypot(*size))
     return LensPhoto(
         target.scene,
-        _jpeg(big, f35, dji_xmp((f, f), c, size, lens)),
+        _jpeg(big, f35, dji_xmp((f, f), c, size, lens, attitude=_gimbal(camera, rng))),
         _jpeg(big, f35, None),
         at_size,
         fov_deg_of(f, size[0]),
