@@ -109,7 +109,7 @@ def test_every_maximal_upload_is_answered_and_normal_searches_go_on(rig):
     result = maximal_uploads(rig, TIMING)
     assert_none_lost(result)
     assert result.limit_bytes - 64 * 1024 < result.body_bytes <= result.limit_bytes
-    assert result.unanswered == 0
+    assert result.unanswered == 0, result.facts()
     assert result.badly_answered == 0, result.statuses
     assert sum(result.statuses.values()) == result.uploads == 50
     assert result.statuses.get(202, 0) >= 1, result.statuses

@@ -7,6 +7,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import replace
@@ -176,6 +177,8 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
         started = run.begin()
         ready = threading.Barrier(timing.uploads)
         answers: list[tuple[int | None, bool, float, str | None]] = []
+        errors: Counter[str] = Counter()  # what the client saw of those unanswered
+        errors_lock = threading.Lock()
 
         with httpx.Client(
             base_url=rig.controller_url,
@@ -188,7 +191,9 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
                 ready.wait(timeout=timing.upload_timeout_s)
                 try:
                     response = client.post("/searches", content=body, params={"scene": "demo"})
-                except httpx.TransportError:
+                except httpx.TransportError as error:
+                    with errors_lock:
+                        errors[f"{type(error).__name__}: {error}"] += 1
                     return None, False, time.monotonic() - started, None
                 return (
                     response.status_code,
@@ -215,6 +220,7 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
         limit_bytes=limit,
         statuses=statuses,
         unanswered=sum(status is None for status, _, _, _ in answers),
+        transport_errors=dict(errors),
         badly_answered=sum(status is not None and not good for status, good, _, _ in answers),
         slowest_answer_s=max((seconds for _, _, seconds, _ in answers), default=0.0),
     )

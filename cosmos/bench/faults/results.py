@@ -173,6 +173,8 @@ class MaximalUploads(ScenarioResult):
     """Answers by status."""
     unanswered: int = 0
     """No answer within the timeout (a hang), or the connection dropped."""
+    transport_errors: Mapping[str, int] = field(default_factory=dict)
+    """The unanswered by what the client saw: the exception's class and its message."""
     badly_answered: int = 0
     """A 5xx other than 503, a 4xx or 503 without problem details, or a 429 or 503 without
     ``Retry-After``."""
@@ -183,9 +185,16 @@ class MaximalUploads(ScenarioResult):
         return (
             f"{self.uploads} uploads of {self.body_bytes / 2**20:.2f} MiB "
             f"({self.limit_bytes - self.body_bytes} B under the limit): {answers or 'none'}; "
-            f"{self.unanswered} unanswered, {self.badly_answered} badly answered, slowest "
-            f"{self.slowest_answer_s:.1f} s"
+            f"{self.unanswered} unanswered{_kinds(self.transport_errors)}, "
+            f"{self.badly_answered} badly answered, slowest {self.slowest_answer_s:.1f} s"
         )
+
+
+def _kinds(errors: Mapping[str, int]) -> str:
+    """`` (2×ReadError: …)``, or nothing when there were none."""
+    if not errors:
+        return ""
+    return " (" + "; ".join(f"{n}×{kind}" for kind, n in sorted(errors.items())) + ")"
 
 
 @dataclass(frozen=True)
