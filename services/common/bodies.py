@@ -10,12 +10,22 @@ so that what the app is given is bounded three ways:
   its body is read, and holds those bytes until the app has answered it (the app keeps the body,
   and what it makes of it, that long). When they do not fit, it waits, first come first served,
   for at most ``wait_s``; then it gets 503 with ``Retry-After`` and the connection is closed, its
-  body never read. A chunked body, of unknown length, holds ``max_bytes`` while it streams and
-  gives back what it did not use once it has arrived.
+  body never kept (see *early answers* below). A chunked body, of unknown length, holds
+  ``max_bytes`` while it streams and gives back what it did not use once it has arrived.
 * **time**: the body must have arrived within ``timeout_s + size / min_bytes_per_s`` of its
   admission (``size`` the declared length, or ``max_bytes`` when chunked), else 408 and the
   connection is closed; its bytes are given back at once. A trickling client holds a budget's
   share no longer than that.
+
+**Early answers** (413 by ``Content-Length``, 503, 408, and the controller's 401 before a
+body is read) close the connection, but not at once: what still arrives of the body is read and
+dropped (:func:`send_problem` with ``receive``) until it ends, for at most :data:`LINGER_S`, and
+:data:`LINGER_IDLE_S` without a byte. Why (RFC 9112 §9.6): a server that closes a connection
+with unread bytes in it sends a TCP reset, and a client still writing its body (most do not read
+before they have sent it all) may lose the answer with the reset: of 50 maximal uploads at
+once (``python -m benchmarks.faults --only maximal-uploads``), 2 had no answer in three of four
+full test runs.
+The dropped bytes are never held, nor counted in the budget.
 
 Small bodies do not wait behind large ones: a body of at most ``small_bytes`` (1/16 of the size
 limit: a JSON request, a search view's 230 KB PPM, a typical target) is counted in a lane of its
@@ -55,11 +65,14 @@ __all__ = [
     "DEFAULT_BODY_TIMEOUT_S",
     "DEFAULT_BODY_WAIT_S",
     "DEFAULT_MIN_BYTES_PER_S",
+    "LINGER_IDLE_S",
+    "LINGER_S",
     "BodyBudget",
     "BodyLimits",
     "BodyMiddleware",
     "Hold",
     "declared_length",
+    "drop_rest",
     "has_body",
     "send_problem",
 ]
@@ -68,6 +81,10 @@ DEFAULT_BODY_TIMEOUT_S: Final = 10.0
 """Seconds any body has to arrive, on top of its size's share (a LAN sends 20 MB in 0.2 s)."""
 DEFAULT_MIN_BYTES_PER_S: Final = 512 * 1024
 """The slowest upload served in full: 4 Mbit/s, so a 20 MiB body may take 40 s more."""
+LINGER_S: Final = 10.0
+"""Seconds an early answer's connection goes on reading (and dropping) the request's body."""
+LINGER_IDLE_S: Final = 2.0
+"""…and seconds it waits for the next byte of it, as nginx's ``lingering_timeout`` (5 s)."""
 DEFAULT_BODY_WAIT_S: Final = 5.0
 """Seconds a request waits for its bytes before a 503 (a maximal upload is handled in ~0.1-1 s)."""
 BUDGET_BODIES: Final = 4
@@ -224,10 +241,16 @@ def has_body(scope: Scope) -> bool:
 
 
 async def send_problem(
-    send: Send, scope: Scope, problem: ProblemDetails, headers: dict[str, str] | None = None
+    send: Send,
+    scope: Scope,
+    problem: ProblemDetails,
+    headers: dict[str, str] | None = None,
+    *,
+    receive: Receive | None = None,
 ) -> None:
     """Send ``problem`` as problem+json and have the server close the connection after it (the
-    body was not read, or not all of it)."""
+    body was not read, or not all of it). With ``receive``, the rest of the body is read and
+    dropped first (:func:`drop_rest`), the answer already sent."""
     body = json.dumps(problem.model_dump(mode="json", exclude_none=True)).encode()
     extra = [(name.lower().encode(), value.encode()) for name, value in (headers or {}).items()]
     await send(
@@ -242,7 +265,36 @@ async def send_problem(
             ],
         }
     )
-    await send({"type": "http.response.body", "body": body})
+    if receive is None:
+        await send({"type": "http.response.body", "body": body})
+        return
+    # The whole answer is on its way; the response ends (and the server closes) after the drop.
+    await send({"type": "http.response.body", "body": body, "more_body": True})
+    try:
+        await drop_rest(receive)
+    finally:
+        await send({"type": "http.response.body", "body": b""})
+
+
+async def drop_rest(
+    receive: Receive, linger_s: float = LINGER_S, idle_s: float = LINGER_IDLE_S
+) -> int:
+    """Read what is left of a request's body and drop it, until its end or the client's going
+    away, at most ``linger_s`` in all and ``idle_s`` between two messages; the bytes dropped."""
+    dropped = 0
+    try:
+        async with asyncio.timeout(linger_s):
+            while True:
+                async with asyncio.timeout(idle_s):
+                    message = await receive()
+                if message["type"] != "http.request":
+                    break
+                dropped += len(message.get("body", b""))
+                if not message.get("more_body", False):
+                    break
+    except TimeoutError:
+        pass
+    return dropped
 
 
 class _TooLarge(Exception):
@@ -268,32 +320,37 @@ class BodyMiddleware:
             return
         declared = declared_length(scope)
         if declared is not None and declared > self.limits.max_bytes:
-            await self._too_large(scope, send, f"the request body of {declared} bytes")
+            problem = self._too_large(scope, f"the request body of {declared} bytes")
+            await send_problem(send, scope, problem, receive=receive)
             return
         hold: Hold | None = None
         if self.budget is not None:
             size = self.limits.max_bytes if declared is None else declared
             hold = await self.budget.acquire(size)
             if hold is None:
-                await self._busy(scope, send, self.budget, size)
+                problem, headers = self._busy(scope, self.budget, size)
+                await send_problem(send, scope, problem, headers, receive=receive)
                 return
         try:
-            body = await self._read(scope, receive, send, declared)
-            if body is None:
-                return  # answered (408, 413) or the client went away
-            if hold is not None:
-                hold.shrink(len(body))
-            replay = _replay(body, receive)
-            del body  # the app holds it from here; it is not kept alive here after the app
-            await self.app(scope, replay, send)
+            read = await self._read(scope, receive, declared)
+            if isinstance(read, bytearray):
+                if hold is not None:
+                    hold.shrink(len(read))
+                replay = _replay(read, receive)
+                del read  # the app holds it from here; it is not kept alive here after the app
+                await self.app(scope, replay, send)
+                return
         finally:
             if hold is not None:
                 hold.release()
+        if read is not None:  # too slow or too large; its bytes are free before the rest goes
+            await send_problem(send, scope, read, receive=receive)
 
     async def _read(
-        self, scope: Scope, receive: Receive, send: Send, declared: int | None
-    ) -> bytearray | None:
-        """The whole body, or None once answered (too slow, too large) or disconnected.
+        self, scope: Scope, receive: Receive, declared: int | None
+    ) -> bytearray | ProblemDetails | None:
+        """The whole body; or the problem to answer when it came too slowly or was too large;
+        or None when the client went away.
 
         A ``bytearray``, handed to the app as it is: Starlette's ``Request.body()`` joins what
         it receives into ``bytes`` anyway (a copy even of one message), so a ``bytes`` here
@@ -330,30 +387,27 @@ class BodyMiddleware:
                 declared if declared is not None else "(streamed)",
                 deadline_s,
             )
-            await send_problem(
-                send,
-                scope,
-                ProblemDetails(
-                    type=problem_type("request-body-timeout"),
-                    title="Request Timeout",
-                    status=408,
-                    detail=f"the request body did not arrive within {deadline_s:.3g} s "
-                    f"({received} bytes came); send it faster, or a smaller one",
-                    instance=scope.get("path"),
-                ),
+            return ProblemDetails(
+                type=problem_type("request-body-timeout"),
+                title="Request Timeout",
+                status=408,
+                detail=f"the request body did not arrive within {deadline_s:.3g} s "
+                f"({received} bytes came); send it faster, or a smaller one",
+                instance=scope.get("path"),
             )
-            return None
         except _TooLarge:
-            await self._too_large(scope, send, "the streamed request body")
-            return None
+            return self._too_large(scope, "the streamed request body")
         del buffer[received:]  # a server holds the client to its Content-Length; be sure
         return buffer
 
-    async def _too_large(self, scope: Scope, send: Send, what: str) -> None:
+    def _too_large(self, scope: Scope, what: str) -> ProblemDetails:
         error = PayloadTooLargeError(f"{what} exceeds the limit of {self.limits.max_bytes} bytes")
-        await send_problem(send, scope, error.problem(instance=scope.get("path")))
+        return error.problem(instance=scope.get("path"))
 
-    async def _busy(self, scope: Scope, send: Send, budget: BodyBudget, size: int) -> None:
+    def _busy(
+        self, scope: Scope, budget: BodyBudget, size: int
+    ) -> tuple[ProblemDetails, dict[str, str]]:
+        """The 503 (and its ``Retry-After``) for ``size`` bytes that did not fit in time."""
         _log.warning(
             "%s %s: %d body bytes did not fit in %.1f s (%d held, %d waiting); answering 503",
             scope.get("method"),
@@ -370,9 +424,7 @@ class BodyMiddleware:
             title="Service busy",
         )
         retry_after = str(max(1, math.ceil(budget.wait_s)))
-        await send_problem(
-            send, scope, error.problem(scope.get("path")), {"Retry-After": retry_after}
-        )
+        return error.problem(scope.get("path")), {"Retry-After": retry_after}
 
 
 def _replay(body: bytearray, receive: Receive) -> Receive:

@@ -113,8 +113,9 @@ class ApiKeyMiddleware:
                 authenticate, self._keys(scope), None if given is None else given.decode("latin-1")
             )
         except (UnauthorizedError, ServiceUnavailableError) as exc:  # no key, or no database
-            # The body is never read: the server closes the connection after the answer.
-            await send_problem(send, scope, exc.problem(scope.get("path")), exc.headers)
+            # The body is never kept: it is dropped as it comes, then the connection closed.
+            problem = exc.problem(scope.get("path"))
+            await send_problem(send, scope, problem, exc.headers, receive=receive)
             return
         scope[_SCOPE_KEY] = key
         await self.app(scope, receive, send)
