@@ -27,23 +27,21 @@ on an EXIF focal length (:mod:`~services.controller.free_loop`): with one 15 % t
 answers were 14 % off, and their renders agreed all the same. The render's edges overrule one
 that they clearly put elsewhere (:mod:`~services.controller.exif_check`).
 
-Only a JPEG's EXIF is read (what cameras and drones write): Pillow parses its APP1 segment
-without decoding pixels, whereas a PNG's ``eXIf`` chunk may follow the pixels, which it would
-then decode.
+Only a JPEG's EXIF is read (what cameras and drones write), by
+:func:`~services.controller.photo_metadata.read_metadata`.
 """
 
 from __future__ import annotations
 
-import io
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Final
 
-from PIL import ExifTags, Image
+from PIL import ExifTags
 
 from services.common.contracts.free import PhotoIntrinsics
 from services.common.geometry.camera import fov_deg_of
+from services.controller.photo_metadata import PhotoMetadata
 
 __all__ = ["ASPECT_TOLERANCE", "FOV_RANGE_DEG", "ExifFocal", "exif_focal", "exif_intrinsics"]
 
@@ -73,22 +71,10 @@ def _number(value: object) -> float | None:
     return number if math.isfinite(number) and number > 0.0 else None
 
 
-def _tags(image: bytes) -> dict[int, object]:
-    if not image.startswith(b"\xff\xd8"):
-        return {}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # Pillow's decompression-bomb warning: no pixels read
-        with Image.open(io.BytesIO(image)) as opened:
-            return dict(opened.getexif().get_ifd(ExifTags.IFD.Exif))
-
-
-def exif_focal(image: bytes, size: tuple[int, int]) -> ExifFocal | None:
-    """The focal length the EXIF of ``image`` (a JPEG's bytes, ``size`` = (W, H) pixels)
-    states, by the module docstring's rules; None when it states none that can be used."""
-    try:
-        tags = _tags(image)
-    except Exception:  # noqa: BLE001 - any unreadable metadata means no focal length, never a failure
-        return None
+def exif_focal(metadata: PhotoMetadata, size: tuple[int, int]) -> ExifFocal | None:
+    """The focal length a photo's EXIF states (``size`` = (W, H), its pixels), by the module
+    docstring's rules; None when it states none that can be used."""
+    tags = metadata.exif
     width, height = size
     sensor_w = _number(tags.get(ExifTags.Base.ExifImageWidth))
     sensor_h = _number(tags.get(ExifTags.Base.ExifImageHeight))
@@ -117,9 +103,9 @@ def exif_focal(image: bytes, size: tuple[int, int]) -> ExifFocal | None:
     return found if FOV_RANGE_DEG[0] < fov < FOV_RANGE_DEG[1] else None
 
 
-def exif_intrinsics(image: bytes, size: tuple[int, int]) -> PhotoIntrinsics | None:
+def exif_intrinsics(metadata: PhotoMetadata, size: tuple[int, int]) -> PhotoIntrinsics | None:
     """:func:`exif_focal` as the photo's intrinsics (``source="exif"``), None without one."""
-    found = exif_focal(image, size)
+    found = exif_focal(metadata, size)
     if found is None:
         return None
     return PhotoIntrinsics(fx_px=found.focal_px, fy_px=found.focal_px, source="exif")

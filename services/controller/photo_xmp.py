@@ -32,19 +32,17 @@ this project's conventions (:mod:`services.common.geometry.free_camera`: pitch b
 horizontal, roll turning the camera clockwise as seen from behind it) that is pitch ``−p`` and
 roll ``r``. The gimbal's yaw is a compass heading, which a scene's axes need not follow: not read.
 
-Pillow reads the packet (``Image.getxmp``, with ``defusedxml`` against entity expansion), from
-the JPEG's APP1 segment, without decoding pixels.
+:func:`~services.controller.photo_metadata.read_metadata` reads the packet (Pillow's
+``Image.getxmp``, with ``defusedxml`` against entity expansion), without decoding pixels.
 """
 
 from __future__ import annotations
 
-import io
 import math
-import warnings
 from collections.abc import Iterator, Mapping
 from typing import Final
 
-from PIL import ExifTags, Image
+from PIL import ExifTags
 from pydantic import ValidationError
 
 from services.common.contracts.free import CameraAttitude, PhotoIntrinsics
@@ -52,6 +50,7 @@ from services.common.geometry.camera import film_camera, fov_deg_of
 from services.common.geometry.free_camera import LensDistortion
 from services.common.geometry.lens import invertible_over_film
 from services.controller.photo_exif import ASPECT_TOLERANCE, FOV_RANGE_DEG
+from services.controller.photo_metadata import PhotoMetadata
 
 __all__ = ["DEWARP_FIELDS", "xmp_attitude", "xmp_intrinsics"]
 
@@ -73,15 +72,6 @@ def _values(xmp: object, key: str) -> Iterator[str]:
             yield from _values(item, key)
 
 
-def _read(image: bytes) -> tuple[dict[str, object], dict[int, object]]:
-    if not image.startswith(b"\xff\xd8"):
-        return {}, {}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # Pillow's decompression-bomb warning: no pixels read
-        with Image.open(io.BytesIO(image)) as opened:
-            return opened.getxmp(), dict(opened.getexif().get_ifd(ExifTags.IFD.Exif))
-
-
 def _dewarp(text: str) -> list[float] | None:
     """The nine numbers of a ``DewarpData`` value, None unless exactly nine finite ones."""
     _, _, numbers = text.rpartition(";")
@@ -92,13 +82,10 @@ def _dewarp(text: str) -> list[float] | None:
     return values if len(values) == DEWARP_FIELDS and all(map(math.isfinite, values)) else None
 
 
-def xmp_intrinsics(image: bytes, size: tuple[int, int]) -> PhotoIntrinsics | None:
-    """The calibrated intrinsics the XMP of ``image`` (a JPEG's bytes, ``size`` = (W, H)
-    pixels) states, by the module docstring's rules; None when it states none usable."""
-    try:
-        xmp, exif = _read(image)
-    except Exception:  # noqa: BLE001 - unreadable metadata means no calibration, never a failure
-        return None
+def xmp_intrinsics(metadata: PhotoMetadata, size: tuple[int, int]) -> PhotoIntrinsics | None:
+    """The calibrated intrinsics a photo's XMP states (``size`` = (W, H), its pixels), by the
+    module docstring's rules; None when it states none usable."""
+    xmp, exif = metadata.xmp, metadata.exif
     values = next((v for v in map(_dewarp, _values(xmp, "DewarpData")) if v is not None), None)
     if values is None:
         return None
@@ -144,13 +131,10 @@ def _angle(xmp: object, key: str) -> float | None:
     return None
 
 
-def xmp_attitude(image: bytes) -> CameraAttitude | None:
-    """The camera's pitch and roll that the XMP of ``image`` (a JPEG's bytes) states through
-    its gimbal's angles (module docstring), None when it states no usable pair."""
-    try:
-        xmp, _ = _read(image)
-    except Exception:  # noqa: BLE001 - unreadable metadata means no attitude, never a failure
-        return None
+def xmp_attitude(metadata: PhotoMetadata) -> CameraAttitude | None:
+    """The camera's pitch and roll that a photo's XMP states through its gimbal's angles
+    (module docstring), None when it states no usable pair."""
+    xmp = metadata.xmp
     pitch, roll = _angle(xmp, "GimbalPitchDegree"), _angle(xmp, "GimbalRollDegree")
     if pitch is None or roll is None:
         return None

@@ -26,6 +26,7 @@ from services.controller.broker import Broker
 from services.controller.form import photo_attitude, photo_intrinsics
 from services.controller.keys import ApiKey
 from services.controller.photo_exif import exif_intrinsics
+from services.controller.photo_metadata import PhotoMetadata, read_metadata
 from services.controller.photo_xmp import xmp_attitude, xmp_intrinsics
 from services.controller.quotas import Quotas
 from services.controller.runner import NotRetryable, SearchRunner
@@ -158,11 +159,11 @@ async def create_search(
             "give start_theta_deg and start_phi_deg together", field="start_theta_deg"
         )
     intrinsics = photo_intrinsics(options)
-    read = options.mode == "free" and options.exif
-    if intrinsics is None and read:
+    metadata = read_metadata(image) if options.mode == "free" and options.exif else PhotoMetadata()
+    if intrinsics is None:
         size = (header.width, header.height)
-        intrinsics = xmp_intrinsics(image, size) or exif_intrinsics(image, size)
-    attitude = photo_attitude(options) or (xmp_attitude(image) if read else None)
+        intrinsics = xmp_intrinsics(metadata, size) or exif_intrinsics(metadata, size)
+    attitude = photo_attitude(options) or xmp_attitude(metadata)
     if re.match(SCENE_ID_PATTERN, options.scene) is None:
         raise NotFoundError(
             f"unknown scene {options.scene!r}",

@@ -13,6 +13,7 @@ from benchmarks.drone_lens import drone_lens
 from cosmos.bench.variants import dji_xmp
 from services.common.geometry.camera import film_camera
 from services.common.geometry.lens import invertible_over_film
+from services.controller.photo_metadata import read_metadata
 from services.controller.photo_xmp import xmp_intrinsics
 
 
@@ -26,7 +27,7 @@ def test_a_drawn_lens_reads_back_from_its_xmp(seed):
     Image.new("RGB", (width, height)).save(
         out, "JPEG", xmp=dji_xmp((focal, focal), centre, (width, height), lens)
     )
-    read = xmp_intrinsics(out.getvalue(), (width, height))
+    read = xmp_intrinsics(read_metadata(out.getvalue()), (width, height))
     assert read is not None
     assert (read.fx_px, read.fy_px, read.cx_px, read.cy_px) == pytest.approx(
         (focal, focal, *centre), abs=1e-9

@@ -12,6 +12,7 @@ from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational
 
 from services.controller.photo_exif import exif_focal, exif_intrinsics
+from services.controller.photo_metadata import read_metadata
 from tests.support import submitted_search
 
 T = ExifTags.Base
@@ -31,7 +32,7 @@ def horizontal_fov_deg(focal_px: float, width: int) -> float:
 
 
 def test_the_35mm_equivalent_gives_the_focal_length_over_the_diagonal():
-    found = exif_focal(jpeg((640, 480), {T.FocalLengthIn35mmFilm: 24}), (640, 480))
+    found = exif_focal(read_metadata(jpeg((640, 480), {T.FocalLengthIn35mmFilm: 24})), (640, 480))
     assert found is not None
     # 24 mm on the 43.27 mm full-frame diagonal: the diagonal's 800 px span 2·atan(43.27/48)
     assert found.focal_px == pytest.approx(24.0 * 800.0 / math.hypot(36.0, 24.0))
@@ -40,8 +41,8 @@ def test_the_35mm_equivalent_gives_the_focal_length_over_the_diagonal():
 
 def test_a_resized_photo_keeps_its_field_of_view():
     tags = {T.FocalLengthIn35mmFilm: 28, T.ExifImageWidth: 4000, T.ExifImageHeight: 3000}
-    small = exif_focal(jpeg((400, 300), tags), (400, 300))
-    large = exif_focal(jpeg((1600, 1200), tags), (1600, 1200))
+    small = exif_focal(read_metadata(jpeg((400, 300), tags)), (400, 300))
+    large = exif_focal(read_metadata(jpeg((1600, 1200), tags)), (1600, 1200))
     assert small is not None
     assert large is not None
     assert horizontal_fov_deg(small.focal_px, 400) == pytest.approx(
@@ -58,13 +59,13 @@ def test_the_focal_plane_resolution_gives_pixels_on_the_sensor_scaled_to_the_ima
         T.ExifImageWidth: 4000,
         T.ExifImageHeight: 3000,
     }
-    found = exif_focal(jpeg((800, 600), tags), (800, 600))
+    found = exif_focal(read_metadata(jpeg((800, 600), tags)), (800, 600))
     assert found is not None
     assert found.focal_px == pytest.approx(4.5 * 4000 / 6.3 * 800 / 4000)
     # in millimetres per unit too (Exif 3's unit 4)
     tags[T.FocalPlaneXResolution] = IFDRational(4000 * 10, 63)
     tags[T.FocalPlaneResolutionUnit] = 4
-    again = exif_focal(jpeg((800, 600), tags), (800, 600))
+    again = exif_focal(read_metadata(jpeg((800, 600), tags)), (800, 600))
     assert again is not None
     assert again.focal_px == pytest.approx(found.focal_px)
 
@@ -96,28 +97,28 @@ def test_the_focal_plane_resolution_gives_pixels_on_the_sensor_scaled_to_the_ima
     ],
 )
 def test_what_cannot_be_trusted_gives_no_focal_length(tags, size):
-    assert exif_focal(jpeg(size, tags), size) is None
+    assert exif_focal(read_metadata(jpeg(size, tags)), size) is None
 
 
 def test_broken_or_absent_metadata_is_no_focal_length_not_an_error():
     good = jpeg((640, 480), {T.FocalLengthIn35mmFilm: 24})
     start = good.index(b"Exif\x00\x00")
     broken = good[: start + 6] + b"\xde\xad" * 8 + good[start + 22 :]
-    assert exif_focal(broken, (640, 480)) is None
-    assert exif_focal(good[:40], (640, 480)) is None
+    assert exif_focal(read_metadata(broken), (640, 480)) is None
+    assert exif_focal(read_metadata(good[:40]), (640, 480)) is None
     png = io.BytesIO()
     Image.new("RGB", (64, 48)).save(png, "PNG")
-    assert exif_focal(png.getvalue(), (64, 48)) is None
-    assert exif_focal(b"not an image", (64, 48)) is None
+    assert exif_focal(read_metadata(png.getvalue()), (64, 48)) is None
+    assert exif_focal(read_metadata(b"not an image"), (64, 48)) is None
 
 
 def test_the_intrinsics_say_they_come_from_the_exif():
-    k = exif_intrinsics(jpeg((640, 480), {T.FocalLengthIn35mmFilm: 24}), (640, 480))
+    k = exif_intrinsics(read_metadata(jpeg((640, 480), {T.FocalLengthIn35mmFilm: 24})), (640, 480))
     assert k is not None
     assert k.source == "exif"
     assert k.fx_px == k.fy_px == pytest.approx(24.0 * 800.0 / math.hypot(36.0, 24.0))
     assert k.cx_px is None  # the image's centre
-    assert exif_intrinsics(jpeg((640, 480)), (640, 480)) is None
+    assert exif_intrinsics(read_metadata(jpeg((640, 480))), (640, 480)) is None
 
 
 @pytest.mark.anyio

@@ -16,6 +16,8 @@ from PIL import ExifTags, Image
 from cosmos.bench.variants import dji_xmp
 from services.common.contracts.free import CameraAttitude
 from services.common.geometry.free_camera import LensDistortion
+from services.controller.photo_exif import exif_intrinsics
+from services.controller.photo_metadata import read_metadata
 from services.controller.photo_xmp import xmp_attitude, xmp_intrinsics
 from tests.support import submitted_search
 
@@ -38,7 +40,7 @@ def jpeg(size: tuple[int, int], xmp: bytes | None, tags: dict[int, object] | Non
 
 
 def test_the_calibration_gives_focal_lengths_principal_point_and_lens():
-    k = xmp_intrinsics(jpeg(SIZE, dji_xmp(FOCAL, CENTRE, SIZE, P4RTK)), SIZE)
+    k = xmp_intrinsics(read_metadata(jpeg(SIZE, dji_xmp(FOCAL, CENTRE, SIZE, P4RTK))), SIZE)
     assert k is not None
     assert k.source == "calibration"
     assert (k.fx_px, k.fy_px) == pytest.approx(FOCAL)
@@ -51,7 +53,9 @@ def test_a_resized_photo_scales_the_pixels_and_keeps_the_lens():
     principal point's offset shrink fourfold; the distortion, on normalised coordinates, stays."""
     small = (1216, 912)
     original = {T.ExifImageWidth: SIZE[0], T.ExifImageHeight: SIZE[1]}
-    k = xmp_intrinsics(jpeg(small, dji_xmp(FOCAL, CENTRE, SIZE, P4RTK), original), small)
+    k = xmp_intrinsics(
+        read_metadata(jpeg(small, dji_xmp(FOCAL, CENTRE, SIZE, P4RTK), original)), small
+    )
     assert k is not None
     assert (k.fx_px, k.fy_px) == pytest.approx((FOCAL[0] / 4, FOCAL[1] / 4))
     assert (k.cx_px, k.cy_px) == pytest.approx((608.0 - 7.71 / 4, 456.0 + 45.9 / 4))
@@ -60,7 +64,7 @@ def test_a_resized_photo_scales_the_pixels_and_keeps_the_lens():
 
 def test_a_dewarped_photo_has_no_distortion():
     xmp = dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, dewarped=True)
-    k = xmp_intrinsics(jpeg(SIZE, xmp), SIZE)
+    k = xmp_intrinsics(read_metadata(jpeg(SIZE, xmp)), SIZE)
     assert k is not None
     assert k.distortion is None
     assert k.fx_px == pytest.approx(FOCAL[0])
@@ -75,7 +79,7 @@ def test_the_calibration_may_be_an_element_rather_than_an_attribute():
         f"<drone-dji:DewarpData>2018-03-13;{numbers}</drone-dji:DewarpData>"
         "</rdf:Description></rdf:RDF></x:xmpmeta>"
     ).encode()
-    k = xmp_intrinsics(jpeg(SIZE, xmp), SIZE)
+    k = xmp_intrinsics(read_metadata(jpeg(SIZE, xmp)), SIZE)
     assert k is not None
     assert k.distortion is not None
     assert k.distortion.k3 == pytest.approx(-0.0357628)
@@ -105,7 +109,7 @@ def test_the_calibration_may_be_an_element_rather_than_an_attribute():
     ids=["crop", "no-lens", "folds", "range", "nan", "eight", "broken", "none"],
 )
 def test_unusable_or_absent_calibrations_are_not_used(xmp, size, tags):
-    assert xmp_intrinsics(jpeg(size, xmp, tags), size) is None
+    assert xmp_intrinsics(read_metadata(jpeg(size, xmp, tags)), size) is None
 
 
 @settings(max_examples=100, deadline=None)
@@ -120,7 +124,9 @@ def test_any_numbers_in_the_calibration_are_read_or_ignored_never_raised(numbers
     start = packet.index(b"2024-05-01;") + len(b"2024-05-01;")
     end = packet.index(b'"', start)
     text = ",".join(repr(v) for v in numbers).encode()
-    found = xmp_intrinsics(jpeg((64, 48), packet[:start] + text + packet[end:]), (64, 48))
+    found = xmp_intrinsics(
+        read_metadata(jpeg((64, 48), packet[:start] + text + packet[end:])), (64, 48)
+    )
     if found is not None:
         assert found.fx_px is not None
         assert found.fx_px > 0
@@ -129,8 +135,8 @@ def test_any_numbers_in_the_calibration_are_read_or_ignored_never_raised(numbers
 def test_only_a_jpeg_is_read():
     png = io.BytesIO()
     Image.new("RGB", (64, 48)).save(png, "PNG")
-    assert xmp_intrinsics(png.getvalue(), (64, 48)) is None
-    assert xmp_intrinsics(b"not an image", (64, 48)) is None
+    assert xmp_intrinsics(read_metadata(png.getvalue()), (64, 48)) is None
+    assert xmp_intrinsics(read_metadata(b"not an image"), (64, 48)) is None
 
 
 def test_a_packet_declaring_entities_is_refused_not_expanded():
@@ -140,15 +146,25 @@ def test_a_packet_declaring_entities_is_refused_not_expanded():
     declared = '<?xml version="1.0"?><!DOCTYPE x [<!ENTITY a "aaaaaaaaaa">]>' + packet.replace(
         "</rdf:RDF>", "<rdf:li>&a;</rdf:li></rdf:RDF>"
     )
-    assert xmp_intrinsics(jpeg(SIZE, packet.encode()), SIZE) is not None
-    assert xmp_intrinsics(jpeg(SIZE, declared.encode()), SIZE) is None
+    assert xmp_intrinsics(read_metadata(jpeg(SIZE, packet.encode())), SIZE) is not None
+    assert xmp_intrinsics(read_metadata(jpeg(SIZE, declared.encode())), SIZE) is None
+
+
+def test_an_unreadable_packet_leaves_the_exif_read():
+    declared = '<!DOCTYPE x [<!ENTITY a "a">]><x:xmpmeta xmlns:x="adobe:ns:meta/">&a;</x:xmpmeta>'
+    metadata = read_metadata(jpeg(SIZE, declared.encode(), {T.FocalLengthIn35mmFilm: 24}))
+    assert metadata.xmp == {}
+    assert metadata.exif[T.FocalLengthIn35mmFilm] == 24
+    assert exif_intrinsics(metadata, SIZE) is not None
 
 
 def test_the_gimbal_gives_the_camera_s_pitch_and_roll_in_our_conventions():
     """DJI's pitch −90° looks straight down (ours +90°); its roll keeps its sign."""
     xmp = dji_xmp(FOCAL, CENTRE, SIZE, P4RTK, attitude=(62.5, -3.25))
     assert b'GimbalPitchDegree="-62.50"' in xmp
-    assert xmp_attitude(jpeg(SIZE, xmp)) == CameraAttitude(pitch_deg=62.5, roll_deg=-3.25)
+    assert xmp_attitude(read_metadata(jpeg(SIZE, xmp))) == CameraAttitude(
+        pitch_deg=62.5, roll_deg=-3.25
+    )
 
 
 @pytest.mark.parametrize(
@@ -165,7 +181,7 @@ def test_the_gimbal_gives_the_camera_s_pitch_and_roll_in_our_conventions():
     ids=["none", "pitch-alone", "nan", "beyond-straight-down", "no-xmp"],
 )
 def test_no_usable_gimbal_is_no_attitude(xmp):
-    assert xmp_attitude(jpeg(SIZE, xmp)) is None
+    assert xmp_attitude(read_metadata(jpeg(SIZE, xmp))) is None
 
 
 @pytest.mark.anyio
