@@ -8,6 +8,7 @@ import socket
 import threading
 import time
 from collections import Counter
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import replace
@@ -43,6 +44,13 @@ MAX_SLOW_SOCKETS: Final = 1000
 HALF_HEAD: Final = (
     b"POST /searches HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/png\r\nX-Slow: "
 )
+UPLOAD_PIECE_BYTES: Final = 1 << 20
+"""The maximal uploads hand their body to httpx in pieces of this size. Handed one 48 MiB
+``bytes``, httpcore copies what is left of it after every ``send`` (``buffer = buffer[n:]``),
+holding the GIL: 50 uploads at once so starved the client process that some sent no request
+head within the controller's 10 s head deadline (closed without an answer:
+``RemoteProtocolError``, 5 of 50 in one full test run) and the load's keep-alive connections
+went idle past uvicorn's 5 s."""
 
 
 def _address(url: str) -> tuple[str, int]:
@@ -190,7 +198,12 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
             def upload(_: int) -> tuple[int | None, bool, float, str | None]:
                 ready.wait(timeout=timing.upload_timeout_s)
                 try:
-                    response = client.post("/searches", content=body, params={"scene": "demo"})
+                    response = client.post(
+                        "/searches",
+                        content=_chunks(body),
+                        params={"scene": "demo"},
+                        headers={"Content-Length": str(len(body))},  # not chunked on the wire
+                    )
                 except httpx.TransportError as error:
                     with errors_lock:
                         errors[f"{type(error).__name__}: {error}"] += 1
@@ -224,6 +237,12 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
         badly_answered=sum(status is not None and not good for status, good, _, _ in answers),
         slowest_answer_s=max((seconds for _, _, seconds, _ in answers), default=0.0),
     )
+
+
+def _chunks(body: bytes) -> Iterator[bytes]:
+    """``body`` in pieces of :data:`UPLOAD_PIECE_BYTES`, for the client to send one by one."""
+    for start in range(0, len(body), UPLOAD_PIECE_BYTES):
+        yield body[start : start + UPLOAD_PIECE_BYTES]
 
 
 def well_answered(response: httpx.Response) -> bool:
