@@ -3,14 +3,31 @@ the service token a stage asks for, errors that carry the service's problem deta
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from types import TracebackType
-from typing import ClassVar, Self
+from typing import ClassVar, Final, Self
 
 import httpx
 
 from services.common.auth import bearer
 
-__all__ = ["ServiceCallError", "ServiceClient"]
+__all__ = ["PIECE_BYTES", "ServiceCallError", "ServiceClient", "in_pieces"]
+
+PIECE_BYTES: Final = 1 << 20
+
+
+def in_pieces(body: bytes, size: int = PIECE_BYTES) -> Iterator[bytes]:
+    """``body`` in pieces of ``size`` bytes, for an httpx request's ``content`` (with its
+    ``Content-Length`` header set, so it is not sent chunked).
+
+    Why: httpx's synchronous transport sends each part of a body by slicing off what the socket
+    took after every ``send`` (``buffer = buffer[n:]``), copying the rest, under the GIL. One
+    48 MiB part is copied over and over; the slower the link, the more sends and copies. Fifty
+    such uploads at once from one process, to a server that read them all, took 13.2 s of the
+    client's CPU, and the last request head went out 11.3 s after the first (past a service's
+    10 s head deadline); in 1 MiB pieces, 4.1 s and 0.17 s (one run each)."""
+    for start in range(0, len(body), size):
+        yield body[start : start + size]
 
 
 class ServiceCallError(RuntimeError):

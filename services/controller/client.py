@@ -21,7 +21,7 @@ from typing import Any, Final
 import httpx
 import tenacity
 
-from services.common.client import ServiceCallError, ServiceClient
+from services.common.client import ServiceCallError, ServiceClient, in_pieces
 from services.common.contracts.search import Iteration, Search
 from services.common.images import media_type_of
 
@@ -157,9 +157,12 @@ class ControllerClient(ServiceClient):
                     response = self._check(
                         self._http.post(
                             "/searches",
-                            content=image,
+                            content=in_pieces(image),
                             params={"scene": scene, **query},
-                            headers={"Content-Type": media_type_of(image)},
+                            headers={
+                                "Content-Type": media_type_of(image),
+                                "Content-Length": str(len(image)),
+                            },
                         )
                     )
                 except ControllerError as refusal:

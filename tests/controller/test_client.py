@@ -3,7 +3,7 @@
 the search taken; a quota whose ``Retry-After`` lies beyond the budget, or a budget of 0, ends
 at once with the controller's own detail, and so does any other refusal; ``cosmos search`` says
 so in a sentence; the fault suite's load counts each refusal it waits out and stops waiting when
-it is stopped."""
+it is stopped. The image goes in pieces (``in_pieces``), which make up the image."""
 
 from __future__ import annotations
 
@@ -18,11 +18,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from cosmos import cli
 from cosmos.bench.faults.harness import Load
 from cosmos.bench.target import Target
 from cosmos.stack import Stack, local_stack
+from services.common.client import in_pieces
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.pose import GridIndex, PoseQuery
 from services.controller.client import ControllerClient, ControllerError, retry_after_s
@@ -211,3 +214,10 @@ def test_retry_after_reads_seconds_and_http_dates():
     assert retry_after_s(None) is None
     assert retry_after_s("soon") is None
     assert retry_after_s("-3") is None
+
+
+@given(st.binary(max_size=5000), st.integers(1, 700))
+def test_a_body_in_pieces_is_the_body_in_order_none_larger_than_asked(body, size):
+    pieces = list(in_pieces(body, size))
+    assert b"".join(pieces) == body
+    assert all(0 < len(piece) <= size for piece in pieces)

@@ -8,7 +8,6 @@ import socket
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import replace
@@ -28,6 +27,7 @@ from cosmos.bench.faults.rig import Rig
 from cosmos.bench.faults.under_load import Timing, UnderLoad, listed
 from cosmos.bench.target import Target
 from services.common.auth import bearer
+from services.common.client import in_pieces
 from services.common.http import PROBLEM_JSON
 from services.common.images import PPM_MEDIA_TYPE, decode_image, encode_ppm
 from services.controller.settings import ControllerSettings
@@ -44,13 +44,6 @@ MAX_SLOW_SOCKETS: Final = 1000
 HALF_HEAD: Final = (
     b"POST /searches HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/png\r\nX-Slow: "
 )
-UPLOAD_PIECE_BYTES: Final = 1 << 20
-"""The maximal uploads hand their body to httpx in pieces of this size. Handed one 48 MiB
-``bytes``, httpcore copies what is left of it after every ``send`` (``buffer = buffer[n:]``),
-holding the GIL: 50 uploads at once so starved the client process that some sent no request
-head within the controller's 10 s head deadline (closed without an answer:
-``RemoteProtocolError``, 5 of 50 in one full test run) and the load's keep-alive connections
-went idle past uvicorn's 5 s."""
 
 
 def _address(url: str) -> tuple[str, int]:
@@ -200,7 +193,7 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
                 try:
                     response = client.post(
                         "/searches",
-                        content=_chunks(body),
+                        content=in_pieces(body),  # whole, the client starved itself
                         params={"scene": "demo"},
                         headers={"Content-Length": str(len(body))},  # not chunked on the wire
                     )
@@ -237,12 +230,6 @@ def maximal_uploads(rig: Rig, timing: Timing) -> MaximalUploads:
         badly_answered=sum(status is not None and not good for status, good, _, _ in answers),
         slowest_answer_s=max((seconds for _, _, seconds, _ in answers), default=0.0),
     )
-
-
-def _chunks(body: bytes) -> Iterator[bytes]:
-    """``body`` in pieces of :data:`UPLOAD_PIECE_BYTES`, for the client to send one by one."""
-    for start in range(0, len(body), UPLOAD_PIECE_BYTES):
-        yield body[start : start + UPLOAD_PIECE_BYTES]
 
 
 def well_answered(response: httpx.Response) -> bool:
