@@ -1,7 +1,8 @@
 """A free search from the page in a real browser (Debian's Chromium under Playwright) against the
 real stack: a target rendered at a free camera off the hemisphere, its answer's pose in the
 panel, its camera drawn as a frustum in the 3D view, the boxes predicted at the answer over the
-target. It writes the README's ``free-search`` screenshot (``SCREENSHOTS_DIR``)."""
+target; the camera's pitch and roll typed in, recorded and shown, and refused on their field when
+out of range. It writes the README's ``free-search`` screenshot (``SCREENSHOTS_DIR``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import pytest
 from playwright.sync_api import expect
 
 from cosmos.bench.variants import exif_jpeg
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import FreeCamera, yaw_pitch_roll_of_rotation
 from services.renderer.client import RendererClient
 from tests.web.conftest import api
 from tests.web.test_page import TIMEOUT_MS, colours, decoded, open_new_search, shoot
@@ -37,16 +38,18 @@ def free_search(
     give_fov: bool,
     exif: int | None = None,
     read_exif: bool = True,
+    attitude: str = "",
 ) -> dict:
     """A free search from the page for ``camera`` rendered (its fov given or not; a JPEG whose
-    EXIF says ``exif`` mm as FocalLengthIn35mmFilm when given, read or not), once it succeeded:
-    the search as the API has it."""
+    EXIF says ``exif`` mm as FocalLengthIn35mmFilm when given, read or not; ``attitude`` typed
+    into its field), once it succeeded: the search as the API has it."""
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, truth = renderer.render_camera("demo", camera)
     target.write_bytes(image if exif is None else exif_jpeg(image, exif))
     open_new_search(page, stack)
     page.set_input_files("#target-file", str(target))
-    assert page.is_disabled("#fov_deg")  # a lens is for free searches only
+    assert page.is_disabled("#fov_deg")  # a lens and an attitude are for free searches only
+    assert page.is_disabled("#attitude")
     assert page.is_disabled("#exif")
     page.select_option("#mode", "free")
     assert page.is_disabled("#strategy")
@@ -56,6 +59,7 @@ def free_search(
         page.fill("#fov_deg", f"{truth.camera.fov_deg}")
     if not read_exif:
         page.uncheck("#exif")
+    page.fill("#attitude", attitude)
     page.click("#go")
     page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
     search_id = page.url.rsplit("/", 1)[1]
@@ -66,8 +70,15 @@ def free_search(
 
 
 def test_a_free_search_shows_its_camera_its_pose_and_the_predicted_boxes(page, stack, tmp_path):
-    final = free_search(page, stack, tmp_path / "drone.png", DRONE, give_fov=True)
+    _, pitch, roll = yaw_pitch_roll_of_rotation(DRONE.rotation())
+    attitude = f"{pitch:.1f}, {roll:.1f}"  # as a flight log has the gimbal's
+    target = tmp_path / "drone.png"
+    final = free_search(page, stack, target, DRONE, give_fov=True, attitude=attitude)
     assert final["mode"] == "free"
+    assert final["attitude"] == {"pitch_deg": round(pitch, 1), "roll_deg": round(roll, 1)}
+    assert page.inner_text("#search-attitude").startswith(
+        f"camera's pitch {round(pitch, 1):g}°, roll {round(roll, 1):g}°"
+    )
     free = final["result"]["free"]
     pose = free["pose"]
 
@@ -162,3 +173,17 @@ def test_an_ambiguous_free_answer_shows_its_alternatives(page, stack, tmp_path):
     page.goto(f"{stack.controller}/#/searches")
     row = page.locator("#searches tbody tr", has_text=final["id"][:12])
     expect(row.locator("td").nth(3)).to_have_text("free camera")
+
+
+def test_an_attitude_out_of_range_is_refused_on_its_field(page, stack, tmp_path):
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image, _ = renderer.render_camera("demo", DRONE)
+    (tmp_path / "drone.png").write_bytes(image)
+    open_new_search(page, stack)
+    page.set_input_files("#target-file", str(tmp_path / "drone.png"))
+    page.select_option("#mode", "free")
+    page.fill("#attitude", "95, 0")  # beyond straight down
+    page.click("#go")
+    expect(page.locator("#form-errors")).to_contain_text("(field: attitude)")
+    expect(page.locator("#attitude")).to_have_class(re.compile(r"\binvalid\b"))
+    assert page.url.endswith("#/")  # no search was made

@@ -1,6 +1,7 @@
 // A new search: a scene (with a preview and its grid size), a target (a dropped or chosen file,
 // or a pose picked on the hemisphere, rendered), a strategy and an optional start, or a free
-// search (any camera: its pose and lens from the target, optionally with the photo's fov); then go.
+// search (any camera: its pose and lens from the target, optionally with the photo's fov and its
+// gimbal's pitch and roll); then go.
 
 import { Problem, imageURL } from "./api.js";
 import { Picture } from "./draw.js";
@@ -44,6 +45,7 @@ export function showNewSearch({ view, api }, params) {
     h("option", { value: "free" }, "free (any camera)"),
   );
   const fov = h("input", { name: "fov_deg", id: "fov_deg", type: "number", min: 0, max: 180, step: "any", placeholder: "EXIF, else estimated", disabled: true });
+  const attitude = h("input", { name: "attitude", id: "attitude", type: "text", inputmode: "decimal", placeholder: "pitch, roll: XMP, else none", disabled: true });
   const exif = h("input", { name: "exif", id: "exif", type: "checkbox", checked: true, disabled: true });
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
   const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
@@ -62,7 +64,8 @@ export function showNewSearch({ view, api }, params) {
       h("h2", {}, "Search"),
       h("label", {}, "Mode ", mode),
       h("label", {}, "Photo's horizontal fov° (free mode, optional) ", fov),
-      h("label", {}, exif, " without a fov, read the focal length from the photo's EXIF"),
+      h("label", {}, "Camera's pitch, roll° (free mode, optional: a flight log's gimbal angles, 90 straight down) ", attitude),
+      h("label", {}, exif, " read what the photo's EXIF and XMP say of its lens and gimbal, where not given here"),
       h("label", {}, "Strategy ", strategy),
       h("fieldset", {}, h("legend", {}, "Start (optional, snapped to the grid)"), h("label", {}, "θ° ", theta), h("label", {}, "φ° ", phi)),
       h("label", {}, "Max iterations ", maxIterations),
@@ -155,6 +158,7 @@ export function showNewSearch({ view, api }, params) {
   mode.addEventListener("change", () => {
     const free = mode.value === "free"; // a free search has no strategy or start, a grid one no fov
     fov.disabled = !free;
+    attitude.disabled = !free;
     exif.disabled = !free;
     for (const input of [strategy, theta, phi]) input.disabled = free;
   });
@@ -182,7 +186,7 @@ export function showNewSearch({ view, api }, params) {
     body.append("image", target.blob, target.name);
     body.append("scene", sceneSelect.value);
     body.append("mode", mode.value);
-    const options = mode.value === "free" ? [fov, maxIterations] : [theta, phi, maxIterations];
+    const options = mode.value === "free" ? [fov, attitude, maxIterations] : [theta, phi, maxIterations];
     if (mode.value !== "free") body.append("strategy", strategy.value);
     if (mode.value === "free" && !exif.checked) body.append("exif", "false");
     for (const input of options) if (input.value !== "") body.append(input.name, input.value);

@@ -93,6 +93,8 @@ export function showSearch({ view, api }, id) {
       free ? h("span", {}, given ? `lens given (${given.fov_deg ? `fov ${given.fov_deg}°` : `fx ${given.fx_px}, fy ${given.fy_px}`})` : "lens not given") : h("span", {}, `start ${poseText(search.start)}`),
       h("span", {}, `created ${when(search.created_at)}`),
     ];
+    const attitude = search.attitude; // the camera's pitch and roll, given or from the photo's XMP
+    if (free && attitude) parts.splice(3, 0, h("span", { id: "search-attitude" }, `camera's pitch ${attitude.pitch_deg}°, roll ${attitude.roll_deg}° (poses of another tilt ruled out)`));
     if (TERMINAL.has(search.status)) parts.push(h("span", {}, `wall time ${((new Date(search.updated_at) - new Date(search.created_at)) / 1000).toFixed(1)} s`));
     const children = [h("p", { class: "facts" }, parts)];
     const result = search.result;
