@@ -45,7 +45,7 @@ export function showNewSearch({ view, api }, params) {
     h("option", { value: "free" }, "free (any camera)"),
   );
   const fov = h("input", { name: "fov_deg", id: "fov_deg", type: "number", min: 0, max: 180, step: "any", placeholder: "EXIF, else estimated", disabled: true });
-  const attitude = h("input", { name: "attitude", id: "attitude", type: "text", inputmode: "decimal", placeholder: "pitch, roll: XMP, else none", disabled: true });
+  const attitude = h("input", { name: "attitude", id: "attitude", type: "text", inputmode: "decimal", placeholder: "XMP, else none", disabled: true });
   const exif = h("input", { name: "exif", id: "exif", type: "checkbox", checked: true, disabled: true });
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
   const theta = h("input", { name: "start_theta_deg", id: "start_theta_deg", type: "number", min: 0, max: 90, step: "any", placeholder: "random" });
