@@ -15,7 +15,6 @@ the OpenAPI schema.
 from __future__ import annotations
 
 import hmac
-import json
 import logging
 import os
 import secrets
@@ -26,6 +25,7 @@ from fastapi import FastAPI
 from pydantic import SecretStr, field_validator
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from services.common.bodies import send_problem
 from services.common.errors import ProblemDetails, problem_type
 from services.common.settings import ServiceSettings
 
@@ -111,24 +111,6 @@ class ServiceTokenSettings(ServiceSettings):
         )
 
 
-def _unauthorized(path: str, detail: str) -> tuple[bytes, list[tuple[bytes, bytes]]]:
-    problem = ProblemDetails(
-        type=problem_type("unauthorized"),
-        title="Unauthorized",
-        status=401,
-        detail=detail,
-        instance=path,
-    )
-    body = json.dumps(problem.model_dump(mode="json", exclude_none=True)).encode()
-    headers = [
-        (b"content-type", b"application/problem+json"),
-        (b"content-length", str(len(body)).encode()),
-        (b"www-authenticate", b'Bearer realm="cosmos"'),
-        (b"connection", b"close"),  # the body was not read
-    ]
-    return body, headers
-
-
 class ServiceTokenMiddleware:
     """Answer 401 (problem+json) to an HTTP request without ``Authorization: Bearer <token>``,
     except on :data:`PROBE_PATHS`. The token is compared in constant time. Without a token
@@ -154,9 +136,16 @@ class ServiceTokenMiddleware:
             return
         else:
             detail = "the service token is wrong"
-        body, headers = _unauthorized(scope["path"], detail)
-        await send({"type": "http.response.start", "status": 401, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+        problem = ProblemDetails(
+            type=problem_type("unauthorized"),
+            title="Unauthorized",
+            status=401,
+            detail=detail,
+            instance=scope["path"],
+        )
+        # A body is not kept: it is dropped as it comes, then the connection closed (bodies.py).
+        challenge = {"WWW-Authenticate": 'Bearer realm="cosmos"'}
+        await send_problem(send, scope, problem, challenge, receive=receive)
 
 
 def declare_service_token(app: FastAPI, problem: Callable[[], dict[str, Any]]) -> None:

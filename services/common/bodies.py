@@ -17,17 +17,19 @@ so that what the app is given is bounded three ways:
   connection is closed; its bytes are given back at once. A trickling client holds a budget's
   share no longer than that.
 
-**Early answers** (413 by ``Content-Length``, 503, 408, and the controller's 401 before a
-body is read) close the connection, but not at once: what still arrives of the body is read and
-dropped (:func:`send_problem` with ``receive``) until it ends, for at most :data:`LINGER_S`, and
-:data:`LINGER_IDLE_S` without a byte. Why (RFC 9112 §9.6): a server that closes a connection
-with unread bytes in it sends a TCP reset, not a FIN, and a client still writing its body (most
-send all of it before they read) may have the answer thrown away with the reset on its way: some
-TCP stacks discard what they received but the application had not yet read. Measured over raw
-sockets (``tests/common/test_bodies.py``), a refused 1 MiB upload sent whole ended in a reset
-before, and ends in a FIN now. The dropped bytes are never held, nor counted in the budget:
-what this costs is the reading, 1.6 s of the server's CPU per GB dropped (20 refused 48 MiB
-uploads over loopback, one run), so at most :data:`LINGER_S` of a connection's bandwidth.
+**Early answers** (413 by ``Content-Length``, 503, 408, and the 401s of the stages' service
+token and the controller's API keys, before a body is read) close the connection, but not at
+once: what still arrives of the body is read and dropped (:func:`send_problem` with
+``receive``) until it ends, for at most :data:`LINGER_S`, and :data:`LINGER_IDLE_S` without a
+byte. Why (RFC 9112 §9.6): a server that closes a connection with unread bytes in it sends a
+TCP reset, not a FIN, and a client still writing its body (most send all of it before they
+read) may have the answer thrown away with the reset on its way: some TCP stacks discard what
+they received but the application had not yet read. Measured over raw sockets
+(``tests/common/test_bodies.py``, ``tests/detector/test_http.py``), a refused upload sent whole
+ended in a reset before, and ends in a FIN now. The dropped bytes are never held, nor counted
+in the budget: what this costs is the reading, 1.6 s of the server's CPU per GB dropped (20
+refused 48 MiB uploads over loopback, one run), so at most :data:`LINGER_S` of a connection's
+bandwidth.
 
 Small bodies do not wait behind large ones: a body of at most ``small_bytes`` (1/16 of the size
 limit: a JSON request, a search view's 230 KB PPM, a typical target) is counted in a lane of its

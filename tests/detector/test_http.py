@@ -63,20 +63,21 @@ def test_the_detector_detects_for_holders_of_the_service_token_only(detector_pro
 @pytest.mark.parametrize("token", ["", "a-token-of-another-stack-0123456789"])
 def test_a_strangers_upload_is_refused_before_its_body_is_read(detector_process, token):
     """The service token is checked from the head, before the body bounds: a stranger's large
-    upload gets its 401 with only a part of its body sent, and the connection is closed."""
+    upload, sent whole before it reads (as most clients do), gets its 401, its body dropped,
+    and the connection ends in a FIN, not a reset (which could cost the client the answer)."""
     host, port = detector_process.url.removeprefix("http://").split(":")
     authorization = f"Authorization: Bearer {token}\r\n" if token else ""
     head = (
         f"POST /detect HTTP/1.1\r\nHost: test\r\nContent-Type: image/png\r\n{authorization}"
         f"Content-Length: {UPLOAD_LIMIT}\r\n\r\n"
     )
-    with socket.create_connection((host, int(port)), timeout=2.0) as sock:
+    with socket.create_connection((host, int(port)), timeout=5.0) as sock:
         started = time.monotonic()
-        sock.sendall(head.encode() + b"\0" * 1000)  # the rest is never sent
+        sock.sendall(head.encode() + b"\0" * UPLOAD_LIMIT)
         received = b""
-        while chunk := sock.recv(65536):  # the server closes after its answer
+        while chunk := sock.recv(65536):  # a reset would raise ConnectionResetError here
             received += chunk
-        assert time.monotonic() - started < 1.0
+        assert time.monotonic() - started < 2.0
     status_line, _, rest = received.partition(b"\r\n")
     assert status_line.split()[1] == b"401"
     assert b"www-authenticate: bearer" in rest.lower()
