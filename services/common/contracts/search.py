@@ -58,8 +58,9 @@ _NUMBER = r"\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*"
 _FOUR_NUMBERS = rf"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}$"
 """Four comma-separated decimal numbers, as a form field carries a camera's four parameters."""
 _LENS_NUMBERS = rf"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}(,{_NUMBER})?$"
-_TWO_NUMBERS = rf"^{_NUMBER},{_NUMBER}$"
 """OpenCV's distortion coefficients ``k1,k2,p1,p2`` and optionally ``k3``."""
+_TWO_NUMBERS = rf"^{_NUMBER},{_NUMBER}$"
+"""Two comma-separated decimal numbers: a camera's pitch and roll."""
 
 ViewSpp = Annotated[int, Field(ge=1, le=1024)]
 """Samples per pixel of a search's views (the controller's ``COSMOS_CONTROLLER_VIEW_SPP``)."""
