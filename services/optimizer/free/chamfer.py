@@ -2,9 +2,9 @@
 points against one level of the target's distance maps, and their Jacobian.
 
 For a pose ``p`` (rotation vector ``ω``, translation ``t`` and, with the focal length fitted,
-a zoom ``s``), point ``X_i`` projects to ``π(X_i; p)`` and its residual is the level's distance
-map of its orientation bin there, ``D_{b_i}(π(X_i; p))``, sampled bilinearly; the Jacobian is
-``∇D · ∂π/∂p``.
+a zoom ``s``, and with a radial term fitted too, OpenCV's ``k1``), point ``X_i`` projects to
+``π(X_i; p)`` and its residual is the level's distance map of its orientation bin there,
+``D_{b_i}(π(X_i; p))``, sampled bilinearly; the Jacobian is ``∇D · ∂π/∂p``.
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ class ChamferProblem:
         distortion: LensDistortion | None,
         fit_focal: bool,
         limit: int | None = None,
+        fit_radial: bool = False,
     ) -> None:
         world, bins = points.world, points.bins
         if limit is not None and len(world) > limit:
@@ -53,8 +54,12 @@ class ChamferProblem:
             world, bins = world[keep], bins[keep]
         self.world, self.bins, self.level, self.k = world, bins, level, intrinsics
         self.coefficients = lens_coefficients(distortion)
-        self.pinhole = not np.any(self.coefficients)
-        self.fit_focal = fit_focal
+        if fit_radial and np.any(self.coefficients):
+            raise ValueError("a radial term is fitted on a pinhole lens only")
+        self.pinhole = not np.any(self.coefficients) and not fit_radial
+        self.fit_focal, self.fit_radial = fit_focal, fit_radial
+        self.radial_index = 7 if fit_focal else 6
+        """Where ``k1`` lies in the parameters, when fitted: after the zoom, if any."""
         self._at: FloatArray | None = None
         self._uv: FloatArray = np.empty((0, 2))
         self._ahead: NDArray[np.bool_] = np.empty(0, dtype=bool)
@@ -83,7 +88,10 @@ class ChamferProblem:
             )
         else:
             matrix = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-            uv, jacobian = cv2.projectPoints(self.world, x[:3], x[3:6], matrix, self.coefficients)
+            lens = self.coefficients
+            if self.fit_radial:
+                lens = np.array([float(x[self.radial_index]), 0.0, 0.0, 0.0, 0.0])
+            uv, jacobian = cv2.projectPoints(self.world, x[:3], x[3:6], matrix, lens)
             self._uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
             self._columns = self._opencv_columns(np.asarray(jacobian), fx, fy, x)
         return self._uv, self._ahead
@@ -91,11 +99,14 @@ class ChamferProblem:
     def _opencv_columns(
         self, jacobian: FloatArray, fx: float, fy: float, x: FloatArray
     ) -> FloatArray:
-        """``∂(u, v)/∂p`` ``(N, 2, P)`` from ``cv2.projectPoints``' Jacobian."""
+        """``∂(u, v)/∂p`` ``(N, 2, P)`` from ``cv2.projectPoints``' Jacobian (its columns: the
+        rotation, translation, ``fx, fy, cx, cy``, then ``k1``…)."""
         columns = jacobian[:, :6]
         if self.fit_focal:
             focal = (jacobian[:, 6:7] * fx + jacobian[:, 7:8] * fy) / float(x[6])
             columns = np.hstack([columns, focal])
+        if self.fit_radial:
+            columns = np.hstack([columns, jacobian[:, 10:11]])
         return columns.reshape(-1, 2, columns.shape[1])
 
     def _pinhole_columns(self, x: FloatArray) -> FloatArray:

@@ -89,6 +89,13 @@ Unknown focal length
     fits within 2 % of the true fov 3 → 11 of 16 (10–30° 2 → 4 of 4, 60–89° 1 → 4 of 8, nadir
     0 → 3 of 4); its wall at a zoom of 0.9 rose in every band.
 
+Lens check
+    The fit above is a pinhole's unless a lens is given. Asked for (``check_radial``), one more
+    fit at full resolution from where it ended frees OpenCV's radial ``k1`` too, and the focal
+    length unless it was given (:func:`radial_check`, with ``cv2.projectPoints``' Jacobian
+    column of ``k1``): how far that bends the edges, and how surely, tells a distorted photo
+    from a pinhole's (:mod:`services.optimizer.refine_pose` judges it).
+
 The residual reported is the RMS of ``D`` over the points within :data:`INLIER_PX` of a target
 edge at full resolution: a pose that explains the image leaves most points there.
 """
@@ -194,6 +201,36 @@ benchmarks.dense_light`` (120 cases): at the outline's fit, the median share was
 and JPEG images and 0.17 under another light; the last fit on both kept the ``photo`` cases
 (39 of 40 within 5 %/2°) and brought JPEG back within 2 %/1° where the outline alone lost two."""
 
+RADIAL_RANGE: Final = (-0.5, 0.5)
+"""The radial term the lens check (:func:`radial_check`) fits stays within these bounds of
+OpenCV's ``k1`` (wide drone lenses: about −0.3…0)."""
+
+
+@dataclass(frozen=True)
+class RadialCheck:
+    """The lens check of a fit without given intrinsics (:func:`radial_check`): the radial term
+    ``k1`` that the edges fit with the pose and focal length, its standard deviation ``sigma``,
+    how far it moves the farthest explained points from their pinhole pixels (``bend_px``, the
+    95th percentile over them of ``f |k1| r³``, ``r`` the normalised radius, in film pixels)
+    and how many edge points the fit explains (``inliers``); ``bounded`` when ``k1`` ended on a
+    bound of :data:`RADIAL_RANGE` (the fit ran off, not a lens); the fit's world-to-camera
+    ``rotation`` and ``translation`` and its ``zoom`` of the focal length."""
+
+    k1: float
+    sigma: float
+    bend_px: float
+    inliers: int
+    bounded: bool
+    rotation: FloatArray
+    translation: FloatArray
+    zoom: float
+
+    @property
+    def position(self) -> FloatArray:
+        """The camera centre ``c = -Rᵀ t`` (scene units)."""
+        centre: FloatArray = -self.rotation.T @ self.translation
+        return centre
+
 
 @dataclass(frozen=True)
 class DenseFit:
@@ -221,6 +258,8 @@ class DenseFit:
     """The share of the points a pose placed at random would leave within :data:`INLIER_PX` of
     a target edge of their orientation (:func:`~.edges.edge_chance`): the target's edge
     density, above which the shares that decide are taken."""
+    radial: RadialCheck | None = None
+    """The lens check, when asked for (``check_radial``) and enough points were explained."""
 
     def share(self, count: int | None = None) -> float:
         """The share of the points that ``count`` (:attr:`inliers` by default) is above
@@ -275,6 +314,8 @@ def _fit(problem: ChamferProblem, x: FloatArray) -> FloatArray:
         lower[6], upper[6] = FOCAL_RANGE
         x = x.copy()
         x[6] = np.clip(x[6], FOCAL_RANGE[0] + 1e-6, FOCAL_RANGE[1] - 1e-6)
+    if problem.fit_radial:
+        lower[problem.radial_index], upper[problem.radial_index] = RADIAL_RANGE
     result: FloatArray = least_squares(
         problem.residuals,
         x,
@@ -356,10 +397,12 @@ def _with_the_light(
     return fitted if focal_fitted else np.append(fitted, 1.0)
 
 
-def _zoom_sigma(problem: ChamferProblem, x: FloatArray, radius: float = INLIER_PX) -> float:
-    """The zoom's standard deviation at ``x``: ``√[(JᵀWJ)⁻¹]₇₇ s`` with ``W`` the soft-L1
-    weights ``1/√(1 + D²/σ²)`` and ``s`` the RMS distance of the points explained (within
-    ``radius``)."""
+def _zoom_sigma(
+    problem: ChamferProblem, x: FloatArray, radius: float = INLIER_PX, index: int = 6
+) -> float:
+    """The zoom's (or parameter ``index``'s) standard deviation at ``x``: ``√[(JᵀWJ)⁻¹]₇₇ s``
+    with ``W`` the soft-L1 weights ``1/√(1 + D²/σ²)`` and ``s`` the RMS distance of the points
+    explained (within ``radius``)."""
     distances = problem.residuals(x)
     jacobian = problem.jacobian(x)
     weights = 1.0 / np.sqrt(1.0 + (distances / problem.level.sigma) ** 2)
@@ -368,7 +411,48 @@ def _zoom_sigma(problem: ChamferProblem, x: FloatArray, radius: float = INLIER_P
         return math.inf
     information = (jacobian * weights[:, None]).T @ jacobian
     spread = float(np.sqrt(np.mean(distances[explained] ** 2)))
-    return float(np.sqrt(max(np.linalg.pinv(information)[6, 6], 0.0))) * spread
+    return float(np.sqrt(max(np.linalg.pinv(information)[index, index], 0.0))) * spread
+
+
+def radial_check(
+    points: EdgePoints,
+    level: Level,
+    k: Intrinsics,
+    x: FloatArray,
+    pixel: float,
+    fit_focal: bool,
+) -> RadialCheck | None:
+    """Whether the target's edges bend as a lens would: the pose, OpenCV's radial ``k1``
+    (``x_d = x (1 + k1 r²)``) and, with ``fit_focal``, the focal length fitted at the
+    full-resolution ``level`` from the pinhole fit ``x`` (pose and zoom), a point explained
+    within :data:`INLIER_PX` of the target's pixels (``pixel`` film pixels each). None when
+    fewer than :data:`MIN_POINTS` points are explained there."""
+    problem = ChamferProblem(points, level, k, None, fit_focal=fit_focal, fit_radial=True)
+    start = x if fit_focal else x[:6]
+    y = _fit(problem, np.append(start, 0.0))
+    radius = INLIER_PX * pixel
+    distances = problem.residuals(y)
+    explained = distances <= radius
+    if explained.sum() < MIN_POINTS:
+        return None
+    index = problem.radial_index
+    sigma = _zoom_sigma(problem, y, radius, index=index)
+    rotation, _ = cv2.Rodrigues(y[:3])
+    camera = points.world @ rotation.T + y[3:6]
+    normalised = np.hypot(camera[:, 0], camera[:, 1]) / np.maximum(camera[:, 2], 1e-9)
+    reach = float(np.percentile(normalised[explained], 95))
+    k1 = float(y[index])
+    zoom = float(y[6]) if fit_focal else float(x[6])
+    return RadialCheck(
+        k1=k1,
+        sigma=sigma,
+        bend_px=k.fx * zoom * abs(k1) * reach**3,
+        inliers=int(explained.sum()),
+        bounded=min(abs(k1 - bound) for bound in RADIAL_RANGE) < 1e-3,
+        rotation=np.asarray(rotation, dtype=np.float64),
+        translation=np.asarray(y[3:6], dtype=np.float64),
+        zoom=zoom,
+    )
 
 
 def refine_dense(
@@ -383,6 +467,7 @@ def refine_dense(
     pixel: float = 1.0,
     focal_range: FocalRange | None = None,
     zooms: Sequence[float] = ZOOM_STARTS,
+    check_radial: bool = False,
 ) -> DenseFit:
     """Refine ``camera`` (the estimate the render was made at, on the target's film) so that the
     render's edges fall on the target's (module docstring).
@@ -397,7 +482,8 @@ def refine_dense(
     target was enlarged to it: the levels are :func:`pyramid`'s, and a point is explained
     within :data:`INLIER_PX` of the target's pixels; ``focal_range``, the focal lengths considered
     on the film (:class:`~.focal_bounds.FocalRange`): a fitted one that ends outside it, or on
-    a bound, is not kept. The answer's pixels are the film's.
+    a bound, is not kept; ``check_radial`` adds the lens check (:func:`radial_check`) when no
+    ``distortion`` is given. The answer's pixels are the film's.
     """
     target = target_gray if isinstance(target_gray, TargetMaps) else TargetMaps(target_gray)
     shape = (camera.height, camera.width)
@@ -444,6 +530,9 @@ def refine_dense(
         else ChamferProblem(points, fine, k, distortion, True).residuals(x)
     )
     explained = final <= radius
+    radial = None
+    if check_radial and distortion is None and len(points.world) >= MIN_POINTS:
+        radial = radial_check(points, fine, k, x, pixel, fit_focal)
     rotation, _ = cv2.Rodrigues(x[:3])
     zoom = float(x[6])
     return DenseFit(
@@ -458,4 +547,5 @@ def refine_dense(
         focal_sigma=focal_sigma,
         depth=float(np.median(depths)) if depths.size else math.nan,
         chance=chance,
+        radial=radial,
     )
