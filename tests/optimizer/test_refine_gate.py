@@ -17,6 +17,7 @@ from services.common.geometry.free_camera import (
     quaternion_of_rotation,
 )
 from services.optimizer.free import DenseFit, Intrinsics
+from services.optimizer.free.dense import RadialCheck
 from services.optimizer.free.refit import worth_another_render
 from services.optimizer.refine_pose import box_shift_px, dense_report
 
@@ -210,3 +211,39 @@ def test_shares_are_taken_above_the_chance_of_an_edge_rich_target(
     assert report.accepted is accepted, report.reason
     assert report.chance == chance
     assert said in report.reason
+
+
+def bending(k1: float, sigma: float, bend_px: float, bounded: bool = False) -> RadialCheck:
+    """A lens check at the start pose: ``k1`` ± ``sigma``, bending ``bend_px`` film pixels."""
+    rotation = START.rotation().T
+    return RadialCheck(
+        k1=k1,
+        sigma=sigma,
+        bend_px=bend_px,
+        inliers=900,
+        bounded=bounded,
+        rotation=rotation,
+        translation=-rotation @ np.asarray(START.position),
+        zoom=1.0,
+    )
+
+
+@pytest.mark.parametrize(
+    ("check", "moved", "scale", "bends"),
+    [
+        (bending(-0.1, 0.005, 6.0), 0.0, 1.0, True),
+        (bending(-0.1, 0.005, 6.0), 3.0, 1.0, False),  # the fit was not accepted
+        (bending(-0.1, 0.005, 1.5), 0.0, 1.0, False),  # too slight a bend for the fit's pixels
+        (bending(-0.1, 0.005, 3.0), 0.0, 2.0, False),  # 3 film pixels are 1.5 of the target's
+        (bending(-0.1, 0.03, 6.0), 0.0, 1.0, False),  # k1 not sure enough
+        (bending(-0.5, 0.005, 60.0, bounded=True), 0.0, 1.0, False),  # on its bound: no lens
+    ],
+    ids=["bends", "not-accepted", "slight", "enlarged-film", "loose", "bounded"],
+)
+def test_a_lens_check_bends_only_past_its_thresholds_on_an_accepted_fit(check, moved, scale, bends):
+    f = replace(fit(moved, 0.0, 900, 800), radial=check)
+    report = dense_report(f, start_pose(), DEPTH, scale)
+    assert report.lens is not None
+    assert report.lens.bends is bends
+    assert report.lens.bend_px == pytest.approx(check.bend_px / scale)
+    assert report.accepted is (moved == 0.0)

@@ -235,6 +235,23 @@ def above_chance(count: float, total: int, chance: float) -> float:
     return (count / total - chance) / (1.0 - chance)
 
 
+class LensBend(FrozenModel):
+    """The lens check of a dense fit made without the photo's lens distortion: the radial
+    term ``k1`` (OpenCV's, ``x_d = x (1 + k1 r²)``) that the target's edges fit with the pose
+    and focal length, its standard deviation ``k1_sigma`` (the edge points taken as
+    independent), ``bend_px``, how far it moves the farthest explained edge points (the 95th
+    percentile, target pixels), and how many edge points that fit explains (``inliers``);
+    ``bends`` when the optimizer judges the bend beyond what a pinhole's fit leaves: the photo
+    was taken through a distorting lens, and a pose fitted as a pinhole's is not to be
+    confirmed."""
+
+    k1: Number
+    k1_sigma: NonNeg
+    bend_px: NonNeg
+    inliers: Annotated[Integer, Field(ge=0)]
+    bends: bool
+
+
 class DenseReport(FrozenModel):
     """How the dense edge refinement of a pose by its render went (``POST /refine-pose``):
     ``converged`` when the render's edges, moved with the pose, fell on the target's edges
@@ -284,6 +301,11 @@ class DenseReport(FrozenModel):
         description="The fit moved too far to be accepted, yet the image vouches for where it "
         "ended (most of its edge points on the target's, several times the start's): not an "
         "answer, but a pose worth rendering to check. False from an optimizer that does not say.",
+    )
+    lens: LensBend | None = Field(
+        default=None,
+        description="The lens check, made when no lens distortion was known: whether the "
+        "target's edges bend as a distorting lens would. Null when not made.",
     )
 
     def share(self, count: int | None = None) -> float:

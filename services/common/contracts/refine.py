@@ -80,11 +80,15 @@ class RefinePoseResponse(FrozenModel):
     """The refined ``pose`` (its intrinsics ``estimated`` when the focal length was fitted, its
     ``residual_px`` the dense fit's edge RMS, its pairs' predicted boxes at the refined pose)
     and how the fit went (``fit``): use it only when ``fit.accepted``; ``focal_check`` when the
-    request asked to check the pose's focal length (null from an optimizer that does not)."""
+    request asked to check the pose's focal length (null from an optimizer that does not);
+    ``lens_pose`` when the fit's lens check says the target's edges bend (``fit.lens.bends``):
+    the pose it fitted with its radial ``k1`` (intrinsics ``estimated``, distortion ``k1``
+    alone), else null."""
 
     pose: FreePose
     fit: DenseReport
     focal_check: FocalCheck | None = None
+    lens_pose: FreePose | None = None
 
 
 class TargetRequest(FrozenModel):
