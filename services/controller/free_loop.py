@@ -99,6 +99,7 @@ from services.controller.free_verdict import (
     free_result,
     others_standing,
 )
+from services.controller.lens_check import lens_bent, with_lens_doubt
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -362,6 +363,9 @@ class FreeSearchLoop:
         if overruled is not None and isinstance(outcome, RefinePoseResponse):
             stated = outcome.pose.intrinsics.fx_px
             result = with_checked_focal(result, overruled, stated, grid)
+        bent = lens_bent(outcome)
+        if bent is not None:
+            result = with_lens_doubt(result, bent, grid)
         return with_extra_renders(result, refit, followed)
 
     async def _refit(

@@ -18,6 +18,7 @@ from services.common.contracts.free import (
     FreePoseRequest,
     FreePoseResponse,
     IntrinsicsUsed,
+    LensBend,
     nearest_grid_pose,
 )
 from services.common.contracts.refine import (
@@ -33,7 +34,7 @@ from services.common.contracts.search import (
     ViewSettings,
 )
 from services.common.depth_archive import DepthImage
-from services.common.geometry.free_camera import FreeCamera
+from services.common.geometry.free_camera import FreeCamera, LensDistortion
 from services.controller.events import Notifier
 from services.controller.runner import SearchRunner
 from services.controller.store import SearchStore, open_store, utcnow
@@ -111,6 +112,7 @@ class FakeStages(ScriptedCalls):
         self.source = "given"  # where the optimizer says its intrinsics came from
         self.pitch = 90.0  # the candidates' pitch, as the optimizer says it
         self.focal_check: float | None = None  # the check's focal length off the stated one
+        self.lens: LensBend | None = None  # what the fits' lens check says
         self.prepared: list[tuple[TargetRequest, int]] = []  # and the refinements made by then
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
@@ -179,6 +181,7 @@ class FakeStages(ScriptedCalls):
             moved=0.1,
             moved_rotation_deg=self.turn,
             render_again=len(self.refinements) <= self.refits,
+            lens=self.lens,
         )
         check = None
         if request.check_focal and self.focal_check is not None:
@@ -189,7 +192,14 @@ class FakeStages(ScriptedCalls):
                 pose=pose.model_copy(update={"position": moved, "intrinsics": checked}),
                 fit=fit.model_copy(update={"focal_fitted": True, "focal_sigma": 0.002}),
             )
-        return RefinePoseResponse(pose=refined, fit=fit, focal_check=check)
+        bent = None
+        if self.lens is not None and self.lens.bends:  # the lens check's pose: 0.3 higher
+            lens = LensDistortion(k1=self.lens.k1)
+            estimated = k.model_copy(update={"distortion": lens, "source": "estimated"})
+            bent = refined.model_copy(
+                update={"position": (end, y + 0.1, z + 0.3), "intrinsics": estimated}
+            )
+        return RefinePoseResponse(pose=refined, fit=fit, focal_check=check, lens_pose=bent)
 
     async def detect(self, image, media_type, request_id="", scene=None) -> DetectResponse:
         if image == PNG:
