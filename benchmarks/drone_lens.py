@@ -25,6 +25,8 @@ each with ``mode=free``:
   gimbal's attitude, which rules out poses of another tilt);
 - ``EXIF only``: the same without its XMP packet (a nominal focal length, no lens);
 - ``nothing read``: ``exif=false`` (the focal length estimated from the boxes, no lens);
+- ``no lens``: ``intrinsics`` given exactly but not the ``distortion`` (a focal length known
+  from a calibration or a spec sheet, the lens taken for a pinhole);
 - ``given``: ``intrinsics`` and ``distortion`` given exactly (what the calibration stands for).
 
 It prints per arm and elevation band: the answers within 5 %/2° and 2 %/1°, the median fov
@@ -68,7 +70,7 @@ from services.common.geometry.free_camera import (
 )
 from services.common.geometry.lens import invertible_over_film
 
-ARMS: Final = ("calibration", "EXIF only", "nothing read", "given")
+ARMS: Final = ("calibration", "EXIF only", "nothing read", "no lens", "given")
 FOV_RANGE: Final = (1.3, 1.8)
 TARGET_SPP: Final = 16
 GIMBAL_SIGMA_DEG: Final = 0.5
@@ -200,10 +202,11 @@ def _query(photo: LensPhoto, arm: str) -> tuple[bytes, dict[str, str]]:
     query = {"scene": photo.scene, "mode": "free", "max_iterations": "5"}
     if arm == "nothing read":
         query["exif"] = "false"
-    if arm == "given":
+    if arm in ("no lens", "given"):
         c = photo.camera
-        d = c.distortion or LensDistortion()
         query["intrinsics"] = ",".join(repr(v) for v in (c.fx_px, c.fy_px, c.cx_px, c.cy_px))
+    if arm == "given":
+        d = photo.camera.distortion or LensDistortion()
         query["distortion"] = ",".join(repr(float(v)) for v in d.coefficients())
     return (photo.exif_only if arm == "EXIF only" else photo.with_xmp), query
 
@@ -224,7 +227,7 @@ async def _search(url: str, key: str, shots: Sequence[LensPhoto]) -> dict[str, l
                 outcomes[arm].append(
                     Outcome(
                         photo.band,
-                        arm == "given",
+                        arm in ("no lens", "given"),
                         pose_error(answer_estimate(raw), truth, photo.radius),
                         wall_ms,
                         int(result.get("renders") or 0),

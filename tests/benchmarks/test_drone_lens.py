@@ -34,3 +34,30 @@ def test_a_drawn_lens_reads_back_from_its_xmp(seed):
     )
     assert read.distortion is not None
     np.testing.assert_allclose(read.distortion.coefficients(), lens.coefficients(), atol=1e-12)
+
+
+def test_each_arm_asks_what_it_names():
+    """``no lens`` gives the exact intrinsics without the distortion; ``given`` both;
+    ``nothing read`` neither, and no EXIF either."""
+    from benchmarks.drone_lens import ARMS, LensPhoto, _query
+    from services.common.geometry.free_camera import FreeCamera, LensDistortion
+
+    camera = FreeCamera(
+        position=(0.0, 0.0, 5.0),
+        yaw_deg=0.0,
+        pitch_deg=90.0,
+        fx_px=500.0,
+        fy_px=500.0,
+        cx_px=321.0,
+        cy_px=239.0,
+        distortion=LensDistortion(k1=-0.1),
+    )
+    photo = LensPhoto("demo", b"xmp", b"exif", camera, 65.0, "nadir", 8.0)
+    queries = {arm: _query(photo, arm) for arm in ARMS}
+    assert queries["no lens"][1]["intrinsics"] == "500.0,500.0,321.0,239.0"
+    assert "distortion" not in queries["no lens"][1]
+    assert queries["given"][1]["distortion"].startswith("-0.1,")
+    assert queries["nothing read"][1]["exif"] == "false"
+    assert "intrinsics" not in queries["nothing read"][1]
+    assert queries["EXIF only"][0] == b"exif"
+    assert queries["calibration"][0] == b"xmp"
