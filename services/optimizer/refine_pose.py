@@ -61,7 +61,9 @@ Focal check
 
 Lens check
     Unless the pose states a lens, the fit is done once more at full resolution from where it
-    ended with OpenCV's radial ``k1`` free, and the focal length too when it was fitted
+    ended with OpenCV's radial ``k1`` free, and the focal length too unless it was given (fitted,
+    or stated by the photo's EXIF, whose error a radial term would otherwise absorb: a pinhole
+    photo whose EXIF states a focal length 15 % long bent so)
     (:func:`~services.optimizer.free.dense.radial_check`, ~8 ms): a photo taken through a
     distorting lens, fitted as a pinhole's, may still agree with its render box by box while
     several percent off. On an accepted fit, its edges are said to bend (``LensBend.bends``)
@@ -534,6 +536,7 @@ def refine_pose(
             focal_range=lenses,
             zooms=zooms,
             check_radial=lens_check and k.distortion is None,
+            radial_focal=fit_focal or request.check_focal,
         )
         again = worth_another_render(fit, pinhole)
         focal = (fit.intrinsics.fx / scale, fit.intrinsics.fy / scale, k.cx_px, k.cy_px)

@@ -468,6 +468,7 @@ def refine_dense(
     focal_range: FocalRange | None = None,
     zooms: Sequence[float] = ZOOM_STARTS,
     check_radial: bool = False,
+    radial_focal: bool | None = None,
 ) -> DenseFit:
     """Refine ``camera`` (the estimate the render was made at, on the target's film) so that the
     render's edges fall on the target's (module docstring).
@@ -483,7 +484,9 @@ def refine_dense(
     within :data:`INLIER_PX` of the target's pixels; ``focal_range``, the focal lengths considered
     on the film (:class:`~.focal_bounds.FocalRange`): a fitted one that ends outside it, or on
     a bound, is not kept; ``check_radial`` adds the lens check (:func:`radial_check`) when no
-    ``distortion`` is given. The answer's pixels are the film's.
+    ``distortion`` is given, the focal length free in it when ``radial_focal`` (by default when
+    ``fit_focal``: a focal length stated but not trusted is freed there too). The answer's
+    pixels are the film's.
     """
     target = target_gray if isinstance(target_gray, TargetMaps) else TargetMaps(target_gray)
     shape = (camera.height, camera.width)
@@ -532,7 +535,8 @@ def refine_dense(
     explained = final <= radius
     radial = None
     if check_radial and distortion is None and len(points.world) >= MIN_POINTS:
-        radial = radial_check(points, fine, k, x, pixel, fit_focal)
+        free = fit_focal if radial_focal is None else radial_focal
+        radial = radial_check(points, fine, k, x, pixel, free)
     rotation, _ = cv2.Rodrigues(x[:3])
     zoom = float(x[6])
     return DenseFit(
