@@ -2,7 +2,8 @@
 real stack: a target rendered at a free camera off the hemisphere, its answer's pose in the
 panel, its camera drawn as a frustum in the 3D view, the boxes predicted at the answer over the
 target; the camera's pitch and roll typed in, recorded and shown, and refused on their field when
-out of range. It writes the README's ``free-search`` screenshot (``SCREENSHOTS_DIR``)."""
+out of range; a lens's distortion typed in, used and shown. It writes the README's
+``free-search`` screenshot (``SCREENSHOTS_DIR``)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,11 @@ import pytest
 from playwright.sync_api import expect
 
 from cosmos.bench.variants import exif_jpeg
-from services.common.geometry.free_camera import FreeCamera, yaw_pitch_roll_of_rotation
+from services.common.geometry.free_camera import (
+    FreeCamera,
+    LensDistortion,
+    yaw_pitch_roll_of_rotation,
+)
 from services.renderer.client import RendererClient
 from tests.web.conftest import api
 from tests.web.test_page import TIMEOUT_MS, colours, decoded, open_new_search, shoot
@@ -39,10 +44,11 @@ def free_search(
     exif: int | None = None,
     read_exif: bool = True,
     attitude: str = "",
+    distortion: str = "",
 ) -> dict:
     """A free search from the page for ``camera`` rendered (its fov given or not; a JPEG whose
-    EXIF says ``exif`` mm as FocalLengthIn35mmFilm when given, read or not; ``attitude`` typed
-    into its field), once it succeeded: the search as the API has it."""
+    EXIF says ``exif`` mm as FocalLengthIn35mmFilm when given, read or not; ``attitude`` and
+    ``distortion`` typed into their fields), once it succeeded: the search as the API has it."""
     with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
         image, truth = renderer.render_camera("demo", camera)
     target.write_bytes(image if exif is None else exif_jpeg(image, exif))
@@ -50,6 +56,7 @@ def free_search(
     page.set_input_files("#target-file", str(target))
     assert page.is_disabled("#fov_deg")  # a lens and an attitude are for free searches only
     assert page.is_disabled("#attitude")
+    assert page.is_disabled("#distortion")
     assert page.is_disabled("#exif")
     page.select_option("#mode", "free")
     assert page.is_disabled("#strategy")
@@ -60,6 +67,7 @@ def free_search(
     if not read_exif:
         page.uncheck("#exif")
     page.fill("#attitude", attitude)
+    page.fill("#distortion", distortion)
     page.click("#go")
     page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
     search_id = page.url.rsplit("/", 1)[1]
@@ -173,6 +181,24 @@ def test_an_ambiguous_free_answer_shows_its_alternatives(page, stack, tmp_path):
     page.goto(f"{stack.controller}/#/searches")
     row = page.locator("#searches tbody tr", has_text=final["id"][:12])
     expect(row.locator("td").nth(3)).to_have_text("free camera")
+
+
+def test_a_lens_distortion_typed_in_is_used_and_shown(page, stack, tmp_path):
+    """A photo through a barrel lens, its fov and distortion typed in: the search takes both, as
+    given, confirms the pose, and its facts line says what lens it was given."""
+    lens = LensDistortion(k1=-0.1)
+    camera = DRONE.model_copy(update={"fov_deg": 60.0, "distortion": lens})
+    final = free_search(
+        page, stack, tmp_path / "wide.png", camera, give_fov=True, distortion="-0.1, 0, 0, 0"
+    )
+    assert final["intrinsics"]["distortion"]["k1"] == -0.1
+    k = final["result"]["free"]["pose"]["intrinsics"]
+    assert k["source"] == "given"
+    assert k["distortion"]["k1"] == -0.1
+    assert final["result"]["confirmed"], final["result"]["reason"]
+    expect(page.locator("#search-lens")).to_contain_text(
+        "°, distortion k1 -0.1, k2 0, p1 0, p2 0, k3 0"
+    )
 
 
 def test_an_attitude_out_of_range_is_refused_on_its_field(page, stack, tmp_path):

@@ -45,6 +45,7 @@ export function showNewSearch({ view, api }, params) {
     h("option", { value: "free" }, "free (any camera)"),
   );
   const fov = h("input", { name: "fov_deg", id: "fov_deg", type: "number", min: 0, max: 180, step: "any", placeholder: "EXIF, else estimated", disabled: true });
+  const distortion = h("input", { name: "distortion", id: "distortion", type: "text", inputmode: "decimal", placeholder: "XMP, else none", disabled: true });
   const attitude = h("input", { name: "attitude", id: "attitude", type: "text", inputmode: "decimal", placeholder: "XMP, else none", disabled: true });
   const exif = h("input", { name: "exif", id: "exif", type: "checkbox", checked: true, disabled: true });
   const strategy = h("select", { name: "strategy", id: "strategy" }, STRATEGIES.map(([v, t]) => h("option", { value: v }, t)));
@@ -64,6 +65,7 @@ export function showNewSearch({ view, api }, params) {
       h("h2", {}, "Search"),
       h("label", {}, "Mode ", mode),
       h("label", {}, "Photo's horizontal fov° (free mode, optional) ", fov),
+      h("label", {}, "Lens distortion k1, k2, p1, p2[, k3] (free mode, optional: OpenCV's, with the fov) ", distortion),
       h("label", {}, "Camera's pitch, roll° (free mode, optional: a flight log's gimbal angles, 90 straight down) ", attitude),
       h("label", {}, exif, " read what the photo's EXIF and XMP say of its lens and gimbal, where not given here"),
       h("label", {}, "Strategy ", strategy),
@@ -158,6 +160,7 @@ export function showNewSearch({ view, api }, params) {
   mode.addEventListener("change", () => {
     const free = mode.value === "free"; // a free search has no strategy or start, a grid one no fov
     fov.disabled = !free;
+    distortion.disabled = !free;
     attitude.disabled = !free;
     exif.disabled = !free;
     for (const input of [strategy, theta, phi]) input.disabled = free;
@@ -186,7 +189,7 @@ export function showNewSearch({ view, api }, params) {
     body.append("image", target.blob, target.name);
     body.append("scene", sceneSelect.value);
     body.append("mode", mode.value);
-    const options = mode.value === "free" ? [fov, attitude, maxIterations] : [theta, phi, maxIterations];
+    const options = mode.value === "free" ? [fov, distortion, attitude, maxIterations] : [theta, phi, maxIterations];
     if (mode.value !== "free") body.append("strategy", strategy.value);
     if (mode.value === "free" && !exif.checked) body.append("exif", "false");
     for (const input of options) if (input.value !== "") body.append(input.name, input.value);

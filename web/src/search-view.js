@@ -13,6 +13,13 @@ import { Hemisphere } from "./hemisphere.js";
 
 const TERMINAL = new Set(["succeeded", "failed", "cancelled"]);
 
+/** The photo's lens as the search was given it: its fov or focal lengths, and its distortion. */
+function lensText(given) {
+  const focal = given.fov_deg ? `fov ${given.fov_deg}°` : `fx ${given.fx_px}, fy ${given.fy_px}`;
+  const d = given.distortion;
+  return d ? `${focal}, distortion k1 ${d.k1}, k2 ${d.k2}, p1 ${d.p1}, p2 ${d.p2}, k3 ${d.k3}` : focal;
+}
+
 export function showSearch({ view, api }, id) {
   const controller = new AbortController();
   const signal = controller.signal;
@@ -90,7 +97,7 @@ export function showSearch({ view, api }, id) {
     const parts = [
       h("span", {}, `scene ${search.scene}`),
       free ? h("span", {}, "mode free") : h("span", {}, `strategy ${search.strategy}`),
-      free ? h("span", {}, given ? `lens given (${given.fov_deg ? `fov ${given.fov_deg}°` : `fx ${given.fx_px}, fy ${given.fy_px}`})` : "lens not given") : h("span", {}, `start ${poseText(search.start)}`),
+      free ? h("span", { id: "search-lens" }, given ? `lens given (${lensText(given)})` : "lens not given") : h("span", {}, `start ${poseText(search.start)}`),
       h("span", {}, `created ${when(search.created_at)}`),
     ];
     const attitude = search.attitude; // the camera's pitch and roll, given or from the photo's XMP
