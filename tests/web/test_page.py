@@ -80,6 +80,8 @@ def test_a_full_search_is_watched_live_then_replayed(page, stack, tmp_path):
     open_new_search(page, stack)
     submit(page, target, strategy="simple", theta="75", phi="200")
     expect(page.locator("#target-info")).to_contain_text("320×240")
+    expect(page.locator("#preview img")).to_be_visible()  # the scene's preview, for the shot
+    page.wait_for_timeout(500)  # and the 3D view's frame (its worker draws it)
     shoot(page, "new-search")
     page.click("#go")
     page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
