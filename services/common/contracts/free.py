@@ -238,12 +238,12 @@ def above_chance(count: float, total: int, chance: float) -> float:
 class LensBend(FrozenModel):
     """The lens check of a dense fit made without the photo's lens distortion: the radial
     term ``k1`` (OpenCV's, ``x_d = x (1 + k1 r²)``) that the target's edges fit with the pose
-    and focal length, its standard deviation ``k1_sigma`` (the edge points taken as
-    independent), ``bend_px``, how far it moves the farthest explained edge points (the 95th
-    percentile, target pixels), and how many edge points that fit explains (``inliers``);
-    ``bends`` when the optimizer judges the bend beyond what a pinhole's fit leaves: the photo
-    was taken through a distorting lens, and a pose fitted as a pinhole's is not to be
-    confirmed."""
+    (and the focal length, unless it was given), its standard deviation ``k1_sigma`` (the edge
+    points taken as independent), ``bend_px``, how far it moves the farthest explained edge
+    points (the 95th percentile, target pixels), and how many edge points that fit explains
+    (``inliers``); ``bends`` when the optimizer judges the bend beyond what a pinhole's fit
+    leaves: the photo was taken through a distorting lens, and a pose fitted as a pinhole's is
+    not to be confirmed."""
 
     k1: Number
     k1_sigma: NonNeg
