@@ -52,7 +52,7 @@ from services.common.catalog import SceneCatalog
 from services.common.contracts.render import RenderRequest
 from services.common.geometry.camera import PinholeCamera
 from services.common.geometry.free_camera import FreeCamera
-from services.optimizer.free import dense
+from services.optimizer.free import dense, level_fit
 from services.optimizer.free.chamfer import ChamferProblem
 from services.optimizer.free.edges import (
     EdgePoints,
@@ -148,7 +148,7 @@ def _rise(
         kz = Intrinsics(k.fx * zoom, k.fy * zoom, k.cx, k.cy)
         fitted = dense._align(points, levels, kz, None, start[:6])
         residuals = ChamferProblem(points, fine, kz, None, False).residuals(fitted)
-        costs.append(dense._cost(residuals, fine.sigma))
+        costs.append(level_fit.level_cost(residuals, fine.sigma))
     least = min(costs)
     return [c / least for c in costs]
 
@@ -179,7 +179,7 @@ def measure(
                         gray = on_film(gray, (gray.shape[1] * scale, gray.shape[0] * scale))
                     rgb, depth, near, truth = _render(renderer, target, target.camera, scale)
                     points, _ = edge_points_by_outline(rgb, depth, truth, None, near)
-                    if len(points.world) < dense.MIN_POINTS:
+                    if len(points.world) < level_fit.MIN_POINTS:
                         continue
                     rises[target.band].append(_rise(points, gray, truth, pixel))
                     assert target.camera.fov_deg is not None

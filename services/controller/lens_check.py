@@ -8,7 +8,7 @@ render box by box while 5 % of the radius off. So the optimizer's dense fit chec
 more from the same render: the pose, the focal length and OpenCV's radial ``k1`` fitted together
 (``DenseReport.lens``), judged to bend (``LensBend.bends``) when ``k1`` moves the farthest
 explained edge points by at least 2 pixels of the fit and lies at least 4 of its standard
-deviations from 0 (:mod:`services.optimizer.refine_pose`, where the thresholds are measured).
+deviations from 0 (:mod:`services.optimizer.lens_pose`, where the thresholds are measured).
 
 Such an answer is ``ambiguous``, never confirmed, and its reason gives the fitted ``k1`` and what
 to give. Its pose is the one the lens check fitted with that ``k1`` (``lens_pose``: intrinsics

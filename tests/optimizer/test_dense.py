@@ -498,7 +498,7 @@ def test_the_lens_check_sees_a_distorted_photos_bend_and_not_a_pinholes(engine, 
     beyond the thresholds (measured first, fov fitted: −0.164 ± 0.008, 6.9 px), the pinhole's
     stays near 0 and below them (4·10⁻⁶)."""
     from services.common.geometry.free_camera import LensDistortion
-    from services.optimizer.refine_pose import BEND_PX, BEND_Z
+    from services.optimizer.lens_pose import BEND_PX, BEND_Z
 
     scene_id, oblique = VIEWS[0]
     scene = catalog.get(scene_id)

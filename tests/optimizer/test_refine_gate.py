@@ -17,7 +17,7 @@ from services.common.geometry.free_camera import (
     quaternion_of_rotation,
 )
 from services.optimizer.free import DenseFit, Intrinsics
-from services.optimizer.free.dense import RadialCheck
+from services.optimizer.free.lens_check import RadialCheck
 from services.optimizer.free.refit import worth_another_render
 from services.optimizer.refine_pose import box_shift_px, dense_report
 

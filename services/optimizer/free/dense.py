@@ -45,7 +45,7 @@ Fit
     off into 25–60 % off before.
 
     A coarse level fits an evenly spaced share of the points (:data:`LEVEL_POINTS`), and a
-    level ends once its steps are far below a pixel (:data:`X_TOLERANCE`). Without lens
+    level ends once its steps are far below a pixel (:data:`~.level_fit.X_TOLERANCE`). Without lens
     distortion the projection and its Jacobian are numpy's (``cv2.projectPoints`` always
     computes its 15-column Jacobian, ~17 times the projection alone, also for the residual
     evaluations that need none), and the Jacobian reuses the residuals' projection at the same
@@ -110,7 +110,6 @@ from typing import Final
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from services.common.contracts.free import above_chance
 from services.common.geometry.camera import PinholeCamera, fov_deg_of
@@ -126,6 +125,14 @@ from services.optimizer.free.edges import (
     edge_points_by_outline,
 )
 from services.optimizer.free.focal_bounds import FocalRange, at_bound
+from services.optimizer.free.lens_check import RadialCheck, radial_check
+from services.optimizer.free.level_fit import (
+    INLIER_PX,
+    MIN_POINTS,
+    fit_level,
+    level_cost,
+    parameter_sigma,
+)
 from services.optimizer.free.refine import Intrinsics
 from services.optimizer.free.target_maps import TargetMaps
 from services.optimizer.geometry import FloatArray
@@ -146,29 +153,16 @@ __all__ = [
 LEVELS: Final = ((4, 2.0, 8.0), (2, 1.5, 6.0), (1, 1.0, 5.0))
 """(downsampling factor, soft-L1 scale σ, truncation τ), both in pixels of the level, on a
 film of the target's own pixels (:func:`pyramid` on an enlarged one)."""
-MIN_POINTS: Final = 30
-"""Fewer model edge points than this do not pin six parameters: the start pose is returned."""
-INLIER_PX: Final = 2.0
-"""A model point within this many full-resolution pixels of a target edge is explained."""
-MAX_EVALUATIONS: Final = 40
-"""Residual evaluations per level."""
-X_TOLERANCE: Final = 1e-6
-"""``least_squares``' ``xtol``: a step below this share of the pose (well under 0.01 px on the
-film) ends a level. At the default 1e-8, 157 of 180 fits on the pairs of
-``benchmarks/dense_refine.py`` (focal fitted) ended by it after 29 evaluations (median), about
-half of them rejected steps shrinking the trust region far below a pixel (measured with
-:data:`LEVEL_POINTS`). 1e-5 was faster still but left ``tests/optimizer/test_dense.py``'s
-garden-steep fov 1.7 % off (< 1 % at 1e-6)."""
 LEVEL_POINTS: Final[tuple[int | None, ...]] = (1000, None, None)
 """Model edge points fitted at each level of :data:`LEVELS` (evenly spaced; None: all): the
 first level's pixels are 4 times larger, and fewer points pin its pose as well. Measured with
-:data:`X_TOLERANCE` by ``python -m cosmos.bench.free_targets --scene demo --random-scenes 3
---n 12 --seed S`` (S = 1, 3) against the former all points and ``xtol`` 1e-8: no share within
-2 %/1°, 5 %/2° or 10 %/5° lower, with the intrinsics given (identical) or not (of 48 fits
-each, 28/46/48 → 31/48/48 and 18/34/43 → 19/34/43). (500, 1000, None) was no faster but lost
-2 fov-free fits of seed 3 at 10 %/5°; carrying only the best 2 zoom starts into the last
-level saved a third more but lost one at seed 1 (the zoom is told apart at full resolution
-only)."""
+:data:`~.level_fit.X_TOLERANCE` by ``python -m cosmos.bench.free_targets --scene demo
+--random-scenes 3 --n 12 --seed S`` (S = 1, 3) against the former all points and ``xtol``
+1e-8: no share within 2 %/1°, 5 %/2° or 10 %/5° lower, with the intrinsics given (identical)
+or not (of 48 fits each, 28/46/48 → 31/48/48 and 18/34/43 → 19/34/43). (500, 1000, None) was
+no faster but lost 2 fov-free fits of seed 3 at 10 %/5°; carrying only the best 2 zoom starts
+into the last level saved a third more but lost one at seed 1 (the zoom is told apart at full
+resolution only)."""
 FINE_START_SHARE: Final = 0.85
 """A start whose render already leaves this share of its edge points (above chance) within
 :data:`INLIER_PX` of the target's edges lies in the full-resolution basin: the pose alone is
@@ -181,15 +175,14 @@ benchmarks.dense_refine`` against every level for every start (12 pairs, one run
 and 3, one run each way): no outcome changed, within 2 %/1° 102 → 104 and 57 → 58 of 120. At
 0.7 a generated scene's start that left 0.745 on its textured ground, 0.3 units off, stayed in
 its fine-level basin, 3 % off where the coarse levels took it to 0.04 %."""
-FOCAL_RANGE: Final = (0.5, 2.0)
-"""The focal length's scale stays within these bounds of the start's."""
 ZOOM_STARTS: Final = tuple(1.08**i for i in range(-2, 3))
 """Without given intrinsics, the first level starts from these zooms of the estimate's focal
 length (each a dolly zoom that keeps the points' median depth in place): the distance-focal
 valley is long and flat, and the box estimate's fov is off by ~7 % (median)."""
 ZOOM_SIGMA: Final = 0.05
-"""A fitted focal length is kept unless its standard deviation (:func:`_zoom_sigma`, which
-counts the edge points as independent) passes this share. Measured on free targets of
+"""A fitted focal length is kept unless its standard deviation
+(:func:`~.level_fit.parameter_sigma`, which counts the edge points as independent) passes this
+share. Measured on free targets of
 generated scenes without given intrinsics (seed 1, 96 targets): at the former 0.6 % the fits
 of most 60–89° and nadir views were refused and the box estimate's focal (7–8 % off, median)
 kept; fits of 1–4 % σ were mostly within 2 % of the true fov, and keeping every fit raised
@@ -200,36 +193,6 @@ target's edges at the outline's fit for them to join a last fit. Measured by ``p
 benchmarks.dense_light`` (120 cases): at the outline's fit, the median share was 0.95 on clean
 and JPEG images and 0.17 under another light; the last fit on both kept the ``photo`` cases
 (39 of 40 within 5 %/2°) and brought JPEG back within 2 %/1° where the outline alone lost two."""
-
-RADIAL_RANGE: Final = (-0.5, 0.5)
-"""The radial term the lens check (:func:`radial_check`) fits stays within these bounds of
-OpenCV's ``k1`` (wide drone lenses: about −0.3…0)."""
-
-
-@dataclass(frozen=True)
-class RadialCheck:
-    """The lens check of a fit without given intrinsics (:func:`radial_check`): the radial term
-    ``k1`` that the edges fit with the pose and focal length, its standard deviation ``sigma``,
-    how far it moves the farthest explained points from their pinhole pixels (``bend_px``, the
-    95th percentile over them of ``f |k1| r³``, ``r`` the normalised radius, in film pixels)
-    and how many edge points the fit explains (``inliers``); ``bounded`` when ``k1`` ended on a
-    bound of :data:`RADIAL_RANGE` (the fit ran off, not a lens); the fit's world-to-camera
-    ``rotation`` and ``translation`` and its ``zoom`` of the focal length."""
-
-    k1: float
-    sigma: float
-    bend_px: float
-    inliers: int
-    bounded: bool
-    rotation: FloatArray
-    translation: FloatArray
-    zoom: float
-
-    @property
-    def position(self) -> FloatArray:
-        """The camera centre ``c = -Rᵀ t`` (scene units)."""
-        centre: FloatArray = -self.rotation.T @ self.translation
-        return centre
 
 
 @dataclass(frozen=True)
@@ -250,7 +213,8 @@ class DenseFit:
     """Whether the focal length was fitted: asked for, and pinned by the edges to within
     :data:`ZOOM_SIGMA` (else the start's is kept and only the pose refined)."""
     focal_sigma: float = math.nan
-    """The fitted focal length's relative standard deviation (:func:`_zoom_sigma`; NaN when it
+    """The fitted focal length's relative standard deviation
+    (:func:`~.level_fit.parameter_sigma`; NaN when it
     was not fitted, ∞ when too few points were explained)."""
     depth: float = math.nan
     """The model points' median depth at the render's pose (scene units; NaN without points)."""
@@ -306,36 +270,6 @@ def _zoomed(x: FloatArray, zoom: float, depth: float) -> FloatArray:
     return y
 
 
-def _fit(problem: ChamferProblem, x: FloatArray) -> FloatArray:
-    """One level's robust least squares from ``x`` (module docstring)."""
-    lower = np.full(x.size, -np.inf)
-    upper = np.full(x.size, np.inf)
-    if problem.fit_focal:
-        lower[6], upper[6] = FOCAL_RANGE
-        x = x.copy()
-        x[6] = np.clip(x[6], FOCAL_RANGE[0] + 1e-6, FOCAL_RANGE[1] - 1e-6)
-    if problem.fit_radial:
-        lower[problem.radial_index], upper[problem.radial_index] = RADIAL_RANGE
-    result: FloatArray = least_squares(
-        problem.residuals,
-        x,
-        jac=problem.jacobian,
-        bounds=(lower, upper),
-        loss="soft_l1",
-        f_scale=problem.level.sigma,
-        x_scale="jac",
-        tr_solver="exact",
-        xtol=X_TOLERANCE,
-        max_nfev=MAX_EVALUATIONS,
-    ).x
-    return result
-
-
-def _cost(distances: FloatArray, sigma: float) -> float:
-    """The full-resolution level's own robust cost: the mean of ``ρ_σ(D²)`` (soft-L1)."""
-    return float(np.mean(np.sqrt(1.0 + (distances / sigma) ** 2) - 1.0))
-
-
 def _align(
     points: EdgePoints,
     levels: list[Level],
@@ -351,7 +285,7 @@ def _align(
     judge = ChamferProblem(points, levels[-1], k, distortion, fit_focal)
 
     def cost(y: FloatArray) -> float:
-        return _cost(judge.residuals(y), judge.level.sigma)
+        return level_cost(judge.residuals(y), judge.level.sigma)
 
     candidates = [x]
     if fit_focal:
@@ -364,7 +298,7 @@ def _align(
         # Each start keeps the better of its fit and itself by the full-resolution cost: a level
         # that slips into a wrong basin (repeated texture, say) never makes the pose worse.
         for i, y in enumerate(candidates):
-            fitted = _fit(problem, y)
+            fitted = fit_level(problem, y)
             fitted_cost = cost(fitted)
             if fitted_cost < costs[i]:
                 candidates[i], costs[i] = fitted, fitted_cost
@@ -393,66 +327,8 @@ def _with_the_light(
     if float(np.mean(distances <= radius)) < LIGHT_SHARE:
         return x
     both = EdgePoints(np.vstack([points.world, lit.world]), np.concatenate([points.bins, lit.bins]))
-    fitted = _fit(ChamferProblem(both, level, k, distortion, focal_fitted, MAX_POINTS), y)
+    fitted = fit_level(ChamferProblem(both, level, k, distortion, focal_fitted, MAX_POINTS), y)
     return fitted if focal_fitted else np.append(fitted, 1.0)
-
-
-def _zoom_sigma(
-    problem: ChamferProblem, x: FloatArray, radius: float = INLIER_PX, index: int = 6
-) -> float:
-    """The zoom's (or parameter ``index``'s) standard deviation at ``x``: ``√[(JᵀWJ)⁻¹]₇₇ s``
-    with ``W`` the soft-L1 weights ``1/√(1 + D²/σ²)`` and ``s`` the RMS distance of the points
-    explained (within ``radius``)."""
-    distances = problem.residuals(x)
-    jacobian = problem.jacobian(x)
-    weights = 1.0 / np.sqrt(1.0 + (distances / problem.level.sigma) ** 2)
-    explained = distances <= radius
-    if explained.sum() < MIN_POINTS:
-        return math.inf
-    information = (jacobian * weights[:, None]).T @ jacobian
-    spread = float(np.sqrt(np.mean(distances[explained] ** 2)))
-    return float(np.sqrt(max(np.linalg.pinv(information)[index, index], 0.0))) * spread
-
-
-def radial_check(
-    points: EdgePoints,
-    level: Level,
-    k: Intrinsics,
-    x: FloatArray,
-    pixel: float,
-    fit_focal: bool,
-) -> RadialCheck | None:
-    """Whether the target's edges bend as a lens would: the pose, OpenCV's radial ``k1``
-    (``x_d = x (1 + k1 r²)``) and, with ``fit_focal``, the focal length fitted at the
-    full-resolution ``level`` from the pinhole fit ``x`` (pose and zoom), a point explained
-    within :data:`INLIER_PX` of the target's pixels (``pixel`` film pixels each). None when
-    fewer than :data:`MIN_POINTS` points are explained there."""
-    problem = ChamferProblem(points, level, k, None, fit_focal=fit_focal, fit_radial=True)
-    start = x if fit_focal else x[:6]
-    y = _fit(problem, np.append(start, 0.0))
-    radius = INLIER_PX * pixel
-    distances = problem.residuals(y)
-    explained = distances <= radius
-    if explained.sum() < MIN_POINTS:
-        return None
-    index = problem.radial_index
-    sigma = _zoom_sigma(problem, y, radius, index=index)
-    rotation, _ = cv2.Rodrigues(y[:3])
-    camera = points.world @ rotation.T + y[3:6]
-    normalised = np.hypot(camera[:, 0], camera[:, 1]) / np.maximum(camera[:, 2], 1e-9)
-    reach = float(np.percentile(normalised[explained], 95))
-    k1 = float(y[index])
-    zoom = float(y[6]) if fit_focal else float(x[6])
-    return RadialCheck(
-        k1=k1,
-        sigma=sigma,
-        bend_px=k.fx * zoom * abs(k1) * reach**3,
-        inliers=int(explained.sum()),
-        bounded=min(abs(k1 - bound) for bound in RADIAL_RANGE) < 1e-3,
-        rotation=np.asarray(rotation, dtype=np.float64),
-        translation=np.asarray(y[3:6], dtype=np.float64),
-        zoom=zoom,
-    )
 
 
 def refine_dense(
@@ -520,7 +396,9 @@ def refine_dense(
     if len(points.world) >= MIN_POINTS:
         if fit_focal:
             x = _align(points, levels, k, distortion, x0, zooms)
-            focal_sigma = _zoom_sigma(ChamferProblem(points, fine, k, distortion, True), x, radius)
+            focal_sigma = parameter_sigma(
+                ChamferProblem(points, fine, k, distortion, True), x, radius
+            )
             beyond = focal_range is not None and at_bound(k.fx * x[6], focal_range)
             focal_fitted = focal_sigma <= ZOOM_SIGMA and not beyond
         if not focal_fitted:

@@ -1,0 +1,98 @@
+"""The lens check of a dense fit (:mod:`.dense`): whether the target's edges bend as a
+distorting lens's, which a pinhole's fit cannot follow.
+
+From where the pinhole fit ended, the pose, OpenCV's radial ``k1`` (``x_d = x (1 + k1 r²)``,
+``r`` the normalised radius) and, unless it was given, the focal length are fitted once more at
+full resolution (``cv2.projectPoints``, whose Jacobian has the ``k1`` column:
+:class:`~.chamfer.ChamferProblem` with ``fit_radial``). How far that ``k1`` moves the farthest
+explained edge points, ``f |k1| r³``, and how surely (its standard deviation), tell a distorted
+photo from a pinhole's; :mod:`services.optimizer.lens_pose` judges it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.optimizer.free.chamfer import ChamferProblem
+from services.optimizer.free.edges import EdgePoints, Level
+from services.optimizer.free.level_fit import (
+    INLIER_PX,
+    MIN_POINTS,
+    RADIAL_RANGE,
+    fit_level,
+    parameter_sigma,
+)
+from services.optimizer.free.refine import Intrinsics
+from services.optimizer.geometry import FloatArray
+
+__all__ = ["RadialCheck", "radial_check"]
+
+
+@dataclass(frozen=True)
+class RadialCheck:
+    """The lens check of a fit without a given lens (:func:`radial_check`): the radial term
+    ``k1`` that the edges fit with the pose and focal length, its standard deviation ``sigma``,
+    how far it moves the farthest explained points from their pinhole pixels (``bend_px``, the
+    95th percentile over them of ``f |k1| r³``, ``r`` the normalised radius, in film pixels)
+    and how many edge points the fit explains (``inliers``); ``bounded`` when ``k1`` ended on a
+    bound of :data:`RADIAL_RANGE` (the fit ran off, not a lens); the fit's world-to-camera
+    ``rotation`` and ``translation`` and its ``zoom`` of the focal length."""
+
+    k1: float
+    sigma: float
+    bend_px: float
+    inliers: int
+    bounded: bool
+    rotation: FloatArray
+    translation: FloatArray
+    zoom: float
+
+    @property
+    def position(self) -> FloatArray:
+        """The camera centre ``c = -Rᵀ t`` (scene units)."""
+        centre: FloatArray = -self.rotation.T @ self.translation
+        return centre
+
+
+def radial_check(
+    points: EdgePoints,
+    level: Level,
+    k: Intrinsics,
+    x: FloatArray,
+    pixel: float,
+    fit_focal: bool,
+) -> RadialCheck | None:
+    """Whether the target's edges bend as a lens would: the pose, OpenCV's radial ``k1``
+    (``x_d = x (1 + k1 r²)``) and, with ``fit_focal``, the focal length fitted at the
+    full-resolution ``level`` from the pinhole fit ``x`` (pose and zoom), a point explained
+    within :data:`INLIER_PX` of the target's pixels (``pixel`` film pixels each). None when
+    fewer than :data:`MIN_POINTS` points are explained there."""
+    problem = ChamferProblem(points, level, k, None, fit_focal=fit_focal, fit_radial=True)
+    start = x if fit_focal else x[:6]
+    y = fit_level(problem, np.append(start, 0.0))
+    radius = INLIER_PX * pixel
+    distances = problem.residuals(y)
+    explained = distances <= radius
+    if explained.sum() < MIN_POINTS:
+        return None
+    index = problem.radial_index
+    sigma = parameter_sigma(problem, y, radius, index=index)
+    rotation, _ = cv2.Rodrigues(y[:3])
+    camera = points.world @ rotation.T + y[3:6]
+    normalised = np.hypot(camera[:, 0], camera[:, 1]) / np.maximum(camera[:, 2], 1e-9)
+    reach = float(np.percentile(normalised[explained], 95))
+    k1 = float(y[index])
+    zoom = float(y[6]) if fit_focal else float(x[6])
+    return RadialCheck(
+        k1=k1,
+        sigma=sigma,
+        bend_px=k.fx * zoom * abs(k1) * reach**3,
+        inliers=int(explained.sum()),
+        bounded=min(abs(k1 - bound) for bound in RADIAL_RANGE) < 1e-3,
+        rotation=np.asarray(rotation, dtype=np.float64),
+        translation=np.asarray(y[3:6], dtype=np.float64),
+        zoom=zoom,
+    )
