@@ -31,12 +31,11 @@ from __future__ import annotations
 
 from typing import Final
 
-from services.common.contracts.free import nearest_grid_pose
 from services.common.contracts.refine import FocalCheck, RefinePoseResponse
 from services.common.contracts.search import SearchResult
-from services.common.geometry.free_camera import direction_pose
 from services.common.geometry.grid import HemisphereGrid
 from services.controller.free_refine import PIN_SHARE
+from services.controller.free_verdict import unconfirmed_at
 
 __all__ = ["CHECK_SHARE", "CHECK_SIGMA", "DISAGREE", "exif_overruled", "with_checked_focal"]
 
@@ -88,23 +87,4 @@ def with_checked_focal(
         "target's), and the answer takes theirs: not confirmed; give fov_deg or the intrinsics "
         "to confirm it"
     )
-    nearest = nearest_grid_pose(pose.position, grid)
-    answer = free.model_copy(
-        update={
-            "status": "ambiguous",
-            "pose": pose,
-            "box_pose": free.box_pose or free.pose,
-            "dense": fit,
-            "nearest_grid": nearest,
-        }
-    )
-    return result.model_copy(
-        update={
-            "pose": nearest,
-            "refined_pose": direction_pose(pose.position),
-            "reason": reason,
-            "confirmed": False,
-            "ambiguous": True,
-            "free": answer,
-        }
-    )
+    return unconfirmed_at(result, reason, grid, pose, fit)

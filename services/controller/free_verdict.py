@@ -19,6 +19,7 @@ from typing import Final
 
 from services.common.contracts.free import (
     EXACT_SOURCES,
+    DenseReport,
     FreeAmbiguity,
     FreeAnswer,
     FreePose,
@@ -45,6 +46,7 @@ __all__ = [
     "choice",
     "free_result",
     "others_standing",
+    "unconfirmed_at",
 ]
 
 STEEP_PITCH_DEG: Final = 60.0
@@ -279,4 +281,36 @@ def free_result(
             renders=len(history),
             match_rms_px=chosen.match.rms_px if chosen.match is not None else None,
         ),
+    )
+
+
+def unconfirmed_at(
+    result: SearchResult,
+    reason: str,
+    grid: HemisphereGrid,
+    pose: FreePose | None = None,
+    dense: DenseReport | None = None,
+) -> SearchResult:
+    """``result`` (a free search's) made ``ambiguous`` and unconfirmed for ``reason``: answered
+    at ``pose`` when one is given (the pose it had kept as ``box_pose``, the nearest grid pose
+    and the direction following), with ``dense`` as its fit's report when one is given."""
+    free = result.free
+    if free is None:
+        return result
+    update: dict[str, object] = {"status": "ambiguous"}
+    moved: dict[str, object] = {}
+    if dense is not None:
+        update["dense"] = dense
+    if pose is not None:
+        nearest = nearest_grid_pose(pose.position, grid)
+        update |= {"pose": pose, "box_pose": free.box_pose or free.pose, "nearest_grid": nearest}
+        moved = {"pose": nearest, "refined_pose": direction_pose(pose.position)}
+    return result.model_copy(
+        update={
+            **moved,
+            "reason": reason,
+            "confirmed": False,
+            "ambiguous": True,
+            "free": free.model_copy(update=update),
+        }
     )

@@ -22,11 +22,10 @@ the lens 31 and 26, 2 confirmed and right (``docs/EVALUATION.md``).
 
 from __future__ import annotations
 
-from services.common.contracts.free import nearest_grid_pose
 from services.common.contracts.refine import RefinePoseResponse
 from services.common.contracts.search import SearchResult
-from services.common.geometry.free_camera import direction_pose
 from services.common.geometry.grid import HemisphereGrid
+from services.controller.free_verdict import unconfirmed_at
 
 __all__ = ["lens_bent", "with_lens_doubt"]
 
@@ -58,18 +57,4 @@ def with_lens_doubt(
         f"{taken}, not confirmed; give the lens's distortion (k1, k2, p1, p2) and intrinsics, "
         "or a photo whose XMP states its calibration, to confirm it"
     )
-    update: dict[str, object] = {"status": "ambiguous"}
-    moved: dict[str, object] = {}
-    if pose is not None:
-        nearest = nearest_grid_pose(pose.position, grid)
-        update |= {"pose": pose, "box_pose": free.box_pose or free.pose, "nearest_grid": nearest}
-        moved = {"pose": nearest, "refined_pose": direction_pose(pose.position)}
-    return result.model_copy(
-        update={
-            **moved,
-            "reason": reason,
-            "confirmed": False,
-            "ambiguous": True,
-            "free": free.model_copy(update=update),
-        }
-    )
+    return unconfirmed_at(result, reason, grid, pose)
