@@ -199,6 +199,35 @@ def test_a_lens_warp_is_computed_once_for_every_pose_through_it(catalog):
     assert first.rendered.width == second.rendered.width
 
 
+def test_a_warped_film_is_padded_to_its_step_and_shows_the_same_image(engine, catalog, monkeypatch):
+    """Lenses of about the same extent render on one padded film size (the engine loads the
+    scene once per size), and the padding moves no ray: the ground truth is the same as on the
+    film planned unpadded."""
+    from services.renderer import free_view as planning
+
+    lenses = [LensDistortion(k1=k1) for k1 in (-0.04, -0.05, -0.06)]
+    camera = FreeCamera(position=(5.0, -4.0, 5.0), look_at=(0.0, 0.0, 0.0), fov_deg=60.0)
+    padded = [free_view(catalog, camera.model_copy(update={"distortion": k})) for k in lenses]
+    films = {(v.rendered.width, v.rendered.height) for v in padded}
+    assert len(films) == 1
+    width, height = films.pop()
+    assert width % planning.FILM_STEP_PX == 0
+    assert height % planning.FILM_STEP_PX == 0
+    lensed = camera.model_copy(update={"distortion": lenses[0]})
+    with_padding = annotate(engine, catalog, lensed)
+    monkeypatch.setattr(planning, "FILM_STEP_PX", 1)
+    planning._WARPS.clear()
+    try:
+        unpadded = free_view(catalog, lensed)
+        assert unpadded.rendered.width < width
+        without = annotate(engine, catalog, lensed)
+    finally:
+        planning._WARPS.clear()
+    boxes = [o.box for o in with_padding.objects]
+    assert any(b is not None for b in boxes)
+    assert boxes == [o.box for o in without.objects]
+
+
 def test_unequal_focal_lengths_render_through_a_warp_and_annotate_consistently(engine, catalog):
     camera = FreeCamera(
         position=(0.0, 0.0, 8.0), yaw_deg=0.0, pitch_deg=90.0, fx_px=150.0, fy_px=120.0
