@@ -189,7 +189,8 @@ def test_a_drone_s_calibration_in_its_xmp_is_used_as_given(stack):
     """A survey drone's photo through a wide, barrel-distorted lens, its calibration in the XMP
     (DJI's DewarpData) beside a nominal EXIF focal length: the search takes the calibration, as
     if given, and confirms the pose; with the EXIF's focal length alone the lens is estimated
-    from the edges (measured first: ``k1`` −0.097, 1 % of the radius off), and not confirmed."""
+    from the edges and the pose refitted by a render through it (measured first: ``k1`` −0.097,
+    1 % of the radius off, before that render), and not confirmed."""
     lens = LensDistortion(k1=-0.12, k2=0.02, p1=2e-4, p2=-3e-4, k3=-0.003)
     focal = 640 / (2 * math.tan(math.radians(35.0)))  # 70° across 640 pixels
     centre = (324.0, 237.0)
@@ -222,7 +223,8 @@ def test_a_drone_s_calibration_in_its_xmp_is_used_as_given(stack):
     assert calibrated < 0.01 * RADIUS
     assert rotation_error_deg(free.pose.quaternion_wxyz, DRONE) < 1.0
     # the EXIF's focal length alone, no lens: the fit's lens check sees the bend, and the
-    # answer is the pose fitted with the k1 it estimates, never confirmed
+    # answer is the pose fitted with the k1 it estimates from a render through it, never
+    # confirmed
     exif_only = search_for(stack, exif_jpeg(image, nominal))
     unlensed = exif_only.result
     assert unlensed is not None
@@ -238,6 +240,8 @@ def test_a_drone_s_calibration_in_its_xmp_is_used_as_given(stack):
     assert unlensed.free.dense.lens is not None
     assert unlensed.free.dense.lens.bends
     assert math.dist(unlensed.free.pose.position, DRONE.position) < 0.03 * RADIUS
+    assert "refitted through the estimated lens by one more render" in unlensed.reason
+    assert unlensed.renders == 2
 
 
 def test_a_pose_the_photo_s_gimbal_contradicts_is_not_answered(stack):

@@ -64,7 +64,7 @@ from services.common.contracts.free import (
 from services.common.contracts.optimize import ImageDetections
 from services.common.contracts.refine import MAX_FILM_SCALE, RefinePoseResponse
 from services.common.contracts.render import SceneDetail
-from services.common.contracts.search import Iteration, Search, SearchResult
+from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
 from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import FreeCamera
 from services.common.images import encode_ppm, media_type_of
@@ -85,6 +85,7 @@ from services.controller.free_iterations import (
 from services.controller.free_match import FreeMatch, compare_view, scaled_camera, view_film
 from services.controller.free_refine import (
     alongside,
+    ask_refinement,
     edges_hold,
     edges_pin,
     prepare_target,
@@ -99,7 +100,12 @@ from services.controller.free_verdict import (
     free_result,
     others_standing,
 )
-from services.controller.lens_check import lens_bent, with_lens_doubt
+from services.controller.lens_check import (
+    lens_bent,
+    lens_refit_request,
+    through_lens,
+    with_lens_doubt,
+)
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -363,10 +369,33 @@ class FreeSearchLoop:
         if overruled is not None and isinstance(outcome, RefinePoseResponse):
             stated = outcome.pose.intrinsics.fx_px
             result = with_checked_focal(result, overruled, stated, grid)
-        bent = lens_bent(outcome)
+        bent, lens = lens_bent(outcome), None
         if bent is not None:
+            if bent.lens_pose is not None and len(history) + followed + (refit is not None) < (
+                search.max_iterations
+            ):
+                bent, lens = await self._through_lens(search, scene, target[1], image, bent)
             result = with_lens_doubt(result, bent, grid)
-        return with_extra_renders(result, refit, followed)
+        return with_extra_renders(result, refit, followed, lens)
+
+    async def _through_lens(
+        self,
+        search: Search,
+        scene: SceneDetail,
+        size: tuple[int, int],
+        image: bytes,
+        bent: RefinePoseResponse,
+    ) -> tuple[RefinePoseResponse, StageTimings]:
+        """A ``bent`` fit's lens pose rendered through its lens and refitted from there, lens
+        and all (:func:`~.lens_check.through_lens`); the render's milliseconds."""
+        assert bent.lens_pose is not None
+        _, archive, _, render_ms = await self._render(search, scene, size, bent.lens_pose)
+        request = lens_refit_request(search, bent.lens_pose)
+        refit = ask_refinement(self.stages, self.outages, search.id, request, image, archive)
+        again, refine_ms = await timed(refit)
+        total = render_ms + refine_ms
+        timings = StageTimings(render_ms=render_ms, refine_ms=refine_ms, total_ms=total)
+        return through_lens(bent, again), timings
 
     async def _refit(
         self,

@@ -363,26 +363,44 @@ def refined_result(
 
 
 def with_extra_renders(
-    result: SearchResult, timings: StageTimings | None, followed: int = 0
+    result: SearchResult,
+    timings: StageTimings | None,
+    followed: int = 0,
+    lens: StageTimings | None = None,
 ) -> SearchResult:
     """``result`` with the renders that are no iteration of their own, said in its reason:
-    the one spent on refitting (module docstring; its ``timings``, None when none was made)
-    and the ``followed`` ones at candidates' dense fits whose renders disagreed
-    (:func:`~services.controller.free_iterations.worth_following`)."""
+    the one spent on refitting (module docstring; its ``timings``, None when none was made),
+    the ``followed`` ones at candidates' dense fits whose renders disagreed
+    (:func:`~services.controller.free_iterations.worth_following`) and the one through the lens
+    a lens check estimated (``lens``: :mod:`~services.controller.lens_check`)."""
     free = result.free
-    if free is None or (timings is None and not followed):
+    made = [t for t in (timings, lens) if t is not None]
+    if free is None or (not made and not followed):
         return result
-    extra = followed + (timings is not None)
+    extra = followed + len(made)
     reason = result.reason
     if followed:
         reason += f"; {followed} render(s) at a candidate's dense fit, its own render disagreeing"
     if timings is not None:
         reason += "; refitted by one more render at the refined pose"
+    if lens is not None:
+        reason += "; refitted through the estimated lens by one more render"
     return result.model_copy(
         update={
             "renders": result.renders + extra,
             "reason": reason,
             "free": free.model_copy(update={"renders": free.renders + extra}),
-            "refit_timings": timings,
+            "refit_timings": _summed(made) if made else None,
         }
+    )
+
+
+def _summed(timings: list[StageTimings]) -> StageTimings:
+    """The milliseconds of several renders after the iterations, stage by stage."""
+    return StageTimings(
+        render_ms=sum(t.render_ms for t in timings),
+        detect_ms=sum(t.detect_ms for t in timings),
+        optimize_ms=sum(t.optimize_ms for t in timings),
+        refine_ms=sum(t.refine_ms for t in timings),
+        total_ms=sum(t.total_ms for t in timings),
     )

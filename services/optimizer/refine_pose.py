@@ -62,7 +62,8 @@ Focal check
 Lens check
     Unless the pose states a lens, the fit's lens check says whether the target's edges bend as
     a distorting lens's, and gives the pose fitted through that lens
-    (:mod:`services.optimizer.lens_pose`).
+    (:mod:`services.optimizer.lens_pose`). A pose whose lens an earlier check estimated
+    (``fit_lens``: rendered through it) is fitted through it and checked again from there.
 
 Above chance
     Every share here, and the counts compared with the start's, are taken above the share a
@@ -107,7 +108,7 @@ from services.common.geometry.free_camera import (
 )
 from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
-from services.optimizer.free.dense import ZOOM_STARTS, pyramid
+from services.optimizer.free.dense import ZOOM_STARTS, pyramid, radial_only
 from services.optimizer.free.edges import on_film, outline
 from services.optimizer.free.focal_bounds import FocalRange
 from services.optimizer.free.level_fit import MIN_POINTS
@@ -396,6 +397,9 @@ def refine_pose(
     maps = targets.maps(target, (w, h), lambda: _target_gray(target, limits, (w, h)))
     start = request.pose
     k = start.intrinsics
+    if request.fit_lens and (k.distortion is None or not radial_only(k.distortion)):
+        detail = "fit_lens asks for a pose whose lens distortion is a radial k1 alone"
+        raise _invalid(detail, "request.fit_lens")
     names = [c.object for c in start.correspondences]
     objects = cache.get(scene)
     if any(n not in objects.names for n in names):  # before the fit: a bad request costs none
@@ -440,7 +444,7 @@ def refine_pose(
             pixel=max(scale, 1.0),
             focal_range=lenses,
             zooms=zooms,
-            check_radial=lens_check and k.distortion is None,
+            check_radial=lens_check and (k.distortion is None or request.fit_lens),
             radial_focal=fit_focal or request.check_focal,
         )
         again = worth_another_render(fit, pinhole)

@@ -46,6 +46,24 @@ BOXES = ((20.0, 30.0, 60.0, 70.0), (100.0, 40.0, 150.0, 90.0), (200.0, 120.0, 26
 LABELS = ("red", "green", "blue")
 
 
+def dense_report(**fields: Any) -> DenseReport:
+    """A dense fit's report: accepted, 850 of 900 edge points on the target's (600 at the
+    start), the pose moved 0.1 and turned 0.1°, the focal length kept; ``fields`` change it."""
+    report = DenseReport(
+        converged=True,
+        accepted=True,
+        reason="refined",
+        edge_points=900,
+        inliers=850,
+        start_inliers=600,
+        residual_px=0.4,
+        focal_fitted=False,
+        moved=0.1,
+        moved_rotation_deg=0.1,
+    )
+    return report.model_copy(update=fields)
+
+
 def candidate(x: float, source: str = "given", pitch: float = 90.0) -> FreePose:
     """A pose at (x, -4, 5) that pairs the three target boxes (its ``pitch`` said, not used)."""
     return FreePose(

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from services.common.contracts.free import DenseReport, PhotoIntrinsics
+from services.common.contracts.free import PhotoIntrinsics
 from services.common.contracts.refine import FocalCheck, RefinePoseResponse
 from services.controller.exif_check import CHECK_SIGMA, DISAGREE, exif_overruled
-from tests.controller.free_stages import FakeStages, candidate, run
+from tests.controller.free_stages import FakeStages, candidate, dense_report, run
 
 EXIF = PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif")
 
@@ -17,18 +17,7 @@ EXIF = PhotoIntrinsics(fx_px=386.0, fy_px=386.0, source="exif")
 def checked(off: float, **fit: object) -> RefinePoseResponse:
     """A refinement with the stated 386 px and a check ``off`` that share of it, whose fit
     says ``fit`` (else: accepted, focal fitted at 0.2 %, 850 of 900 edge points)."""
-    report = DenseReport(
-        converged=True,
-        accepted=True,
-        reason="refined",
-        edge_points=900,
-        inliers=850,
-        start_inliers=600,
-        residual_px=0.4,
-        focal_fitted=False,
-        moved=0.1,
-        moved_rotation_deg=0.1,
-    )
+    report = dense_report()
     pose = candidate(0.0, source="exif")
     k = pose.intrinsics.model_copy(
         update={"fx_px": 386.0 * (1 + off), "fy_px": 386.0 * (1 + off), "source": "estimated"}

@@ -58,12 +58,19 @@ class RefinePoseRequest(FrozenModel):
     (``fit_focal``: the photo's intrinsics were not given) and whether to check the pose's
     focal length (``check_focal``: it was stated, not given, as by the photo's EXIF): the pose
     is then fitted with it, and again with the focal length free from the same render
-    (``RefinePoseResponse.focal_check``)."""
+    (``RefinePoseResponse.focal_check``); ``fit_lens`` when the pose's lens (a radial ``k1``
+    alone) is one a lens check estimated: the render was made through it, and the check fits
+    it again from there (``RefinePoseResponse.lens_pose``)."""
 
     scene: Annotated[str, Field(pattern=SCENE_ID_PATTERN)]
     pose: FreePose
     fit_focal: bool = False
     check_focal: bool = False
+    fit_lens: bool = Field(
+        default=False,
+        description="The pose's lens distortion (a radial k1 alone) is an estimate, as "
+        "`lens_pose` answered it: fit k1 again with the pose.",
+    )
 
 
 class FocalCheck(FrozenModel):

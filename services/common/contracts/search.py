@@ -224,10 +224,11 @@ class SearchResult(FrozenModel):
     )
     refit_timings: StageTimings | None = Field(
         default=None,
-        description="A render after the iterations: a free search's at the refined pose (a "
-        "fit of the focal length that moved far from the render), a hemisphere search's with "
-        "depth at its unconfirmed answer (its edges settle it): its render, detect and dense "
-        "refinement milliseconds. Null when none was made.",
+        description="Renders after the iterations: a free search's at the refined pose (a "
+        "fit of the focal length that moved far from the render) and through the lens a lens "
+        "check estimated, a hemisphere search's with depth at its unconfirmed answer (its "
+        "edges settle it): their render, detect and dense refinement milliseconds, summed. "
+        "Null when none was made.",
     )
 
 

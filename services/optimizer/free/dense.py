@@ -94,7 +94,9 @@ Lens check
     fit at full resolution from where it ended frees OpenCV's radial ``k1`` too, and the focal
     length unless it was given (:func:`radial_check`, with ``cv2.projectPoints``' Jacobian
     column of ``k1``): how far that bends the edges, and how surely, tells a distorted photo
-    from a pinhole's (:mod:`services.optimizer.refine_pose` judges it).
+    from a pinhole's (:mod:`services.optimizer.refine_pose` judges it). A lens given as a
+    radial ``k1`` alone (one an earlier check estimated) may be checked the same way, ``k1``
+    started from it.
 
 The residual reported is the RMS of ``D`` over the points within :data:`INLIER_PX` of a target
 edge at full resolution: a pose that explains the image leaves most points there.
@@ -147,6 +149,7 @@ __all__ = [
     "EdgePoints",
     "edge_points",
     "pyramid",
+    "radial_only",
     "refine_dense",
 ]
 
@@ -249,6 +252,14 @@ class DenseFit:
                 "position": tuple(float(v) for v in self.position),
             }
         )
+
+
+def radial_only(distortion: LensDistortion | None) -> bool:
+    """Whether ``distortion`` is none or OpenCV's radial ``k1`` alone: a lens the check can
+    fit again (:func:`radial_check`)."""
+    if distortion is None:
+        return True
+    return distortion.k2 == distortion.p1 == distortion.p2 == distortion.k3 == 0.0
 
 
 def pyramid(pixel: float = 1.0) -> tuple[tuple[int, float, float], ...]:
@@ -360,9 +371,10 @@ def refine_dense(
     within :data:`INLIER_PX` of the target's pixels; ``focal_range``, the focal lengths considered
     on the film (:class:`~.focal_bounds.FocalRange`): a fitted one that ends outside it, or on
     a bound, is not kept; ``check_radial`` adds the lens check (:func:`radial_check`) when no
-    ``distortion`` is given, the focal length free in it when ``radial_focal`` (by default when
-    ``fit_focal``: a focal length stated but not trusted is freed there too). The answer's
-    pixels are the film's.
+    ``distortion`` is given, or a radial ``k1`` alone (:func:`radial_only`, ``k1`` started
+    there), the focal length free in it when ``radial_focal`` (by default when ``fit_focal``: a
+    focal length stated but not trusted is freed there too). The answer's pixels are the
+    film's.
     """
     target = target_gray if isinstance(target_gray, TargetMaps) else TargetMaps(target_gray)
     shape = (camera.height, camera.width)
@@ -412,9 +424,10 @@ def refine_dense(
     )
     explained = final <= radius
     radial = None
-    if check_radial and distortion is None and len(points.world) >= MIN_POINTS:
+    if check_radial and radial_only(distortion) and len(points.world) >= MIN_POINTS:
         free = fit_focal if radial_focal is None else radial_focal
-        radial = radial_check(points, fine, k, x, pixel, free)
+        start_k1 = 0.0 if distortion is None else distortion.k1
+        radial = radial_check(points, fine, k, x, pixel, free, start_k1)
     rotation, _ = cv2.Rodrigues(x[:3])
     zoom = float(x[6])
     return DenseFit(

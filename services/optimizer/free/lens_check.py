@@ -6,7 +6,9 @@ From where the pinhole fit ended, the pose, OpenCV's radial ``k1`` (``x_d = x (1
 full resolution (``cv2.projectPoints``, whose Jacobian has the ``k1`` column:
 :class:`~.chamfer.ChamferProblem` with ``fit_radial``). How far that ``k1`` moves the farthest
 explained edge points, ``f |k1| r³``, and how surely (its standard deviation), tell a distorted
-photo from a pinhole's; :mod:`services.optimizer.lens_pose` judges it.
+photo from a pinhole's; :mod:`services.optimizer.lens_pose` judges it. A fit made through a
+radial lens that an earlier check estimated (a render through it) is checked the same way, its
+``k1`` started there.
 """
 
 from __future__ import annotations
@@ -64,15 +66,17 @@ def radial_check(
     x: FloatArray,
     pixel: float,
     fit_focal: bool,
+    k1: float = 0.0,
 ) -> RadialCheck | None:
     """Whether the target's edges bend as a lens would: the pose, OpenCV's radial ``k1``
     (``x_d = x (1 + k1 r²)``) and, with ``fit_focal``, the focal length fitted at the
-    full-resolution ``level`` from the pinhole fit ``x`` (pose and zoom), a point explained
-    within :data:`INLIER_PX` of the target's pixels (``pixel`` film pixels each). None when
-    fewer than :data:`MIN_POINTS` points are explained there."""
+    full-resolution ``level`` from the fit ``x`` (pose and zoom) made through the radial lens
+    ``k1`` (0: a pinhole's), a point explained within :data:`INLIER_PX` of the target's pixels
+    (``pixel`` film pixels each). None when fewer than :data:`MIN_POINTS` points are explained
+    there."""
     problem = ChamferProblem(points, level, k, None, fit_focal=fit_focal, fit_radial=True)
     start = x if fit_focal else x[:6]
-    y = fit_level(problem, np.append(start, 0.0))
+    y = fit_level(problem, np.append(start, k1))
     radius = INLIER_PX * pixel
     distances = problem.residuals(y)
     explained = distances <= radius
@@ -84,14 +88,14 @@ def radial_check(
     camera = points.world @ rotation.T + y[3:6]
     normalised = np.hypot(camera[:, 0], camera[:, 1]) / np.maximum(camera[:, 2], 1e-9)
     reach = float(np.percentile(normalised[explained], 95))
-    k1 = float(y[index])
+    fitted = float(y[index])
     zoom = float(y[6]) if fit_focal else float(x[6])
     return RadialCheck(
-        k1=k1,
+        k1=fitted,
         sigma=sigma,
-        bend_px=k.fx * zoom * abs(k1) * reach**3,
+        bend_px=k.fx * zoom * abs(fitted) * reach**3,
         inliers=int(explained.sum()),
-        bounded=min(abs(k1 - bound) for bound in RADIAL_RANGE) < 1e-3,
+        bounded=min(abs(fitted - bound) for bound in RADIAL_RANGE) < 1e-3,
         rotation=np.asarray(rotation, dtype=np.float64),
         translation=np.asarray(y[3:6], dtype=np.float64),
         zoom=zoom,
