@@ -5,6 +5,7 @@ once; past searches paged; the broker panel refreshed. The tests write the READM
 
 from __future__ import annotations
 
+import io
 import re
 import time
 
@@ -12,6 +13,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from PIL import Image
 from playwright.sync_api import expect
 
 from tests.web.conftest import SCREENSHOTS, api, render_png
@@ -255,6 +257,37 @@ def test_a_target_made_by_picking_a_pose_on_the_hemisphere_is_found(page, stack)
     page.wait_for_url(re.compile(r"#/searches/[0-9a-f-]+$"))
     page.wait_for_selector("#status.succeeded", timeout=TIMEOUT_MS)
     assert page.inner_text("#result").startswith(f"Found: lat {lat}, lon {lon} ")
+
+
+def test_a_jpeg_its_exif_turns_is_shown_as_stored_under_its_boxes(page, stack):
+    """A JPEG whose EXIF says to turn it (Orientation 6, a camera held upright) is searched as
+    its stored pixels, which the detector boxed: the page shows those pixels under the boxes, not
+    the picture turned (browsers turn an image by its EXIF unless told not to)."""
+    stored = decoded(render_png(stack, "demo", 3, 7))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # Orientation: the stored pixels are to be turned 90° clockwise
+    out = io.BytesIO()
+    Image.fromarray(stored[..., ::-1]).save(out, "JPEG", quality=95, exif=exif.tobytes())
+    with api(stack) as http:
+        made = http.post(
+            "/searches?scene=demo", content=out.getvalue(), headers={"Content-Type": "image/jpeg"}
+        )
+        assert made.status_code in (200, 201, 202), made.text
+        search_id = made.json()["id"]
+        deadline = time.monotonic() + 60
+        while not http.get(f"/searches/{search_id}").json().get("target_detections"):
+            assert time.monotonic() < deadline
+            time.sleep(0.3)
+    page.goto(f"{stack.controller}/#/searches/{search_id}")
+    page.wait_for_selector("#target-canvas img:not([hidden])")
+    expect(page.locator("#target-canvas .box").first).to_be_attached()
+    page.wait_for_timeout(300)
+    shot = decoded(page.locator("#target-canvas").screenshot()).astype(np.float32)
+    height, width = shot.shape[:2]
+    as_stored = cv2.resize(stored, (width, height)).astype(np.float32)
+    turned = cv2.resize(cv2.rotate(stored, cv2.ROTATE_90_CLOCKWISE), (width, height))
+    off_stored = np.abs(shot - as_stored).mean()
+    assert off_stored < 0.5 * np.abs(shot - turned.astype(np.float32)).mean(), off_stored
 
 
 def test_past_searches_are_listed_a_page_at_a_time_and_open_as_a_replay(page, stack):
