@@ -62,7 +62,11 @@ from services.common.contracts.free import (
     FreePoseResponse,
 )
 from services.common.contracts.optimize import ImageDetections
-from services.common.contracts.refine import MAX_FILM_SCALE, RefinePoseResponse
+from services.common.contracts.refine import (
+    MAX_FILM_SCALE,
+    RefinePoseRequest,
+    RefinePoseResponse,
+)
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
 from services.common.depth_archive import DepthImage
@@ -100,12 +104,7 @@ from services.controller.free_verdict import (
     free_result,
     others_standing,
 )
-from services.controller.lens_check import (
-    lens_bent,
-    lens_refit_request,
-    through_lens,
-    with_lens_doubt,
-)
+from services.controller.lens_check import lens_bent, refit_through_lens, with_lens_doubt
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -385,17 +384,18 @@ class FreeSearchLoop:
         size: tuple[int, int],
         image: bytes,
         bent: RefinePoseResponse,
-    ) -> tuple[RefinePoseResponse, StageTimings]:
-        """A ``bent`` fit's lens pose rendered through its lens and refitted from there, lens
-        and all (:func:`~.lens_check.through_lens`); the render's milliseconds."""
-        assert bent.lens_pose is not None
-        _, archive, _, render_ms = await self._render(search, scene, size, bent.lens_pose)
-        request = lens_refit_request(search, bent.lens_pose)
-        refit = ask_refinement(self.stages, self.outages, search.id, request, image, archive)
-        again, refine_ms = await timed(refit)
-        total = render_ms + refine_ms
-        timings = StageTimings(render_ms=render_ms, refine_ms=refine_ms, total_ms=total)
-        return through_lens(bent, again), timings
+    ) -> tuple[RefinePoseResponse, StageTimings | None]:
+        """:func:`~.lens_check.refit_through_lens` by this search's stages."""
+
+        async def render(pose: FreePose) -> tuple[bytes, float]:
+            _, archive, _, render_ms = await self._render(search, scene, size, pose)
+            return archive, render_ms
+
+        async def refine(request: RefinePoseRequest, archive: bytes) -> RefinePoseResponse | str:
+            stages, outages = self.stages, self.outages
+            return await ask_refinement(stages, outages, search.id, request, image, archive)
+
+        return await refit_through_lens(bent, search, render, refine)
 
     async def _refit(
         self,

@@ -30,13 +30,26 @@ each.
 
 from __future__ import annotations
 
+import logging
+import time
+from collections.abc import Awaitable, Callable
+
 from services.common.contracts.free import FreePose
 from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
-from services.common.contracts.search import Search, SearchResult
+from services.common.contracts.search import Search, SearchResult, StageTimings
 from services.common.geometry.grid import HemisphereGrid
+from services.controller.failures import SearchFailed
 from services.controller.free_verdict import unconfirmed_at
 
-__all__ = ["lens_bent", "lens_refit_request", "through_lens", "with_lens_doubt"]
+__all__ = [
+    "lens_bent",
+    "lens_refit_request",
+    "refit_through_lens",
+    "through_lens",
+    "with_lens_doubt",
+]
+
+_log = logging.getLogger("cosmos.controller")
 
 
 def lens_bent(outcome: RefinePoseResponse | str | None) -> RefinePoseResponse | None:
@@ -63,6 +76,33 @@ def through_lens(first: RefinePoseResponse, again: RefinePoseResponse | str) -> 
     if isinstance(again, str) or not again.fit.accepted or again.lens_pose is None:
         return first
     return first if lens_bent(again) is None else again
+
+
+async def refit_through_lens(
+    bent: RefinePoseResponse,
+    search: Search,
+    render: Callable[[FreePose], Awaitable[tuple[bytes, float]]],
+    refine: Callable[[RefinePoseRequest, bytes], Awaitable[RefinePoseResponse | str]],
+) -> tuple[RefinePoseResponse, StageTimings | None]:
+    """``bent``'s lens pose rendered through its lens (``render``: the archive and its
+    milliseconds) and refitted from there (``refine``), lens and all: the outcome that answers
+    (:func:`through_lens`) and the render's milliseconds. A render that fails (the outage
+    policy's budget spent) leaves ``bent`` answering, as without that render: the search keeps
+    its doubt and loses nothing."""
+    pose = bent.lens_pose
+    assert pose is not None
+    try:
+        archive, render_ms = await render(pose)
+    except SearchFailed as exc:
+        _log.warning("search %s: no render through the estimated lens: %s", search.id, exc)
+        return bent, None
+    started = time.perf_counter()
+    again = await refine(lens_refit_request(search, pose), archive)
+    refine_ms = (time.perf_counter() - started) * 1000
+    total = render_ms + refine_ms
+    return through_lens(bent, again), StageTimings(
+        render_ms=render_ms, refine_ms=refine_ms, total_ms=total
+    )
 
 
 def with_lens_doubt(

@@ -9,6 +9,7 @@ import pytest
 
 from services.common.contracts.free import LensBend, PhotoIntrinsics
 from services.common.contracts.refine import RefinePoseResponse
+from services.controller.broker import BrokerError
 from services.controller.lens_check import lens_bent, through_lens
 from tests.controller.free_stages import (
     FakeStages,
@@ -133,3 +134,25 @@ def _outcome(lens: LensBend, accepted: bool) -> RefinePoseResponse:
     fit = dense_report(accepted=accepted, lens=lens)
     pose = candidate(1.0)
     return RefinePoseResponse(pose=pose, fit=fit, lens_pose=pose if lens.bends else None)
+
+
+def test_a_render_through_the_lens_that_fails_leaves_the_first_lens_pose(tmp_path, detail):
+    """No renderer left for the render through the lens (the outage policy's budget spent): the
+    search still succeeds, answering the first fit's lens pose, unconfirmed; nothing is lost."""
+    stages = FakeStages(
+        detail, inliers=850, faults={"render": (1, BrokerError("renderer", "render", []))}
+    )
+    stages.lens = BENT
+    final = run(tmp_path, stages)
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    assert stages.calls["render"] == 2
+    assert not any(r.fit_lens for r in stages.refinements)
+    assert result.free is not None
+    assert result.free.box_pose is not None
+    assert result.free.pose.position[2] == pytest.approx(result.free.box_pose.position[2] + 0.3)
+    assert result.renders == 1
+    assert not result.confirmed
+    assert "the photo's edges bend as a distorting lens's do" in result.reason
+    assert "refitted through the estimated lens" not in result.reason
