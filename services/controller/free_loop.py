@@ -74,7 +74,7 @@ from services.common.geometry.free_camera import FreeCamera
 from services.common.images import encode_ppm, media_type_of
 from services.controller.events import Notifier
 from services.controller.exif_check import exif_overruled, with_checked_focal
-from services.controller.failures import failure, unreadable_answer
+from services.controller.failures import SearchFailed, failure, unreadable_answer
 from services.controller.free_candidates import as_rendered, with_candidate
 from services.controller.free_iterations import (
     Seen,
@@ -116,9 +116,8 @@ FOCAL_VIEW_SCALE: Final = 2
 """A search without the photo's intrinsics renders its views, and fits its focal length, on a
 film this many times the view width (up to twice the photo's own size: below). The focal
 length is told from the distance by the perspective of the edges, a pixel-scale effect at steep
-views:
-``python -m benchmarks.focal_valley --scale 2`` took the fits within 2 % of the true fov from
-29 % to 79 % at 60–89° (71 % to 95 % at 30–60°; nadir views stay flat). Through the stack, 24
+views: ``python -m benchmarks.focal_valley --scale 2`` took the fits within 2 % of the true fov
+from 29 % to 79 % at 60–89° (71 % to 95 % at 30–60°; nadir views stay flat). Through the stack, 24
 drone-sized photos (4000 x 3000) of the demo without intrinsics (``python -m
 benchmarks.drone_photos``, one run, views at 320 against 640): within 5 %/2° 16 → 23, median fov
 error 2.2 % → 0.6 %, median search 616 → 1022 ms. A photo given with its intrinsics keeps the
@@ -370,9 +369,8 @@ class FreeSearchLoop:
             result = with_checked_focal(result, overruled, stated, grid)
         bent, lens = lens_bent(outcome), None
         if bent is not None:
-            if bent.lens_pose is not None and len(history) + followed + (refit is not None) < (
-                search.max_iterations
-            ):
+            spare = len(history) + followed + (refit is not None) < search.max_iterations
+            if bent.lens_pose is not None and spare:
                 bent, lens = await self._through_lens(search, scene, target[1], image, bent)
             result = with_lens_doubt(result, bent, grid)
         return with_extra_renders(result, refit, followed, lens)
@@ -392,8 +390,8 @@ class FreeSearchLoop:
             return archive, render_ms
 
         async def refine(request: RefinePoseRequest, archive: bytes) -> RefinePoseResponse | str:
-            stages, outages = self.stages, self.outages
-            return await ask_refinement(stages, outages, search.id, request, image, archive)
+            stages, outages, sid = self.stages, self.outages, search.id
+            return await ask_refinement(stages, outages, sid, request, image, archive)
 
         return await refit_through_lens(bent, search, render, refine)
 
@@ -407,13 +405,17 @@ class FreeSearchLoop:
         rendered: int,
     ) -> tuple[RefinePoseResponse | str, Seen | None]:
         """One render more at an accepted fit that asks for it (``render_again``: the focal
-        length was fitted far from the render), within the search's ``max_iterations``, and the
-        refit from there, kept when accepted: the outcome and the render it added, if any."""
+        length fitted far from the render), within ``max_iterations``, and the refit from there,
+        kept when accepted: the outcome and the render added, if any (none when it failed: a
+        retry would resume after the iterations, without any fit)."""
         if isinstance(outcome, str) or not outcome.fit.render_again:
             return outcome, None
         if rendered >= search.max_iterations:
             return outcome, None
-        seen, again = await self._render_and_check(search, scene, target, image, outcome.pose)
+        try:
+            seen, again = await self._render_and_check(search, scene, target, image, outcome.pose)
+        except SearchFailed:
+            return outcome, None
         if isinstance(again, str) or not again.fit.accepted:
             return outcome, seen
         return again, seen

@@ -25,6 +25,7 @@ from services.common.contracts.search import (
 )
 from services.common.errors import ProblemDetails, UnprocessableError
 from services.common.geometry.free_camera import LensDistortion
+from services.controller.broker import BrokerError
 from services.controller.form import photo_intrinsics
 from services.controller.free_match import compare_view
 from services.controller.stages import StageError
@@ -110,6 +111,24 @@ def test_a_fit_that_asks_for_it_is_refitted_by_one_more_render(
     else:
         assert result.refit_timings is None
     assert len(final.iterations) == 1  # the refit render is not an iteration of the search
+
+
+def test_a_refit_render_that_fails_leaves_the_first_fit_answering(tmp_path, detail):
+    """No renderer left for the refit's render (the outage policy's budget spent): the search
+    succeeds with its first fit, as if no refit had been asked for, rather than failing after
+    its iterations (a retry would resume there, with no fit at all)."""
+    faults = {"render": (1, BrokerError("renderer", "render", []))}
+    stages = FakeStages(detail, refits=5, faults=faults)
+    final = run(tmp_path, stages)
+    assert final.status == "succeeded", final.error
+    result = final.result
+    assert result is not None
+    assert result.free is not None
+    assert stages.calls["render"] == 2
+    assert result.renders == 1
+    assert result.refit_timings is None
+    assert result.free.pose.position == pytest.approx((0.0, -3.9, 5.0))
+    assert "refitted by one more render" not in result.reason
 
 
 def test_a_found_pose_whose_render_disagrees_is_not_confirmed(tmp_path, detail):
