@@ -56,22 +56,15 @@ from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from services.common.contracts.detect import Detection, DetectResponse, ModelInfo
-from services.common.contracts.free import (
-    FreePose,
-    FreePoseRequest,
-    FreePoseResponse,
-)
+from services.common.contracts.free import FreePose, FreePoseRequest, FreePoseResponse
 from services.common.contracts.optimize import ImageDetections
-from services.common.contracts.refine import (
-    MAX_FILM_SCALE,
-    RefinePoseRequest,
-    RefinePoseResponse,
-)
+from services.common.contracts.refine import MAX_FILM_SCALE, RefinePoseRequest, RefinePoseResponse
 from services.common.contracts.render import SceneDetail
 from services.common.contracts.search import Iteration, Search, SearchResult, StageTimings
 from services.common.depth_archive import DepthImage
 from services.common.geometry.free_camera import FreeCamera
 from services.common.images import encode_ppm, media_type_of
+from services.controller import lens_check
 from services.controller.events import Notifier
 from services.controller.exif_check import exif_overruled, with_checked_focal
 from services.controller.failures import SearchFailed, failure, unreadable_answer
@@ -104,7 +97,6 @@ from services.controller.free_verdict import (
     free_result,
     others_standing,
 )
-from services.controller.lens_check import lens_bent, refit_through_lens, with_lens_doubt
 from services.controller.outages import OutagePolicy
 from services.controller.stages import Stages
 from services.controller.store import Lease, SearchStore
@@ -256,8 +248,8 @@ class FreeSearchLoop:
         if history and history[-1].done:  # finished by an older run, no result recorded
             chosen, agreed = choice(history, {})
             result = free_result(answer, history, grid, chosen, Verdict(agreed))
-            unrefined = "no dense refinement (resumed after its render)"
-            return await writes.succeed(refined_result(result, unrefined, grid))
+            result = refined_result(result, "no dense refinement (resumed after its render)", grid)
+            return await writes.succeed(lens_check.lens_unchecked(result, search.intrinsics, grid))
         budget = min(len(candidates), search.max_iterations)
         rivals = checks_rivals(answer, search.intrinsics)
         edges: dict[int, RefinePoseResponse | str] = {}
@@ -367,12 +359,12 @@ class FreeSearchLoop:
         if overruled is not None and isinstance(outcome, RefinePoseResponse):
             stated = outcome.pose.intrinsics.fx_px
             result = with_checked_focal(result, overruled, stated, grid)
-        bent, lens = lens_bent(outcome), None
+        bent, lens = lens_check.lens_bent(outcome), None
         if bent is not None:
             spare = len(history) + followed + (refit is not None) < search.max_iterations
             if bent.lens_pose is not None and spare:
                 bent, lens = await self._through_lens(search, scene, target[1], image, bent)
-            result = with_lens_doubt(result, bent, grid)
+            result = lens_check.with_lens_doubt(result, bent, grid)
         return with_extra_renders(result, refit, followed, lens)
 
     async def _through_lens(
@@ -393,7 +385,7 @@ class FreeSearchLoop:
             stages, outages, sid = self.stages, self.outages, search.id
             return await ask_refinement(stages, outages, sid, request, image, archive)
 
-        return await refit_through_lens(bent, search, render, refine)
+        return await lens_check.refit_through_lens(bent, search, render, refine)
 
     async def _refit(
         self,

@@ -26,6 +26,9 @@ that fit answers when it is accepted and still bends (:func:`through_lens`). On 
 photos, one run each way on one machine: with the EXIF's focal length alone 28 → 31 within
 5 %/2° and 18 → 20 within 2 %/1°; with nothing read 22 → 25 and 16 → 19; one render more
 each.
+
+A search answered from its recorded iterations after a stop (:func:`lens_unchecked`) has no
+render left to fit by, so no lens check: unless it was given the lens, it is not confirmed.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 
-from services.common.contracts.free import FreePose
+from services.common.contracts.free import FreePose, PhotoIntrinsics
 from services.common.contracts.refine import RefinePoseRequest, RefinePoseResponse
 from services.common.contracts.search import Search, SearchResult, StageTimings
 from services.common.geometry.grid import HemisphereGrid
@@ -43,6 +46,7 @@ from services.controller.free_verdict import unconfirmed_at
 
 __all__ = [
     "lens_bent",
+    "lens_unchecked",
     "lens_refit_request",
     "refit_through_lens",
     "through_lens",
@@ -124,3 +128,18 @@ def with_lens_doubt(
         "or a photo whose XMP states its calibration, to confirm it"
     )
     return unconfirmed_at(result, reason, grid, pose)
+
+
+def lens_unchecked(
+    result: SearchResult, known: PhotoIntrinsics | None, grid: HemisphereGrid
+) -> SearchResult:
+    """``result`` of a free search answered from its recorded iterations after a stop, with no
+    render left to fit (so no lens check): not confirmed unless the search ``known``-ly had its
+    lens, since a distorted photo's pinhole pose can agree with its render box by box."""
+    if not result.confirmed or (known is not None and known.distortion is not None):
+        return result
+    reason = (
+        f"{result.reason}; not confirmed: resumed after its render, the photo's edges were not "
+        "checked for a distorting lens (give the lens's distortion, or search again)"
+    )
+    return unconfirmed_at(result, reason, grid)

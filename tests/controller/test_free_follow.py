@@ -110,7 +110,8 @@ def test_a_resumed_search_answers_a_followed_candidate_at_the_pose_its_render_ch
 ):
     """Resumed after recording an iteration rendered at its candidate's dense fit: the answer is
     the pose that render was made at (no fit to refine it by), not the candidate's box pose,
-    whose own render disagreed."""
+    whose own render disagreed. Unconfirmed: no lens was given, and no render is left to check
+    one by."""
     first = RefusesTheSecondFit(detail, right=5, edges=(0, 5), inliers=600, meet=True)
     store = stored(tmp_path, first)
     run_stored(store, first)
@@ -126,7 +127,8 @@ def test_a_resumed_search_answers_a_followed_candidate_at_the_pose_its_render_ch
     result = final.result
     assert result is not None
     assert result.free is not None
-    assert result.confirmed
+    assert not result.confirmed
+    assert "not checked for a distorting lens" in result.reason
     assert result.free.pose.position == pytest.approx((5.0, -3.9, 5.0))
     # the focal length the render was made with: the first fit's (no intrinsics given)
     assert result.free.pose.intrinsics.fx_px == pytest.approx(390.0)

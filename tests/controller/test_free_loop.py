@@ -497,13 +497,18 @@ def _png() -> bytes:
 PNG_IMAGE = _png()
 
 
-def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, detail):
+@pytest.mark.parametrize("lens", [None, LensDistortion(k1=-0.1)], ids=["no-lens", "lens-given"])
+def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, detail, lens):
+    """Answered from its iterations, with no render to fit by: the box pose, confirmed only
+    when the search had its lens (no lens check was made)."""
     first = FakeStages(detail)
-    store = stored(tmp_path, first)
+    given = PhotoIntrinsics(fov_deg=45.0, distortion=lens)
+    store = stored(tmp_path, first, intrinsics=given)
     run_stored(store, first)
     done = store.get("s1")
     assert done is not None
     assert done.result is not None
+    assert done.result.confirmed
     # as if the run had stopped after recording its last iteration, before its result
     with store.database.write() as session:
         session.execute("UPDATE searches SET status = 'failed' WHERE id = ?", ("s1",))
@@ -518,6 +523,10 @@ def test_a_free_search_resumed_after_its_agreeing_render_answers_it(tmp_path, de
     assert done.result.free is not None
     assert final.result.free.pose == done.result.free.box_pose
     assert "no dense refinement (resumed after its render)" in final.result.reason
+    assert final.result.confirmed is (lens is not None)
+    if lens is None:
+        assert final.result.free.status == "ambiguous"
+        assert "not checked for a distorting lens" in final.result.reason
 
 
 class Overlapping(FakeStages):
