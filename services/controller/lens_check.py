@@ -22,10 +22,10 @@ the lens 31 and 26, 2 confirmed and right (``docs/EVALUATION.md``).
 That pose was fitted through the lens from a pinhole's render, whose silhouettes were seen
 through no lens and from the pinhole's pose. While renders remain, it is rendered once more
 through its lens and refitted from there, ``k1`` started at its estimate (``fit_lens``), and
-that fit answers when it is accepted and still bends (:func:`through_lens`). On the same 32
-photos, one run each way on one machine: with the EXIF's focal length alone 28 → 31 within
-5 %/2° and 18 → 20 within 2 %/1°; with nothing read 22 → 25 and 16 → 19; one render more
-each.
+that fit answers when it is accepted and still bends (:func:`through_lens`). ``python -m
+benchmarks.drone_lens --seeds 11,12`` since: with the EXIF's focal length alone 30 within 5 %/2°
+and 19 within 2 %/1° (28 and 18 before), with nothing read 26 and 21 (22 and 16), none
+confirmed, one render more each (``docs/EVALUATION.md``).
 
 A search answered from its recorded iterations after a stop (:func:`lens_unchecked`) has no
 render left to fit by, so no lens check: unless it was given the lens, it is not confirmed.
