@@ -390,6 +390,10 @@ def refine_pose(
     if catalog is None:
         raise _invalid("this optimizer has no scene catalog", "request.scene")
     scene = catalog.get(request.scene)  # NotFoundError (404) names the field
+    lens = request.pose.intrinsics.distortion
+    if request.fit_lens and (lens is None or not radial_only(lens)):  # before any decoding
+        detail = "fit_lens asks for a pose whose lens distortion is a radial k1 alone"
+        raise _invalid(detail, "request.fit_lens")
     width, height = _target_size(target, limits)
     view, rgb, scale = _render(render, (width, height))
     h, w = view.depth.shape
@@ -397,9 +401,6 @@ def refine_pose(
     maps = targets.maps(target, (w, h), lambda: _target_gray(target, limits, (w, h)))
     start = request.pose
     k = start.intrinsics
-    if request.fit_lens and (k.distortion is None or not radial_only(k.distortion)):
-        detail = "fit_lens asks for a pose whose lens distortion is a radial k1 alone"
-        raise _invalid(detail, "request.fit_lens")
     names = [c.object for c in start.correspondences]
     objects = cache.get(scene)
     if any(n not in objects.names for n in names):  # before the fit: a bad request costs none
