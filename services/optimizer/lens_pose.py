@@ -41,8 +41,6 @@ from services.common.geometry.camera import fov_deg_of
 from services.common.geometry.free_camera import (
     LensDistortion,
     free_pinhole_camera,
-    quaternion_of_rotation,
-    yaw_pitch_roll_of_rotation,
 )
 from services.common.geometry.lens import invertible_over_film
 from services.optimizer.free.lens_check import RadialCheck
@@ -107,18 +105,12 @@ def lens_pose(
         names = [c.object for c in start.correspondences]
         focal = (fx, fy, k.cx_px, k.cy_px)
         boxes = predicted_boxes(objects, names, camera_to_world, position, focal, lens)
-        pose = start.model_copy(
-            update={
-                "position": position,
-                "quaternion_wxyz": quaternion_of_rotation(camera_to_world),
-                "yaw_pitch_roll_deg": yaw_pitch_roll_of_rotation(camera_to_world),
-                "intrinsics": intrinsics,
-                "residual_px": report.residual_px if report.residual_px is not None else 0.0,
-                "correspondences": tuple(
-                    c.model_copy(update={"predicted_box": boxes[c.object]})
-                    for c in start.correspondences
-                ),
-            }
+        residual = report.residual_px if report.residual_px is not None else 0.0
+        pairs = tuple(
+            c.model_copy(update={"predicted_box": boxes[c.object]}) for c in start.correspondences
+        )
+        pose = start.moved_to(camera_to_world, position, intrinsics, residual).model_copy(
+            update={"correspondences": pairs}
         )
         pinhole = free_pinhole_camera(pose.camera(), width, height, intrinsics.fov_deg)
     except (ValidationError, ValueError):

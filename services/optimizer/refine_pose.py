@@ -102,9 +102,7 @@ from services.common.errors import ServiceError, UnprocessableError
 from services.common.geometry.camera import focal_length_px, fov_deg_of
 from services.common.geometry.free_camera import (
     free_pinhole_camera,
-    quaternion_of_rotation,
     rotation_angle_deg,
-    yaw_pitch_roll_of_rotation,
 )
 from services.common.images import checked_header, decode_image
 from services.optimizer.free import DenseFit, refine_dense
@@ -355,24 +353,17 @@ def _refined(
     """``start`` moved to the fit (intrinsics in target pixels, module docstring)."""
     k = start.intrinsics
     fx, fy = fit.intrinsics.fx / scale, fit.intrinsics.fy / scale
-    camera_to_world = fit.rotation.T
-    return start.model_copy(
-        update={
-            "position": tuple(float(v) for v in fit.position),
-            "quaternion_wxyz": quaternion_of_rotation(camera_to_world),
-            "yaw_pitch_roll_deg": yaw_pitch_roll_of_rotation(camera_to_world),
-            "intrinsics": IntrinsicsUsed(
-                fx_px=fx,
-                fy_px=fy,
-                cx_px=k.cx_px,
-                cy_px=k.cy_px,
-                fov_deg=fov_deg_of(fx, width),
-                source="estimated" if fit.focal_fitted else k.source,
-                distortion=k.distortion,
-            ),
-            "residual_px": report.residual_px if report.residual_px is not None else 0.0,
-        }
+    intrinsics = IntrinsicsUsed(
+        fx_px=fx,
+        fy_px=fy,
+        cx_px=k.cx_px,
+        cy_px=k.cy_px,
+        fov_deg=fov_deg_of(fx, width),
+        source="estimated" if fit.focal_fitted else k.source,
+        distortion=k.distortion,
     )
+    residual = report.residual_px if report.residual_px is not None else 0.0
+    return start.moved_to(fit.rotation.T, fit.position, intrinsics, residual)
 
 
 def refine_pose(

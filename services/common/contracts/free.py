@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
+import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import Field, model_validator
 
 from services.common.base import BoxXYXY, FrozenModel, Integer, Number
@@ -27,6 +29,8 @@ from services.common.geometry.free_camera import (
     LensDistortion,
     PixelCoordinate,
     direction_pose,
+    quaternion_of_rotation,
+    yaw_pitch_roll_of_rotation,
 )
 from services.common.geometry.grid import HemisphereGrid
 from services.common.geometry.scene import SCENE_ID_PATTERN
@@ -192,6 +196,26 @@ class FreePose(FrozenModel):
             cx_px=k.cx_px,
             cy_px=k.cy_px,
             distortion=k.distortion,
+        )
+
+    def moved_to(
+        self,
+        camera_to_world: ArrayLike,
+        position: ArrayLike,
+        intrinsics: IntrinsicsUsed,
+        residual_px: float,
+    ) -> FreePose:
+        """This pose's pairs seen from another camera: its ``camera_to_world`` rotation (3x3),
+        ``position``, ``intrinsics`` (target pixels) and edge RMS ``residual_px``."""
+        x, y, z = (float(v) for v in np.asarray(position, dtype=np.float64))
+        return self.model_copy(
+            update={
+                "position": (x, y, z),
+                "quaternion_wxyz": quaternion_of_rotation(camera_to_world),
+                "yaw_pitch_roll_deg": yaw_pitch_roll_of_rotation(camera_to_world),
+                "intrinsics": intrinsics,
+                "residual_px": residual_px,
+            }
         )
 
 
