@@ -34,7 +34,6 @@ render left to fit by, so no lens check: unless it was given the lens, it is not
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Awaitable, Callable
 
 from services.common.contracts.free import FreePose, PhotoIntrinsics
@@ -42,6 +41,7 @@ from services.common.contracts.refine import RefinePoseRequest, RefinePoseRespon
 from services.common.contracts.search import Search, SearchResult, StageTimings
 from services.common.geometry.grid import HemisphereGrid
 from services.controller.failures import SearchFailed
+from services.controller.free_iterations import timed
 from services.controller.free_verdict import unconfirmed_at
 
 __all__ = [
@@ -100,9 +100,7 @@ async def refit_through_lens(
     except SearchFailed as exc:
         _log.warning("search %s: no render through the estimated lens: %s", search.id, exc)
         return bent, None
-    started = time.perf_counter()
-    again = await refine(lens_refit_request(search, pose), archive)
-    refine_ms = (time.perf_counter() - started) * 1000
+    again, refine_ms = await timed(refine(lens_refit_request(search, pose), archive))
     total = render_ms + refine_ms
     return through_lens(bent, again), StageTimings(
         render_ms=render_ms, refine_ms=refine_ms, total_ms=total
