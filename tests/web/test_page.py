@@ -259,18 +259,40 @@ def test_a_target_made_by_picking_a_pose_on_the_hemisphere_is_found(page, stack)
     assert page.inner_text("#result").startswith(f"Found: lat {lat}, lon {lon} ")
 
 
+def turned_jpeg(stored: np.ndarray) -> bytes:
+    """``stored`` (BGR) as a JPEG whose EXIF Orientation (6, a camera held upright) says to
+    turn it 90° clockwise for display."""
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    out = io.BytesIO()
+    Image.fromarray(stored[..., ::-1]).save(out, "JPEG", quality=95, exif=exif.tobytes())
+    return out.getvalue()
+
+
+def test_a_new_search_previews_a_jpeg_its_exif_turns_at_its_stored_size(page, stack, tmp_path):
+    """The new-search form states the size the search will decode, and previews the target in
+    that shape: a JPEG's stored pixels, not the size the browser reports after its EXIF turn."""
+    path = tmp_path / "upright.jpg"
+    path.write_bytes(turned_jpeg(decoded(render_png(stack, "demo", 3, 7))))
+    open_new_search(page, stack)
+    page.set_input_files("#target-file", str(path))
+    expect(page.locator("#target-info")).to_contain_text("upright.jpg")
+    expect(page.locator("#target-info")).to_contain_text(", 320×240")
+    box = page.locator("#target-preview").bounding_box()
+    assert box is not None
+    assert box["width"] > box["height"], box
+
+
 def test_a_jpeg_its_exif_turns_is_shown_as_stored_under_its_boxes(page, stack):
     """A JPEG whose EXIF says to turn it (Orientation 6, a camera held upright) is searched as
     its stored pixels, which the detector boxed: the page shows those pixels under the boxes, not
     the picture turned (browsers turn an image by its EXIF unless told not to)."""
     stored = decoded(render_png(stack, "demo", 3, 7))
-    exif = Image.Exif()
-    exif[0x0112] = 6  # Orientation: the stored pixels are to be turned 90° clockwise
-    out = io.BytesIO()
-    Image.fromarray(stored[..., ::-1]).save(out, "JPEG", quality=95, exif=exif.tobytes())
     with api(stack) as http:
         made = http.post(
-            "/searches?scene=demo", content=out.getvalue(), headers={"Content-Type": "image/jpeg"}
+            "/searches?scene=demo",
+            content=turned_jpeg(stored),
+            headers={"Content-Type": "image/jpeg"},
         )
         assert made.status_code in (200, 201, 202), made.text
         search_id = made.json()["id"]

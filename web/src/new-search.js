@@ -7,6 +7,7 @@ import { Problem, imageURL } from "./api.js";
 import { Picture } from "./draw.js";
 import { h, notice } from "./dom.js";
 import { Hemisphere } from "./hemisphere.js";
+import { storedJpegSize } from "./stored-size.js";
 
 const STRATEGIES = [
   ["reprojection", "reprojection (ours, default)"],
@@ -19,6 +20,7 @@ export function showNewSearch({ view, api }, params) {
   const wanted = params.get("scene");
   let target = null; // { blob, name }
   let picked = null;
+  let wantedTarget = null; // the target image URL last asked for (showTarget)
   let sceneDetail = null;
 
   const sceneSelect = h("select", { name: "scene", id: "scene", required: true });
@@ -78,14 +80,20 @@ export function showNewSearch({ view, api }, params) {
   view.replaceChildren(h("h2", { class: "title" }, "New search"), form);
   const hemisphere = new Hemisphere(hemiBox, { onPick: (pose) => pickPose(pose) });
 
-  /** Show the target image at `url` (or none) and `text`, with the image's size once shown. */
-  function showTarget(url, text) {
+  /**
+   * Show the target image at `url` (or none) and `text`, with the image's size once shown: the
+   * size its pixels are stored at when `blob` is a JPEG (see storedJpegSize), as searched.
+   */
+  async function showTarget(url, text, blob = null) {
+    wantedTarget = url;
     targetInfo.textContent = text;
     if (url) urls.add(url);
-    targetPicture.show(url).then((size) => {
-      if (size && targetPicture.src === url) targetInfo.textContent = `${text}, ${size[0]}×${size[1]}`;
-    });
+    const stored = blob ? await storedJpegSize(blob) : null;
+    if (wantedTarget !== url) return; // another target was asked for meanwhile
+    const shown = targetPicture.show(url, [], stored);
     release();
+    const size = (await shown) && (stored ?? [targetPicture.img.naturalWidth, targetPicture.img.naturalHeight]);
+    if (size && targetPicture.src === url) targetInfo.textContent = `${text}, ${size[0]}×${size[1]}`;
   }
 
   async function useFile(file) {
@@ -94,7 +102,7 @@ export function showNewSearch({ view, api }, params) {
     picked = null;
     hemisphere.setTrack({});
     // a PPM (or not an image) is not shown here: the controller judges it
-    showTarget(URL.createObjectURL(file), `${file.name} (${(file.size / 1024).toFixed(1)} KiB)`);
+    showTarget(URL.createObjectURL(file), `${file.name} (${(file.size / 1024).toFixed(1)} KiB)`, file);
   }
 
   async function pickPose(pose) {
