@@ -6,6 +6,7 @@ it densely (closer to the truth than the boxes put it)."""
 
 from __future__ import annotations
 
+import csv
 import math
 from collections.abc import Iterator
 
@@ -18,12 +19,14 @@ from cosmos.bench.variants import dji_xmp, exif_jpeg
 from cosmos.cli import main
 from cosmos.stack import Stack
 from services.common.auth import bearer
+from services.common.contracts.render import PoseQuery, RenderRequest
 from services.common.contracts.search import Search
 from services.common.geometry.free_camera import (
     FreeCamera,
     LensDistortion,
     yaw_pitch_roll_of_rotation,
 )
+from services.common.geometry.pose import GridIndex
 from services.controller.client import ControllerClient
 from services.controller.settings import ControllerSettings
 from services.renderer.client import RendererClient
@@ -319,3 +322,69 @@ def test_cosmos_search_free_prints_the_answer(stack, tmp_path, monkeypatch, caps
     assert "intrinsics exif: fov" in capsys.readouterr().out
     assert main([*argv, "--no-exif", "--out", str(tmp_path / "out")]) == 0
     assert "intrinsics estimated: fov" in capsys.readouterr().out
+
+
+def test_cosmos_search_takes_a_flight_of_photos_and_writes_their_poses(
+    stack, tmp_path, monkeypatch, capsys
+):
+    """Several photos: each searched (two at a time), a line said per photo, the answers
+    written as a CSV row each in the order given; a photo that cannot be read or that the
+    controller refuses keeps its row, saying why, and the others are answered all the same."""
+    second = FreeCamera(position=(4.0, -2.5, 3.5), look_at=(-0.5, 0.5, 0.0), roll_deg=-8.0)
+    photos = []
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        for name, camera in (("first.png", DRONE), ("second.png", second)):
+            image, _ = renderer.render_camera("demo", camera)
+            photos.append(tmp_path / name)
+            photos[-1].write_bytes(image)
+    (tmp_path / "notes.png").write_bytes(b"not an image at all")
+    photos[1:1] = [tmp_path / "missing.png", tmp_path / "notes.png"]
+    table = tmp_path / "flight" / "poses.csv"
+    monkeypatch.setenv("COSMOS_API_KEY", stack.api_key)
+    argv = ["search", *map(str, photos), "--scene", "demo", "--free", "--fov", "45"]
+    assert main([*argv, "--url", stack.controller, "--poses", str(table)]) == 3
+    said = capsys.readouterr().out.splitlines()
+    assert [line.split(": ")[0] for line in said[:4]] == [
+        str(photos[1]),
+        str(photos[2]),
+        str(photos[0]),
+        str(photos[3]),
+    ]  # the unsearched at once, the searched as they end
+    assert said[0].endswith("not searched: cannot be read (No such file or directory)")
+    assert "not searched: refused (4" in said[1]
+    assert said[4] == f"wrote {table}: 4 photo(s)"
+    with table.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [row["image"] for row in rows] == list(map(str, photos))
+    for row, truth in ((rows[0], DRONE), (rows[3], second)):
+        assert row["status"] == "succeeded"
+        assert row["answer"] == "found"
+        assert row["confirmed"] == "True"
+        position = tuple(float(row[axis]) for axis in "xyz")
+        assert math.dist(position, truth.position) < 0.03 * RADIUS, row
+        quaternion = tuple(float(row[q]) for q in ("qw", "qx", "qy", "qz"))
+        assert rotation_error_deg(quaternion, truth) < 1.0, row
+        assert float(row["fov_deg"]) == pytest.approx(45.0)
+        assert row["intrinsics"] == "given"
+        assert int(row["renders"]) >= 1
+    for row in rows[1:3]:
+        assert row["status"] == "not searched"
+        assert row["x"] == row["search_id"] == ""
+        assert row["reason"]
+    # one hemisphere photo: followed as it runs, and its row holds its hemisphere pose
+    target = RenderRequest(scene="demo", pose=PoseQuery(lat=3, lon=7))
+    with RendererClient(stack.renderers[0], token=stack.service_token) as renderer:
+        image = renderer.render_png(target)
+        truth = renderer.scene("demo").spec.search.grid().pose(GridIndex(lat=3, lon=7))
+    photo = tmp_path / "hemisphere.png"
+    photo.write_bytes(image)
+    argv = ["search", str(photo), "--scene", "demo", "--url", stack.controller]
+    assert main([*argv, "--out", str(tmp_path / "out"), "--poses", str(table)]) == 0
+    assert "queued: reprojection on demo" in capsys.readouterr().out
+    with table.open(newline="") as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["status"] == "succeeded"
+    assert row["answer"] == "found"
+    assert row["x"] == ""
+    assert float(row["theta_deg"]) == pytest.approx(truth.theta_deg, abs=1.0)
+    assert float(row["phi_deg"]) == pytest.approx(truth.phi_deg, abs=1.0)

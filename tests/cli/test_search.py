@@ -119,3 +119,50 @@ def test_a_service_that_does_not_answer_in_time_is_named() -> None:
     request = httpx.Request("POST", "http://10.0.0.7:8000/searches")
     said = unreachable(httpx.ReadTimeout("timed out", request=request))
     assert said.startswith("http://10.0.0.7:8000 did not answer in time: ")
+
+
+def test_a_flight_keeps_at_most_concurrency_searches_in_the_controller(tmp_path: Path) -> None:
+    """The next photo is submitted only once the oldest search in the controller has ended,
+    and the rows come back in the order the photos were given."""
+    from datetime import UTC, datetime
+
+    from cosmos.cli.batch import search_all
+    from services.common.contracts.optimize import GridPose
+    from services.common.contracts.search import Search
+    from services.common.geometry.pose import GridIndex
+
+    start = GridPose(index=GridIndex(lat=0, lon=0), theta_deg=0.0, phi_deg=0.0)
+    now = datetime.now(UTC)
+
+    def search(n: int, status: str) -> Search:
+        times = {"created_at": now, "updated_at": now, "target_size": (320, 240)}
+        return Search(
+            id=f"s{n}", status=status, scene="demo", strategy="reprojection", start=start,
+            seed=0, max_iterations=5, **times,
+        )  # fmt: skip
+
+    running: set[str] = set()
+    most = 0
+
+    class Controller:
+        def follow(self, search_id: str):
+            running.discard(search_id)
+            yield search(int(search_id[1:]), "failed")
+
+    def submit(image: bytes) -> Search:
+        nonlocal most
+        made = search(int(image), "queued")
+        running.add(made.id)
+        most = max(most, len(running))
+        return made
+
+    photos = []
+    for n in range(7):
+        photos.append(tmp_path / f"{n}.png")
+        photos[-1].write_bytes(str(n).encode())
+    said: list[str] = []
+    rows = search_all(Controller(), photos, submit, 3, said.append)  # type: ignore[arg-type]
+    assert most == 3
+    assert not running
+    assert [row["search_id"] for row in rows] == [f"s{n}" for n in range(7)]
+    assert len(said) == 7

@@ -1,0 +1,87 @@
+"""``cosmos search a.jpg b.jpg … --scene S``: many photos (a survey flight's), each searched once,
+a line said per photo as its search ends, and the answers written as a table (``--poses``:
+:mod:`cosmos.cli.pose_table`).
+
+At most ``--concurrency`` searches are in the controller at a time: the next photo is submitted
+when the oldest of them has ended, so a flight of hundreds neither floods the controller's queue
+nor outruns a key's quota (a refusal that says when to come back is waited out, as for one
+photo). A photo that cannot be read, or that the controller refuses, is said and kept in the
+table with why; the others go on. The answers come in the order the photos were given.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from cosmos.cli.pose_table import Row, not_searched, row_of
+from services.common.contracts.search import Search
+from services.controller.client import ControllerClient, ControllerError
+
+__all__ = ["Submit", "search_all", "summary"]
+
+Submit = Callable[[bytes], Search]
+"""Submits one photo's bytes with the command's options; raises :class:`ControllerError` when
+the controller refuses it."""
+
+
+def summary(image: str, row: Row) -> str:
+    """The line said for one photo once its search has ended."""
+    if row["status"] == "not searched":
+        return f"{image}: not searched: {row['reason']}"
+    answer = row.get("answer", "")
+    if answer == "failed":
+        return f"{image}: {row['status']}: {row.get('reason', '')}"
+    said = answer if row.get("confirmed") else f"{answer}, not confirmed"
+    if "x" in row:
+        where = (
+            f"position ({row['x']:.2f}, {row['y']:.2f}, {row['z']:.2f}), yaw/pitch/roll "
+            f"({row['yaw_deg']:.1f}, {row['pitch_deg']:.1f}, {row['roll_deg']:.1f})°, "
+            f"fov {row['fov_deg']:.1f}° ({row['intrinsics']})"
+        )
+    else:
+        where = f"θ {row['theta_deg']:.1f}° φ {row['phi_deg']:.1f}°"
+    return f"{image}: {said}: {where}, {row['renders']} render(s)"
+
+
+def _ended(client: ControllerClient, search: Search) -> Search:
+    """``search`` once it has ended (its events followed to the last)."""
+    final = search
+    for item in client.follow(search.id):
+        if isinstance(item, Search):
+            final = item
+    return final
+
+
+def search_all(
+    client: ControllerClient,
+    images: Sequence[Path],
+    submit: Submit,
+    concurrency: int,
+    say: Callable[[str], None] = print,
+) -> list[Row]:
+    """Each of ``images`` searched (module docstring): their rows, in the order given."""
+    rows: list[Row | None] = [None] * len(images)
+    running: deque[tuple[int, Search]] = deque()
+
+    def done(index: int, row: Row) -> None:
+        rows[index] = row
+        say(summary(str(images[index]), row))
+
+    def end_oldest() -> None:
+        index, search = running.popleft()
+        done(index, row_of(str(images[index]), _ended(client, search)))
+
+    for index, path in enumerate(images):
+        if len(running) >= concurrency:
+            end_oldest()
+        try:
+            running.append((index, submit(path.read_bytes())))
+        except OSError as exc:
+            done(index, not_searched(str(path), f"cannot be read ({exc.strerror or exc})"))
+        except ControllerError as exc:
+            done(index, not_searched(str(path), f"refused ({exc.status}: {exc.detail})"))
+    while running:
+        end_oldest()
+    return [row for row in rows if row is not None]
