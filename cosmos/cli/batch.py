@@ -6,7 +6,8 @@ At most ``--concurrency`` searches are in the controller at a time: the next pho
 when the oldest of them has ended, so a flight of hundreds neither floods the controller's queue
 nor outruns a key's quota (a refusal that says when to come back is waited out, as for one
 photo). A photo that cannot be read, or that the controller refuses, is said and kept in the
-table with why; the others go on. The answers come in the order the photos were given.
+table with why; so is a search whose end could not be followed (the controller keeps it, under
+the id its row gives); the others go on. The answers come in the order the photos were given.
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
+
+import httpx
 
 from cosmos.cli.pose_table import Row, not_searched, row_of
 from services.common.contracts.search import Search
@@ -28,11 +31,9 @@ the controller refuses it."""
 
 def summary(image: str, row: Row) -> str:
     """The line said for one photo once its search has ended."""
-    if row["status"] == "not searched":
-        return f"{image}: not searched: {row['reason']}"
-    answer = row.get("answer", "")
-    if answer == "failed":
+    if "renders" not in row:  # no result: not searched, failed, or not followed to its end
         return f"{image}: {row['status']}: {row.get('reason', '')}"
+    answer = row["answer"]
     said = answer if row.get("confirmed") else f"{answer}, not confirmed"
     if "x" in row:
         where = (
@@ -71,7 +72,11 @@ def search_all(
 
     def end_oldest() -> None:
         index, search = running.popleft()
-        done(index, row_of(str(images[index]), _ended(client, search)))
+        try:
+            done(index, row_of(str(images[index]), _ended(client, search)))
+        except (ControllerError, httpx.TransportError) as exc:
+            lost = f"not followed to its end ({exc}); the controller keeps it: ask for {search.id}"
+            done(index, {**row_of(str(images[index]), search), "answer": "", "reason": lost})
 
     for index, path in enumerate(images):
         if len(running) >= concurrency:
