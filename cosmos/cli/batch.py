@@ -87,6 +87,8 @@ def search_all(
             done(index, not_searched(str(path), f"cannot be read ({exc.strerror or exc})"))
         except ControllerError as exc:
             done(index, not_searched(str(path), f"refused ({exc.status}: {exc.detail})"))
+        except httpx.TransportError as exc:
+            done(index, not_searched(str(path), f"the controller could not be reached ({exc})"))
     while running:
         end_oldest()
     return [row for row in rows if row is not None]
