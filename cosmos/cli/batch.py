@@ -5,9 +5,10 @@ a line said per photo as its search ends, and the answers written as a table (``
 At most ``--concurrency`` searches are in the controller at a time: the next photo is submitted
 when the oldest of them has ended, so a flight of hundreds neither floods the controller's queue
 nor outruns a key's quota (a refusal that says when to come back is waited out, as for one
-photo). A photo that cannot be read, or that the controller refuses, is said and kept in the
-table with why; so is a search whose end could not be followed (the controller keeps it, under
-the id its row gives); the others go on. The answers come in the order the photos were given.
+photo). A photo that cannot be read, that the controller refuses, or that finds it out of
+reach is said and kept in the table with why; so is a search whose end could not be followed
+(the controller keeps it, under the id its row gives); the others go on. The answers come in
+the order the photos were given.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ __all__ = ["Submit", "search_all", "summary"]
 
 Submit = Callable[[bytes], Search]
 """Submits one photo's bytes with the command's options; raises :class:`ControllerError` when
-the controller refuses it."""
+the controller refuses it, :class:`httpx.TransportError` when it cannot be reached."""
 
 
 def summary(image: str, row: Row) -> str:
