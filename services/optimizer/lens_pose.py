@@ -36,8 +36,7 @@ from typing import Final
 
 from pydantic import ValidationError
 
-from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed, LensBend
-from services.common.geometry.camera import fov_deg_of
+from services.common.contracts.free import DenseReport, FreePose, LensBend
 from services.common.geometry.free_camera import (
     LensDistortion,
     free_pinhole_camera,
@@ -91,15 +90,7 @@ def lens_pose(
     width, height = film
     try:
         lens = LensDistortion(k1=check.k1)
-        intrinsics = IntrinsicsUsed(
-            fx_px=fx,
-            fy_px=fy,
-            cx_px=k.cx_px,
-            cy_px=k.cy_px,
-            fov_deg=fov_deg_of(fx, width),
-            source="estimated",
-            distortion=lens,
-        )
+        intrinsics = k.refocused(fx, fy, width, "estimated", lens)
         camera_to_world = check.rotation.T
         position = (float(check.position[0]), float(check.position[1]), float(check.position[2]))
         names = [c.object for c in start.correspondences]

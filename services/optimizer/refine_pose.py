@@ -88,7 +88,7 @@ from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from services.common.catalog import SceneCatalog
-from services.common.contracts.free import DenseReport, FreePose, IntrinsicsUsed
+from services.common.contracts.free import DenseReport, FreePose
 from services.common.contracts.refine import (
     MAX_FILM_SCALE,
     FocalCheck,
@@ -99,7 +99,7 @@ from services.common.contracts.refine import (
 )
 from services.common.depth_archive import DepthImage
 from services.common.errors import ServiceError, UnprocessableError
-from services.common.geometry.camera import focal_length_px, fov_deg_of
+from services.common.geometry.camera import focal_length_px
 from services.common.geometry.free_camera import (
     free_pinhole_camera,
     rotation_angle_deg,
@@ -353,15 +353,8 @@ def _refined(
     """``start`` moved to the fit (intrinsics in target pixels, module docstring)."""
     k = start.intrinsics
     fx, fy = fit.intrinsics.fx / scale, fit.intrinsics.fy / scale
-    intrinsics = IntrinsicsUsed(
-        fx_px=fx,
-        fy_px=fy,
-        cx_px=k.cx_px,
-        cy_px=k.cy_px,
-        fov_deg=fov_deg_of(fx, width),
-        source="estimated" if fit.focal_fitted else k.source,
-        distortion=k.distortion,
-    )
+    source = "estimated" if fit.focal_fitted else k.source
+    intrinsics = k.refocused(fx, fy, width, source, k.distortion)
     residual = report.residual_px if report.residual_px is not None else 0.0
     return start.moved_to(fit.rotation.T, fit.position, intrinsics, residual)
 

@@ -22,6 +22,7 @@ from services.common.contracts.optimize import (
     ImageDetections,
     ImageSide,
 )
+from services.common.geometry.camera import fov_deg_of
 from services.common.geometry.free_camera import (
     FocalPx,
     FovDeg,
@@ -155,6 +156,27 @@ class IntrinsicsUsed(FrozenModel):
     fov_deg: Number
     source: IntrinsicsSource
     distortion: LensDistortion | None = None
+
+    def refocused(
+        self,
+        fx_px: float,
+        fy_px: float,
+        width: int,
+        source: IntrinsicsSource,
+        distortion: LensDistortion | None,
+    ) -> IntrinsicsUsed:
+        """These intrinsics with the focal lengths ``fx_px, fy_px`` (the principal point
+        kept), their fov ``2 atan(W / 2 f_x)`` over ``width`` pixels, ``source`` and
+        ``distortion``."""
+        return IntrinsicsUsed(
+            fx_px=fx_px,
+            fy_px=fy_px,
+            cx_px=self.cx_px,
+            cy_px=self.cy_px,
+            fov_deg=fov_deg_of(fx_px, width),
+            source=source,
+            distortion=distortion,
+        )
 
 
 class FreeCorrespondence(FrozenModel):
