@@ -63,6 +63,7 @@ __all__ = ["RenderEngine", "RenderedImage"]
 _log = logging.getLogger("cosmos.renderer")
 FROZEN_RECORDINGS = 16  # frozen render recordings kept (scenes x film sizes x spp in use)
 P = ParamSpec("P")
+Key = tuple[str, int, int, int]
 T = TypeVar("T")
 
 
@@ -122,7 +123,7 @@ class RenderEngine:
         self._dr: Any = None
         self._aov: Any = None
         self._geometry: Any = None
-        self._render_view: Callable[[Any, Any, Any, int], Any] = self._traced_render
+        self._render_view: Callable[[Any, Any, Any, int, Key], Any] = self._traced_render
         self.variant = ""
         self.variant_reason = ""
 
@@ -370,7 +371,9 @@ class RenderEngine:
         if isinstance(pose, FreeView):
             check_outside_objects(pose.camera.position, loaded.lo, loaded.hi)
 
-    def _traced_render(self, scene: Any, sensor: Any, seed: Any, spp: int) -> Any:
+    def _traced_render(self, scene: Any, sensor: Any, seed: Any, spp: int, key: Key) -> Any:
+        """A render by ``sensor``; ``key`` (scene id, version, film size), unused here, joins
+        the frozen recording's key, which sees only the JIT inputs' layout otherwise."""
         return self._mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
     def _render(
@@ -411,8 +414,15 @@ class RenderEngine:
         started = time.perf_counter()
         # The seed as a JIT value, so that a new seed does not need a new recording.
         jit_seed = seed if self.variant == SCALAR_VARIANT else self._mi.UInt32(seed)
-        image = self._render_view(loaded.scene, loaded.camera_sensor, jit_seed, spp)
-        linear = np.asarray(image, dtype=np.float32).reshape(height, width, -1)[..., :3]
+        key = (scene.id, scene.version, width, height)
+        sensor = loaded.camera_sensor
+        pixels = np.asarray(self._render_view(loaded.scene, sensor, jit_seed, spp, key))
+        if pixels.shape[:2] != (height, width):  # another film's recording replayed: trace
+            shape = pixels.shape
+            _log.warning("frozen render of %s: %s for %dx%d", scene.id, shape, width, height)
+            getattr(self._render_view, "clear", lambda: None)()
+            pixels = np.asarray(self._traced_render(loaded.scene, sensor, jit_seed, spp, key))
+        linear = pixels.astype(np.float32, copy=False).reshape(height, width, -1)[..., :3]
         return linear, (time.perf_counter() - started) * 1000.0
 
     def _shape_ids(self, scene: Any, sensor: Any, width: int, height: int) -> NDArray[np.int64]:

@@ -140,6 +140,27 @@ def test_frozen_renders_are_the_traced_renders_and_record_once(engine, traced_en
     assert recordings[2:] == [recordings[2]] * 3, recordings
 
 
+def test_a_frozen_render_of_another_film_is_traced_again(
+    engine, traced_engine, catalog, monkeypatch
+):
+    """Should a frozen replay come out at another film's size (a recording of a scene alike in
+    layout: seen once, under load, among drone lenses' padded films), the pass is traced again:
+    the film asked for, with the very pixels of tracing it, and no error."""
+    scene = catalog.get("garden")
+    pose = Pose(theta_deg=35, phi_deg=70)
+
+    def stale(mi_scene, sensor, seed, spp, key):  # another film's recording, replayed
+        _, _, width, height = key
+        return np.zeros((height + 64, width + 64, 3), dtype=np.float32)
+
+    monkeypatch.setattr(engine, "_render_view", stale)
+    image = engine.render(scene, pose, 96, 72, 2, 5)
+    monkeypatch.undo()
+    again = traced_engine.render(scene, pose, 96, 72, 2, 5)
+    assert image.rgb.shape == (72, 96, 3)
+    assert np.array_equal(image.rgb, again.rgb)
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="threads are found in /proc")
 def test_jit_worker_threads_run_at_low_priority_after_a_render(engine, catalog):
     """Dr.Jit's workers spin after each launch; at nice 19 the spin yields to the detector."""
