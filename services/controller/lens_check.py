@@ -118,6 +118,8 @@ def with_lens_doubt(
         return result
     pose = outcome.lens_pose
     taken = "the answer is the pose fitted with that k1" if pose else "the pinhole pose is kept"
+    if pose is None and bend.cost_drop is not None:
+        taken += f" (that k1 removes {bend.cost_drop:.1%} of the pinhole fit's edge misfit)"
     reason = (
         f"{result.reason}; but the photo's edges bend as a distorting lens's do (the fit puts "
         f"its radial k1 at {bend.k1:.3f} ± {bend.k1_sigma:.3f}, moving the edges near the "

@@ -27,6 +27,20 @@ share within 5 %/2° or 2 %/1° against the same run without the check (78 and 7
 −0.21…−0.06) searched with nothing read, 31 fits bent by 2.5–30 pixels of the fit at 8–137
 σ (the other fitted ``k1`` +0.007); searched with the focal length given and not the lens,
 a pose 8 % of the radius and 6.6° off was confirmed, its check bending 5.8 pixels at 4.3 σ.
+
+A moved light's shadow edges can bend the check of a pinhole photo too, and at 320 pixels
+neither the bend nor its σ tells them from a lens: five ``photo`` targets of ``cosmos bench
+--free`` (seeds 41, 43, 44) bent 3–5 px at 4.6–8.6 σ, where ``benchmarks.drone_lens``' photos
+brought to 320 px bent from 2.5 px at 5.5 σ. What the lens explains does better: its ``k1``
+removed 0.7–5.9 % of the pinhole fit's robust edge cost (``LensBend.cost_drop``) on those
+targets, and at most 2.8 % on 48 draws of the same kind (three views, eight lights, with and
+without the photo finish: ``tests/optimizer/test_dense.py`` keeps one), against 3.8 % and up
+(median 42 %) on the 84 drone-lens searches at 320 px whose check bent. So a bend whose ``k1``
+removes less than :data:`LENS_POSE_DROP` makes no lens pose: the answer keeps the pinhole's fit,
+never confirmed either way. Measured: the 40 ``photo`` and ``changed`` searches of seed 41 on
+demo and garden, 33 → 34 within 5 %/2° (a view 3.9 %/2.4° off came to 2.0 %/1.1°, one render
+fewer); the 96 drone-lens searches unchanged. At 6.5 % three of those answers gained, but four
+drone answers moved 1–3 % away (two fewer within 2 %/1°): not taken.
 """
 
 from __future__ import annotations
@@ -46,7 +60,7 @@ from services.optimizer.free.lens_check import RadialCheck
 from services.optimizer.free.objects import SceneObjects
 from services.optimizer.free_pose import predicted_boxes
 
-__all__ = ["BEND_PX", "BEND_Z", "lens_bend", "lens_pose"]
+__all__ = ["BEND_PX", "BEND_Z", "LENS_POSE_DROP", "lens_bend", "lens_explains", "lens_pose"]
 
 BEND_PX: Final = 2.0
 """The lens check's bend (``LensBend.bend_px``, in pixels of the fit: the coarser of the film's
@@ -54,6 +68,10 @@ and the target's) from which the target's edges are taken to bend as a distortin
 BEND_Z: Final = 4.0
 """…when its ``k1`` is also this many of its standard deviations from 0 (and not on a bound of
 :data:`~services.optimizer.free.level_fit.RADIAL_RANGE`)."""
+LENS_POSE_DROP: Final = 0.035
+"""A bend whose ``k1`` fit removes less than this share of the pinhole fit's robust edge cost
+(``LensBend.cost_drop``) leaves the answer at the pinhole's pose, still never confirmed: see
+the module docstring for what set it."""
 
 
 def lens_bend(check: RadialCheck | None, scale: float, accepted: bool) -> LensBend | None:
@@ -72,7 +90,15 @@ def lens_bend(check: RadialCheck | None, scale: float, accepted: bool) -> LensBe
         bend_px=check.bend_px / scale,
         inliers=check.inliers,
         bends=bends,
+        cost_drop=check.cost_drop,
     )
+
+
+def lens_explains(check: RadialCheck) -> bool:
+    """Whether a bending check's lens is worth its pose: it removes at least
+    :data:`LENS_POSE_DROP` of the pinhole fit's robust cost (a check started through a lens,
+    with no pinhole fit to compare with, is taken at its word)."""
+    return check.cost_drop is None or check.cost_drop >= LENS_POSE_DROP
 
 
 def lens_pose(

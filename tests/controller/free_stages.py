@@ -131,6 +131,7 @@ class FakeStages(ScriptedCalls):
         self.pitch = 90.0  # the candidates' pitch, as the optimizer says it
         self.focal_check: float | None = None  # the check's focal length off the stated one
         self.lens: LensBend | None = None  # what the fits' lens check says
+        self.lens_pose = True  # whether a check that bends offers its lens's pose
         self.prepared: list[tuple[TargetRequest, int]] = []  # and the refinements made by then
 
     async def wait_for_replica(self, stage: str, timeout_s: float) -> bool:
@@ -211,7 +212,7 @@ class FakeStages(ScriptedCalls):
                 fit=fit.model_copy(update={"focal_fitted": True, "focal_sigma": 0.002}),
             )
         bent = None
-        if self.lens is not None and self.lens.bends:  # the lens check's pose: 0.3 higher
+        if self.lens is not None and self.lens.bends and self.lens_pose:  # 0.3 higher
             lens = LensDistortion(k1=self.lens.k1)
             estimated = k.model_copy(update={"distortion": lens, "source": "estimated"})
             bent = refined.model_copy(

@@ -77,6 +77,30 @@ def test_a_search_whose_edges_bend_keeps_its_pose_unconfirmed_and_says_what_to_g
     assert "give the lens's distortion" in result.reason
 
 
+def test_a_bend_whose_lens_explains_little_keeps_the_pinhole_pose_unconfirmed(tmp_path, detail):
+    """A check that bends but whose ``k1`` removes little of the pinhole fit's misfit comes with
+    no lens pose (the optimizer's rule: :func:`services.optimizer.lens_pose.lens_explains`): the
+    answer stays at the pinhole's fit, is not confirmed, says why, and spends no render through
+    a lens."""
+    straight = FakeStages(detail, inliers=850)
+    clear = run(tmp_path / "straight", straight).result
+    assert clear is not None
+    assert clear.free is not None
+
+    faint = FakeStages(detail, inliers=850)
+    faint.lens = BENT.model_copy(update={"k1": -0.11, "bend_px": 2.8, "cost_drop": 0.004})
+    faint.lens_pose = False
+    result = run(tmp_path / "faint", faint).result
+    assert result is not None
+    assert result.free is not None
+    assert not result.confirmed
+    assert result.free.status == "ambiguous"
+    assert result.free.pose.position == clear.free.pose.position
+    assert result.renders == clear.renders
+    assert all(camera.distortion is None for camera, _ in faint.rendered)
+    assert "the pinhole pose is kept (that k1 removes 0.4% of the pinhole fit's" in result.reason
+
+
 def test_given_intrinsics_without_a_lens_are_doubted_too(tmp_path, detail):
     """A fov given without the lens is fitted as a pinhole's: its fit's check bends as well."""
     stages = FakeStages(detail, inliers=850)

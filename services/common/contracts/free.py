@@ -286,16 +286,23 @@ class LensBend(FrozenModel):
     term ``k1`` (OpenCV's, ``x_d = x (1 + k1 r²)``) that the target's edges fit with the pose
     (and the focal length, unless it was given), its standard deviation ``k1_sigma`` (the edge
     points taken as independent), ``bend_px``, how far it moves the farthest explained edge
-    points (the 95th percentile, target pixels), and how many edge points that fit explains
-    (``inliers``); ``bends`` when the optimizer judges the bend beyond what a pinhole's fit
-    leaves: the photo was taken through a distorting lens, and a pose fitted as a pinhole's is
-    not to be confirmed."""
+    points (the 95th percentile, target pixels), how many edge points that fit explains
+    (``inliers``) and how much of the pinhole fit's misfit (``cost_drop``); ``bends`` when the
+    optimizer judges the bend beyond what a pinhole's fit leaves: the photo was taken through a
+    distorting lens, and a pose fitted as a pinhole's is not to be confirmed."""
 
     k1: Number
     k1_sigma: NonNeg
     bend_px: NonNeg
     inliers: Annotated[Integer, Field(ge=0)]
     bends: bool
+    cost_drop: Annotated[Number, Field(le=1.0)] | None = Field(
+        default=None,
+        description="The share of the pinhole fit's robust edge cost that the k1 fit removes "
+        "(1 − cost with k1 / cost without; null for a fit already made through an estimated "
+        "lens). A lens that bends yet explains little of the misfit (a moved light's shadow "
+        "edges) does not move the answer: the pinhole's pose is kept, still unconfirmed.",
+    )
 
 
 class DenseReport(FrozenModel):

@@ -6,7 +6,9 @@ From where the pinhole fit ended, the pose, OpenCV's radial ``k1`` (``x_d = x (1
 full resolution (``cv2.projectPoints``, whose Jacobian has the ``k1`` column:
 :class:`~.chamfer.ChamferProblem` with ``fit_radial``). How far that ``k1`` moves the farthest
 explained edge points, ``f |k1| r³``, and how surely (its standard deviation), tell a distorted
-photo from a pinhole's; :mod:`services.optimizer.lens_pose` judges it. A fit made through a
+photo from a pinhole's; :mod:`services.optimizer.lens_pose` judges it. So does the share of
+the pinhole fit's misfit that the lens explains, ``1 − C(k1 fit) / C(pinhole)`` with ``C`` the
+full-resolution level's soft-L1 cost (:func:`~.level_fit.level_cost`). A fit made through a
 radial lens that an earlier check estimated (a render through it) is checked the same way, its
 ``k1`` started there.
 """
@@ -25,6 +27,7 @@ from services.optimizer.free.level_fit import (
     MIN_POINTS,
     RADIAL_RANGE,
     fit_level,
+    level_cost,
     parameter_sigma,
 )
 from services.optimizer.free.refine import Intrinsics
@@ -41,7 +44,9 @@ class RadialCheck:
     95th percentile over them of ``f |k1| r³``, ``r`` the normalised radius, in film pixels)
     and how many edge points the fit explains (``inliers``); ``bounded`` when ``k1`` ended on a
     bound of :data:`RADIAL_RANGE` (the fit ran off, not a lens); the fit's world-to-camera
-    ``rotation`` and ``translation`` and its ``zoom`` of the focal length."""
+    ``rotation`` and ``translation`` and its ``zoom`` of the focal length; ``cost_drop``, the
+    share of the pinhole fit's robust cost that the ``k1`` fit removes (None for a check started
+    through a lens, which has no pinhole fit to compare with)."""
 
     k1: float
     sigma: float
@@ -51,6 +56,7 @@ class RadialCheck:
     rotation: FloatArray
     translation: FloatArray
     zoom: float
+    cost_drop: float | None = None
 
     @property
     def position(self) -> FloatArray:
@@ -90,6 +96,10 @@ def radial_check(
     reach = float(np.percentile(normalised[explained], 95))
     fitted = float(y[index])
     zoom = float(y[6]) if fit_focal else float(x[6])
+    drop = None
+    if k1 == 0.0:  # from the pinhole fit itself: its cost against the lens fit's
+        pinhole = level_cost(problem.residuals(np.append(start, 0.0)), level.sigma)
+        drop = 1.0 - level_cost(distances, level.sigma) / pinhole if pinhole > 0.0 else 0.0
     return RadialCheck(
         k1=fitted,
         sigma=sigma,
@@ -99,4 +109,5 @@ def radial_check(
         rotation=np.asarray(rotation, dtype=np.float64),
         translation=np.asarray(y[3:6], dtype=np.float64),
         zoom=zoom,
+        cost_drop=drop,
     )
