@@ -160,8 +160,9 @@ class RenderEngine:
             # integrator in Python again: ~3-5 ms less per view, identical pixels
             # (tests/renderer/test_engine.py). The camera pose and seed are inputs of the
             # recording; a scene, film size or spp not seen yet records anew (at most
-            # FROZEN_RECORDINGS are kept).
-            self._render_view = dr.freeze(self._traced_render, limit=FROZEN_RECORDINGS)
+            # FROZEN_RECORDINGS are kept; each lens's film is one: no warning past ten).
+            render, kept = self._traced_render, FROZEN_RECORDINGS
+            self._render_view = dr.freeze(render, limit=kept, warn_after=1 << 30)
         self.variant, self.variant_reason = choice.variant, choice.reason
 
     # -- scheduling -------------------------------------------------------------------------
@@ -418,8 +419,7 @@ class RenderEngine:
         sensor = loaded.camera_sensor
         pixels = np.asarray(self._render_view(loaded.scene, sensor, jit_seed, spp, key))
         if pixels.shape[:2] != (height, width):  # another film's recording replayed: trace
-            shape = pixels.shape
-            _log.warning("frozen render of %s: %s for %dx%d", scene.id, shape, width, height)
+            _log.warning("frozen render: %s for %dx%d, traced", pixels.shape, width, height)
             getattr(self._render_view, "clear", lambda: None)()
             pixels = np.asarray(self._traced_render(loaded.scene, sensor, jit_seed, spp, key))
         linear = pixels.astype(np.float32, copy=False).reshape(height, width, -1)[..., :3]
