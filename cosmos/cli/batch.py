@@ -2,10 +2,11 @@
 a line said per photo as its search ends, and the answers written as a table (``--poses``:
 :mod:`cosmos.cli.pose_table`).
 
-At most ``--concurrency`` searches are in the controller at a time: the next photo is submitted
-when the oldest of them has ended, so a flight of hundreds neither floods the controller's queue
-nor outruns a key's quota (a refusal that says when to come back is waited out, as for one
-photo). A photo that cannot be read, that the controller refuses, or that finds it out of
+At most ``--concurrency`` searches are in the controller at a time: each of as many workers
+submits a photo, follows its search to the end and takes the next photo, so a flight of
+hundreds neither floods the controller's queue nor outruns a key's quota (a refusal that says
+when to come back is waited out, as for one photo), and a slow search holds up only its own
+worker. A photo that cannot be read, that the controller refuses, or that finds it out of
 reach is said and kept in the table with why; so is a search whose end could not be followed
 (the controller keeps it, under the id its row gives); the others go on. The answers come in
 the order the photos were given.
@@ -13,7 +14,8 @@ the order the photos were given.
 
 from __future__ import annotations
 
-from collections import deque
+import queue
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -56,6 +58,23 @@ def _ended(client: ControllerClient, search: Search) -> Search:
     return final
 
 
+def _row(client: ControllerClient, path: Path, submit: Submit) -> Row:
+    """One photo submitted and its search followed to the end: its row."""
+    try:
+        search = submit(path.read_bytes())
+    except OSError as exc:
+        return not_searched(str(path), f"cannot be read ({exc.strerror or exc})")
+    except ControllerError as exc:
+        return not_searched(str(path), f"refused ({exc.status}: {exc.detail})")
+    except httpx.TransportError as exc:
+        return not_searched(str(path), f"the controller could not be reached ({exc})")
+    try:
+        return row_of(str(path), _ended(client, search))
+    except (ControllerError, httpx.TransportError) as exc:
+        lost = f"not followed to its end ({exc}); the controller keeps it: ask for {search.id}"
+        return {**row_of(str(path), search), "answer": "", "reason": lost}
+
+
 def search_all(
     client: ControllerClient,
     images: Sequence[Path],
@@ -63,33 +82,36 @@ def search_all(
     concurrency: int,
     say: Callable[[str], None] = print,
 ) -> list[Row]:
-    """Each of ``images`` searched (module docstring): their rows, in the order given."""
+    """Each of ``images`` searched by ``concurrency`` workers (module docstring): their rows, in
+    the order given. The workers are daemon threads: an interrupted command does not wait for
+    the searches it follows (the controller keeps them)."""
     rows: list[Row | None] = [None] * len(images)
-    running: deque[tuple[int, Search]] = deque()
+    todo: queue.SimpleQueue[int] = queue.SimpleQueue()
+    for index in range(len(images)):
+        todo.put(index)
+    said = threading.Lock()
+    failures: list[BaseException] = []
 
-    def done(index: int, row: Row) -> None:
-        rows[index] = row
-        say(summary(str(images[index]), row))
-
-    def end_oldest() -> None:
-        index, search = running.popleft()
+    def work() -> None:
         try:
-            done(index, row_of(str(images[index]), _ended(client, search)))
-        except (ControllerError, httpx.TransportError) as exc:
-            lost = f"not followed to its end ({exc}); the controller keeps it: ask for {search.id}"
-            done(index, {**row_of(str(images[index]), search), "answer": "", "reason": lost})
+            while True:
+                try:
+                    index = todo.get_nowait()
+                except queue.Empty:
+                    return
+                row = _row(client, images[index], submit)
+                with said:
+                    rows[index] = row
+                    say(summary(str(images[index]), row))
+        except BaseException as exc:  # noqa: BLE001 - raised again by the command's thread
+            failures.append(exc)
 
-    for index, path in enumerate(images):
-        if len(running) >= concurrency:
-            end_oldest()
-        try:
-            running.append((index, submit(path.read_bytes())))
-        except OSError as exc:
-            done(index, not_searched(str(path), f"cannot be read ({exc.strerror or exc})"))
-        except ControllerError as exc:
-            done(index, not_searched(str(path), f"refused ({exc.status}: {exc.detail})"))
-        except httpx.TransportError as exc:
-            done(index, not_searched(str(path), f"the controller could not be reached ({exc})"))
-    while running:
-        end_oldest()
+    workers = [threading.Thread(target=work, daemon=True) for _ in range(concurrency)]
+    for worker in workers[: len(images)]:
+        worker.start()
+    for worker in workers[: len(images)]:
+        while worker.is_alive():
+            worker.join(0.2)  # in short waits, so that Ctrl-C reaches this thread
+    if failures:
+        raise failures[0]
     return [row for row in rows if row is not None]

@@ -122,9 +122,12 @@ def test_a_service_that_does_not_answer_in_time_is_named() -> None:
 
 
 def test_a_flight_keeps_at_most_concurrency_searches_in_the_controller(tmp_path: Path) -> None:
-    """The next photo is submitted only once the oldest search in the controller has ended,
-    and the rows come back in the order the photos were given; a search whose end could not be
-    followed keeps its row, with its id to ask for."""
+    """At most ``concurrency`` searches are in the controller at a time, and a slow one holds up
+    only its own worker: the first search ends only once the last photo went in (waiting for
+    the oldest search before the next photo, it would have waited out its 10 s). The rows come
+    back in the order the photos were given; a search whose end could not be followed keeps its
+    row, with its id to ask for."""
+    import threading
     from datetime import UTC, datetime
 
     from cosmos.cli.batch import search_all
@@ -144,21 +147,30 @@ def test_a_flight_keeps_at_most_concurrency_searches_in_the_controller(tmp_path:
 
     running: set[str] = set()
     most = 0
+    lock = threading.Lock()
+    last_in = threading.Event()  # the last photo was submitted
+    first_waited: list[bool] = []
 
     class Controller:
         def follow(self, search_id: str):
-            running.discard(search_id)
+            if search_id == "s0":  # a slow search: it ends once the last photo is in
+                first_waited.append(last_in.wait(timeout=10))
+            with lock:
+                running.discard(search_id)
             if search_id == "s3":  # the controller's stream broke off: the search goes on there
                 raise httpx.ReadTimeout("timed out")
             yield search(int(search_id[1:]), "failed")
 
     def submit(image: bytes) -> Search:
         nonlocal most
+        if image == b"6":
+            last_in.set()
         if image == b"5":  # the controller went away for a moment
             raise httpx.ConnectError("connection refused")
         made = search(int(image), "queued")
-        running.add(made.id)
-        most = max(most, len(running))
+        with lock:
+            running.add(made.id)
+            most = max(most, len(running))
         return made
 
     photos = []
@@ -167,7 +179,8 @@ def test_a_flight_keeps_at_most_concurrency_searches_in_the_controller(tmp_path:
         photos[-1].write_bytes(str(n).encode())
     said: list[str] = []
     rows = search_all(Controller(), photos, submit, 3, said.append)  # type: ignore[arg-type]
-    assert most == 3
+    assert first_waited == [True]
+    assert most <= 3
     assert not running
     assert [row.get("search_id") for row in rows] == ["s0", "s1", "s2", "s3", "s4", None, "s6"]
     assert rows[5]["status"] == "not searched"
