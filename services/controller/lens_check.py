@@ -111,13 +111,18 @@ def with_lens_doubt(
     result: SearchResult, outcome: RefinePoseResponse, grid: HemisphereGrid
 ) -> SearchResult:
     """``result`` (a free search's, fitted as a pinhole's) answered at the pose ``outcome``'s
-    lens check fitted (when it gave one), not confirmed, ``ambiguous``, its reason saying that
-    the photo's edges bend and what to give."""
+    lens check fitted (when it gave one: the pinhole's pose then leads its alternatives, as
+    either may be the right one), not confirmed, ``ambiguous``, its reason saying that the
+    photo's edges bend and what to give."""
     free, bend = result.free, outcome.fit.lens
     if free is None or bend is None:
         return result
     pose = outcome.lens_pose
-    taken = "the answer is the pose fitted with that k1" if pose else "the pinhole pose is kept"
+    taken = (
+        "the answer is the pose fitted with that k1, the pinhole's its first alternative"
+        if pose
+        else "the pinhole pose is kept"
+    )
     if pose is None and bend.cost_drop is not None:
         taken += f" (that k1 removes {bend.cost_drop:.1%} of the pinhole fit's edge misfit)"
     reason = (
@@ -127,7 +132,13 @@ def with_lens_doubt(
         f"{taken}, not confirmed; give the lens's distortion (k1, k2, p1, p2) and intrinsics, "
         "or a photo whose XMP states its calibration, to confirm it"
     )
-    return unconfirmed_at(result, reason, grid, pose)
+    doubted = unconfirmed_at(result, reason, grid, pose)
+    if pose is None or doubted.free is None:
+        return doubted
+    alternatives = (free.pose, *doubted.free.alternatives)
+    return doubted.model_copy(
+        update={"free": doubted.free.model_copy(update={"alternatives": alternatives})}
+    )
 
 
 def lens_unchecked(

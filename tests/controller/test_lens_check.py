@@ -71,6 +71,9 @@ def test_a_search_whose_edges_bend_keeps_its_pose_unconfirmed_and_says_what_to_g
     assert result.free.box_pose is not None
     assert result.free.box_pose.position != pose.position
     assert "the answer is the pose fitted with that k1" in result.reason
+    # the pinhole's fit leads the alternatives: either pose may be the right one
+    assert result.free.alternatives[0].position == clear.free.pose.position
+    assert result.free.alternatives[0].intrinsics.distortion is None
     assert "the photo's edges bend as a distorting lens's do" in result.reason
     assert "k1 at -0.061 ± 0.003" in result.reason
     assert "16.5 px" in result.reason
