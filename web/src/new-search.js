@@ -30,7 +30,8 @@ export function showNewSearch({ view, api }, params) {
   const urls = new Set(); // object URLs made here, revoked once no picture shows them
   function release() {
     for (const url of urls) {
-      if (url === preview.src || url === targetPicture.src) continue;
+      // the target asked for is not shown yet while its size is read (showTarget): keep it too
+      if (url === preview.src || url === targetPicture.src || url === wantedTarget) continue;
       URL.revokeObjectURL(url);
       urls.delete(url);
     }
