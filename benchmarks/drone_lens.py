@@ -2,7 +2,7 @@
 XMP, its EXIF focal length alone, nothing read, or everything given.
 
 Run: ``.venv/bin/python -m benchmarks.drone_lens [--scenes demo,garden] [--seeds 11] [--n 8]
-[--render-width 1280] [--photo-width 4000]``
+[--render-width 1280] [--photo-width 4000] [--arms "EXIF only,no lens"] [--max-iterations 5]``
 
 Survey drones shoot through wide lenses with barrel distortion and write the lens's calibration
 into each photo's XMP (DJI's ``DewarpData``: :mod:`services.controller.photo_xmp`); the EXIF
@@ -198,8 +198,8 @@ def photos(
     return made
 
 
-def _query(photo: LensPhoto, arm: str) -> tuple[bytes, dict[str, str]]:
-    query = {"scene": photo.scene, "mode": "free", "max_iterations": "5"}
+def _query(photo: LensPhoto, arm: str, renders: int = 5) -> tuple[bytes, dict[str, str]]:
+    query = {"scene": photo.scene, "mode": "free", "max_iterations": str(renders)}
     if arm == "nothing read":
         query["exif"] = "false"
     if arm in ("no lens", "given"):
@@ -211,8 +211,10 @@ def _query(photo: LensPhoto, arm: str) -> tuple[bytes, dict[str, str]]:
     return (photo.exif_only if arm == "EXIF only" else photo.with_xmp), query
 
 
-async def _search(url: str, key: str, shots: Sequence[LensPhoto]) -> dict[str, list[Outcome]]:
-    outcomes: dict[str, list[Outcome]] = {arm: [] for arm in ARMS}
+async def _search(
+    url: str, key: str, shots: Sequence[LensPhoto], arms: Sequence[str], renders: int
+) -> dict[str, list[Outcome]]:
+    outcomes: dict[str, list[Outcome]] = {arm: [] for arm in arms}
     async with aiohttp.ClientSession(headers={"Authorization": f"Bearer {key}"}) as http:
         for photo in shots:
             truth = Estimate(
@@ -220,8 +222,8 @@ async def _search(url: str, key: str, shots: Sequence[LensPhoto]) -> dict[str, l
                 np.asarray(photo.camera.position, dtype=np.float64),
                 photo.fov_deg,
             )
-            for arm in ARMS:
-                image, query = _query(photo, arm)
+            for arm in arms:
+                image, query = _query(photo, arm, renders)
                 raw, wall_ms = await post_and_follow(http, url, image, query)
                 result = raw.get("result") or {}
                 outcomes[arm].append(
@@ -244,7 +246,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--n", type=int, default=8, help="targets per scene and seed")
     parser.add_argument("--render-width", type=int, default=1280)
     parser.add_argument("--photo-width", type=int, default=4000)
+    parser.add_argument("--arms", default=",".join(ARMS), help="comma-separated, of ARMS")
+    parser.add_argument("--max-iterations", type=int, default=5, help="renders per search")
     args = parser.parse_args(argv)
+    arms = [arm.strip() for arm in args.arms.split(",")]
+    if unknown := [arm for arm in arms if arm not in ARMS]:
+        parser.error(f"unknown arm(s) {', '.join(unknown)}: of {', '.join(ARMS)}")
     seeds = [int(s) for s in args.seeds.split(",")]
     scenes = args.scenes.split(",")
     shots = photos(scenes, seeds, args.n, args.render_width, args.photo_width)
@@ -252,7 +259,8 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="cosmos-lens-") as tmp:
         with local_stack(Path(tmp)) as stack:
             assert stack.api_key is not None
-            outcomes = asyncio.run(_search(stack.controller, stack.api_key, shots))
+            search = _search(stack.controller, stack.api_key, shots, arms, args.max_iterations)
+            outcomes = asyncio.run(search)
     print(header("arm / band"))
     for arm, mine in outcomes.items():
         print_bands(arm, mine)

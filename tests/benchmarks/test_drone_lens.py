@@ -61,3 +61,11 @@ def test_each_arm_asks_what_it_names():
     assert "intrinsics" not in queries["nothing read"][1]
     assert queries["EXIF only"][0] == b"exif"
     assert queries["calibration"][0] == b"xmp"
+
+
+def test_an_unknown_arm_is_refused_before_any_photo_is_made(capsys):
+    from benchmarks.drone_lens import main
+
+    with pytest.raises(SystemExit):
+        main(["--arms", "EXIF only,bogus"])
+    assert "unknown arm(s) bogus" in capsys.readouterr().err
