@@ -111,7 +111,10 @@ def lens_pose(
 ) -> FreePose | None:
     """``start`` moved to the lens check's fit, its intrinsics (target pixels) ``estimated``
     with the fitted ``k1`` as the lens, and its pairs' boxes predicted through it; None when
-    that lens would fold the film's corners (the fit's ``k1`` is then no lens)."""
+    that lens explains too little of the pinhole fit's misfit (:func:`lens_explains`) or would
+    fold the film's corners (the fit's ``k1`` is then no lens)."""
+    if not lens_explains(check):
+        return None
     k = start.intrinsics
     fx, fy = k.fx_px * check.zoom, k.fy_px * check.zoom
     width, height = film

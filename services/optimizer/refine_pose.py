@@ -113,7 +113,7 @@ from services.optimizer.free.level_fit import MIN_POINTS
 from services.optimizer.free.refit import worth_another_render
 from services.optimizer.free.target_maps import TargetMapCache
 from services.optimizer.free_pose import SceneObjectCache, predicted_boxes
-from services.optimizer.lens_pose import lens_bend, lens_explains, lens_pose
+from services.optimizer.lens_pose import lens_bend, lens_pose
 
 __all__ = [
     "CHECK_ZOOMS",
@@ -443,10 +443,8 @@ def refine_pose(
             c.model_copy(update={"predicted_box": boxes[c.object]}) for c in start.correspondences
         )
         bent = None
-        radial = fit.radial
-        bends = report.lens is not None and report.lens.bends
-        if bends and radial is not None and lens_explains(radial):
-            bent = lens_pose(radial, start, report, (width, height), objects)
+        if report.lens is not None and report.lens.bends and fit.radial is not None:
+            bent = lens_pose(fit.radial, start, report, (width, height), objects)
         return RefinePoseResponse(
             pose=pose.model_copy(update={"correspondences": pairs}), fit=report, lens_pose=bent
         )
